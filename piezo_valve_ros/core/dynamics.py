@@ -1,0 +1,111 @@
+"""Discrete-time linear filters (exact ZOH discretisation) with identical streaming and batch paths.
+
+The valve model of the paper, ``G_v(s) = 1.2e6 / (s^2 + 2900 s + 1.2e6)`` (amplifier input
+to spool position, unity DC gain), lives here as ``PAPER_VALVE_MODEL``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from scipy import signal
+
+__all__ = ["ContinuousTF", "DiscreteFilter", "PAPER_VALVE_MODEL", "first_order_lag"]
+
+
+@dataclass(frozen=True)
+class ContinuousTF:
+    """Continuous transfer function num(s)/den(s), coefficients in descending powers of s."""
+
+    num: tuple[float, ...]
+    den: tuple[float, ...]
+
+    def problems(self) -> list[str]:
+        out = []
+        if not self.num or not self.den:
+            out.append("empty numerator or denominator")
+            return out
+        if not (np.all(np.isfinite(self.num)) and np.all(np.isfinite(self.den))):
+            out.append("non-finite coefficient")
+            return out
+        if self.den[0] == 0:
+            out.append("leading denominator coefficient is 0")
+        elif len(self.num) > len(self.den):
+            out.append("improper transfer function (numerator order > denominator order)")
+        else:
+            poles = np.roots(self.den)
+            if np.any(poles.real >= 0):
+                out.append(f"unstable or marginal poles {poles}")
+        return out
+
+    def dc_gain(self) -> float:
+        return float(self.num[-1] / self.den[-1])
+
+    def discretise(self, dt: float) -> "DiscreteFilter":
+        """Exact zero-order-hold discretisation for sample time ``dt`` [s]."""
+        problems = self.problems()
+        if problems:
+            raise ValueError("invalid transfer function: " + "; ".join(problems))
+        b, a, _ = signal.cont2discrete((np.asarray(self.num, float), np.asarray(self.den, float)), dt, method="zoh")
+        return DiscreteFilter(np.atleast_1d(np.squeeze(b)), a)
+
+    def frequency_response(self, freqs_hz: np.ndarray) -> np.ndarray:
+        _, h = signal.freqs(self.num, self.den, worN=2 * np.pi * np.asarray(freqs_hz, float))
+        return h
+
+
+PAPER_VALVE_MODEL = ContinuousTF((1.2e6,), (1.0, 2900.0, 1.2e6))
+
+
+def first_order_lag(time_constant_s: float, dt: float) -> "DiscreteFilter":
+    """ZOH-exact first-order lag 1/(tau s + 1)."""
+    return ContinuousTF((1.0,), (float(time_constant_s), 1.0)).discretise(dt)
+
+
+class DiscreteFilter:
+    """IIR filter b(z)/a(z) in transposed direct form II.
+
+    ``step`` (per sample, scalar state, no allocation) and ``run`` (batch, scipy.signal.lfilter)
+    share the state, so a record may be processed in any mix of the two.
+    """
+
+    def __init__(self, b: Sequence[float], a: Sequence[float]):
+        b = np.asarray(b, float)
+        a = np.asarray(a, float)
+        order = max(b.size, a.size)
+        b = np.concatenate((b, np.zeros(order - b.size))) / a[0]
+        a = np.concatenate((a, np.zeros(order - a.size))) / a[0]
+        self.b = b
+        self.a = a
+        self._b = [float(x) for x in b]
+        self._a = [float(x) for x in a]
+        self.order = order - 1
+        self.state = [0.0] * self.order
+
+    def dc_gain(self) -> float:
+        return float(np.sum(self.b) / np.sum(self.a))
+
+    def reset(self, steady_input: float = 0.0) -> None:
+        """State of a filter that has seen ``steady_input`` forever."""
+        if self.order == 0:
+            return
+        zi = signal.lfilter_zi(self.b, self.a) * steady_input
+        self.state = [float(x) for x in zi]
+
+    def step(self, u: float) -> float:
+        b, a, s = self._b, self._a, self.state
+        y = b[0] * u + (s[0] if self.order else 0.0)
+        for i in range(self.order - 1):
+            s[i] = s[i + 1] + b[i + 1] * u - a[i + 1] * y
+        if self.order:
+            s[self.order - 1] = b[self.order] * u - a[self.order] * y
+        return y
+
+    def run(self, u: np.ndarray) -> np.ndarray:
+        u = np.asarray(u, float)
+        if self.order == 0:
+            return self.b[0] * u
+        y, zf = signal.lfilter(self.b, self.a, u, zi=np.asarray(self.state))
+        self.state = [float(x) for x in zf]
+        return y
