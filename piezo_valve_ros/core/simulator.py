@@ -67,7 +67,7 @@ class CreepParams:
     """Creep: y += sum_i c_i (lag_{tau_i}(y) - y); log-like in time for log-spaced tau_i."""
 
     enabled: bool = True
-    gains: tuple[float, ...] = (0.008, 0.008, 0.008, 0.008)
+    gains: tuple[float, ...] = (0.015, 0.015, 0.015, 0.015)
     time_constants_s: tuple[float, ...] = (0.03, 0.3, 3.0, 30.0)
 
 
@@ -85,7 +85,7 @@ class SaturationParams:
     """Loop-end flattening by friction / end stop: y -> centre + s * tanh((y - centre)/s)."""
 
     enabled: bool = True
-    scale_um: float = 250.0
+    scale_um: float = 400.0
     centre_um: float = 0.0
 
 

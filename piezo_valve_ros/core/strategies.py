@@ -153,6 +153,7 @@ class ValveController:
         self._gv.reset(self._last_ref_um)
         self._last_gv_out = self._last_ref_um
         self._last_ff_v = v0
+        self._last_measured_um = self._last_ref_um
         self.integrator_um = 0.0
         self._d_state = 0.0
         self._last_error = 0.0
@@ -196,7 +197,9 @@ class ValveController:
         c = self.config
         s = c.strategy
         v_last = self.last_command_v
-        e = self._last_error
+        # the error the new law would have seen in the last period
+        e = (self._last_gv_out if s == "ff_pid_g" else self._last_ref_um) - self._last_measured_um
+        self._last_error = e
         if s == "pid_hc" and old_strategy != "pid_hc":
             # the in-loop inverse takes over the valve's state as the demand history describes it
             self.loop_inverse.set_forward_state(self.ff_inverse.forward_state())
@@ -224,11 +227,13 @@ class ValveController:
         self._last_ff_v = ff_v
         gv_out = self._gv.step(y_ref)
         self._last_gv_out = gv_out
+        y = measured_m * 1e6
+        self._last_measured_um = y
         if s == "ol":
             return self._finish(c.centre_voltage_v + y_ref / self._k, 0.0, 0.0)
         if s == "ol_hc":
             return self._finish(ff_v, 0.0, 0.0)
-        e = (gv_out if s == "ff_pid_g" else y_ref) - measured_m * 1e6
+        e = (gv_out if s == "ff_pid_g" else y_ref) - y
         g = c.gains
         if g.kd:
             self._d_state += self._d_alpha * (g.kd * (e - self._last_error) / c.dt - self._d_state)

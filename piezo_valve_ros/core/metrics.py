@@ -1,0 +1,93 @@
+"""Metrics exactly as the paper defines them, plus tracking error figures.
+
+Step: settling time = last time outside +-5 % of the step amplitude around the target
+(measured from the start of the ramp); overshoot = peak beyond the target as % of the amplitude.
+Frequency response: gain and phase of the fundamental (correlation over whole periods);
+-3 dB and -90 deg frequencies (first crossing, log-interpolated); resonant peak = max gain in dB
+(0 when the gain never exceeds the low-frequency gain).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["StepMetrics", "step_metrics", "fundamental", "BandwidthMetrics", "bandwidth_metrics",
+           "TrackingError", "tracking_error"]
+
+
+@dataclass(frozen=True)
+class StepMetrics:
+    settling_time_s: float
+    overshoot_pct: float
+    final_error_um: float
+
+
+def step_metrics(y_m: np.ndarray, start_index: int, start_um: float, end_um: float, dt: float,
+                 band: float = 0.05) -> StepMetrics:
+    """Settling time [s] and overshoot [%] of a step response ``y_m`` [m] whose ramp starts at ``start_index``."""
+    y = np.asarray(y_m, float)[start_index:] * 1e6
+    amplitude = end_um - start_um
+    if amplitude == 0:
+        raise ValueError("step amplitude is zero")
+    outside = np.flatnonzero(np.abs(y - end_um) > band * abs(amplitude))
+    settling = 0.0 if outside.size == 0 else (outside[-1] + 1) * dt
+    beyond = (y - end_um) * np.sign(amplitude)
+    overshoot = max(float(beyond.max()), 0.0) / abs(amplitude) * 100.0
+    return StepMetrics(float(settling), overshoot, float(y[-1] - end_um))
+
+
+def fundamental(x: np.ndarray, frequency_hz: float, dt: float) -> complex:
+    """Complex amplitude of the component at ``frequency_hz`` (x should span whole periods)."""
+    x = np.asarray(x, float)
+    t = np.arange(x.size) * dt
+    basis = np.exp(-2j * np.pi * frequency_hz * t)
+    return complex(2.0 * np.mean((x - x.mean()) * basis))
+
+
+@dataclass(frozen=True)
+class BandwidthMetrics:
+    f_3db_hz: float
+    f_90deg_hz: float
+    resonant_peak_db: float
+
+
+def _crossing(freqs: np.ndarray, values: np.ndarray, level: float) -> float:
+    below = np.flatnonzero(values < level)
+    if below.size == 0:
+        return float("nan")
+    k = int(below[0])
+    if k == 0:
+        return float(freqs[0])
+    f0, f1 = np.log(freqs[k - 1]), np.log(freqs[k])
+    v0, v1 = values[k - 1], values[k]
+    frac = (v0 - level) / (v0 - v1)
+    return float(np.exp(f0 + frac * (f1 - f0)))
+
+
+def bandwidth_metrics(freqs_hz: np.ndarray, response: np.ndarray) -> BandwidthMetrics:
+    """From a complex frequency response (output/demand), lowest frequency first."""
+    freqs = np.asarray(freqs_hz, float)
+    h = np.asarray(response, complex)
+    gain_db = 20 * np.log10(np.abs(h) / np.abs(h[0]))
+    phase = np.degrees(np.unwrap(np.angle(h)))
+    phase -= 360.0 * np.round(phase[0] / 360.0)
+    return BandwidthMetrics(_crossing(freqs, gain_db, -3.0), _crossing(freqs, phase, -90.0),
+                            max(float(gain_db.max()), 0.0))
+
+
+@dataclass(frozen=True)
+class TrackingError:
+    rms_um: float
+    peak_um: float
+    peak_pct: float  # peak error as % of range_um
+
+    def as_dict(self) -> dict:
+        return {"rms_um": self.rms_um, "peak_um": self.peak_um, "peak_pct": self.peak_pct}
+
+
+def tracking_error(actual_um: np.ndarray, predicted_um: np.ndarray, range_um: float) -> TrackingError:
+    err = np.asarray(actual_um, float) - np.asarray(predicted_um, float)
+    peak = float(np.max(np.abs(err))) if err.size else 0.0
+    return TrackingError(float(np.sqrt(np.mean(err ** 2))) if err.size else 0.0, peak,
+                         peak / range_um * 100.0 if range_um > 0 else float("nan"))

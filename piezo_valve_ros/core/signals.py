@@ -1,0 +1,115 @@
+"""Excitation and test signals of the paper (and the extra ones identification needs).
+
+All return sampled arrays for a sampling period ``dt`` [s].  Voltages in V (amplifier input),
+positions in m unless a name says ``_um``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["time_base", "synchronising_sine", "training_voltage", "validation_shape", "validation_reference_m",
+           "PAPER_STEPS_UM", "step_reference_m", "stepped_sine_reference_m", "step_and_hold_voltage",
+           "multisine_voltage", "identification_voltage"]
+
+
+def time_base(duration_s: float, dt: float) -> np.ndarray:
+    return np.arange(int(round(duration_s / dt))) * dt
+
+
+def synchronising_sine(dt: float, duration_s: float = 2.0, frequency_hz: float = 2.0,
+                       centre_v: float = 5.0, amplitude_v: float = 5.0) -> np.ndarray:
+    """Damped sine that ends at ``centre_v``: puts the actuator in a known (near-virgin) state."""
+    t = time_base(duration_s, dt)
+    return centre_v + amplitude_v * (1.0 - t / duration_s) * np.sin(2 * np.pi * frequency_hz * t)
+
+
+def training_voltage(dt: float, duration_s: float = 60.0, synchronise: bool = True) -> np.ndarray:
+    """Eq. 11: 5 V to 1.25 s, then 5 + 5 sin(2 pi 0.2 (t-1.25)); from 10 s damped by (1 - 0.02 (t-10)).
+
+    With ``synchronise`` the damped synchronising sine is prepended.
+    """
+    t = time_base(duration_s, dt)
+    sine = 5.0 * np.sin(2 * np.pi * 0.2 * (t - 1.25))
+    damping = np.where(t >= 10.0, np.maximum(1.0 - 0.02 * (t - 10.0), 0.0), 1.0)
+    v = np.where(t < 1.25, 5.0, 5.0 + sine * damping)
+    return np.concatenate((synchronising_sine(dt), v)) if synchronise else v
+
+
+def validation_shape(t: np.ndarray) -> np.ndarray:
+    """Eq. 12: F(t) = sin(2 pi 0.35 t) + 2 cos(2 pi 0.2 t + pi/2) + 2 sin(2 pi 0.3 t + pi/2)."""
+    return (np.sin(2 * np.pi * 0.35 * t) + 2 * np.cos(2 * np.pi * 0.2 * t + np.pi / 2)
+            + 2 * np.sin(2 * np.pi * 0.3 * t + np.pi / 2))
+
+
+def validation_reference_m(dt: float, duration_s: float = 53.0, amplitude_um: float = 60.0) -> np.ndarray:
+    """Eq. 12 as a position demand: v(t) = F(t + 8), scaled so its peak is ``amplitude_um``."""
+    t = time_base(duration_s, dt)
+    f = validation_shape(t + 8.0)
+    return f / np.max(np.abs(f)) * amplitude_um * 1e-6
+
+
+# (start, end) of the paper's three step tests [um]
+PAPER_STEPS_UM = ((0.0, 17.5), (-17.5, 35.0), (-52.5, 35.0))
+
+
+def step_reference_m(dt: float, start_um: float, end_um: float, hold_before_s: float = 0.1,
+                     hold_after_s: float = 0.1, ramp_s: float = 2e-3) -> tuple[np.ndarray, int]:
+    """Hold ``start_um``, ramp to ``end_um`` in ``ramp_s`` (the paper's 2 ms), hold.
+
+    Returns (reference [m], index where the ramp starts).
+    """
+    n_before = int(round(hold_before_s / dt))
+    n_ramp = max(int(round(ramp_s / dt)), 1)
+    n_after = int(round(hold_after_s / dt))
+    ramp = start_um + (end_um - start_um) * np.arange(1, n_ramp + 1) / n_ramp
+    ref = np.concatenate((np.full(n_before, start_um), ramp, np.full(n_after, end_um)))
+    return ref * 1e-6, n_before
+
+
+def stepped_sine_reference_m(dt: float, frequency_hz: float, amplitude_um: float, periods: int = 6,
+                             settle_periods: int = 2, min_duration_s: float = 0.05) -> tuple[np.ndarray, int]:
+    """Sine demand about 0 um for one point of a frequency response.
+
+    Returns (reference [m], index from which the response is analysed).
+    """
+    total_periods = periods + settle_periods
+    duration = max(total_periods / frequency_hz, min_duration_s)
+    n = int(round(duration / dt))
+    t = np.arange(n) * dt
+    ref = amplitude_um * np.sin(2 * np.pi * frequency_hz * t) * 1e-6
+    analyse_from = n - int(round(periods / frequency_hz / dt))
+    return ref, analyse_from
+
+
+def step_and_hold_voltage(dt: float, levels_v=(7.5, 2.5, 8.5, 5.0, 1.5, 6.0), hold_s: float = 2.0,
+                          ramp_s: float = 2e-3) -> np.ndarray:
+    """Voltage steps (2 ms ramps) with long holds: exposes creep and drift."""
+    parts = []
+    prev = 5.0
+    n_ramp = max(int(round(ramp_s / dt)), 1)
+    n_hold = int(round(hold_s / dt))
+    for level in levels_v:
+        parts.append(prev + (level - prev) * np.arange(1, n_ramp + 1) / n_ramp)
+        parts.append(np.full(n_hold, level))
+        prev = level
+    return np.concatenate(parts)
+
+
+def multisine_voltage(dt: float, duration_s: float = 8.0, frequencies_hz=(0.5, 2.0, 8.0, 20.0),
+                      amplitude_v: float = 4.0) -> np.ndarray:
+    """Sequential sines of rising frequency (about 5 V): exposes rate dependence and dynamics."""
+    seg = duration_s / len(frequencies_hz)
+    parts = []
+    for f in frequencies_hz:
+        t = time_base(seg, dt)
+        ramp_in = np.minimum(t / min(0.25, seg / 4), 1.0)
+        parts.append(5.0 + amplitude_v * ramp_in * np.sin(2 * np.pi * f * t))
+    return np.concatenate(parts)
+
+
+def identification_voltage(dt: float, training_s: float = 30.0) -> np.ndarray:
+    """A full identification experiment: synchronisation, training (eq. 11), step-and-hold, multisine."""
+    return np.concatenate((training_voltage(dt, training_s, synchronise=True), step_and_hold_voltage(dt),
+                           multisine_voltage(dt), np.full(int(round(0.5 / dt)), 5.0)))

@@ -1,0 +1,141 @@
+"""GPIM, play operator and exact inverse."""
+import numpy as np
+import pytest
+
+from piezo_valve_ros.core.hysteresis import (GPIM, GPIMParams, InverseGPIM, NotInvertibleError, PAPER_GPIM,
+                                             PlayOperatorBank, play_batch, inverse_problems)
+
+
+def random_walk(n, seed, step=0.05, centre=5.0):
+    rng = np.random.default_rng(seed)
+    return np.clip(centre + np.cumsum(rng.normal(0, step, n)), -2, 12)
+
+
+def naive_play(x, r, z0):
+    z = np.array(z0, float)
+    out = np.empty((x.size, r.size))
+    for k, xk in enumerate(x):
+        z = np.minimum(np.maximum(z, xk - r), xk + r)
+        out[k] = z
+    return out
+
+
+def test_play_batch_matches_definition_smooth_noisy_and_flat():
+    r = np.array([0.0, 0.3, 1.0, 2.5])
+    rng = np.random.default_rng(3)
+    for x in (np.sin(np.linspace(0, 20, 3000)) * 3, rng.normal(size=5000),
+              np.repeat(rng.normal(size=50), 40), np.zeros(10), np.array([1.0])):
+        z0 = rng.normal(size=r.size) * 0.1
+        ref = naive_play(x, r, z0)
+        out, final = play_batch(x, x, r, z0)
+        np.testing.assert_allclose(out, ref, atol=1e-12)
+        np.testing.assert_allclose(final, ref[-1], atol=1e-12)
+
+
+def test_scan_handles_many_reversals():
+    # over 4*64 reversals exercises the two-level scan
+    x = np.random.default_rng(0).normal(size=200_000)
+    r = np.array([0.0, 0.1, 0.5, 1.5])
+    out, _ = play_batch(x, x, r, np.zeros(4))
+    np.testing.assert_allclose(out[-1000:], naive_play(x, r, np.zeros(4))[-1000:], atol=1e-12)
+
+
+def test_streaming_equals_batch_with_state_carried():
+    m = PAPER_GPIM.model()
+    v = random_walk(20_000, 1)
+    s = m.stream(v0=v[0])
+    ys = np.array([s.step(x) for x in v[:7000]])
+    yb = s.run(v[7000:])
+    full, _ = m.run(v)
+    np.testing.assert_allclose(np.concatenate((ys, yb)), full, atol=1e-10)
+
+
+def test_asymmetric_envelopes_batch_equals_streaming():
+    base = PAPER_GPIM.model()
+    m = GPIM(base.thresholds, base.weights, base.a0, base.a1, base.offset_um, b0=0.9, b1=0.6)
+    v = random_walk(10_000, 2)
+    s = m.stream(v0=v[0])
+    ys = np.array([s.step(x) for x in v])
+    np.testing.assert_allclose(ys, m.run(v)[0], atol=1e-10)
+    with pytest.raises(NotInvertibleError, match="analytic inverse"):
+        InverseGPIM(m)
+
+
+def test_paper_model_loop_span_width_and_centring():
+    m = PAPER_GPIM.model()
+    v, up, down = m.major_loop()
+    span = up.max() - up.min()
+    assert 130 < span < 140  # 134.9 um: the major loop of the paper's parameters
+    width = np.max(down - up) / span
+    assert 0.15 < width < 0.19
+    # the default offset centres the major loop on 0 um
+    assert abs((up.max() + up.min()) / 2) < 0.01
+    # the initial-loading curve from a virgin state at 0 V spans the 147.6 um of paper.md
+    y, _ = m.run(np.linspace(0, 10, 1001), m.virgin_state(0.0))
+    assert abs((y[-1] - y[0]) - 147.6) < 0.1
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_forward_of_inverse_is_identity_long_random_demand(seed):
+    m = PAPER_GPIM.model()
+    rng = np.random.default_rng(seed)
+    y = 65 * np.tanh(np.cumsum(rng.normal(0, 1.0, 200_000)) / 65)
+    inv = InverseGPIM(m, v0=5.0)
+    v = inv.run(y)
+    y_back, _ = m.run(v, m.virgin_state(5.0))
+    assert np.max(np.abs(y_back - y)) <= 1e-9
+
+
+def test_inverse_streaming_equals_batch_and_identity_after_history_and_reset():
+    m = PAPER_GPIM.model()
+    # arbitrary history of the forward model, then the inverse takes over its state
+    z = m.stream(v0=5.0)
+    z.run(random_walk(5000, 4))
+    inv = InverseGPIM(m, z.state.copy())
+    y = 50 * np.sin(np.linspace(0, 30, 6000)) + np.random.default_rng(5).normal(0, 3, 6000)
+    v_stream = np.array([inv.step(q) for q in y])
+    y_back, _ = m.run(v_stream, z.state.copy())
+    assert np.max(np.abs(y_back - y)) <= 1e-9
+    # round-trip of the state mapping
+    np.testing.assert_allclose(InverseGPIM(m, inv.forward_state()).bank.state, inv.bank.state, atol=1e-10)
+    inv.reset(3.0)
+    v2 = inv.run(y)
+    y2, _ = m.run(v2, m.virgin_state(3.0))
+    assert np.max(np.abs(y2 - y)) <= 1e-9
+
+
+def test_inverse_identity_after_parameter_update():
+    m = PAPER_GPIM.model()
+    inv = InverseGPIM(m)
+    inv.run(40 * np.sin(np.linspace(0, 10, 3000)))
+    m2 = GPIMParams(a0=1.0, a1=0.0, alpha=0.38, rho=6.2, tau=1.1, n=12, offset_um=-80.0).model()
+    v_now = (float(inv.weights @ inv.bank.state) - m.a1) / m.a0
+    inv2 = inv.with_model(m2, v_now)
+    z = inv2.forward_state()
+    y = 30 * np.cos(np.linspace(0, 15, 4000))
+    v = inv2.run(y)
+    y_back, _ = m2.run(v, z)
+    assert np.max(np.abs(y_back - y)) <= 1e-9
+
+
+def test_not_invertible_sets_are_rejected_with_reason():
+    r = np.array([0.0, 0.5, 1.0])
+    assert "first weight" in inverse_problems(GPIM(r, [-1.0, 2.0, 1.0]))[0]
+    assert any("partial sum" in p for p in inverse_problems(GPIM(r, [1.0, -2.0, 0.5])))
+    assert any("first threshold" in p for p in inverse_problems(GPIM(r + 0.1, [1.0, 1.0, 1.0])))
+    with pytest.raises(ValueError, match="non-finite"):
+        GPIM(r, [1.0, np.nan, 1.0])
+    with pytest.raises(ValueError, match="strictly increasing"):
+        GPIM([0.0, 1.0, 1.0], [1.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match="alpha"):
+        GPIMParams(alpha=0.0).model()
+    with pytest.raises(NotInvertibleError, match="first weight"):
+        InverseGPIM(GPIM(r, [-1.0, 2.0, 1.0]))
+
+
+def test_play_bank_step_does_not_allocate_new_state():
+    bank = PlayOperatorBank([0.0, 1.0], [0.0, 0.0])
+    state = bank.state
+    bank.step(2.0, 2.0)
+    assert bank.state is state
+    np.testing.assert_allclose(state, [2.0, 1.0])

@@ -1,0 +1,203 @@
+"""Simulated valve, strategies, experiments and metrics (issue: the valve core)."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from piezo_valve_ros.core.dynamics import PAPER_VALVE_MODEL, ContinuousTF, first_order_lag
+from piezo_valve_ros.core.experiments import paper_step_tests, run_closed_loop, step_test
+from piezo_valve_ros.core.hysteresis import PAPER_GPIM, GPIM
+from piezo_valve_ros.core.metrics import bandwidth_metrics, step_metrics, tracking_error
+from piezo_valve_ros.core.signals import (PAPER_STEPS_UM, identification_voltage, training_voltage,
+                                          validation_reference_m)
+from piezo_valve_ros.core.simulator import (CreepParams, DriftParams, RateDependenceParams, SensorParams,
+                                            SimulatedValve, ValveSimConfig)
+from piezo_valve_ros.core.strategies import (STRATEGIES, TABLE1_GAINS, ControllerConfig, PIDGains,
+                                             ValveController, gain_set)
+
+DT = 1e-4
+
+
+def all_effects_config(seed=7):
+    return ValveSimConfig(seed=seed, rate=RateDependenceParams(enabled=True), drift=DriftParams(enabled=True),
+                          descending_envelope=(0.95, 0.2))
+
+
+@pytest.mark.parametrize("config", [ValveSimConfig(), all_effects_config(), ValveSimConfig().ideal()])
+def test_simulator_step_equals_run_bit_for_bit_and_repeats(config):
+    rng = np.random.default_rng(0)
+    v = np.clip(5 + np.cumsum(rng.normal(0, 0.03, 12_000)), 0, 10)
+    v[3000:3004] = 0.0  # steep jumps exercise the slew limiter
+    v[6000] = 10.0
+    a, b, c = SimulatedValve(config), SimulatedValve(config), SimulatedValve(config)
+    ya = np.array([a.step(x) for x in v])
+    yb = np.concatenate((b.run(v[:5000]), b.run(v[5000:])))
+    if config.sensor.quantisation_enabled:
+        assert np.array_equal(ya, yb)  # bit for bit
+    else:
+        np.testing.assert_allclose(ya, yb, rtol=0, atol=1e-16)  # summation order only
+    assert np.array_equal(c.run(v), yb)
+    # a different seed gives different noise
+    if config.sensor.noise_enabled:
+        assert not np.array_equal(SimulatedValve(replace(config, seed=99)).run(v), yb)
+
+
+def test_slew_limit_bounds_electrode_rate():
+    limit_v_per_sample = ValveSimConfig().amplifier.slew_v_per_s * DT / 20.0  # amplifier-input volts
+    sim2 = SimulatedValve(replace(ValveSimConfig().ideal(), amplifier=ValveSimConfig().amplifier,
+                                  initial_voltage_v=0.0))
+    y = sim2.run(np.full(100, 10.0))
+    # 10 V input = 200 V electrode takes 200 V / (500 V/ms) = 0.4 ms = 4 samples at 10 kHz
+    assert limit_v_per_sample == pytest.approx(2.5)
+    assert y[0] < y[2] < y[4]
+    assert sim2._electrode_v == pytest.approx(100.0)
+    fast = SimulatedValve(replace(ValveSimConfig().ideal(), initial_voltage_v=0.0)).run(np.full(100, 10.0))
+    assert fast[2] > y[2]  # without the limit the first sample already sees the full step
+
+
+def test_simulated_loop_span_and_width_with_paper_parameters():
+    v = training_voltage(DT, 20.0, synchronise=True)
+    y = SimulatedValve(ValveSimConfig()).run(v) * 1e6
+    span = y.max() - y.min()
+    assert 125 < span < 150
+    # loop width on the first full cycle: max vertical distance between branches at equal voltage
+    t0 = int((2.0 + 1.25 + 1.25) / DT)  # after sync and the first rise to 10 V
+    cycle = slice(t0, t0 + int(5.0 / DT))
+    vv, yy = v[cycle], y[cycle]
+    down = np.diff(vv, prepend=vv[0]) < 0
+    grid = np.linspace(1, 9, 81)
+    y_down = np.interp(grid, vv[down][::-1], yy[down][::-1])
+    up = ~down
+    order = np.argsort(vv[up])
+    y_up = np.interp(grid, vv[up][order], yy[up][order])
+    width = np.max(y_down - y_up) / span
+    assert 0.15 <= width <= 0.19
+
+
+def _ol_hc_training_error(sim_config):
+    v = training_voltage(DT, 60.0, synchronise=False)
+    y_ref, _ = PAPER_GPIM.model().run(v)
+    rec = run_closed_loop(SimulatedValve(sim_config), ValveController(ControllerConfig(strategy="ol_hc")),
+                          y_ref * 1e-6)
+    y = rec.position_m[1:] * 1e6
+    err = tracking_error(y, y_ref[:-1], y.max() - y.min())
+    return err
+
+
+def test_ol_hc_training_error_clean_and_with_default_effects():
+    clean = replace(ValveSimConfig(), creep=CreepParams(enabled=False),
+                    sensor=SensorParams(noise_enabled=False, quantisation_enabled=False))
+    assert _ol_hc_training_error(clean).peak_pct < 1.0
+    default = _ol_hc_training_error(ValveSimConfig())
+    assert 1.5 < default.peak_pct < 3.5  # the paper: 2.63 % peak
+
+
+@pytest.mark.parametrize("strategy", STRATEGIES)
+def test_each_strategy_holds_constant_reference(strategy):
+    gains = gain_set({"pid": "pid_1", "pid_hc": "pid_hc_5", "ff_pid": "ff_pid_1",
+                      "ff_pid_g": "ff_pid_g_2"}.get(strategy, "pid_1"))[1]
+    ctl = ValveController(ControllerConfig(strategy=strategy, gains=gains))
+    sim = SimulatedValve(ValveSimConfig())
+    target_um = 30.0
+    rec = run_closed_loop(sim, ctl, np.full(int(0.5 / DT), target_um * 1e-6))
+    tail = rec.position_m[-int(0.1 / DT):] * 1e6
+    # closed loop: within noise; open loop: within the model error band (hysteresis + creep)
+    band = 0.5 if strategy in ("pid", "pid_hc", "ff_pid", "ff_pid_g") else {"ol": 12.0, "ol_hc": 3.0}[strategy]
+    assert np.max(np.abs(tail - target_um)) < band
+    assert np.all(np.isfinite(rec.command_v)) and rec.command_v.min() >= 0 and rec.command_v.max() <= 10
+
+
+@pytest.mark.parametrize("new", STRATEGIES)
+@pytest.mark.parametrize("old", ["pid", "pid_hc", "ol_hc", "ff_pid_g"])
+def test_strategy_switch_mid_run_is_bumpless(old, new):
+    gains = PIDGains(1.1987, 474.509)
+    ctl = ValveController(ControllerConfig(strategy=old, gains=gains))
+    sim = SimulatedValve(ValveSimConfig())
+    t = np.arange(int(0.3 / DT)) * DT
+    ref = 40e-6 * np.sin(2 * np.pi * 2 * t)
+    y = sim.step(5.0)
+    commands = []
+    for k, r in enumerate(ref):
+        if k == len(ref) // 2:
+            ctl.set_strategy(new)
+        v = ctl.step(r, y)
+        commands.append(v)
+        y = sim.step(v)
+    k = len(ref) // 2
+    jump = abs(commands[k] - commands[k - 1])
+    typical = np.max(np.abs(np.diff(commands[k - 50:k])))
+    assert jump < 0.05 and jump < typical + 0.02
+
+
+def test_anti_windup_recovers_quickly_after_saturation():
+    ctl = ValveController(ControllerConfig(strategy="pid", gains=PIDGains(1.1987, 474.509)))
+    sim = SimulatedValve(ValveSimConfig())
+    ref = np.concatenate((np.full(5000, 200e-6), np.full(3000, 0.0)))  # unreachable, then back
+    rec = run_closed_loop(sim, ctl, ref)
+    assert rec.command_v[:5000].max() == 10.0
+    assert abs(rec.position_m[-1] * 1e6) < 1.0  # no wind-up left
+
+
+def test_bad_configuration_and_model_updates_are_rejected():
+    with pytest.raises(ValueError, match="unknown strategy"):
+        ValveController(ControllerConfig(strategy="bang_bang"))
+    ctl = ValveController()
+    with pytest.raises(ValueError, match="finite"):
+        ctl.set_gains(PIDGains(float("nan"), 1.0))
+    r = np.array([0.0, 0.5])
+    before = ctl.model
+    with pytest.raises(ValueError, match="first weight"):
+        ctl.set_model(GPIM(r, [-1.0, 1.0]))
+    assert ctl.model is before
+    with pytest.raises(ValueError, match="unstable"):
+        ctl.set_model(before, ContinuousTF((1.0,), (1.0, -1.0)))
+
+
+def test_table1_has_all_24_gain_sets_by_name():
+    assert len(TABLE1_GAINS) == 24
+    assert gain_set("PID HC 5") == ("pid_hc", PIDGains(1.6879, 748.6437, 0.0))
+    assert gain_set("ff_pid_g_6")[1].ki == 118.6276
+    with pytest.raises(KeyError):
+        gain_set("pid_7")
+
+
+def test_paper_ranking_on_steps():
+    def avg(name):
+        strategy, gains = gain_set(name)
+        ms = paper_step_tests(ControllerConfig(strategy=strategy, gains=gains))
+        return np.mean([m.settling_time_s for m in ms]), np.mean([m.overshoot_pct for m in ms])
+    ts_pid, os_pid = avg("pid_1")
+    _, os_ff = avg("ff_pid_1")
+    ts_hc, os_hc = avg("pid_hc_5")
+    ts_g, os_g = avg("ff_pid_g_2")
+    assert os_ff > 3 * max(os_pid, 1.0)  # FF PID without G_v overshoots badly
+    assert os_hc < 5 and os_g < 5 and ts_hc < 0.015 and ts_g < 0.015
+
+
+def test_step_metrics_on_known_response():
+    dt = 1e-3
+    t = np.arange(1000) * dt
+    y = (1 - np.exp(-t / 0.01)) * 1e-6 * 10  # 10 um first-order step, tau = 10 ms
+    m = step_metrics(y, 0, 0.0, 10.0, dt)
+    assert m.settling_time_s == pytest.approx(0.01 * np.log(20), abs=dt)
+    assert m.overshoot_pct == 0.0
+    y2 = y.copy()
+    y2[50] = 12e-6
+    assert step_metrics(y2, 0, 0.0, 10.0, dt).overshoot_pct == pytest.approx(20.0)
+
+
+def test_bandwidth_metrics_on_second_order_model():
+    f = np.geomspace(1, 1000, 400)
+    h = PAPER_VALVE_MODEL.frequency_response(f)
+    bm = bandwidth_metrics(f, h)
+    assert bm.f_90deg_hz == pytest.approx(np.sqrt(1.2e6) / (2 * np.pi), rel=0.01)
+    assert bm.resonant_peak_db == 0.0
+    assert 60 < bm.f_3db_hz < 80
+
+
+def test_signals_shapes():
+    v = training_voltage(1e-3, 60.0, synchronise=False)
+    assert v.size == 60000 and v[0] == 5.0 and v.max() <= 10.0 + 1e-12 and v.min() >= -1e-12
+    ref = validation_reference_m(1e-3)
+    assert ref.size == 53000 and np.max(np.abs(ref)) == pytest.approx(60e-6)
+    assert identification_voltage(1e-3).min() >= 0
