@@ -1,0 +1,67 @@
+"""Per-sample controller cost (each strategy, inverse included) and batch GPIM speed.
+
+Prints figures; compare as ratios within one run (the machine is shared).
+    python bench/core_speed.py
+"""
+import os
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+from piezo_valve_ros.core.hysteresis import PAPER_GPIM  # noqa: E402
+from piezo_valve_ros.core.signals import training_voltage  # noqa: E402
+from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig  # noqa: E402
+from piezo_valve_ros.core.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController  # noqa: E402
+
+
+def best_of(fn, repeats=3):
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def controller_cost(n=50_000):
+    t = np.arange(n) * 1e-4
+    ref = 40e-6 * np.sin(2 * np.pi * 5 * t)
+    meas = SimulatedValve(ValveSimConfig()).run(5 + ref * 1e6 / 13.5)
+    print(f"controller step cost over {n} samples (inverse GPIM n=15 included), best of 3:")
+    for s in STRATEGIES:
+        def loop():
+            ctl = ValveController(ControllerConfig(strategy=s, gains=PIDGains(1.1987, 474.509)))
+            step = ctl.step
+            for r, y in zip(ref.tolist(), meas.tolist()):
+                step(r, y)
+        sec = best_of(loop)
+        print(f"  {s:9s} {sec / n * 1e6:6.2f} us/sample  (target < 20 us; max rate {n / sec / 1e3:5.1f} kHz)")
+
+
+def gpim_batch():
+    v = training_voltage(1e-4, 60.0, synchronise=False)  # 600,000 samples
+    m = PAPER_GPIM.model()
+    sec_batch = best_of(lambda: m.run(v))
+    def naive():
+        r, p, z = m.thresholds, m.weights, m.virgin_state(v[0])
+        out = np.empty(v.size)
+        for k, x in enumerate((m.a0 * v + m.a1).tolist()):
+            z = np.minimum(np.maximum(z, x - r), x + r)
+            out[k] = p @ z
+        return out
+    sec_naive = best_of(naive, 1)
+    y_fast, _ = m.run(v)
+    assert np.max(np.abs(y_fast - (naive() + m.offset_um))) < 1e-9
+    print(f"batch GPIM, 600,000 samples, n=15: {sec_batch:.3f} s (target < 0.2 s); "
+          f"per-sample loop {sec_naive:.2f} s; speed-up x{sec_naive / sec_batch:.0f}")
+    rng = np.random.default_rng(0)
+    noisy = v + rng.normal(0, 0.01, v.size)
+    sec_noisy = best_of(lambda: m.run(noisy), 1)
+    print(f"batch GPIM on a noisy command (every sample a reversal): {sec_noisy:.3f} s")
+
+
+if __name__ == "__main__":
+    controller_cost()
+    gpim_batch()
