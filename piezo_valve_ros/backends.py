@@ -74,6 +74,10 @@ class ValveBackend(ABC):
             self._last_position_m = float(rows[-1, 2])
         return self._last_position_m
 
+    def read_position_cached(self) -> float:
+        """Latest position [m] already read, without sampling again."""
+        return self._last_position_m
+
     def advance(self, n_samples: int) -> np.ndarray:  # pragma: no cover - only lockstep backends
         raise NotImplementedError(f"{type(self).__name__} cannot advance time on demand (no lockstep)")
 

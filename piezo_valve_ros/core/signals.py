@@ -11,7 +11,7 @@ import numpy as np
 
 __all__ = ["time_base", "synchronising_sine", "training_voltage", "validation_shape", "validation_reference_m",
            "PAPER_STEPS_UM", "step_reference_m", "stepped_sine_reference_m", "step_and_hold_voltage",
-           "multisine_voltage", "identification_voltage"]
+           "multisine_voltage", "identification_voltage", "ReferenceRamp"]
 
 
 def time_base(duration_s: float, dt: float) -> np.ndarray:
@@ -113,3 +113,29 @@ def identification_voltage(dt: float, training_s: float = 30.0) -> np.ndarray:
     """A full identification experiment: synchronisation, training (eq. 11), step-and-hold, multisine."""
     return np.concatenate((training_voltage(dt, training_s, synchronise=True), step_and_hold_voltage(dt),
                            multisine_voltage(dt), np.full(int(round(0.5 / dt)), 5.0)))
+
+
+class ReferenceRamp:
+    """Turns reference changes into ramps of fixed duration (the paper's 2 ms steps).
+
+    ``set_target`` starts a ramp from the present value; ``step`` returns the value for the
+    next control period: start + (target - start) * i / n for i = 1..n, as ``step_reference_m``.
+    """
+
+    def __init__(self, value: float = 0.0, ramp_s: float = 0.0, dt: float = 1e-4):
+        self.value = float(value)
+        self.set_ramp(ramp_s, dt)
+        self._start = self._target = self.value
+        self._i = self._n
+
+    def set_ramp(self, ramp_s: float, dt: float) -> None:
+        self._n = max(int(round(ramp_s / dt)), 1) if ramp_s > 0 else 1
+
+    def set_target(self, target: float) -> None:
+        self._start, self._target, self._i = self.value, float(target), 0
+
+    def step(self) -> float:
+        if self._i < self._n:
+            self._i += 1
+            self.value = self._start + (self._target - self._start) * self._i / self._n
+        return self.value

@@ -1,0 +1,278 @@
+"""``valve_hardware``: owns the valve through a backend; applies commands, publishes the position.
+
+Clock modes
+  realtime  a timer at ``control_period_s`` reads what the backend sampled on the wall clock
+  lockstep  each received command advances the simulation one control period and publishes
+            ``spool_position``, ``/clock`` and (batched) ``samples``; deterministic.
+            ``lockstep.step_budget`` (-1 = unlimited) lets a test or demo pause the loop after a
+            number of periods: commands that arrive while paused are held (the latest wins) and
+            applied when budget is granted; ``samples`` is flushed on pausing.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import replace
+from typing import Optional
+
+import numpy as np
+import rclpy
+from builtin_interfaces.msg import Time
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from std_msgs.msg import Float64, Float64MultiArray
+
+from ..backends import SimBackend, ValveBackend, make_backend
+from ..core.simulator import (AmplifierParams, CreepParams, DriftParams, RateDependenceParams, SaturationParams,
+                              SensorParams, ValveSimConfig)
+from .common import COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, as_float, as_int, declare, samples_message, spin
+
+
+def sim_config_from_parameters(p: dict) -> ValveSimConfig:
+    """The simulated valve from ``sim.*`` parameters (effects switchable one by one)."""
+    base = ValveSimConfig()
+    asym = p.get("sim.asymmetry", False)
+    return replace(
+        base,
+        dt=as_float("sim.sample_period_s", p.get("sim.sample_period_s", base.dt)),
+        seed=as_int("sim.seed", p.get("sim.seed", 0)),
+        amplifier=replace(AmplifierParams(), enabled=bool(p.get("sim.slew_limit", True))),
+        creep=replace(CreepParams(), enabled=bool(p.get("sim.creep", True))),
+        saturation=replace(SaturationParams(), enabled=bool(p.get("sim.saturation", True))),
+        rate=replace(RateDependenceParams(), enabled=bool(p.get("sim.rate_dependence", False))),
+        drift=replace(DriftParams(), enabled=bool(p.get("sim.drift", False))),
+        sensor=replace(SensorParams(), noise_enabled=bool(p.get("sim.noise", True))),
+        dynamics_enabled=bool(p.get("sim.dynamics", True)),
+        descending_envelope=(0.95, 0.2) if asym else None,
+        initial_voltage_v=as_float("safe_voltage", p.get("safe_voltage", 5.0)),
+    )
+
+
+class ValveHardwareNode(Node):
+    def __init__(self, backend: Optional[ValveBackend] = None, **kwargs):
+        super().__init__("valve_hardware", **kwargs)
+        declare(self, "backend", "sim", "valve backend: sim (default) or a registered DAQ backend")
+        declare(self, "clock", "realtime", "realtime (wall clock) or lockstep (one period per command)")
+        declare(self, "control_period_s", 1e-3, "period of spool_position [s] (a multiple of the sample period)")
+        declare(self, "samples_batch", 1000, "rows per samples message")
+        declare(self, "command_timeout_s", 0.5, "no valid command for this long -> safe_voltage [s]")
+        declare(self, "safe_voltage", 5.0, "voltage applied on timeout and shutdown [V] (5 V = centre)")
+        declare(self, "command_min_v", 0.0, "commands below are clamped [V]")
+        declare(self, "command_max_v", 10.0, "commands above are clamped [V]")
+        declare(self, "lockstep.step_budget", -1, "lockstep only: periods to run before pausing (-1 = no pause)")
+        for name, default, text in [("sim.seed", 0, "noise seed"), ("sim.sample_period_s", 1e-4, "[s]"),
+                                    ("sim.slew_limit", True, "amplifier current limit"),
+                                    ("sim.creep", True, "creep"), ("sim.saturation", True, "loop-end flattening"),
+                                    ("sim.noise", True, "LVDT noise"), ("sim.dynamics", True, "G_v(s)"),
+                                    ("sim.rate_dependence", False, "rate dependence"),
+                                    ("sim.drift", False, "thermal drift"), ("sim.asymmetry", False, "asymmetry")]:
+            declare(self, name, default, f"sim backend: {text}")
+        p = {name: param.value for name, param in self._parameters.items()}
+        self.clock_mode = str(p["clock"])
+        if self.clock_mode not in ("realtime", "lockstep"):
+            raise ValueError(f"clock must be realtime or lockstep, got {self.clock_mode!r}")
+        self.safe_voltage = as_float("safe_voltage", p["safe_voltage"])
+        self.command_min_v = as_float("command_min_v", p["command_min_v"])
+        self.command_max_v = as_float("command_max_v", p["command_max_v"])
+        if not self.command_min_v <= self.safe_voltage <= self.command_max_v:
+            raise ValueError("safe_voltage must lie within [command_min_v, command_max_v]")
+        self.command_timeout_s = as_float("command_timeout_s", p["command_timeout_s"])
+        self.samples_batch = max(as_int("samples_batch", p["samples_batch"]), 1)
+        self.step_budget = as_int("lockstep.step_budget", p["lockstep.step_budget"])
+        if backend is None:
+            options = {"config": sim_config_from_parameters(p)} if p["backend"] == "sim" else {}
+            backend = make_backend(str(p["backend"]), **options)
+        self.backend = backend
+        if self.clock_mode == "lockstep" and not backend.supports_lockstep:
+            raise ValueError(f"backend {p['backend']!r} cannot run in lockstep")
+        control_period = as_float("control_period_s", p["control_period_s"])
+        self.samples_per_period = max(int(round(control_period / backend.sample_period_s)), 1)
+        self.control_period_s = self.samples_per_period * backend.sample_period_s
+
+        self.position_pub = self.create_publisher(Float64, "spool_position", SENSOR_QOS)
+        self.samples_pub = self.create_publisher(Float64MultiArray, "samples", SAMPLES_QOS)
+        self.clock_pub = self.create_publisher(Clock, "/clock", 10) if self.clock_mode == "lockstep" else None
+        self.create_subscription(Float64, "voltage_command", self._on_command, COMMAND_QOS)
+        self.add_on_set_parameters_callback(self._on_parameters)
+
+        self._batch: list[np.ndarray] = []
+        self._batch_rows = 0
+        self._held_command: Optional[float] = None
+        self._last_valid_command_wall = time.monotonic()
+        self._timed_out = False
+        self._armed = False  # the watchdog runs from the first valid command on (until then: safe voltage)
+        self._command_since_publish = False
+        self._last_publish_wall = time.monotonic()
+        self.rejected = 0
+        self.clamped = 0
+        self.periods = 0
+        self._closed = False
+        self.backend.open()
+        self.backend.write_voltage(self.safe_voltage)
+        if self.clock_mode == "lockstep":
+            self._advance_and_publish()  # y_0 at the initial voltage
+            self.create_timer(min(0.05, self.command_timeout_s / 10), self._lockstep_idle)
+        else:
+            self.create_timer(self.control_period_s, self._realtime_tick)
+        self.get_logger().info(
+            f"valve_hardware up: backend={p['backend']} clock={self.clock_mode} "
+            f"period={self.control_period_s * 1e3:.3f} ms ({self.samples_per_period} samples)")
+
+    # ------------------------------------------------------------------ commands
+    def _validate(self, v: float) -> Optional[float]:
+        if not math.isfinite(v):
+            self.rejected += 1
+            self.get_logger().warning(f"rejected non-finite voltage command {v!r} ({self.rejected} so far)",
+                                      throttle_duration_sec=1.0)
+            return None
+        if v < self.command_min_v or v > self.command_max_v:
+            self.clamped += 1
+            clamped = min(max(v, self.command_min_v), self.command_max_v)
+            self.get_logger().warning(f"clamped voltage command {v:.4g} V to {clamped:.4g} V "
+                                      f"({self.clamped} so far)", throttle_duration_sec=1.0)
+            return clamped
+        return v
+
+    def _on_command(self, msg: Float64) -> None:
+        v = self._validate(msg.data)
+        if v is None:
+            return
+        self._last_valid_command_wall = time.monotonic()
+        self._command_since_publish = True
+        self._armed = True
+        if self._timed_out:
+            self._timed_out = False
+            self.get_logger().info("valid command received: resuming")
+        if self.clock_mode == "realtime":
+            self.backend.write_voltage(v)
+            return
+        if self.step_budget == 0:
+            self._held_command = v
+            return
+        self._apply_lockstep(v)
+
+    def _apply_lockstep(self, v: float) -> None:
+        self.backend.write_voltage(v)
+        self._advance_and_publish()
+        if self.step_budget > 0:
+            self.step_budget -= 1
+            if self.step_budget == 0:
+                self._flush_samples()
+
+    # ------------------------------------------------------------------ time
+    def _advance_and_publish(self) -> None:
+        rows = self.backend.advance(self.samples_per_period)
+        self._publish(rows)
+        if self.clock_pub is not None:
+            t = rows[-1, 0] + self.backend.sample_period_s
+            self.clock_pub.publish(Clock(clock=Time(sec=int(t), nanosec=int(round((t % 1.0) * 1e9)) % 1_000_000_000)))
+
+    def _publish(self, rows: np.ndarray) -> None:
+        if rows.shape[0] == 0:
+            return
+        self.periods += 1
+        self._command_since_publish = False
+        self._last_publish_wall = time.monotonic()
+        self.position_pub.publish(Float64(data=float(rows[-1, 2])))
+        self._batch.append(rows)
+        self._batch_rows += rows.shape[0]
+        if self._batch_rows >= self.samples_batch:
+            self._flush_samples()
+
+    def _flush_samples(self) -> None:
+        if not self._batch:
+            return
+        rows = np.concatenate(self._batch)
+        self._batch, self._batch_rows = [], 0
+        self.samples_pub.publish(samples_message(rows))
+
+    def _check_watchdog(self) -> bool:
+        """True when the watchdog fired just now."""
+        if self._timed_out or not self._armed or self.step_budget == 0:
+            return False
+        silent = time.monotonic() - self._last_valid_command_wall
+        if silent < self.command_timeout_s:
+            return False
+        self._timed_out = True
+        self.get_logger().warning(f"no valid command for {silent:.3f} s (timeout {self.command_timeout_s} s): "
+                                  f"applying safe_voltage {self.safe_voltage} V")
+        self.backend.write_voltage(self.safe_voltage)
+        return True
+
+    def _realtime_tick(self) -> None:
+        self._check_watchdog()
+        self._publish(self.backend.read_samples())
+
+    def _lockstep_idle(self) -> None:
+        if self.step_budget != 0 and self._check_watchdog():
+            self._advance_and_publish()  # the safe voltage is applied for one period
+            self._flush_samples()
+        elif (not self._command_since_publish and self._held_command is None
+              and time.monotonic() - self._last_publish_wall > (1.0 if self._armed else 0.1)
+              and self.position_pub.get_subscription_count()):
+            # nobody answered the last position (e.g. the controller started late): say it again
+            self._last_publish_wall = time.monotonic()
+            self.position_pub.publish(Float64(data=float(self.backend.read_position_cached())))
+
+    # ------------------------------------------------------------------ parameters
+    def _on_parameters(self, params) -> SetParametersResult:
+        for prm in params:
+            if prm.name == "lockstep.step_budget":
+                try:
+                    budget = as_int(prm.name, prm.value)
+                except ValueError as exc:
+                    self.get_logger().warning(f"rejected parameter: {exc}")
+                    return SetParametersResult(successful=False, reason=str(exc))
+                self.step_budget = budget
+                if budget == 0:
+                    self._flush_samples()  # paused: everything so far goes out
+                else:
+                    self._last_valid_command_wall = time.monotonic()
+                    if self._held_command is not None:
+                        v, self._held_command = self._held_command, None
+                        self._apply_lockstep(v)
+            elif prm.name in ("command_timeout_s",):
+                try:
+                    self.command_timeout_s = as_float(prm.name, prm.value)
+                except ValueError as exc:
+                    return SetParametersResult(successful=False, reason=str(exc))
+            else:
+                reason = f"{prm.name} cannot be changed at run time (restart the node)"
+                self.get_logger().warning(f"rejected parameter: {reason}")
+                return SetParametersResult(successful=False, reason=reason)
+        return SetParametersResult(successful=True)
+
+    # ------------------------------------------------------------------ shutdown
+    def shutdown_safely(self) -> None:
+        """Apply safe_voltage, flush the samples, close the backend.  Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.backend.write_voltage(self.safe_voltage)
+            self._flush_samples()
+        finally:
+            self.backend.close()
+            line = f"valve_hardware stopped: safe_voltage {self.safe_voltage} V applied"
+            if self.context.ok():
+                self.get_logger().info(line)
+            else:  # after Ctrl-C/SIGTERM the ROS context (and /rosout) is already gone
+                print(f"[INFO] [valve_hardware]: {line}", file=sys.stderr, flush=True)
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = ValveHardwareNode()
+    except Exception as exc:
+        print(f"valve_hardware: {exc}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    return spin([node], on_exit=node.shutdown_safely)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

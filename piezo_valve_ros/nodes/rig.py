@@ -1,0 +1,301 @@
+"""``valve_rig``: one command brings up a simulated rig (hardware + controller) and runs a demo.
+
+    valve_rig                       # separate processes, lockstep, PID HC 5, the paper's three steps
+    valve_rig --gain-set ff_pid_1   # another Table 1 set
+    valve_rig --composed            # both nodes in this process (fastest loop)
+    valve_rig --demo none           # just run the rig until Ctrl-C / SIGTERM
+
+Every process it starts is stopped on exit (Ctrl-C, SIGTERM, error): SIGINT, then SIGTERM, then
+SIGKILL, each after a grace period.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from typing import Optional
+
+import numpy as np
+import rclpy
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+from std_msgs.msg import Float64, Float64MultiArray
+
+from ..core.metrics import step_metrics
+from ..core.signals import PAPER_STEPS_UM
+from .common import REFERENCE_QOS, SAMPLES_QOS, make_executor, samples_from_message
+
+
+# ---------------------------------------------------------------------------- processes
+def node_command(executable: str, params: dict, namespace: str = "") -> list[str]:
+    """Command line that starts one of the package's nodes with ``params`` (optionally in a namespace)."""
+    module = {"valve_hardware": "hardware", "valve_controller": "controller"}[executable]
+    cmd = [sys.executable, "-m", f"piezo_valve_ros.nodes.{module}", "--ros-args"]
+    if namespace:
+        cmd += ["-r", f"__ns:={namespace}"]
+    for k, v in params.items():
+        if isinstance(v, bool):
+            v = str(v).lower()
+        elif isinstance(v, str):
+            v = "'" + v.replace("'", "''") + "'"  # YAML string, also when empty
+        elif isinstance(v, (list, tuple)):
+            v = "[" + ",".join(repr(float(x)) for x in v) + "]"
+        cmd += ["-p", f"{k}:={v}"]
+    return cmd
+
+
+class ProcessGroup:
+    """Child processes that are always cleaned up."""
+
+    def __init__(self):
+        self.procs: list[tuple[str, subprocess.Popen]] = []
+
+    def start(self, name: str, cmd: list[str], **kwargs) -> subprocess.Popen:
+        proc = subprocess.Popen(cmd, **kwargs)
+        self.procs.append((name, proc))
+        return proc
+
+    def stop(self, grace_s: float = 3.0) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+            alive = [p for _, p in self.procs if p.poll() is None]
+            if not alive:
+                break
+            for p in alive:
+                try:
+                    p.send_signal(sig)
+                except ProcessLookupError:
+                    pass
+            deadline = time.monotonic() + grace_s
+            for p in alive:
+                try:
+                    p.wait(max(deadline - time.monotonic(), 0.01))
+                except subprocess.TimeoutExpired:
+                    pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+
+
+# ---------------------------------------------------------------------------- demo client
+class RigClient(Node):
+    """Drives a lockstep rig: reference, pause/resume through the hardware's step budget, samples."""
+
+    def __init__(self, namespace: str = ""):
+        super().__init__("valve_rig_client", namespace=namespace or None)
+        prefix = namespace.rstrip("/") + "/" if namespace else ""
+        hardware_node, controller_node = prefix + "valve_hardware", prefix + "valve_controller"
+        self.rows: list[np.ndarray] = []
+        self._rows_count = 0
+        self._lock = threading.Lock()
+        self._new_rows = threading.Condition(self._lock)
+        self.create_subscription(Float64MultiArray, "samples", self._on_samples, SAMPLES_QOS)
+        self.reference_pub = self.create_publisher(Float64, "position_reference", REFERENCE_QOS)
+        self.hardware = AsyncParameterClient(self, hardware_node)
+        self.controller = AsyncParameterClient(self, controller_node)
+
+    def _on_samples(self, msg: Float64MultiArray) -> None:
+        rows, _ = samples_from_message(msg)
+        with self._new_rows:
+            self.rows.append(rows[:, :3])
+            self._rows_count += rows.shape[0]
+            self._new_rows.notify_all()
+
+    @property
+    def rows_count(self) -> int:
+        with self._lock:
+            return self._rows_count
+
+    def all_rows(self) -> np.ndarray:
+        with self._lock:
+            return np.concatenate(self.rows) if self.rows else np.zeros((0, 3))
+
+    def wait_rows(self, count: int, timeout_s: float = 30.0) -> bool:
+        deadline = time.monotonic() + timeout_s
+        with self._new_rows:
+            while self._rows_count < count:
+                left = deadline - time.monotonic()
+                if left <= 0 or not rclpy.ok():
+                    return False
+                self._new_rows.wait(min(left, 0.1))
+        return True
+
+    def wait_ready(self, timeout_s: float = 30.0) -> None:
+        """Both nodes' parameter services answer and the controller is subscribed to samples' source."""
+        for client, name in ((self.hardware, "valve_hardware"), (self.controller, "valve_controller")):
+            if not client.wait_for_services(timeout_sec=timeout_s):
+                raise TimeoutError(f"{name} did not come up within {timeout_s} s")
+        deadline = time.monotonic() + timeout_s
+        while self.reference_pub.get_subscription_count() == 0:
+            if time.monotonic() > deadline:
+                raise TimeoutError("nobody subscribes to position_reference")
+            time.sleep(0.05)
+
+    def set_params(self, client: AsyncParameterClient, values: dict, timeout_s: float = 10.0):
+        params = [Parameter(k, value=v) for k, v in values.items()]
+        future = client.set_parameters(params)
+        deadline = time.monotonic() + timeout_s
+        while not future.done():
+            if time.monotonic() > deadline or not rclpy.ok():
+                raise TimeoutError(f"setting {list(values)} timed out")
+            time.sleep(0.005)
+        return future.result().results
+
+    def run_periods(self, periods: int, timeout_s: float = 60.0) -> np.ndarray:
+        """Grant ``periods`` control periods to a paused lockstep rig; returns their rows."""
+        start = self.rows_count
+        result = self.set_params(self.hardware, {"lockstep.step_budget": periods})
+        if not result[0].successful:
+            raise RuntimeError(f"hardware refused the step budget: {result[0].reason}")
+        if not self.wait_rows(start + periods, timeout_s):
+            raise TimeoutError(f"rig did not run {periods} periods within {timeout_s} s")
+        time.sleep(0.1)  # let the controller answer the last position (its command is held)
+        return self.all_rows()[start:start + periods]
+
+    def set_reference(self, reference_m: float, settle_s: float = 0.2) -> None:
+        self.reference_pub.publish(Float64(data=float(reference_m)))
+        time.sleep(settle_s)
+
+
+def run_in_background(nodes: list[Node]):
+    """Spin ``nodes`` in a daemon thread; returns (thread, stop)."""
+    executor = make_executor()
+    for n in nodes:
+        executor.add_node(n)
+    stop = threading.Event()
+
+    def loop():
+        while rclpy.ok() and not stop.is_set():
+            try:
+                executor.spin_once(timeout_sec=0.05)
+            except Exception:
+                if rclpy.ok() and not stop.is_set():
+                    raise
+                break
+    thread = threading.Thread(target=loop, daemon=True)
+    thread.start()
+    return thread, stop, executor
+
+
+def step_demo(client: RigClient, dt: float, hold_periods: int, after_periods: int,
+              steps=PAPER_STEPS_UM) -> list[tuple[float, float, float, float]]:
+    """The paper's step tests through the ROS graph; returns (start, end, settling s, overshoot %)."""
+    out = []
+    client.run_periods(1)  # apply the held first command; the rig is live
+    for start_um, end_um in steps:
+        client.set_reference(start_um * 1e-6)
+        client.run_periods(hold_periods)
+        client.set_reference(end_um * 1e-6)
+        rows = client.run_periods(after_periods)
+        # rows[0] applies the command computed before the new reference; the ramp starts at rows[1]
+        m = step_metrics(rows[:, 2], 1, start_um, end_um, dt)
+        out.append((start_um, end_um, m.settling_time_s, m.overshoot_pct))
+    return out
+
+
+# ---------------------------------------------------------------------------- main
+def parse_args(argv=None):
+    ap = argparse.ArgumentParser(prog="valve_rig", description="Simulated piezo-valve rig with a demonstration.")
+    ap.add_argument("--gain-set", default="pid_hc_5", help="Table 1 gain set (default pid_hc_5), e.g. ff_pid_g_2")
+    ap.add_argument("--strategy", help="strategy without Table 1 gains: ol or ol_hc")
+    ap.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep")
+    ap.add_argument("--control-period-s", type=float, default=1e-4,
+                    help="control period (lockstep default 1e-4 = the paper's 10 kHz; realtime try 5e-4)")
+    ap.add_argument("--composed", action="store_true", help="hardware and controller in this process")
+    ap.add_argument("--demo", choices=("steps", "none"), default="steps")
+    ap.add_argument("--hold-s", type=float, default=0.1, help="hold before and after each step [s]")
+    ap.add_argument("--sim-seed", type=int, default=0)
+    return ap.parse_args(argv)
+
+
+def rig_parameters(args) -> tuple[dict, dict]:
+    hw = {"clock": args.clock, "control_period_s": args.control_period_s, "sim.seed": args.sim_seed,
+          "lockstep.step_budget": 0 if (args.clock == "lockstep" and args.demo == "steps") else -1}
+    ctl = {"control_period_s": args.control_period_s, "reference_ramp_s": 0.002}
+    if args.strategy:
+        ctl.update({"strategy": args.strategy, "gain_set": ""})
+    else:
+        ctl["gain_set"] = args.gain_set
+    return hw, ctl
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    if args.demo == "steps" and args.clock != "lockstep":
+        print("valve_rig: the step demo needs --clock lockstep (use --demo none for a real-time rig)",
+              file=sys.stderr)
+        return 2
+    hw_params, ctl_params = rig_parameters(args)
+    rclpy.init()
+    procs = ProcessGroup()
+    nodes: list[Node] = []
+    stop = None
+    hardware = None
+    code = 0
+    try:
+        if args.composed:
+            from .controller import ValveControllerNode
+            from .hardware import ValveHardwareNode
+            hardware = ValveHardwareNode(parameter_overrides=[Parameter(k, value=v) for k, v in hw_params.items()])
+            nodes += [hardware, ValveControllerNode(
+                parameter_overrides=[Parameter(k, value=v) for k, v in ctl_params.items()])]
+        else:
+            procs.start("valve_hardware", node_command("valve_hardware", hw_params))
+            procs.start("valve_controller", node_command("valve_controller", ctl_params))
+        client = RigClient()
+        nodes.append(client)
+        _, stop, _ = run_in_background(nodes)
+        client.wait_ready()
+        label = args.strategy or args.gain_set
+        print(f"rig up ({'composed' if args.composed else 'separate processes'}, {args.clock}); "
+              f"controller {label}", flush=True)
+        if args.demo == "steps":
+            periods = int(round(args.hold_s / args.control_period_s))
+            t0 = time.monotonic()
+            results = step_demo(client, args.control_period_s, periods, periods)
+            wall = time.monotonic() - t0
+            print(f"\nPaper step tests under {label} (2 ms ramps, 5 % settling band):")
+            print(f"{'step [um]':>18} {'settling [ms]':>14} {'overshoot [%]':>14}")
+            for a, b, ts, os_ in results:
+                print(f"{a:7.1f} -> {b:6.1f} {ts * 1e3:14.1f} {os_:14.2f}")
+            steps_run = client.rows_count
+            print(f"\n{steps_run} control periods in {wall:.1f} s wall time "
+                  f"({steps_run / wall:.0f} periods/s including pauses)")
+        else:
+            print("running; Ctrl-C or SIGTERM to stop", flush=True)
+            while rclpy.ok():
+                time.sleep(0.2)
+                if any(p.poll() is not None for _, p in procs.procs):
+                    print("valve_rig: a node exited; stopping the rig", file=sys.stderr)
+                    code = 1
+                    break
+    except KeyboardInterrupt:
+        pass
+    except Exception as exc:  # one clear line, the processes are stopped in finally
+        if rclpy.ok():
+            print(f"valve_rig: {exc}", file=sys.stderr)
+            code = 1
+    finally:
+        if stop is not None:
+            stop.set()
+        if hardware is not None:
+            hardware.shutdown_safely()
+        procs.stop()
+        for n in nodes:
+            try:
+                n.destroy_node()
+            except Exception:
+                pass
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,182 @@
+"""End-to-end tests through the ROS graph: separate processes, lockstep, private DDS domain."""
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from ros_helpers import DOMAIN_ID, ros_env, start, wait_for_text
+
+os.environ.update({k: ros_env()[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
+
+import rclpy  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from std_msgs.msg import Float64  # noqa: E402
+
+from piezo_valve_ros.core.experiments import run_closed_loop  # noqa: E402
+from piezo_valve_ros.core.metrics import step_metrics  # noqa: E402
+from piezo_valve_ros.core.signals import step_reference_m  # noqa: E402
+from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig  # noqa: E402
+from piezo_valve_ros.core.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set  # noqa: E402
+from piezo_valve_ros.nodes.common import COMMAND_QOS  # noqa: E402
+from piezo_valve_ros.nodes.rig import ProcessGroup, RigClient, node_command, run_in_background  # noqa: E402
+
+DT = 1e-4
+GAINS = {"pid": "pid_1", "pid_hc": "pid_hc_5", "ff_pid": "ff_pid_1", "ff_pid_g": "ff_pid_g_2"}
+
+
+@pytest.fixture(scope="module")
+def ros_context():
+    rclpy.init()
+    yield
+    rclpy.try_shutdown()
+
+
+_counter = iter(range(1000))
+
+
+@pytest.fixture
+def ros(ros_context):
+    """A rig client in a namespace of its own, so no test sees another's rig."""
+    client = RigClient(namespace=f"/t{os.getpid()}_{next(_counter)}")
+    thread, stop, executor = run_in_background([client])
+    yield client
+    stop.set()
+    thread.join(2)
+    executor.remove_node(client)
+    client.destroy_node()
+
+
+@pytest.fixture
+def procs():
+    group = ProcessGroup()
+    yield group
+    group.stop()
+
+
+def start_rig(procs, tmp_path, ns, hw=None, ctl=None, controller=True):
+    hw_params = {"clock": "lockstep", "control_period_s": DT, "lockstep.step_budget": 0, "sim.seed": 3}
+    hw_params.update(hw or {})
+    start(procs, "hardware", node_command("valve_hardware", hw_params, ns), str(tmp_path))
+    if controller:
+        ctl_params = {"control_period_s": DT, "reference_ramp_s": 0.002}
+        ctl_params.update(ctl or {})
+        start(procs, "controller", node_command("valve_controller", ctl_params, ns), str(tmp_path))
+
+
+def this_rig_rows(client):
+    """Rows of the newest hardware process (its sample times restart at 0)."""
+    rows = client.all_rows()
+    return rows[np.flatnonzero(rows[:, 0] == 0.0)[-1]:]
+
+
+@pytest.mark.parametrize("strategy", STRATEGIES)
+def test_step_through_ros_equals_in_process(ros, procs, tmp_path, strategy):
+    a, b = -17.5, 35.0
+    gains = gain_set(GAINS[strategy])[1] if strategy in GAINS else PIDGains(0.0, 0.0)
+    start_rig(procs, tmp_path, ros.get_namespace(), ctl={"strategy": strategy, "kp": gains.kp, "ki": gains.ki,
+                                    "initial_reference_m": a * 1e-6})
+    ros.wait_ready()
+    n_hold, n_after = 300, 700
+    ros.run_periods(n_hold)
+    ros.set_reference(b * 1e-6)
+    ros.run_periods(n_after)
+    time.sleep(0.2)
+    rows = this_rig_rows(ros)[1:]  # row 0 is the hardware's first sample at its initial voltage
+    assert rows.shape[0] >= n_hold + n_after
+    # in process: the same valve, controller and reference sequence
+    ref, ramp_index = step_reference_m(DT, a, b, hold_before_s=(n_hold + 1) * DT, hold_after_s=1.0)
+    ref = ref[: n_hold + n_after]
+    valve = SimulatedValve(ValveSimConfig(seed=3))
+    rec = run_closed_loop(valve, ValveController(ControllerConfig(strategy=strategy, gains=gains)), ref)
+    y_ros = rows[: n_hold + n_after, 2]          # position after each applied command
+    y_core = np.append(rec.position_m[1:], np.nan)[: n_hold + n_after]
+    np.testing.assert_allclose(rows[: n_hold + n_after - 1, 1], rec.command_v[: n_hold + n_after - 1], atol=1e-9)
+    m_ros = step_metrics(y_ros[:-1], ramp_index, a, b, DT)
+    m_core = step_metrics(y_core[:-1], ramp_index, a, b, DT)
+    assert abs(m_ros.settling_time_s - m_core.settling_time_s) <= DT + 1e-12
+    assert abs(m_ros.overshoot_pct - m_core.overshoot_pct) < 0.05
+
+
+def test_strategy_switch_over_parameters_is_bumpless_and_bad_updates_rejected(ros, procs, tmp_path):
+    start_rig(procs, tmp_path, ros.get_namespace(), ctl={"gain_set": "", "strategy": "pid", "kp": 1, "ki": 474})  # ints accepted
+    ros.wait_ready()
+    ros.set_reference(30e-6)
+    before = ros.run_periods(400)
+    # bad updates are rejected with a reason and change nothing
+    for bad in ({"strategy": "bang_bang"}, {"gpim.rho": -5.0}, {"kp": float("nan")}, {"gpim.n": 2.5},
+                {"valve_model.den": [1.0, -1.0]}):
+        res = ros.set_params(ros.controller, bad)
+        assert not res[0].successful and res[0].reason, bad
+    res = ros.set_params(ros.controller, {"strategy": "pid_hc", "kp": 1.6879, "ki": 748.6437})
+    assert all(r.successful for r in res)
+    after = ros.run_periods(400)
+    jump = abs(after[1, 1] - before[-1, 1])  # after[0] applies the command held across the switch
+    assert jump < 0.05
+    assert abs(after[-1, 2] * 1e6 - 30.0) < 1.0
+    log = open(tmp_path / "controller.log").read()
+    assert "rejected parameter update" in log and "bang_bang" in log
+
+
+def test_watchdog_applies_safe_voltage_when_controller_dies(ros, procs, tmp_path):
+    timeout = 0.3
+    start_rig(procs, tmp_path, ros.get_namespace(), hw={"command_timeout_s": timeout, "safe_voltage": 5.0})
+    ros.wait_ready()
+    ros.set_reference(50e-6)
+    ros.run_periods(500)
+    controller = [p for n, p in procs.procs if n == "controller"][0]
+    assert ros.all_rows()[-1, 1] > 6.0  # driving well away from the safe voltage
+    ros.set_params(ros.hardware, {"lockstep.step_budget": -1})
+    time.sleep(0.2)
+    controller.kill()
+    killed = time.monotonic()
+    fired = wait_for_text(tmp_path / "hardware.log", "applying safe_voltage", timeout_s=5)
+    assert fired - killed <= timeout + 0.1  # timeout plus the watchdog's check period (lockstep: wall clock)
+    deadline = time.monotonic() + 5
+    while abs(ros.all_rows()[-1, 1] - 5.0) > 1e-12 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert ros.all_rows()[-1, 1] == 5.0
+
+
+def test_bad_commands_are_rejected_or_clamped_and_logged(ros, procs, tmp_path):
+    start_rig(procs, tmp_path, ros.get_namespace(), hw={"lockstep.step_budget": -1, "command_timeout_s": 30.0}, controller=False)
+    pub = ros.create_publisher(Float64, "voltage_command", COMMAND_QOS)
+    try:
+        deadline = time.monotonic() + 20
+        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        for v in (7.0, float("nan"), 12.0, float("inf"), -3.0, float("-inf"), 6.0):
+            pub.publish(Float64(data=v))
+            time.sleep(0.15)
+        ros.set_params(ros.hardware, {"lockstep.step_budget": 0})  # pause -> samples flushed
+        time.sleep(0.3)
+        applied = this_rig_rows(ros)[1:, 1]
+        assert list(applied) == [7.0, 10.0, 0.0, 6.0]  # NaN/inf never reach the valve
+        log = open(tmp_path / "hardware.log").read()
+        assert "rejected non-finite voltage command" in log and "clamped voltage command 12" in log
+    finally:
+        ros.destroy_publisher(pub)
+
+
+def test_sigterm_to_rig_leaves_no_process(tmp_path):
+    log = open(tmp_path / "rig.log", "w")
+    rig = subprocess.Popen([sys.executable, "-m", "piezo_valve_ros.nodes.rig", "--demo", "none", "--clock", "realtime",
+                            "--control-period-s", "0.001"], env=ros_env(), stdout=log, stderr=subprocess.STDOUT,
+                           start_new_session=True)
+    try:
+        wait_for_text(tmp_path / "rig.log", "running; Ctrl-C", timeout_s=30)
+        time.sleep(0.5)
+        rig.send_signal(signal.SIGTERM)
+        assert rig.wait(15) == 0
+        time.sleep(0.5)
+        with pytest.raises(ProcessLookupError):
+            os.killpg(rig.pid, 0)  # nobody left in the rig's process group
+        assert "safe_voltage 5.0 V applied" in open(tmp_path / "rig.log").read()
+    finally:
+        try:
+            os.killpg(rig.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
