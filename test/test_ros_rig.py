@@ -180,3 +180,15 @@ def test_sigterm_to_rig_leaves_no_process(tmp_path):
             os.killpg(rig.pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
+
+
+def test_parameter_files_load_into_the_nodes(procs, tmp_path):
+    root = os.path.join(os.path.dirname(__file__), "..")
+    cmd = node_command("valve_controller", {}, "/pf") + [
+        "--params-file", os.path.join(root, "config", "paper_model.yaml"),
+        "--params-file", os.path.join(root, "config", "rig.yaml")]
+    start(procs, "controller", cmd, str(tmp_path))
+    wait_for_text(tmp_path / "controller.log", "valve_controller up: strategy=pid_hc kp=1.6879", timeout_s=20)
+    cmd = node_command("valve_hardware", {}, "/pf") + ["--params-file", os.path.join(root, "config", "rig.yaml")]
+    start(procs, "hardware", cmd, str(tmp_path))
+    wait_for_text(tmp_path / "hardware.log", "clock=lockstep period=0.100 ms", timeout_s=20)

@@ -1,0 +1,25 @@
+"""Bring up a simulated valve rig: valve_hardware + valve_controller (separate processes).
+
+    ros2 launch piezo_valve_ros rig.launch.py [namespace:=valve1] [params:=/path/to/rig.yaml]
+"""
+import os
+
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+
+def generate_launch_description():
+    default_params = os.path.join(get_package_share_directory("piezo_valve_ros"), "config", "rig.yaml")
+    namespace = LaunchConfiguration("namespace")
+    params = LaunchConfiguration("params")
+    return LaunchDescription([
+        DeclareLaunchArgument("namespace", default_value="", description="namespace of the valve"),
+        DeclareLaunchArgument("params", default_value=default_params, description="parameters file"),
+        Node(package="piezo_valve_ros", executable="valve_hardware", name="valve_hardware",
+             namespace=namespace, parameters=[params], output="screen"),
+        Node(package="piezo_valve_ros", executable="valve_controller", name="valve_controller",
+             namespace=namespace, parameters=[params], output="screen"),
+    ])

@@ -1,0 +1,32 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "piezo_valve_ros"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "bench"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
+        ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
+    ],
+    install_requires=["setuptools", "numpy", "scipy", "rosbags>=0.11,<0.12"],
+    extras_require={"plots": ["matplotlib"], "test": ["pytest"]},
+    zip_safe=True,
+    maintainer="piezo_valve_ros developers",
+    maintainer_email="dev@piezo-valve.local",
+    description="Piezo ring-bender valve: GPIM hysteresis model, inverse compensation, six controllers, ROS 2 nodes.",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "valve_hardware = piezo_valve_ros.nodes.hardware:main",
+            "valve_controller = piezo_valve_ros.nodes.controller:main",
+            "valve_rig = piezo_valve_ros.nodes.rig:main",
+        ],
+    },
+)
