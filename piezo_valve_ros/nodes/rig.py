@@ -236,7 +236,7 @@ def main(argv=None) -> int:
     rclpy.init()
     procs = ProcessGroup()
     nodes: list[Node] = []
-    stop = None
+    stop = thread = executor = None
     hardware = None
     code = 0
     try:
@@ -251,7 +251,7 @@ def main(argv=None) -> int:
             procs.start("valve_controller", node_command("valve_controller", ctl_params))
         client = RigClient()
         nodes.append(client)
-        _, stop, _ = run_in_background(nodes)
+        thread, stop, executor = run_in_background(nodes)
         client.wait_ready()
         label = args.strategy or args.gain_set
         print(f"rig up ({'composed' if args.composed else 'separate processes'}, {args.clock}); "
@@ -285,14 +285,19 @@ def main(argv=None) -> int:
     finally:
         if stop is not None:
             stop.set()
+            thread.join(2.0)
         if hardware is not None:
             hardware.shutdown_safely()
         procs.stop()
         for n in nodes:
             try:
+                if executor is not None:
+                    executor.remove_node(n)
                 n.destroy_node()
             except Exception:
                 pass
+        if executor is not None:
+            executor.shutdown()
         rclpy.try_shutdown()
     return code
 
