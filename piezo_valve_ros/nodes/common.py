@@ -109,3 +109,19 @@ def spin(nodes, on_exit: Optional[Callable[[], None]] = None, executor=None) -> 
         if rclpy.ok():
             rclpy.try_shutdown()
     return code
+
+
+def run_node(factory: Callable[[], Node], name: str, args=None, on_exit_of=None) -> int:
+    """Console-script body: init, build the node (one clear line and exit 2 if that fails), spin.
+
+    ``on_exit_of(node)`` gives the callable run when spinning ends (e.g. apply safe_voltage).
+    """
+    import sys
+    rclpy.init(args=args)
+    try:
+        node = factory()
+    except Exception as exc:
+        print(f"{name}: {exc}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    return spin([node], on_exit=on_exit_of(node) if on_exit_of else None)

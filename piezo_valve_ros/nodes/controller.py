@@ -21,7 +21,7 @@ from ..core.dynamics import PAPER_VALVE_MODEL, ContinuousTF
 from ..core.hysteresis import GPIM, PAPER_GPIM, GPIMParams, inverse_problems
 from ..core.signals import ReferenceRamp
 from ..core.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set
-from .common import COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, as_float, as_float_list, as_int, declare, spin
+from .common import COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, as_float, as_float_list, as_int, declare, run_node
 
 GPIM_KEYS = ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")
 
@@ -158,14 +158,7 @@ class ValveControllerNode(Node):
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = ValveControllerNode()
-    except Exception as exc:
-        print(f"valve_controller: {exc}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    return spin([node])
+    return run_node(ValveControllerNode, "valve_controller", args)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ from std_msgs.msg import Float64, Float64MultiArray
 from ..backends import SimBackend, ValveBackend, make_backend
 from ..core.simulator import (AmplifierParams, CreepParams, DriftParams, RateDependenceParams, SaturationParams,
                               SensorParams, ValveSimConfig)
-from .common import COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, as_float, as_int, declare, samples_message, spin
+from .common import COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, as_float, as_int, declare, samples_message, run_node
 
 
 def sim_config_from_parameters(p: dict) -> ValveSimConfig:
@@ -263,15 +263,7 @@ class ValveHardwareNode(Node):
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = ValveHardwareNode()
-    except Exception as exc:
-        print(f"valve_hardware: {exc}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    return spin([node], on_exit=node.shutdown_safely)
+    return run_node(ValveHardwareNode, "valve_hardware", args, on_exit_of=lambda n: n.shutdown_safely)
 
 
 if __name__ == "__main__":
