@@ -17,7 +17,7 @@ from .simulator import SimulatedValve, ValveSimConfig
 from .strategies import ControllerConfig, ValveController
 
 __all__ = ["ClosedLoopRecord", "run_closed_loop", "step_test", "paper_step_tests", "frequency_response",
-           "DEFAULT_SWEEP_HZ"]
+           "DEFAULT_SWEEP_HZ", "simulate_rows"]
 
 DEFAULT_SWEEP_HZ = np.geomspace(2.0, 250.0, 22)
 
@@ -84,3 +84,11 @@ def frequency_response(ctl_config: ControllerConfig, amplitude_um: float,
         y = np.append(rec.position_m[1:], valve.step(rec.command_v[-1]))
         h[i] = fundamental(y[k0:], f, dt) / fundamental(ref[k0:], f, dt)
     return np.asarray(freqs_hz, float), h, bandwidth_metrics(freqs_hz, h)
+
+
+def simulate_rows(voltage_v: np.ndarray, sim_config: ValveSimConfig = ValveSimConfig()) -> np.ndarray:
+    """Open-loop run of a fresh simulated valve as ``samples`` rows: time [s], applied voltage [V], position [m]."""
+    valve = SimulatedValve(sim_config)
+    v = np.clip(np.asarray(voltage_v, float), sim_config.amplifier.input_min_v, sim_config.amplifier.input_max_v)
+    y = valve.run(v)
+    return np.column_stack((np.arange(v.size) * sim_config.dt, v, y))

@@ -11,7 +11,7 @@ import numpy as np
 
 __all__ = ["time_base", "synchronising_sine", "training_voltage", "validation_shape", "validation_reference_m",
            "PAPER_STEPS_UM", "step_reference_m", "stepped_sine_reference_m", "step_and_hold_voltage",
-           "multisine_voltage", "identification_voltage", "ReferenceRamp"]
+           "multisine_voltage", "identification_voltage", "validation_voltage", "ReferenceRamp"]
 
 
 def time_base(duration_s: float, dt: float) -> np.ndarray:
@@ -113,6 +113,15 @@ def identification_voltage(dt: float, training_s: float = 30.0) -> np.ndarray:
     """A full identification experiment: synchronisation, training (eq. 11), step-and-hold, multisine."""
     return np.concatenate((training_voltage(dt, training_s, synchronise=True), step_and_hold_voltage(dt),
                            multisine_voltage(dt), np.full(int(round(0.5 / dt)), 5.0)))
+
+
+def validation_voltage(dt: float, duration_s: float = 30.0, amplitude_v: float = 4.5) -> np.ndarray:
+    """A validation experiment unlike the training one: synchronisation, eq. 12 as a voltage about 5 V,
+    step-and-hold at other levels, multisine at other frequencies."""
+    f = validation_shape(time_base(duration_s, dt) + 8.0)
+    return np.concatenate((synchronising_sine(dt), 5.0 + amplitude_v * f / np.max(np.abs(f)),
+                           step_and_hold_voltage(dt, levels_v=(8.0, 3.0, 6.5, 2.0, 5.5), hold_s=1.5),
+                           multisine_voltage(dt, 4.0, (1.0, 5.0, 12.0, 25.0), 3.5), np.full(int(round(0.5 / dt)), 5.0)))
 
 
 class ReferenceRamp:
