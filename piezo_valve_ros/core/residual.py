@@ -144,6 +144,7 @@ class Analysis:
     train: Record          # analysis-rate records the figures refer to
     validate: Scored
     rounds: list = field(default_factory=list)
+    history: list = field(default_factory=list)  # the model before each effect was added, then the final one
 
 
 def _refit(train: Record, model: ValveModel, new: str, H_range) -> ValveModel:
@@ -241,6 +242,7 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
     H_train = model.predict(train)
     H_range = (float(H_train.min()), float(H_train.max()))
     last_stats: dict[str, float] = {}
+    history = [model]
     while len(added) < max_effects:
         e_train = train.position_um - model.predict(train)
         e_val = validate.error(model)
@@ -274,6 +276,7 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
             break
         best = max(passing, key=lambda c: c.gain)
         model = best.model
+        history.append(model)
         added.append(best.effect)
         verdicts[best.effect] = best
         log(f"added {best.effect}: held-out RMS {best.rms_before_um:.3f} -> {best.rms_after_um:.3f} um")
@@ -311,4 +314,4 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
         "seconds": round(time.monotonic() - started, 3),
     }
     log(("structure remains: " if unexplained else "residual: ") + seen)
-    return Analysis(report, baseline, model, train, validate, rounds)
+    return Analysis(report, baseline, model, train, validate, rounds, history)

@@ -1,0 +1,268 @@
+"""rosbag2 bags with ``rosbags`` (no ROS import): a crash-safe recorder and the ``samples`` reader.
+
+Crash safety: the recorder buffers at most one segment (default 1 s) in memory; each segment is
+written as a complete, closed storage file (``<bag>_<k>.mcap`` or ``.db3``) and the bag's
+``metadata.yaml`` (rosbag2 version 9, as Jazzy writes) is rewritten atomically to list every
+finished file.  Whatever kills the recorder, the bag on disk is a valid multi-file rosbag2 bag
+holding everything up to the last finished segment, which ``ros2 bag play`` and ``rosbags`` read.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from io import StringIO
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+from ruamel.yaml import YAML
+
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.rosbag2.metadata import dump_qos_v9
+from rosbags.typesys import Stores, get_typestore
+
+__all__ = ["BagError", "BagRecorder", "qos_profile", "read_samples", "write_samples_bag", "SAMPLES_TYPE",
+           "FLOAT64_TYPE", "TYPESTORE", "serialize_samples", "serialize_float64", "SAMPLES_COLUMNS"]
+
+BAG_VERSION = 9  # rosbag2 metadata version written by Jazzy
+STORAGES = {"mcap": (StoragePlugin.MCAP, ".mcap"), "sqlite3": (StoragePlugin.SQLITE3, ".db3")}
+SAMPLES_TYPE = "std_msgs/msg/Float64MultiArray"
+FLOAT64_TYPE = "std_msgs/msg/Float64"
+SAMPLES_COLUMNS = ("time", "voltage_command", "spool_position")
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+
+
+class BagError(RuntimeError):
+    """A bag that cannot be written or read (one-line message)."""
+
+
+def qos_profile(reliable: bool, depth: int, transient_local: bool = False) -> Qos:
+    """An offered QoS profile as rosbag2 stores it (so ``ros2 bag play`` offers the same)."""
+    zero = QosTime(0, 0)
+    return Qos(QosHistory.KEEP_LAST, depth, QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
+               QosDurability.TRANSIENT_LOCAL if transient_local else QosDurability.VOLATILE, zero, zero,
+               QosLiveliness.AUTOMATIC, zero, False)
+
+
+def serialize_samples(rows: np.ndarray, label: str = ",".join(SAMPLES_COLUMNS)) -> bytes:
+    """CDR bytes of a contract ``samples`` message (rows: N x k)."""
+    rows = np.ascontiguousarray(rows, dtype=np.float64)
+    n, k = rows.shape
+    T = TYPESTORE.types
+    msg = T["std_msgs/msg/Float64MultiArray"](
+        layout=T["std_msgs/msg/MultiArrayLayout"](
+            dim=[T["std_msgs/msg/MultiArrayDimension"](label="sample", size=n, stride=n * k),
+                 T["std_msgs/msg/MultiArrayDimension"](label=label, size=k, stride=k)], data_offset=0),
+        data=rows.ravel())
+    return bytes(TYPESTORE.serialize_cdr(msg, SAMPLES_TYPE))
+
+
+def serialize_float64(value: float) -> bytes:
+    return bytes(TYPESTORE.serialize_cdr(TYPESTORE.types[FLOAT64_TYPE](data=float(value)), FLOAT64_TYPE))
+
+
+class BagRecorder:
+    """Records serialized messages into a crash-safe, segmented rosbag2 bag.
+
+    ``topics`` maps topic name -> (message type, offered QoS).  ``write`` takes CDR bytes (e.g. from an
+    rclpy subscription with ``raw=True``) and a receive time in ns.
+    """
+
+    def __init__(self, path: str | os.PathLike, topics: dict[str, tuple[str, Qos]], storage: str = "mcap",
+                 segment_s: float = 1.0, clock: Callable[[], float] = time.monotonic):
+        if storage not in STORAGES:
+            raise BagError(f"unknown storage {storage!r}; use one of {', '.join(STORAGES)}")
+        if not segment_s > 0:
+            raise BagError(f"segment_s must be > 0, got {segment_s}")
+        self.path = Path(path)
+        if self.path.exists():
+            raise BagError(f"{self.path} exists already; every run gets a new bag directory")
+        self.topics = dict(topics)
+        self.storage = storage
+        self.segment_s = float(segment_s)
+        self._clock = clock
+        self._buffer: list[tuple[str, int, bytes]] = []
+        self._segment_started = clock()
+        self._files: list[dict] = []
+        self._counts = {t: 0 for t in self.topics}
+        self._start_ns: Optional[int] = None
+        self._end_ns = 0
+        self._closed = False
+        self.path.mkdir(parents=True)
+        self._write_metadata()  # an empty but valid bag from the start
+
+    # -- recording
+    def write(self, topic: str, timestamp_ns: int, data: bytes) -> None:
+        if self._closed:
+            raise BagError("recorder is closed")
+        if topic not in self.topics:
+            raise BagError(f"topic {topic!r} was not declared to the recorder")
+        self._buffer.append((topic, int(timestamp_ns), bytes(data)))
+        self.maybe_roll()
+
+    def maybe_roll(self) -> None:
+        """Finish the segment when it is ``segment_s`` old (call it from a timer when messages may stop)."""
+        if self._clock() - self._segment_started >= self.segment_s:
+            self.roll()
+
+    def roll(self) -> None:
+        """Write the buffered messages as one complete storage file and update metadata.yaml."""
+        self._segment_started = self._clock()
+        if not self._buffer:
+            return
+        buffer, self._buffer = self._buffer, []
+        plugin, suffix = STORAGES[self.storage]
+        k = len(self._files)
+        name = f"{self.path.name}_{k}"
+        tmp = self.path / f".{name}.partial"
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        writer = Writer(tmp, version=BAG_VERSION, storage_plugin=plugin)
+        writer.open()
+        conns = {}
+        for topic in sorted({t for t, _, _ in buffer}):
+            msgtype, qos = self.topics[topic]
+            conns[topic] = writer.add_connection(topic, msgtype, typestore=TYPESTORE, offered_qos_profiles=[qos])
+        counts: dict[str, int] = {}
+        for topic, stamp, data in buffer:
+            writer.write(conns[topic], stamp, data)
+            counts[topic] = counts.get(topic, 0) + 1
+        writer.close()
+        final = self.path / (name + suffix)
+        os.replace(tmp / (tmp.name + suffix), final)
+        shutil.rmtree(tmp, ignore_errors=True)
+        stamps = [s for _, s, _ in buffer]
+        first, last = min(stamps), max(stamps)
+        self._files.append({"path": final.name, "starting_time": {"nanoseconds_since_epoch": first},
+                            "duration": {"nanoseconds": last - first}, "message_count": len(buffer)})
+        for topic, c in counts.items():
+            self._counts[topic] += c
+        self._start_ns = first if self._start_ns is None else min(self._start_ns, first)
+        self._end_ns = max(self._end_ns, last)
+        self._write_metadata()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self.roll()
+        self._closed = True
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    @property
+    def message_counts(self) -> dict[str, int]:
+        return dict(self._counts)
+
+    def _write_metadata(self) -> None:
+        start = self._start_ns or 0
+        info = {
+            "version": BAG_VERSION,
+            "storage_identifier": self.storage,
+            "relative_file_paths": [f["path"] for f in self._files],
+            "duration": {"nanoseconds": max(self._end_ns - start, 0)},
+            "starting_time": {"nanoseconds_since_epoch": start},
+            "message_count": sum(self._counts.values()),
+            "topics_with_message_count": [
+                {"topic_metadata": {"name": topic, "type": msgtype, "serialization_format": "cdr",
+                                    "offered_qos_profiles": dump_qos_v9([qos]),
+                                    "type_description_hash": TYPESTORE.hash_rihs01(msgtype)},
+                 "message_count": self._counts[topic]}
+                for topic, (msgtype, qos) in self.topics.items() if self._counts[topic]],
+            "compression_format": "",
+            "compression_mode": "",
+            "files": list(self._files),
+            "custom_data": None,
+            "ros_distro": "jazzy",
+        }
+        yaml = YAML(typ="safe")
+        yaml.default_flow_style = False
+        text = StringIO()
+        yaml.dump({"rosbag2_bagfile_information": info}, text)
+        tmp = self.path / "metadata.yaml.tmp"
+        tmp.write_text(text.getvalue(), "utf8")
+        os.replace(tmp, self.path / "metadata.yaml")
+
+
+def write_samples_bag(path, rows: np.ndarray, topic: str = "/samples", storage: str = "mcap",
+                      batch: int = 1000, start_ns: int = 1_700_000_000_000_000_000,
+                      label: str = ",".join(SAMPLES_COLUMNS)) -> None:
+    """A bag holding ``rows`` on a ``samples`` topic (offline use and tests)."""
+    rows = np.asarray(rows, float)
+    clock_state = [0.0]
+    rec = BagRecorder(path, {topic: (SAMPLES_TYPE, qos_profile(True, 100))}, storage,
+                      segment_s=float("inf"), clock=lambda: clock_state[0])
+    for i in range(0, rows.shape[0], batch):
+        chunk = rows[i:i + batch]
+        rec.write(topic, start_ns + int(round(chunk[-1, 0] * 1e9)), serialize_samples(chunk, label))
+    rec.close()
+
+
+def read_samples(path, topic: Optional[str] = None) -> tuple[np.ndarray, str]:
+    """Rows (time [s], voltage [V], position [m]) of the bag's ``samples`` topic, time-ordered; and its name.
+
+    Any namespace is accepted (a topic whose last name is ``samples``); ``topic`` picks one explicitly.
+    Raises BagError with a one-line reason for anything unreadable.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"no bag at {path}")
+    try:
+        reader = Reader(path)
+        reader.open()
+    except Exception as exc:  # rosbags raises several types; the message is what matters
+        raise BagError(f"cannot read bag {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+    try:
+        conns = [c for c in reader.connections if c.msgtype == SAMPLES_TYPE]
+        if topic is not None:
+            chosen = [c for c in conns if c.topic == topic]
+            if not chosen:
+                raise BagError(f"bag {path} has no Float64MultiArray topic {topic!r} "
+                               f"(topics: {', '.join(sorted({c.topic for c in reader.connections})) or 'none'})")
+        else:
+            chosen = [c for c in conns if c.topic.rstrip("/").split("/")[-1] == "samples"]
+            names = sorted({c.topic for c in chosen})
+            if not chosen:
+                raise BagError(f"bag {path} has no samples topic (topics: "
+                               f"{', '.join(sorted({c.topic for c in reader.connections})) or 'none'})")
+            if len(names) > 1:
+                raise BagError(f"bag {path} has several samples topics ({', '.join(names)}); choose one with --topic")
+        name = chosen[0].topic
+        parts = []
+        columns = None
+        try:
+            for conn, _, raw in reader.messages(connections=chosen):
+                msg = TYPESTORE.deserialize_cdr(raw, conn.msgtype)
+                dims = msg.layout.dim
+                if len(dims) != 2:
+                    raise BagError(f"{name}: a message has {len(dims)} layout dimensions, expected 2")
+                labels = dims[1].label.split(",")
+                if columns is None:
+                    missing = [c for c in SAMPLES_COLUMNS if c not in labels]
+                    if missing:
+                        raise BagError(f"{name}: columns {dims[1].label!r} lack {', '.join(missing)}")
+                    columns = [labels.index(c) for c in SAMPLES_COLUMNS]
+                n, k = dims[0].size, dims[1].size
+                data = np.asarray(msg.data, dtype=float)
+                if data.size != n * k:
+                    raise BagError(f"{name}: a message holds {data.size} values, its layout says {n}x{k}")
+                parts.append(data.reshape(n, k)[:, columns])
+        except BagError:
+            raise
+        except Exception as exc:
+            raise BagError(f"cannot read bag {path} (truncated or corrupt?): "
+                           f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+        if not parts:
+            raise BagError(f"bag {path}: topic {name} holds no messages")
+        rows = np.concatenate(parts)
+        order = np.argsort(rows[:, 0], kind="stable")
+        rows = rows[order]
+        keep = np.concatenate(([True], np.diff(rows[:, 0]) > 0))  # a batch delivered twice counts once
+        return rows[keep], name
+    finally:
+        reader.close()
