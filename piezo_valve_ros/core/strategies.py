@@ -30,7 +30,7 @@ from .dynamics import PAPER_VALVE_MODEL, ContinuousTF, DiscreteFilter
 from .hysteresis import GPIM, InverseGPIM, NotInvertibleError, PAPER_GPIM, inverse_problems
 
 __all__ = ["STRATEGIES", "PIDGains", "ControllerConfig", "ValveController", "TABLE1_GAINS", "gain_set",
-           "nominal_static_gain"]
+           "nominal_static_gain", "CreepModel", "CreepCompensator"]
 
 STRATEGIES = ("ol", "ol_hc", "pid", "pid_hc", "ff_pid", "ff_pid_g")
 _HAS_PID = {"pid", "pid_hc", "ff_pid", "ff_pid_g"}
@@ -52,6 +52,63 @@ class PIDGains:
         if min(vals) < 0:
             return ["gains must be >= 0"]
         return []
+
+
+@dataclass(frozen=True)
+class CreepModel:
+    """Creep as identified: ``y = H + sum_i g_i (lag_{tau_i}[H] - H)`` (H: hysteresis output [um])."""
+
+    time_constants_s: tuple[float, ...] = ()
+    gains: tuple[float, ...] = ()
+
+    def problems(self) -> list[str]:
+        taus, gains = self.time_constants_s, self.gains
+        if len(taus) != len(gains):
+            return [f"creep: {len(taus)} time constants but {len(gains)} gains"]
+        if not all(math.isfinite(x) for x in tuple(taus) + tuple(gains)):
+            return ["creep: non-finite value"]
+        out = []
+        if any(t <= 0 for t in taus):
+            out.append("creep: time constants must be > 0")
+        if sum(gains) >= 0.9:
+            out.append(f"creep: gains sum to {sum(gains):.3g}; compensation needs a sum < 0.9")
+        return out
+
+    @property
+    def active(self) -> bool:
+        return any(g != 0.0 for g in self.gains)
+
+
+class CreepCompensator:
+    """Exact streaming inverse of :class:`CreepModel`: demanded position -> hysteresis demand [um].
+
+    The ZOH lags depend only on past hysteresis outputs (l_k = a l_{k-1} + (1 - a) H_{k-1}), so
+    ``H_k = (y_k - sum g_i l_i,k) / (1 - sum g_i)`` meets the demand exactly when the model holds.
+    """
+
+    def __init__(self, creep: CreepModel, dt: float, h0: float = 0.0):
+        problems = creep.problems()
+        if problems:
+            raise ValueError("; ".join(problems))
+        self.creep = creep
+        self._a = [math.exp(-dt / tau) for tau in creep.time_constants_s]
+        self._g = [float(g) for g in creep.gains]
+        self._den = 1.0 - sum(self._g)
+        self.reset(h0)
+
+    def reset(self, h0: float) -> None:
+        self._lags = [float(h0)] * len(self._a)
+        self._last_h = float(h0)
+
+    def step(self, demand_um: float) -> float:
+        lags, a, g = self._lags, self._a, self._g
+        acc = 0.0
+        for i in range(len(a)):
+            lags[i] = a[i] * lags[i] + (1.0 - a[i]) * self._last_h
+            acc += g[i] * lags[i]
+        h = (demand_um - acc) / self._den
+        self._last_h = h
+        return h
 
 
 # Table 1 of the paper: (kp, ki); kd = 0 throughout.
@@ -121,13 +178,14 @@ class ValveController:
     """Streaming controller: ``step(reference_m, measured_m) -> voltage [V]`` once per period."""
 
     def __init__(self, config: ControllerConfig = ControllerConfig(), model: GPIM = PAPER_GPIM.model(),
-                 valve_model: ContinuousTF = PAPER_VALVE_MODEL):
-        problems = config.problems() + inverse_problems(model) + valve_model.problems()
+                 valve_model: ContinuousTF = PAPER_VALVE_MODEL, creep: CreepModel = CreepModel()):
+        problems = config.problems() + inverse_problems(model) + valve_model.problems() + creep.problems()
         if problems:
             raise ValueError("; ".join(problems))
         self.config = config
         self.model = model
         self.valve_model = valve_model
+        self.creep = creep
         self._setup_model(model)
         self._gv = valve_model.discretise(config.dt)
         self.reset()
@@ -149,6 +207,8 @@ class ValveController:
         # in-loop inverse of pid_hc, driven by the PID output
         self.loop_inverse = InverseGPIM(self.model, v0=v0)
         y0 = self.model.output_from_state(self.model.virgin_state(v0))
+        # creep compensation of the feedforward path (None when no creep is modelled)
+        self._creep = CreepCompensator(self.creep, c.dt, y0) if self.creep.active else None
         self._last_ref_um = y0 if reference_m is None else reference_m * 1e6
         self._gv.reset(self._last_ref_um)
         self._last_gv_out = self._last_ref_um
@@ -176,14 +236,20 @@ class ValveController:
     def set_gains(self, gains: PIDGains) -> None:
         self.set_strategy(self.config.strategy, gains)
 
-    def set_model(self, model: GPIM, valve_model: Optional[ContinuousTF] = None) -> None:
-        """Replace the GPIM (and G_v): validated first, all or nothing; loop memory carried over."""
-        problems = inverse_problems(model) + (valve_model.problems() if valve_model else [])
+    def set_model(self, model: GPIM, valve_model: Optional[ContinuousTF] = None,
+                  creep: Optional[CreepModel] = None) -> None:
+        """Replace the GPIM (and G_v, creep): validated first, all or nothing; loop memory carried over."""
+        problems = (inverse_problems(model) + (valve_model.problems() if valve_model else [])
+                    + (creep.problems() if creep is not None else []))
         if problems:
             raise NotInvertibleError("; ".join(problems))
         ff = self.ff_inverse.with_model(model, self._last_ff_v)
         loop = self.loop_inverse.with_model(model, self.last_command_v)
         new_gv = valve_model.discretise(self.config.dt) if valve_model else None
+        if creep is not None and creep != self.creep:
+            self.creep = creep
+            h_now = ff.peek_forward(self._last_ff_v)
+            self._creep = CreepCompensator(creep, self.config.dt, h_now) if creep.active else None
         self.model, self.ff_inverse, self.loop_inverse = model, ff, loop
         self._setup_model(model)
         if new_gv is not None:
@@ -223,7 +289,8 @@ class ValveController:
         s = c.strategy
         y_ref = reference_m * 1e6
         self._last_ref_um = y_ref
-        ff_v = self.ff_inverse.step(min(max(y_ref, self._demand_min_um), self._demand_max_um))
+        h_ref = self._creep.step(y_ref) if self._creep is not None else y_ref
+        ff_v = self.ff_inverse.step(min(max(h_ref, self._demand_min_um), self._demand_max_um))
         self._last_ff_v = ff_v
         gv_out = self._gv.step(y_ref)
         self._last_gv_out = gv_out

@@ -20,13 +20,13 @@ from std_msgs.msg import Float64
 from ..core.dynamics import PAPER_VALVE_MODEL, ContinuousTF
 from ..core.hysteresis import GPIM, PAPER_GPIM, GPIMParams, inverse_problems
 from ..core.signals import ReferenceRamp
-from ..core.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set
+from ..core.strategies import STRATEGIES, ControllerConfig, CreepModel, PIDGains, ValveController, gain_set
 from .common import COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, as_float, as_float_list, as_int, declare, run_node
 
 GPIM_KEYS = ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")
 
 
-def settings_from_parameters(p: dict[str, Any]) -> tuple[ControllerConfig, GPIM, ContinuousTF]:
+def settings_from_parameters(p: dict[str, Any]) -> tuple[ControllerConfig, GPIM, ContinuousTF, CreepModel]:
     """Controller settings from a flat parameter dict; raises ValueError with every problem found."""
     name = str(p.get("gain_set", "") or "")
     if name:
@@ -61,9 +61,12 @@ def settings_from_parameters(p: dict[str, Any]) -> tuple[ControllerConfig, GPIM,
     valve_model = ContinuousTF(tuple(as_float_list("valve_model.num", p["valve_model.num"])),
                                tuple(as_float_list("valve_model.den", p["valve_model.den"])))
     problems += valve_model.problems()
+    creep = CreepModel(tuple(as_float_list("creep.time_constants_s", p.get("creep.time_constants_s", []))),
+                       tuple(as_float_list("creep.gains", p.get("creep.gains", []))))
+    problems += creep.problems()
     if problems:
         raise ValueError("; ".join(problems))
-    return config, model, valve_model
+    return config, model, valve_model, creep
 
 
 class ValveControllerNode(Node):
@@ -88,11 +91,13 @@ class ValveControllerNode(Node):
             ("gpim.weights", [], "free-form weights [um/V] (empty: 5-parameter form)"),
             ("valve_model.num", list(PAPER_VALVE_MODEL.num), "G_v(s) numerator"),
             ("valve_model.den", list(PAPER_VALVE_MODEL.den), "G_v(s) denominator"),
+            ("creep.time_constants_s", [], "creep compensation (feedforward path): lag time constants [s]"),
+            ("creep.gains", [], "creep compensation: gains [-] (empty or all 0: none)"),
         ]:
             declare(self, name, default, text)
         p = self._values()
-        config, model, valve_model = settings_from_parameters(p)
-        self.controller = ValveController(config, model, valve_model)
+        config, model, valve_model, creep = settings_from_parameters(p)
+        self.controller = ValveController(config, model, valve_model, creep)
         self.ramp = ReferenceRamp(as_float("initial_reference_m", p["initial_reference_m"]),
                                   as_float("reference_ramp_s", p["reference_ramp_s"]), config.dt)
         self.command_pub = self.create_publisher(Float64, "voltage_command", COMMAND_QOS)
@@ -129,7 +134,7 @@ class ValveControllerNode(Node):
         for prm in params:
             p[prm.name] = prm.value
         try:
-            config, model, valve_model = settings_from_parameters(p)
+            config, model, valve_model, creep = settings_from_parameters(p)
             ramp_s = as_float("reference_ramp_s", p["reference_ramp_s"])
         except ValueError as exc:
             reason = str(exc)
@@ -142,8 +147,8 @@ class ValveControllerNode(Node):
             return SetParametersResult(successful=False, reason=reason)
         changed = {x.name for x in params}
         if changed & {f"gpim.{k}" for k in GPIM_KEYS + ("thresholds", "weights")} \
-                or changed & {"valve_model.num", "valve_model.den"}:
-            ctl.set_model(model, valve_model)
+                or changed & {"valve_model.num", "valve_model.den", "creep.time_constants_s", "creep.gains"}:
+            ctl.set_model(model, valve_model, creep)
             self.get_logger().info("new model parameters in use")
         if (config.strategy, config.gains) != (ctl.config.strategy, ctl.config.gains) or \
                 (config.command_min_v, config.command_max_v, config.centre_voltage_v) != \
