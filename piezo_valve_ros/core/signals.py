@@ -140,6 +140,11 @@ class ReferenceRamp:
     def set_ramp(self, ramp_s: float, dt: float) -> None:
         self._n = max(int(round(ramp_s / dt)), 1) if ramp_s > 0 else 1
 
+    def hold(self, value: float) -> None:
+        """Jump to ``value`` and stay there (no ramp)."""
+        self.value = self._start = self._target = float(value)
+        self._i = self._n
+
     def set_target(self, target: float) -> None:
         self._start, self._target, self._i = self.value, float(target), 0
 

@@ -93,6 +93,8 @@ class ValveControllerNode(Node):
             ("valve_model.den", list(PAPER_VALVE_MODEL.den), "G_v(s) denominator"),
             ("creep.time_constants_s", [], "creep compensation (feedforward path): lag time constants [s]"),
             ("creep.gains", [], "creep compensation: gains [-] (empty or all 0: none)"),
+            ("enabled", True, "false: publish no commands (another node drives voltage_command, e.g. identification); "
+                              "true again resumes from the last command seen"),
         ]:
             declare(self, name, default, text)
         p = self._values()
@@ -100,7 +102,11 @@ class ValveControllerNode(Node):
         self.controller = ValveController(config, model, valve_model, creep)
         self.ramp = ReferenceRamp(as_float("initial_reference_m", p["initial_reference_m"]),
                                   as_float("reference_ramp_s", p["reference_ramp_s"]), config.dt)
+        self.enabled = bool(p["enabled"])
+        self._last_position_m = None
+        self._last_foreign_command_v = None
         self.command_pub = self.create_publisher(Float64, "voltage_command", COMMAND_QOS)
+        self.create_subscription(Float64, "voltage_command", self._on_command_seen, COMMAND_QOS)
         self.create_subscription(Float64, "spool_position", self._on_position, SENSOR_QOS)
         self.create_subscription(Float64, "position_reference", self._on_reference, 10)
         self.add_on_set_parameters_callback(self._on_parameters)
@@ -117,8 +123,33 @@ class ValveControllerNode(Node):
         if not math.isfinite(y):
             self.get_logger().warning(f"ignored non-finite spool_position {y!r}", throttle_duration_sec=1.0)
             return
+        self._last_position_m = y
+        if not self.enabled:
+            return
         v = self.controller.step(self.ramp.step(), y)
         self.command_pub.publish(Float64(data=v))
+
+    def _on_command_seen(self, msg: Float64) -> None:
+        """While disabled, remember what others command (to resume from it)."""
+        if not self.enabled and math.isfinite(msg.data):
+            self._last_foreign_command_v = msg.data
+
+    def _set_enabled(self, enabled: bool) -> None:
+        if enabled == self.enabled:
+            return
+        self.enabled = enabled
+        if enabled:
+            ctl = self.controller
+            v = ctl.last_command_v if self._last_foreign_command_v is None else self._last_foreign_command_v
+            v = min(max(v, ctl.config.command_min_v), ctl.config.command_max_v)
+            ctl.reset(v, self._last_position_m)
+            if self._last_position_m is not None:
+                self.ramp.hold(self._last_position_m)
+            self.get_logger().info(f"enabled: resuming from {v:.4g} V (operators in the state of a synchronised "
+                                   f"valve at that voltage)")
+        else:
+            self._last_foreign_command_v = None
+            self.get_logger().info("disabled: publishing no commands")
 
     def _on_reference(self, msg: Float64) -> None:
         r = msg.data
@@ -159,6 +190,8 @@ class ValveControllerNode(Node):
             self.get_logger().info(f"strategy={config.strategy} kp={config.gains.kp} ki={config.gains.ki} "
                                    f"kd={config.gains.kd} (bumpless)")
         self.ramp.set_ramp(ramp_s, config.dt)
+        if "enabled" in changed:
+            self._set_enabled(bool(p["enabled"]))
         return SetParametersResult(successful=True)
 
 

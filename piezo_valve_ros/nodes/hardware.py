@@ -34,8 +34,13 @@ def sim_config_from_parameters(p: dict) -> ValveSimConfig:
     """The simulated valve from ``sim.*`` parameters (effects switchable one by one)."""
     base = ValveSimConfig()
     asym = p.get("sim.asymmetry", False)
+    g = base.gpim
+    gpim = replace(g, **{k: (as_int if k == "n" else as_float)(f"sim.gpim.{k}", p.get(f"sim.gpim.{k}", getattr(g, k)))
+                         for k in ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")})
+    gpim.model()  # raises ValueError with the reason
     return replace(
         base,
+        gpim=gpim,
         dt=as_float("sim.sample_period_s", p.get("sim.sample_period_s", base.dt)),
         seed=as_int("sim.seed", p.get("sim.seed", 0)),
         amplifier=replace(AmplifierParams(), enabled=bool(p.get("sim.slew_limit", True))),
@@ -69,6 +74,9 @@ class ValveHardwareNode(Node):
                                     ("sim.rate_dependence", False, "rate dependence"),
                                     ("sim.drift", False, "thermal drift"), ("sim.asymmetry", False, "asymmetry")]:
             declare(self, name, default, f"sim backend: {text}")
+        from ..core.hysteresis import PAPER_GPIM
+        for k in ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um"):  # a valve unlike the paper's, for tests
+            declare(self, f"sim.gpim.{k}", getattr(PAPER_GPIM, k), "sim backend: the valve's own GPIM (paper units)")
         p = {name: param.value for name, param in self._parameters.items()}
         self.clock_mode = str(p["clock"])
         if self.clock_mode not in ("realtime", "lockstep"):

@@ -34,7 +34,8 @@ from .common import REFERENCE_QOS, SAMPLES_QOS, make_executor, samples_from_mess
 # ---------------------------------------------------------------------------- processes
 def node_command(executable: str, params: dict, namespace: str = "") -> list[str]:
     """Command line that starts one of the package's nodes with ``params`` (optionally in a namespace)."""
-    module = {"valve_hardware": "hardware", "valve_controller": "controller"}[executable]
+    module = {"valve_hardware": "hardware", "valve_controller": "controller",
+              "valve_identification": "identification"}[executable]
     cmd = [sys.executable, "-m", f"piezo_valve_ros.nodes.{module}", "--ros-args"]
     if namespace:
         cmd += ["-r", f"__ns:={namespace}"]
@@ -44,7 +45,7 @@ def node_command(executable: str, params: dict, namespace: str = "") -> list[str
         elif isinstance(v, str):
             v = "'" + v.replace("'", "''") + "'"  # YAML string, also when empty
         elif isinstance(v, (list, tuple)):
-            v = "[" + ",".join(repr(float(x)) for x in v) + "]"
+            v = "[" + ",".join(repr(float(x)) for x in v) + "]" if v else "[]"
         cmd += ["-p", f"{k}:={v}"]
     return cmd
 

@@ -1,0 +1,325 @@
+"""``valve_identification``: runs experiments on the rig, records them, refits, pushes the new model.
+
+The ``plan`` (comma-separated, run in order once the rig answers) is made of:
+
+``train``     the controller is disabled and this node drives ``voltage_command`` one value per
+              ``spool_position`` (so it works in lockstep and in real time): synchronising sine, the
+              paper's training signal, step-and-hold segments (creep, drift), multisine segments
+              (dynamics, rate dependence), and a closing synchronising sine that leaves the valve in a
+              known state at 5 V; then the controller is re-enabled and resumes from there.
+``refit``     ``valve_identify``'s analysis of the last training bag (last 30 % held out), the
+              parameters file written atomically, and the model pushed to the controller with one
+              atomic parameter request (all or nothing).  A failed refit or a rejected push leaves the
+              last good parameters (file and controller) untouched.
+``validate``  the controller (switched to ``validation_strategy``, default ``ol_hc``) tracks the paper's
+              validation demand (eq. 12) sent on ``position_reference``; the tracking error is logged.
+
+Every experiment is recorded to its own crash-safe rosbag2 bag under ``bag_dir`` (``samples``,
+``voltage_command``, ``spool_position``, ``position_reference``).  ``bag_dir/summary.json`` lists what
+each step did and measured.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import threading
+import time
+from datetime import datetime
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import rclpy
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+from std_msgs.msg import Float64, Float64MultiArray
+
+from ..bagio import FLOAT64_TYPE, SAMPLES_TYPE, BagError, BagRecorder, qos_profile
+from ..core.identification import IdentificationError
+from ..core.signals import (multisine_voltage, step_and_hold_voltage, synchronising_sine, training_voltage,
+                            validation_reference_m)
+from ..identify_cli import compensation_model, controller_parameters_yaml, identify_bags, write_atomically
+from .common import COMMAND_QOS, REFERENCE_QOS, SAMPLES_QOS, SENSOR_QOS, as_float, declare, run_node
+
+STEPS = ("train", "refit", "validate")
+
+
+def training_experiment(period_s: float, training_s: float = 30.0, time_scale: float = 1.0) -> np.ndarray:
+    """Voltages [V], one per control period: the identification excitation, ``time_scale`` < 1 compresses it."""
+    dt = period_s / time_scale  # the signals' own time axis
+    return np.concatenate((training_voltage(dt, training_s, synchronise=True), step_and_hold_voltage(dt),
+                           multisine_voltage(dt), synchronising_sine(dt), np.full(max(int(0.3 / period_s), 1), 5.0)))
+
+
+class _Player:
+    """Values sent one per ``spool_position`` message; ``done`` is set after the last one."""
+
+    def __init__(self, values: np.ndarray, publisher, record=None):
+        self.values = np.asarray(values, float)
+        self.publisher = publisher
+        self.record = record
+        self.index = 0
+        self.positions: list[float] = []
+        self.done = threading.Event()
+
+    def next(self) -> None:
+        if self.index >= self.values.size:
+            self.done.set()
+            return
+        value = float(self.values[self.index])
+        self.index += 1
+        self.publisher.publish(Float64(data=value))
+        if self.record is not None:
+            self.record(value)
+
+
+class ValveIdentificationNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("valve_identification", **kwargs)
+        for name, default, text in [
+            ("plan", "train,refit", f"steps run in order: {', '.join(STEPS)}"),
+            ("control_period_s", 1e-3, "the hardware's control period [s] (one experiment value per period)"),
+            ("training_s", 30.0, "length of the paper's training signal (eq. 11) in the experiment [s]"),
+            ("validation_s", 30.0, "length of the validation demand (eq. 12) [s]"),
+            ("validation_amplitude_m", 50e-6, "peak of the validation demand [m]"),
+            ("validation_strategy", "ol_hc", "controller strategy during validate"),
+            ("time_scale", 1.0, "< 1 compresses the experiments in time (quick runs); 1 = the paper's signals"),
+            ("bag_dir", "identification_runs", "one bag per experiment is written below this directory"),
+            ("storage", "mcap", "bag storage: mcap or sqlite3"),
+            ("params_out", "", "parameters file written by refit (default: <bag_dir>/fitted.yaml)"),
+            ("push", True, "push refitted parameters to the controller"),
+            ("controller", "valve_controller", "name of the controller node (relative to this namespace)"),
+            ("exit_when_done", False, "shut down after the plan"),
+        ]:
+            declare(self, name, default, text)
+        p = {name: prm.value for name, prm in self._parameters.items()}
+        self.plan = [s.strip() for s in str(p["plan"]).split(",") if s.strip()]
+        unknown = [s for s in self.plan if s not in STEPS]
+        if unknown:
+            raise ValueError(f"plan: unknown step(s) {', '.join(unknown)}; steps are {', '.join(STEPS)}")
+        if "refit" in self.plan and ("train" not in self.plan or self.plan.index("train") > self.plan.index("refit")):
+            raise ValueError("plan: refit needs a train step before it (it refits on that run's bag)")
+        self.period_s = as_float("control_period_s", p["control_period_s"])
+        self.training_s = as_float("training_s", p["training_s"])
+        self.validation_s = as_float("validation_s", p["validation_s"])
+        self.validation_amplitude_m = as_float("validation_amplitude_m", p["validation_amplitude_m"])
+        self.time_scale = as_float("time_scale", p["time_scale"])
+        if not (self.period_s > 0 and self.time_scale > 0 and self.training_s > 0 and self.validation_s > 0):
+            raise ValueError("control_period_s, time_scale, training_s and validation_s must be > 0")
+        self.validation_strategy = str(p["validation_strategy"])
+        self.bag_dir = Path(str(p["bag_dir"]))
+        self.storage = str(p["storage"])
+        if self.storage not in ("mcap", "sqlite3"):
+            raise ValueError(f"storage must be mcap or sqlite3, got {self.storage!r}")
+        self.params_out = Path(str(p["params_out"]) or self.bag_dir / "fitted.yaml")
+        self.push = bool(p["push"])
+        self.exit_when_done = bool(p["exit_when_done"])
+
+        self.command_pub = self.create_publisher(Float64, "voltage_command", COMMAND_QOS)
+        self.reference_pub = self.create_publisher(Float64, "position_reference", REFERENCE_QOS)
+        self._recorder: Optional[BagRecorder] = None
+        self._recorder_lock = threading.Lock()
+        self._player: Optional[_Player] = None
+        topics = {"samples": (SAMPLES_TYPE, SAMPLES_QOS, True), "voltage_command": (FLOAT64_TYPE, COMMAND_QOS, True),
+                  "spool_position": (FLOAT64_TYPE, SENSOR_QOS, False),
+                  "position_reference": (FLOAT64_TYPE, REFERENCE_QOS, True)}
+        self._bag_topics = {}
+        for topic, (msgtype, qos, reliable) in topics.items():
+            full = self.resolve_topic_name(topic)
+            self._bag_topics[full] = (msgtype, qos_profile(reliable, qos.depth))
+            msg_class = Float64MultiArray if msgtype == SAMPLES_TYPE else Float64
+            self.create_subscription(msg_class, topic, self._make_raw_callback(full), qos, raw=True)
+        self.create_subscription(Float64, "spool_position", self._on_position, SENSOR_QOS)
+        self.create_timer(0.2, self._roll_recorder)
+        self.controller = AsyncParameterClient(self, str(p["controller"]))
+        self.summary: list[dict] = []
+        self.finished = threading.Event()
+        self.failed = False
+        self._worker = threading.Thread(target=self._run_plan, daemon=True)
+        self._worker.start()
+        self.get_logger().info(f"valve_identification up: plan {', '.join(self.plan) or '(none)'}; bags in {self.bag_dir}")
+
+    # ------------------------------------------------------------------ recording
+    def _make_raw_callback(self, topic: str):
+        def callback(data: bytes) -> None:
+            with self._recorder_lock:
+                if self._recorder is not None:
+                    self._recorder.write(topic, time.time_ns(), data)
+        return callback
+
+    def _roll_recorder(self) -> None:
+        with self._recorder_lock:
+            if self._recorder is not None:
+                self._recorder.maybe_roll()
+
+    def _start_recording(self, label: str) -> Path:
+        stamp = datetime.now().strftime("%Y%m%d_%H%M%S_%f")
+        path = self.bag_dir / f"{label}_{stamp}"
+        self.bag_dir.mkdir(parents=True, exist_ok=True)
+        with self._recorder_lock:
+            self._recorder = BagRecorder(path, self._bag_topics, self.storage)
+        return path
+
+    def _stop_recording(self) -> dict:
+        with self._recorder_lock:
+            rec, self._recorder = self._recorder, None
+        if rec is None:
+            return {}
+        rec.close()
+        return rec.message_counts
+
+    # ------------------------------------------------------------------ experiment playback
+    def _on_position(self, msg: Float64) -> None:
+        player = self._player
+        if player is None:
+            return
+        if player.record is not None and player.index > 0:
+            player.positions.append(msg.data)
+        player.next()
+
+    def _play(self, player: _Player, what: str) -> None:
+        expected_s = player.values.size * self.period_s
+        self._player = player
+        player.next()  # the first value goes out at once (in lockstep it also advances the rig)
+        deadline = time.monotonic() + 60.0 + 20.0 * expected_s
+        last_log = time.monotonic()
+        while not player.done.wait(0.5):
+            if not rclpy.ok():
+                raise RuntimeError("shut down during an experiment")
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"{what}: rig stopped answering ({player.index}/{player.values.size} periods)")
+            if time.monotonic() - last_log > 5.0:
+                last_log = time.monotonic()
+                self.get_logger().info(f"{what}: {100 * player.index / player.values.size:.0f} % "
+                                       f"({player.index}/{player.values.size} periods)")
+        self._player = None
+
+    def _set_controller(self, values: dict, atomically: bool = False, timeout_s: float = 10.0) -> tuple[bool, str]:
+        if not self.controller.wait_for_services(timeout_sec=timeout_s):
+            return False, "controller parameter services not available"
+        params = [Parameter(k, value=v) for k, v in values.items()]
+        future = (self.controller.set_parameters_atomically(params) if atomically
+                  else self.controller.set_parameters(params))
+        deadline = time.monotonic() + timeout_s
+        while not future.done():
+            if time.monotonic() > deadline or not rclpy.ok():
+                return False, "no answer from the controller"
+            time.sleep(0.005)
+        results = future.result().result if atomically else future.result().results
+        results = [results] if atomically else results
+        bad = [r.reason for r in results if not r.successful]
+        return (not bad), "; ".join(bad)
+
+    # ------------------------------------------------------------------ steps
+    def _step_train(self) -> dict:
+        values = training_experiment(self.period_s, self.training_s, self.time_scale)
+        ok, reason = self._set_controller({"enabled": False})
+        if not ok:
+            raise RuntimeError(f"cannot disable the controller: {reason}")
+        bag = self._start_recording("train")
+        self.get_logger().info(f"train: {values.size} periods ({values.size * self.period_s:.1f} s), recording {bag}")
+        try:
+            self._play(_Player(values, self.command_pub), "train")
+        finally:
+            time.sleep(0.3)  # the last samples batch
+            counts = self._stop_recording()
+            ok, reason = self._set_controller({"enabled": True})
+            if not ok:
+                self.get_logger().error(f"could not re-enable the controller: {reason}")
+            self.command_pub.publish(Float64(data=5.0))  # hand over: the controller answers the next position
+        self.last_train_bag = bag
+        self.get_logger().info(f"train: done, {counts} messages recorded")
+        return {"step": "train", "bag": str(bag), "periods": int(values.size), "messages": counts}
+
+    def _step_refit(self) -> dict:
+        bag = getattr(self, "last_train_bag", None)
+        if bag is None:
+            raise RuntimeError("refit needs a train step before it")
+        self.get_logger().info(f"refit: analysing {bag}")
+        try:
+            analysis, _ = identify_bags(bag, log=lambda s: self.get_logger().info(f"refit: {s}"))
+            model = compensation_model(analysis)
+        except (BagError, IdentificationError) as exc:
+            self.get_logger().error(f"refit failed, last good parameters kept: {exc}")
+            return {"step": "refit", "ok": False, "reason": str(exc)}
+        report = analysis.report
+        write_atomically(Path(str(bag)) / "report.json", json.dumps(report, indent=2) + "\n")
+        write_atomically(self.params_out, controller_parameters_yaml(model, str(bag), report))
+        creep = model.creep_compensation() or ([1.0], [0.0])
+        g = model.gpim
+        values = {"gpim.thresholds": [float(x) for x in g.thresholds], "gpim.weights": [float(x) for x in g.weights],
+                  "gpim.a0": float(g.a0), "gpim.a1": float(g.a1), "gpim.offset_um": float(g.offset_um),
+                  "creep.time_constants_s": [float(x) for x in creep[0]], "creep.gains": [float(x) for x in creep[1]]}
+        pushed, reason = (self._set_controller(values, atomically=True) if self.push else (False, "push disabled"))
+        if pushed:
+            self.get_logger().info(f"refit: model {model.name} pushed to the controller; parameters in {self.params_out}")
+        else:
+            self.get_logger().warning(f"refit: model not pushed ({reason}); parameters in {self.params_out}")
+        return {"step": "refit", "ok": True, "model": model.name, "effects_added": report["effects_added"],
+                "baseline_validate": report["baseline"]["validate"], "final_validate": report["final"]["validate"],
+                "params_out": str(self.params_out), "pushed": pushed, "reason": reason}
+
+    def _step_validate(self) -> dict:
+        ok, reason = self._set_controller({"enabled": True, "strategy": self.validation_strategy, "gain_set": ""})
+        if not ok:
+            raise RuntimeError(f"cannot set the controller up for validation: {reason}")
+        ref = validation_reference_m(self.period_s / self.time_scale, self.validation_s, self.validation_amplitude_m * 1e6)
+        lead = max(int(0.5 / self.period_s), 1)  # ease in from 0 (the validation demand starts off 0)
+        ref = np.concatenate((ref[0] * np.linspace(0.0, 1.0, lead), ref))
+        bag = self._start_recording("validate")
+        sent: list[float] = []
+        player = _Player(ref, self.reference_pub, record=sent.append)
+        try:
+            self._play(player, "validate")
+        finally:
+            time.sleep(0.3)
+            self._stop_recording()
+        # the position answering reference k arrives with the position after it
+        n = min(len(player.positions), len(sent) - 1)
+        err_um = (np.asarray(player.positions[:n]) - np.asarray(sent[:n])) * 1e6
+        err_um = err_um[lead:]  # scored on the demand itself
+        rms, peak = float(np.sqrt(np.mean(err_um ** 2))), float(np.max(np.abs(err_um)))
+        span = float(np.ptp(ref) * 1e6)
+        self.get_logger().info(f"validate ({self.validation_strategy}): tracking error RMS {rms:.3f} um, "
+                               f"peak {peak:.3f} um ({100 * peak / span:.2f} % of the {span:.1f} um demand range)")
+        return {"step": "validate", "strategy": self.validation_strategy, "bag": str(bag), "rms_um": rms,
+                "peak_um": peak, "peak_pct": 100 * peak / span}
+
+    def _run_plan(self) -> None:
+        try:
+            if not self.controller.wait_for_services(timeout_sec=30.0):
+                raise RuntimeError("no controller answers (parameter services of "
+                                   f"{self.controller._remote_node_name!r} not found)")
+            while self.count_subscribers("voltage_command") == 0 and rclpy.ok():
+                time.sleep(0.05)  # the hardware is not up yet
+            for step in self.plan:
+                result = getattr(self, f"_step_{step}")()
+                self.summary.append(result)
+                write_atomically(self.bag_dir / "summary.json", json.dumps(self.summary, indent=2) + "\n")
+            self.get_logger().info("plan done")
+        except Exception as exc:
+            self.failed = True
+            self.get_logger().error(f"plan stopped: {exc}")
+        finally:
+            self._player = None
+            self._stop_recording()
+            self.finished.set()
+            if self.exit_when_done:
+                self.context.try_shutdown()
+
+
+def main(args=None) -> int:
+    """Exit code 1 when the plan stopped on an error."""
+    made = []
+
+    def factory():
+        made.append(ValveIdentificationNode())
+        return made[0]
+    code = run_node(factory, "valve_identification", args, on_exit_of=lambda n: n._stop_recording)
+    return code or (1 if made and made[0].failed else 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,167 @@
+"""valve_identify on real bag files, bad input, and the recorder's crash safety."""
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import yaml
+
+from piezo_valve_ros.bagio import (FLOAT64_TYPE, BagRecorder, qos_profile, read_samples, serialize_float64,
+                                   write_samples_bag)
+from piezo_valve_ros.core.experiments import simulate_rows
+from piezo_valve_ros.core.signals import identification_voltage, validation_voltage
+from piezo_valve_ros.core.simulator import ValveSimConfig
+
+ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
+
+
+def run_cli(*args, timeout=300):
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.run([sys.executable, "-m", "piezo_valve_ros.identify_cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout, env=env)
+
+
+@pytest.fixture(scope="module")
+def bags_10khz(tmp_path_factory):
+    """Training and validation bags of the default simulated valve at the paper's 10 kHz."""
+    d = tmp_path_factory.mktemp("bags")
+    cfg = ValveSimConfig(dt=1e-4)
+    write_samples_bag(d / "train", simulate_rows(identification_voltage(1e-4, 20.0), replace(cfg, seed=1)),
+                      topic="/rig_a/valve1/samples")
+    write_samples_bag(d / "validate", simulate_rows(validation_voltage(1e-4, 20.0), replace(cfg, seed=2)),
+                      topic="/rig_a/valve1/samples")
+    return d
+
+
+def test_report_parameters_and_plots_from_10khz_bags(bags_10khz, tmp_path):
+    out = run_cli(bags_10khz / "train", "--validate", bags_10khz / "validate", "--report", tmp_path / "report.json",
+                  "--params-out", tmp_path / "fitted.yaml", "--plots", tmp_path / "plots")
+    assert out.returncode == 0, out.stderr
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert {"dynamics", "creep"} <= set(report["effects_added"])
+    assert report["final"]["validate"]["peak_um"] < 0.2 * report["baseline"]["validate"]["peak_um"]
+    assert report["source"]["topic"] == "/rig_a/valve1/samples"
+    params = yaml.safe_load((tmp_path / "fitted.yaml").read_text())["/**/valve_controller"]["ros__parameters"]
+    assert len(params["gpim.thresholds"]) == len(params["gpim.weights"]) >= 10
+    assert len(params["creep.gains"]) == len(params["creep.time_constants_s"]) >= 1
+    assert all(isinstance(x, float) for x in params["gpim.weights"])
+    for name in ("hysteresis_loop", "residual_time", "residual_diagnostic", "step_hold"):
+        png = tmp_path / "plots" / f"{name}.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "held-out rms" in out.stdout
+
+
+def test_foreign_rig_sqlite3_plus_minus_150_v_1khz_held_out(tmp_path):
+    """Another rig: electrode voltage (-150..+150 V) logged at 1 kHz in sqlite3, no validation bag."""
+    rows = simulate_rows(identification_voltage(1e-3, 30.0), ValveSimConfig(dt=1e-3, seed=4))
+    rows[:, 1] = 30.0 * rows[:, 1] - 150.0
+    write_samples_bag(tmp_path / "bag", rows, topic="/valve7/samples", storage="sqlite3")
+    out = run_cli(tmp_path / "bag", "--report", tmp_path / "r.json", "--quiet")
+    assert out.returncode == 0, out.stderr
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["validation"].startswith("held-out")
+    assert "creep" in report["effects_added"]
+    assert report["final"]["validate"]["rms_um"] < 0.5 * report["baseline"]["validate"]["rms_um"]
+
+
+def _one_error_line(out, *needles):
+    assert out.returncode != 0
+    lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, out.stderr
+    assert "Traceback" not in out.stderr
+    for n in needles:
+        assert n in lines[0], lines[0]
+
+
+def test_bad_input_ends_with_one_clear_line_and_keeps_the_last_good_parameters(tmp_path):
+    good = tmp_path / "fitted.yaml"
+    good.write_text("# last good parameters\n")
+    rows = simulate_rows(identification_voltage(1e-3, 10.0), ValveSimConfig(dt=1e-3))
+    cases = {}
+    cases["missing"] = (tmp_path / "nope", ("no bag at",))
+    # a bag without samples
+    rec = BagRecorder(tmp_path / "no_samples", {"/spool_position": (FLOAT64_TYPE, qos_profile(False, 5))})
+    rec.write("/spool_position", 1, serialize_float64(1e-6))
+    rec.close()
+    cases["no samples"] = (tmp_path / "no_samples", ("no samples topic", "/spool_position"))
+    # truncated storage file
+    write_samples_bag(tmp_path / "truncated", rows)
+    f = next((tmp_path / "truncated").glob("*.mcap"))
+    f.write_bytes(f.read_bytes()[: f.stat().st_size // 2])
+    cases["truncated"] = (tmp_path / "truncated", ("cannot read bag",))
+    # constant input
+    const = rows.copy()
+    const[:, 1] = 5.0
+    write_samples_bag(tmp_path / "constant", const)
+    cases["constant"] = (tmp_path / "constant", ("constant", "no excitation"))
+    # NaN samples
+    nan = rows.copy()
+    nan[1234, 2] = np.nan
+    write_samples_bag(tmp_path / "nan", nan)
+    cases["nan"] = (tmp_path / "nan", ("non-finite",))
+    # a directory that is not a bag
+    (tmp_path / "empty_dir").mkdir()
+    cases["not a bag"] = (tmp_path / "empty_dir", ("cannot read bag",))
+    for name, (bag, needles) in cases.items():
+        out = run_cli(bag, "--params-out", good, "--report", tmp_path / f"{name}.json")
+        _one_error_line(out, *needles)
+        assert good.read_text() == "# last good parameters\n", name
+        assert not (tmp_path / f"{name}.json").exists()
+
+
+def test_two_samples_topics_need_a_choice(tmp_path):
+    rows = simulate_rows(identification_voltage(1e-3, 10.0), ValveSimConfig(dt=1e-3))
+    write_samples_bag(tmp_path / "a", rows, topic="/v1/samples")
+    # merge a second namespace into the same bag by writing both topics through one recorder
+    rec = BagRecorder(tmp_path / "two", {"/v1/samples": ("std_msgs/msg/Float64MultiArray", qos_profile(True, 100)),
+                                         "/v2/samples": ("std_msgs/msg/Float64MultiArray", qos_profile(True, 100))})
+    from piezo_valve_ros.bagio import serialize_samples
+    rec.write("/v1/samples", 1, serialize_samples(rows[:1000]))
+    rec.write("/v2/samples", 2, serialize_samples(rows[:1000]))
+    rec.close()
+    _one_error_line(run_cli(tmp_path / "two"), "several samples topics", "--topic")
+    got, name = read_samples(tmp_path / "two", "/v2/samples")
+    assert name == "/v2/samples" and got.shape == (1000, 3)
+
+
+RECORDER_SCRIPT = r"""
+import sys, time
+import numpy as np
+from piezo_valve_ros.bagio import BagRecorder, SAMPLES_TYPE, qos_profile, serialize_samples
+rec = BagRecorder(sys.argv[1], {"/samples": (SAMPLES_TYPE, qos_profile(True, 100))}, segment_s=0.5)
+t0 = time.monotonic()
+k = 0
+while True:
+    rows = np.column_stack((k * 100 + np.arange(100) * 1.0, np.ones(100), np.zeros(100)))
+    rec.write("/samples", time.time_ns(), serialize_samples(rows))
+    k += 1
+    if k == 1:
+        print("recording", flush=True)
+    time.sleep(0.01)
+"""
+
+
+def test_recorder_survives_being_killed(tmp_path):
+    bag = tmp_path / "crash"
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    proc = subprocess.Popen([sys.executable, "-c", RECORDER_SCRIPT, str(bag)], stdout=subprocess.PIPE, env=env)
+    try:
+        assert proc.stdout.readline().strip() == b"recording"
+        started = time.monotonic()
+        time.sleep(2.6)
+        proc.send_signal(signal.SIGKILL)
+        killed_after = time.monotonic() - started
+        proc.wait(5)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    rows, _ = read_samples(bag)
+    # about 100 messages/s of 100 rows; at most the last segment (0.5 s) plus scheduling slack is lost
+    assert rows.shape[0] >= (killed_after - 1.0) * 90 * 100
+    assert np.all(np.diff(rows[:, 0]) == 1.0)  # nothing lost in the middle

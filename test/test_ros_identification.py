@@ -1,0 +1,73 @@
+"""End to end through ROS: rig (lockstep) + identification node as separate processes."""
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import yaml
+
+from ros_helpers import ros_env, start, wait_for_text
+
+from piezo_valve_ros.bagio import read_samples
+from piezo_valve_ros.nodes.rig import ProcessGroup, node_command
+
+PERIOD = 1e-3  # 1 kHz control, 10 kHz sampling
+PERTURBED = {"sim.gpim.rho": 6.6, "sim.gpim.tau": 1.0, "sim.gpim.offset_um": -75.0}  # not the paper's valve
+
+
+def test_identification_refits_pushes_and_cuts_the_ol_hc_error(tmp_path):
+    ns = f"/ident{os.getpid()}"
+    group = ProcessGroup()
+    try:
+        hw = {"clock": "lockstep", "control_period_s": PERIOD, "sim.seed": 7, **PERTURBED}
+        start(group, "hardware", node_command("valve_hardware", hw, ns), str(tmp_path))
+        start(group, "controller", node_command("valve_controller", {"control_period_s": PERIOD, "strategy": "ol_hc",
+                                                                     "gain_set": ""}, ns), str(tmp_path))
+        bags = tmp_path / "runs"
+        ident = {"plan": "validate,train,refit,validate", "time_scale": 0.25, "validation_s": 20.0,
+                 "control_period_s": PERIOD, "bag_dir": str(bags), "exit_when_done": True}
+        proc = start(group, "identification", node_command("valve_identification", ident, ns), str(tmp_path))
+        assert proc.wait(240) == 0, open(tmp_path / "identification.log").read()
+    finally:
+        group.stop()
+    log = open(tmp_path / "identification.log").read()
+    summary = json.loads((bags / "summary.json").read_text())
+    assert [s["step"] for s in summary] == ["validate", "train", "refit", "validate"]
+    before, after = summary[0], summary[3]
+    assert after["rms_um"] < 0.25 * before["rms_um"], (before, after)
+    assert after["peak_um"] < 0.5 * before["peak_um"]
+    refit = summary[2]
+    assert refit["ok"] and refit["pushed"], refit
+    assert "creep" in refit["effects_added"]
+    assert "new model parameters in use" in open(tmp_path / "controller.log").read()
+    # the parameters file is a valid controller parameters file, with what was pushed
+    params = yaml.safe_load(open(refit["params_out"]).read())["/**/valve_controller"]["ros__parameters"]
+    assert len(params["gpim.weights"]) >= 10
+    # the training bag holds the full-rate samples of the whole experiment, and its report
+    rows, topic = read_samples(summary[1]["bag"])
+    assert topic == f"{ns}/samples"
+    assert rows.shape[0] >= 0.9 * summary[1]["periods"] * 10
+    assert np.ptp(rows[:, 1]) > 8.0
+    assert json.loads(open(os.path.join(summary[1]["bag"], "report.json")).read())["effects_added"]
+    assert "refit: added" in log and "tracking error RMS" in log
+
+
+def test_refit_without_data_fails_cleanly_and_keeps_the_parameters_file(tmp_path):
+    good = tmp_path / "fitted.yaml"
+    good.write_text("# last good parameters\n")
+    env = ros_env()
+    out = subprocess.run(node_command("valve_identification", {"plan": "refit", "exit_when_done": True,
+                                                                "params_out": str(good), "bag_dir": str(tmp_path)},
+                                      f"/noctl{os.getpid()}"),
+                         env=env, capture_output=True, text=True, timeout=90)
+    assert out.returncode == 2
+    assert "refit needs a train step before it" in out.stderr
+    assert good.read_text() == "# last good parameters\n"
+
+
+def test_bad_plan_is_rejected_with_one_line(tmp_path):
+    out = subprocess.run(node_command("valve_identification", {"plan": "train,dance"}, f"/bad{os.getpid()}"),
+                         env=ros_env(), capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2
+    assert "unknown step(s) dance" in out.stderr
