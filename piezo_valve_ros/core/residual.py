@@ -87,26 +87,36 @@ class Scored:
         return quality(self.measured, self.predict(model), range_um)
 
 
-def _signature_statistic(eff: Effect, model: ValveModel, train: Record, validate: Scored,
-                         e_train: np.ndarray, e_val: np.ndarray) -> float:
-    """Share of held-out residual variance explained by the effect's signature fitted on the training residual."""
-    ctx_t = _Context(train, model.gpim, model.t0)
-    ctx_v = _Context(validate.record, model.gpim, validate.t0)
-    ct = _signature_columns(eff, ctx_t)
-    cv = _signature_columns(eff, ctx_v)[validate.start:]
-    # what the present model could already absorb by refitting is projected out (Frisch-Waugh)
-    descending = None if model.gpim.symmetric else (model.gpim.b0, model.gpim.b1)
-    def design(rec, ctx):
-        return np.column_stack([_design(rec, model.gpim.thresholds, descending), np.ones(len(rec))]
-                               + [e.columns(ctx) for e, _ in model.terms])
-    At = design(train, ctx_t)
-    Av = design(validate.record, ctx_v)[validate.start:]
-    B = np.linalg.lstsq(At, ct, rcond=None)[0]
-    ct = ct - At @ B
-    cv = cv - Av @ B
-    c = np.linalg.lstsq(ct, e_train, rcond=None)[0]
-    rest = e_val - cv @ c
-    return float(1.0 - np.mean(rest ** 2) / max(np.mean(e_val ** 2), 1e-30))
+class _RoundBasis:
+    """What one round's signature statistics share: contexts of the present model and the QR of its design."""
+
+    def __init__(self, model: ValveModel, train: Record, validate: Scored):
+        self.ctx_t = _Context(train, model.gpim, model.t0)
+        self.ctx_v = _Context(validate.record, model.gpim, validate.t0)
+        self.start = validate.start
+        descending = None if model.gpim.symmetric else (model.gpim.b0, model.gpim.b1)
+
+        def design(rec, ctx):
+            return np.column_stack([_design(rec, model.gpim.thresholds, descending), np.ones(len(rec))]
+                                   + [e.columns(ctx) for e, _ in model.terms])
+        At = design(train, self.ctx_t)
+        self.Av = design(validate.record, self.ctx_v)[validate.start:]
+        self.scale = np.sqrt(np.mean(At * At, axis=0))
+        self.scale[self.scale == 0] = 1.0
+        self.Q, self.R = np.linalg.qr(At / self.scale)
+
+    def statistic(self, eff: Effect, e_train: np.ndarray, e_val: np.ndarray) -> float:
+        """Share of held-out residual variance explained by the effect's signature fitted on the training
+        residual, after projecting out what the present model could absorb by refitting (Frisch-Waugh)."""
+        ct = _signature_columns(eff, self.ctx_t)
+        cv = _signature_columns(eff, self.ctx_v)[self.start:]
+        QtC = self.Q.T @ ct
+        B = np.linalg.lstsq(self.R, QtC, rcond=None)[0] / self.scale[:, None]
+        ct = ct - self.Q @ QtC
+        cv = cv - self.Av @ B
+        c = np.linalg.lstsq(ct, e_train, rcond=None)[0]
+        rest = e_val - cv @ c
+        return float(1.0 - np.mean(rest ** 2) / max(np.mean(e_val ** 2), 1e-30))
 
 
 @dataclass
@@ -250,13 +260,14 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
         peak0 = float(np.max(np.abs(e_val)))
         candidates = []
         last_stats = {}
+        basis = _RoundBasis(model, train, validate)
         for name in EFFECTS:
             if name in added:
                 continue
             options = EFFECTS[name].prepare(train, H_range)
             if not options:
                 continue
-            stat = max(_signature_statistic(o, model, train, validate, e_train, e_val) for o in options)
+            stat = max(basis.statistic(o, e_train, e_val) for o in options)
             last_stats[name] = stat
             cand = Candidate(name, stat, rms0, rms0, peak0, peak0)
             if stat >= SIGNATURE_THRESHOLD:
