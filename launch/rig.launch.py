@@ -1,12 +1,15 @@
-"""Bring up a simulated valve rig: valve_hardware + valve_controller (separate processes).
+"""Bring up a simulated valve rig: valve_hardware + valve_controller (separate processes), and optionally
+valve_identification running a plan.
 
-    ros2 launch piezo_valve_ros rig.launch.py [namespace:=valve1] [params:=/path/to/rig.yaml]
+    ros2 launch piezo_valve_ros rig.launch.py [namespace:=valve1] [params:=/path/to/rig.yaml] \
+        [identify:=true plan:=train,refit,validate]
 """
 import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
+from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
@@ -22,4 +25,9 @@ def generate_launch_description():
              namespace=namespace, parameters=[params], output="screen"),
         Node(package="piezo_valve_ros", executable="valve_controller", name="valve_controller",
              namespace=namespace, parameters=[params], output="screen"),
+        DeclareLaunchArgument("identify", default_value="false", description="start valve_identification"),
+        DeclareLaunchArgument("plan", default_value="train,refit,validate", description="identification plan"),
+        Node(package="piezo_valve_ros", executable="valve_identification", name="valve_identification",
+             namespace=namespace, parameters=[params, {"plan": LaunchConfiguration("plan")}], output="screen",
+             condition=IfCondition(LaunchConfiguration("identify"))),
     ])

@@ -213,6 +213,10 @@ def parse_args(argv=None):
     ap.add_argument("--demo", choices=("steps", "none"), default="steps")
     ap.add_argument("--hold-s", type=float, default=0.1, help="hold before and after each step [s]")
     ap.add_argument("--sim-seed", type=int, default=0)
+    ap.add_argument("--identify", metavar="PLAN",
+                    help="also start valve_identification with this plan (e.g. validate,train,refit,validate); "
+                         "needs --demo none")
+    ap.add_argument("--bag-dir", default="identification_runs", help="where --identify writes its bags")
     return ap.parse_args(argv)
 
 
@@ -229,6 +233,9 @@ def rig_parameters(args) -> tuple[dict, dict]:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    if args.identify and args.demo != "none":
+        print("valve_rig: --identify drives the rig itself; use it with --demo none", file=sys.stderr)
+        return 2
     if args.demo == "steps" and args.clock != "lockstep":
         print("valve_rig: the step demo needs --clock lockstep (use --demo none for a real-time rig)",
               file=sys.stderr)
@@ -250,6 +257,9 @@ def main(argv=None) -> int:
         else:
             procs.start("valve_hardware", node_command("valve_hardware", hw_params))
             procs.start("valve_controller", node_command("valve_controller", ctl_params))
+        if args.identify:
+            procs.start("valve_identification", node_command("valve_identification", {
+                "plan": args.identify, "control_period_s": args.control_period_s, "bag_dir": args.bag_dir}))
         client = RigClient()
         nodes.append(client)
         thread, stop, executor = run_in_background(nodes)
