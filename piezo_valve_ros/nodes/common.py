@@ -94,9 +94,12 @@ def spin(nodes, on_exit: Optional[Callable[[], None]] = None, executor=None) -> 
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:
-        code = 1
-        raise
+        if rclpy.ok():
+            code = 1
+            raise
+        # a callback ran into the context a signal had just shut down: that is the shutdown itself
     finally:
+        _ignore_signals_while_cleaning_up()
         if on_exit is not None:
             on_exit()
         for node in nodes:
@@ -109,6 +112,16 @@ def spin(nodes, on_exit: Optional[Callable[[], None]] = None, executor=None) -> 
         if rclpy.ok():
             rclpy.try_shutdown()
     return code
+
+
+def _ignore_signals_while_cleaning_up() -> None:
+    """The loop has ended: a second Ctrl-C/SIGTERM must not interrupt the cleanup half-way (it would abort
+    inside rclpy's C++ destructors)."""
+    import signal
+    import threading
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
 
 
 def run_node(factory: Callable[[], Node], name: str, args=None, on_exit_of=None) -> int:

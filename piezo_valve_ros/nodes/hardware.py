@@ -260,7 +260,8 @@ class ValveHardwareNode(Node):
         self._closed = True
         try:
             self.backend.write_voltage(self.safe_voltage)
-            self._flush_samples()
+            if self.context.ok():  # after a signal the publishers are gone with the context
+                self._flush_samples()
         finally:
             self.backend.close()
             line = f"valve_hardware stopped: safe_voltage {self.safe_voltage} V applied"
