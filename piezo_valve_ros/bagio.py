@@ -13,7 +13,7 @@ import shutil
 import time
 from io import StringIO
 from pathlib import Path
-from typing import Callable, Optional, Sequence
+from typing import Callable, Optional
 
 import numpy as np
 from ruamel.yaml import YAML

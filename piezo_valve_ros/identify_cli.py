@@ -17,10 +17,9 @@ import tempfile
 from pathlib import Path
 from typing import Optional
 
-import numpy as np
 
 from .bagio import BagError, read_samples
-from .core.identification import EFFECTS, IdentificationError, Record, ValveModel, fit_model
+from .core.identification import IdentificationError, Record, ValveModel, fit_model
 from .core.residual import Analysis, analyse
 
 __all__ = ["main", "controller_parameters_yaml", "compensation_model", "write_atomically", "identify_bags"]

@@ -11,7 +11,7 @@ from piezo_valve_ros.core.hysteresis import inverse_problems
 from piezo_valve_ros.core.identification import (IdentificationError, Record, fit_linear_gpim, fit_paper_gpim,
                                                  quality)
 from piezo_valve_ros.core.residual import analyse
-from piezo_valve_ros.core.signals import identification_voltage, step_and_hold_voltage, validation_voltage
+from piezo_valve_ros.core.signals import identification_voltage, validation_voltage
 from piezo_valve_ros.core.simulator import (CreepParams, DriftParams, RateDependenceParams, SaturationParams,
                                             SensorParams, SimulatedValve, ValveSimConfig)
 from piezo_valve_ros.core.strategies import ControllerConfig, CreepModel, PIDGains, ValveController

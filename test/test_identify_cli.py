@@ -1,7 +1,6 @@
 """valve_identify on real bag files, bad input, and the recorder's crash safety."""
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys

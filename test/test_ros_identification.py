@@ -2,12 +2,11 @@
 import json
 import os
 import subprocess
-import sys
 
 import numpy as np
 import yaml
 
-from ros_helpers import ros_env, start, wait_for_text
+from ros_helpers import ros_env, start
 
 from piezo_valve_ros.bagio import read_samples
 from piezo_valve_ros.nodes.rig import ProcessGroup, node_command

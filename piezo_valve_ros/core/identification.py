@@ -17,7 +17,7 @@ GPIM weights and every effect are fitted jointly by one bounded linear least-squ
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import numpy as np

@@ -26,7 +26,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from .hysteresis import play_batch
-from .identification import (EFFECTS, Effect, FitQuality, IdentificationError, Record, ValveModel, _Context,
+from .identification import (EFFECTS, Effect, FitQuality, Record, ValveModel, _Context,
                              _design, analysis_record, fit_linear_gpim, fit_model, fit_paper_gpim, quality)
 
 __all__ = ["SIGNATURE_THRESHOLD", "GAIN_THRESHOLD", "UNEXPLAINED_PCT", "Analysis", "analyse", "noise_floor_um",

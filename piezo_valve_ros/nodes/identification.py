@@ -21,7 +21,6 @@ each step did and measured.
 from __future__ import annotations
 
 import json
-import math
 import sys
 import threading
 import time
