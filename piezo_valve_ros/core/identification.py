@@ -21,8 +21,9 @@ from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import numpy as np
-from scipy import optimize, signal
+from scipy import optimize
 
+from .dynamics import first_order_lag
 from .hysteresis import GPIM, GPIMParams, play_batch
 
 __all__ = ["IdentificationError", "Record", "FitQuality", "ValveModel", "Effect", "EFFECTS", "effect",
@@ -121,10 +122,9 @@ def lag_bank(x: np.ndarray, time_constants_s: Sequence[float], dt: float) -> np.
     """First-order lags 1/(tau s + 1) of ``x`` (ZOH-exact, started at rest at x[0]); shape (N, k)."""
     out = np.empty((x.size, len(time_constants_s)))
     for i, tau in enumerate(time_constants_s):
-        a = math.exp(-dt / tau)
-        # ZOH: l_k = a l_{k-1} + (1 - a) x_{k-1}
-        l, _ = signal.lfilter([0.0, 1.0 - a], [1.0, -a], x, zi=[a * x[0]])
-        out[:, i] = l
+        lag = first_order_lag(tau, dt)
+        lag.reset(float(x[0]))
+        out[:, i] = lag.run(x)
     return out
 
 
