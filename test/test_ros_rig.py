@@ -8,12 +8,11 @@ import time
 import numpy as np
 import pytest
 
-from ros_helpers import DOMAIN_ID, ros_env, start, wait_for_text
+from ros_helpers import ros_env, start, wait_for_text
 
 os.environ.update({k: ros_env()[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
 
 import rclpy  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
 from std_msgs.msg import Float64  # noqa: E402
 
 from piezo_valve_ros.core.experiments import run_closed_loop  # noqa: E402

@@ -4,11 +4,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from piezo_valve_ros.core.dynamics import PAPER_VALVE_MODEL, ContinuousTF, first_order_lag
-from piezo_valve_ros.core.experiments import paper_step_tests, run_closed_loop, step_test
+from piezo_valve_ros.core.dynamics import PAPER_VALVE_MODEL, ContinuousTF
+from piezo_valve_ros.core.experiments import paper_step_tests, run_closed_loop
 from piezo_valve_ros.core.hysteresis import PAPER_GPIM, GPIM
 from piezo_valve_ros.core.metrics import bandwidth_metrics, step_metrics, tracking_error
-from piezo_valve_ros.core.signals import (PAPER_STEPS_UM, identification_voltage, training_voltage,
+from piezo_valve_ros.core.signals import (identification_voltage, training_voltage,
                                           validation_reference_m)
 from piezo_valve_ros.core.simulator import (CreepParams, DriftParams, RateDependenceParams, SensorParams,
                                             SimulatedValve, ValveSimConfig)

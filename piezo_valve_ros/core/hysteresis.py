@@ -15,7 +15,7 @@ vectorised clip over all samples.  The streaming ``step`` is the plain recursion
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import numpy as np

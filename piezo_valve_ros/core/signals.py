@@ -5,7 +5,6 @@ positions in m unless a name says ``_um``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import numpy as np
 

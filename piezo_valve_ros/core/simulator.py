@@ -18,12 +18,12 @@ dependence, drift.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Optional
 
 import numpy as np
 
-from .dynamics import PAPER_VALVE_MODEL, ContinuousTF, DiscreteFilter, first_order_lag
+from .dynamics import PAPER_VALVE_MODEL, ContinuousTF, first_order_lag
 from .hysteresis import GPIM, GPIMParams, PAPER_GPIM
 
 __all__ = [

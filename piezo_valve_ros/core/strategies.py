@@ -24,9 +24,8 @@ import math
 from dataclasses import dataclass, replace
 from typing import Optional
 
-import numpy as np
 
-from .dynamics import PAPER_VALVE_MODEL, ContinuousTF, DiscreteFilter
+from .dynamics import PAPER_VALVE_MODEL, ContinuousTF
 from .hysteresis import GPIM, InverseGPIM, NotInvertibleError, PAPER_GPIM, inverse_problems
 
 __all__ = ["STRATEGIES", "PIDGains", "ControllerConfig", "ValveController", "TABLE1_GAINS", "gain_set",
