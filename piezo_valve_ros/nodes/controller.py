@@ -10,9 +10,8 @@ from __future__ import annotations
 import math
 import sys
 from dataclasses import replace
-from typing import Any
+from typing import Any, Callable, Optional
 
-import rclpy
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from std_msgs.msg import Float64
@@ -21,7 +20,7 @@ from ..core.dynamics import PAPER_VALVE_MODEL, ContinuousTF
 from ..core.hysteresis import GPIM, PAPER_GPIM, GPIMParams, inverse_problems
 from ..core.signals import ReferenceRamp
 from ..core.strategies import STRATEGIES, ControllerConfig, CreepModel, PIDGains, ValveController, gain_set
-from .common import COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, as_float, as_float_list, as_int, declare, run_node
+from .common import COMMAND_QOS, SENSOR_QOS, as_float, as_float_list, as_int, declare, run_node
 
 GPIM_KEYS = ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")
 
@@ -107,7 +106,7 @@ class ValveControllerNode(Node):
         self._last_foreign_command_v = None
         self.command_pub = self.create_publisher(Float64, "voltage_command", COMMAND_QOS)
         self.create_subscription(Float64, "voltage_command", self._on_command_seen, COMMAND_QOS)
-        self.create_subscription(Float64, "spool_position", self._on_position, SENSOR_QOS)
+        self._position_sub = self.create_subscription(Float64, "spool_position", self._on_position, SENSOR_QOS)
         self.create_subscription(Float64, "position_reference", self._on_reference, 10)
         self.add_on_set_parameters_callback(self._on_parameters)
         self.rejected_references = 0
@@ -118,16 +117,30 @@ class ValveControllerNode(Node):
         return {name: param.value for name, param in self._parameters.items()}
 
     # ------------------------------------------------------------------ loop
-    def _on_position(self, msg: Float64) -> None:
-        y = msg.data
+    def on_measurement(self, y: float) -> Optional[float]:
+        """One control period: the command [V] for the measured position ``y`` [m] (None: none)."""
         if not math.isfinite(y):
             self.get_logger().warning(f"ignored non-finite spool_position {y!r}", throttle_duration_sec=1.0)
-            return
+            return None
         self._last_position_m = y
         if not self.enabled:
-            return
-        v = self.controller.step(self.ramp.step(), y)
-        self.command_pub.publish(Float64(data=v))
+            return None
+        return self.controller.step(self.ramp.step(), y)
+
+    def _on_position(self, msg: Float64) -> None:
+        v = self.on_measurement(msg.data)
+        if v is not None:
+            self.command_pub.publish(Float64(data=v))
+
+    def direct_link(self) -> Callable[[float], Optional[float]]:
+        """Composed mode: stop listening to ``spool_position`` and publishing ``voltage_command``; the
+        hardware node in this process calls the returned function instead (see
+        ``ValveHardwareNode.attach_controller``)."""
+        if self._position_sub is not None:
+            self.destroy_subscription(self._position_sub)
+            self._position_sub = None
+        self.get_logger().info("composed: position and command pass by function call (no DDS in the loop)")
+        return self.on_measurement
 
     def _on_command_seen(self, msg: Float64) -> None:
         """While disabled, remember what others command (to resume from it)."""

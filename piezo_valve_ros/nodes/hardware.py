@@ -14,20 +14,21 @@ import math
 import sys
 import time
 from dataclasses import replace
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
-import rclpy
 from builtin_interfaces.msg import Time
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64, Float64MultiArray
 
-from ..backends import SimBackend, ValveBackend, make_backend
+from ..backends import ValveBackend, make_backend
+from ..loop_timing import LoopTiming
 from ..core.simulator import (AmplifierParams, CreepParams, DriftParams, RateDependenceParams, SaturationParams,
                               SensorParams, ValveSimConfig)
-from .common import COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, as_float, as_int, declare, samples_message, run_node
+from .common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, as_float, as_int, declare, run_node, samples_message,
+                     tighten_timer_slack)
 
 
 def sim_config_from_parameters(p: dict) -> ValveSimConfig:
@@ -67,6 +68,8 @@ class ValveHardwareNode(Node):
         declare(self, "command_min_v", 0.0, "commands below are clamped [V]")
         declare(self, "command_max_v", 10.0, "commands above are clamped [V]")
         declare(self, "lockstep.step_budget", -1, "lockstep only: periods to run before pausing (-1 = no pause)")
+        declare(self, "loop_stats_period_s", 0.0,
+                "log the loop timing (rate, commands in time, latency) this often [s]; 0: only at shutdown")
         for name, default, text in [("sim.seed", 0, "noise seed"), ("sim.sample_period_s", 1e-4, "[s]"),
                                     ("sim.slew_limit", True, "amplifier current limit"),
                                     ("sim.creep", True, "creep"), ("sim.saturation", True, "loop-end flattening"),
@@ -102,9 +105,16 @@ class ValveHardwareNode(Node):
         self.position_pub = self.create_publisher(Float64, "spool_position", SENSOR_QOS)
         self.samples_pub = self.create_publisher(Float64MultiArray, "samples", SAMPLES_QOS)
         self.clock_pub = self.create_publisher(Clock, "/clock", 10) if self.clock_mode == "lockstep" else None
+        self._clock_msg = Clock(clock=Time())
+        self.loop_timing = LoopTiming(self.control_period_s)
+        stats_period = as_float("loop_stats_period_s", p["loop_stats_period_s"])
+        if stats_period < 0:
+            raise ValueError("loop_stats_period_s must be >= 0")
         self.create_subscription(Float64, "voltage_command", self._on_command, COMMAND_QOS)
         self.add_on_set_parameters_callback(self._on_parameters)
 
+        self._tick_timer = None
+        self._linked_controller: Optional[Callable[[float], Optional[float]]] = None
         self._batch: list[np.ndarray] = []
         self._batch_rows = 0
         self._held_command: Optional[float] = None
@@ -123,7 +133,12 @@ class ValveHardwareNode(Node):
             self._advance_and_publish()  # y_0 at the initial voltage
             self.create_timer(min(0.05, self.command_timeout_s / 10), self._lockstep_idle)
         else:
-            self.create_timer(self.control_period_s, self._realtime_tick)
+            if not tighten_timer_slack():
+                self.get_logger().warning("could not reduce the timer slack: expect period jitter of ~50 us")
+            # fallback when nobody claims the pacing (an executor spun elsewhere); spin_loop claims it
+            self._tick_timer = self.create_timer(self.control_period_s, self._realtime_tick)
+        if stats_period > 0:
+            self.create_timer(stats_period, lambda: self.get_logger().info("loop: " + self.loop_timing.summary().line()))
         self.get_logger().info(
             f"valve_hardware up: backend={p['backend']} clock={self.clock_mode} "
             f"period={self.control_period_s * 1e3:.3f} ms ({self.samples_per_period} samples)")
@@ -143,10 +158,33 @@ class ValveHardwareNode(Node):
             return clamped
         return v
 
+    def claim_pacing(self) -> Optional[Pacing]:
+        """Real-time clock: the spin loop runs the period tick itself (common.spin_loop: more precise
+        and cheaper than an rclpy timer at kHz rates); this node's own timer stops.  None in lockstep."""
+        if self.clock_mode != "realtime" or self._tick_timer is None:
+            return None
+        self._tick_timer.cancel()
+        self.destroy_timer(self._tick_timer)
+        self._tick_timer = None
+        return Pacing(self.control_period_s, self._realtime_tick)
+
+    def attach_controller(self, on_measurement: Callable[[float], Optional[float]]) -> None:
+        """Composed mode, real-time clock: hand each position [m] to ``on_measurement`` by function call
+        and apply the command [V] it returns (None: no command) at once, as rclcpp's intra-process
+        communication would; ``spool_position`` and ``samples`` are still published and
+        ``voltage_command`` from other nodes is still applied.  In lockstep the loop stays on topics."""
+        if self.clock_mode != "realtime":
+            raise ValueError("a direct controller link needs clock realtime (lockstep runs on topics)")
+        self._linked_controller = on_measurement
+
     def _on_command(self, msg: Float64) -> None:
-        v = self._validate(msg.data)
+        self._accept_command(msg.data)
+
+    def _accept_command(self, v: float) -> None:
+        v = self._validate(v)
         if v is None:
             return
+        self.loop_timing.commanded()
         self._last_valid_command_wall = time.monotonic()
         self._command_since_publish = True
         self._armed = True
@@ -174,8 +212,10 @@ class ValveHardwareNode(Node):
         rows = self.backend.advance(self.samples_per_period)
         self._publish(rows)
         if self.clock_pub is not None:
-            t = rows[-1, 0] + self.backend.sample_period_s
-            self.clock_pub.publish(Clock(clock=Time(sec=int(t), nanosec=int(round((t % 1.0) * 1e9)) % 1_000_000_000)))
+            ns = int(round((rows[-1, 0] + self.backend.sample_period_s) * 1e9))
+            stamp = self._clock_msg.clock
+            stamp.sec, stamp.nanosec = divmod(ns, 1_000_000_000)
+            self.clock_pub.publish(self._clock_msg)
 
     def _publish(self, rows: np.ndarray) -> None:
         if rows.shape[0] == 0:
@@ -183,7 +223,13 @@ class ValveHardwareNode(Node):
         self.periods += 1
         self._command_since_publish = False
         self._last_publish_wall = time.monotonic()
-        self.position_pub.publish(Float64(data=float(rows[-1, 2])))
+        y = float(rows[-1, 2])
+        self.loop_timing.measured()
+        if self._linked_controller is not None:
+            v = self._linked_controller(y)
+            if v is not None:
+                self._accept_command(v)
+        self.position_pub.publish(Float64(data=y))
         self._batch.append(rows)
         self._batch_rows += rows.shape[0]
         if self._batch_rows >= self.samples_batch:
@@ -264,7 +310,8 @@ class ValveHardwareNode(Node):
                 self._flush_samples()
         finally:
             self.backend.close()
-            line = f"valve_hardware stopped: safe_voltage {self.safe_voltage} V applied"
+            line = (f"valve_hardware stopped: safe_voltage {self.safe_voltage} V applied; "
+                    f"loop: {self.loop_timing.summary().line()}")
             if self.context.ok():
                 self.get_logger().info(line)
             else:  # after Ctrl-C/SIGTERM the ROS context (and /rosout) is already gone

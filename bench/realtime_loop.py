@@ -1,0 +1,238 @@
+"""The control loop through ROS: where the time goes, real-time rates, lockstep speed, composed mode.
+
+    python bench/realtime_loop.py                 # everything (about 1.5 min)
+    python bench/realtime_loop.py --seconds 10 --json loop.json
+
+Sections (figures from this run; the machine is shared, so compare them with each other):
+  1. cost per period without DDS: hardware tick (sim backend + publishing) and controller callback
+  2. DDS floor: plain Float64 ping-pong between two processes (EventsExecutor on both sides)
+  3. real-time loop across processes (position -> controller -> command) at 500 Hz .. 5 kHz:
+     achieved rate, share of periods whose command arrived within one period, latency p50/p99
+  4. lockstep across processes: control steps per second
+  5. composed mode (hardware and controller in one process) at the paper's 10 kHz in real time
+
+The hardware node runs in this process exactly as ``valve_hardware`` runs it (same executor, same
+spin loop); the controller is a separate ``valve_controller`` process.  Latency is measured by the
+hardware: from publishing ``spool_position`` to receiving the answering ``voltage_command``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+import rclpy  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from std_msgs.msg import Float64  # noqa: E402
+
+from piezo_valve_ros.nodes.common import (COMMAND_QOS, SENSOR_QOS, claim_pacing, make_executor,  # noqa: E402
+                                          spin_loop)
+from piezo_valve_ros.nodes.rig import ProcessGroup, node_command  # noqa: E402
+
+ECHO = """
+import sys, rclpy
+from std_msgs.msg import Float64
+from piezo_valve_ros.nodes.common import COMMAND_QOS, SENSOR_QOS, make_executor
+rclpy.init()
+node = rclpy.create_node("bench_echo")
+pub = node.create_publisher(Float64, "voltage_command", COMMAND_QOS)
+node.create_subscription(Float64, "spool_position", lambda m: pub.publish(Float64(data=m.data)), SENSOR_QOS)
+ex = make_executor(); ex.add_node(node)
+try:
+    while rclpy.ok():
+        ex.spin_once(timeout_sec=0.1)
+except (KeyboardInterrupt, Exception):
+    pass
+finally:
+    rclpy.try_shutdown()
+"""
+
+
+def env() -> dict:
+    e = dict(os.environ)
+    root = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
+    e["PYTHONPATH"] = root + os.pathsep + e.get("PYTHONPATH", "")
+    return e
+
+
+def spin_for(executor, seconds: float, until=None, pacing=None) -> None:
+    """The nodes' own spin loop (common.spin_loop), for ``seconds`` or until ``until()``."""
+    end = time.monotonic() + seconds
+    spin_loop(executor, lambda: time.monotonic() < end and rclpy.ok() and not (until is not None and until()),
+              pacing)
+
+
+def per_period_costs(n: int = 5000) -> dict:
+    """Section 1: CPU per control period with no DDS partner (publishers have no subscriber)."""
+    from piezo_valve_ros.nodes.controller import ValveControllerNode
+    from piezo_valve_ros.nodes.hardware import ValveHardwareNode
+    out = {}
+    hw = ValveHardwareNode(parameter_overrides=[Parameter("clock", value="lockstep"),
+                                                Parameter("control_period_s", value=1e-4)])
+    t0 = time.perf_counter()
+    for _ in range(n):
+        hw._apply_lockstep(5.0)
+    out["hardware_lockstep_period_us"] = (time.perf_counter() - t0) / n * 1e6
+    for period in (2e-3, 1e-3, 5e-4, 2e-4, 1e-4):
+        k = int(round(period / hw.backend.sample_period_s))
+        t0 = time.perf_counter()
+        for _ in range(n // 5):
+            hw._publish(hw.backend.advance(k))
+        out[f"hardware_realtime_tick_{int(1 / period)}hz_us"] = (time.perf_counter() - t0) / (n // 5) * 1e6
+    hw.destroy_node()
+    ctl = ValveControllerNode(parameter_overrides=[Parameter("gain_set", value="pid_hc_5")])
+    msg = Float64(data=1e-6)
+    t0 = time.perf_counter()
+    for _ in range(n):
+        ctl._on_position(msg)
+    out["controller_callback_us"] = (time.perf_counter() - t0) / n * 1e6
+    ctl.destroy_node()
+    return out
+
+
+def ping_pong(seconds: float) -> dict:
+    """Section 2: DDS round trips between two processes, nothing else in the loop."""
+    node = rclpy.create_node("bench_ping")
+    lat = []
+    state = {"t": 0.0}
+    pub = node.create_publisher(Float64, "spool_position", SENSOR_QOS)
+
+    def on_echo(_msg):
+        now = time.perf_counter()
+        lat.append(now - state["t"])
+        state["t"] = time.perf_counter()
+        pub.publish(Float64(data=1.0))
+    node.create_subscription(Float64, "voltage_command", on_echo, COMMAND_QOS)
+    executor = make_executor()
+    executor.add_node(node)
+    with ProcessGroup() as procs:
+        procs.start("echo", [sys.executable, "-c", ECHO], env=env())
+        deadline = time.monotonic() + 20
+        while pub.get_subscription_count() == 0 or node.count_publishers("voltage_command") == 0:
+            if time.monotonic() > deadline:
+                raise TimeoutError("echo process did not come up")
+            spin_for(executor, 0.05)
+        while not lat:  # best effort: resend until the first echo comes back
+            state["t"] = time.perf_counter()
+            pub.publish(Float64(data=1.0))
+            spin_for(executor, 0.05, until=lambda: bool(lat))
+        spin_for(executor, 1.0)
+        lat.clear()
+        t0 = time.perf_counter()
+        spin_for(executor, seconds)
+        wall = time.perf_counter() - t0
+        a = np.asarray(lat)
+    executor.remove_node(node)
+    node.destroy_node()
+    return {"round_trips_per_s": a.size / wall, "p50_ms": float(np.percentile(a, 50) * 1e3),
+            "p99_ms": float(np.percentile(a, 99) * 1e3)}
+
+
+def rig_loop(clock: str, period_s: float, seconds: float, composed: bool = False, tick: str = "loop") -> dict:
+    """Sections 3-5: the hardware node here, the controller in another process (or here, composed)."""
+    from piezo_valve_ros.nodes.controller import ValveControllerNode
+    from piezo_valve_ros.nodes.hardware import ValveHardwareNode
+    hw_params = {"clock": clock, "control_period_s": period_s, "command_timeout_s": 0.5}
+    ctl_params = {"gain_set": "pid_hc_5", "control_period_s": period_s, "reference_ramp_s": 0.002}
+    hw = ValveHardwareNode(parameter_overrides=[Parameter(k, value=v) for k, v in hw_params.items()])
+    nodes = [hw]
+    executor = make_executor()
+    with ProcessGroup() as procs:
+        if composed:
+            ctl = ValveControllerNode(parameter_overrides=[Parameter(k, value=v) for k, v in ctl_params.items()])
+            nodes.append(ctl)
+            if clock == "realtime":
+                hw.attach_controller(ctl.direct_link())
+        else:
+            procs.start("valve_controller", node_command("valve_controller", ctl_params), env=env(),
+                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        for n in nodes:
+            executor.add_node(n)
+        pacing = claim_pacing(nodes) if tick == "loop" else None  # "timer": the node's rclpy timer ticks
+        spin_for(executor, 30.0, until=lambda: hw.loop_timing.answered > 0, pacing=pacing)
+        if hw.loop_timing.answered == 0:
+            raise TimeoutError("the controller never answered")
+        spin_for(executor, 1.0, pacing=pacing)  # warm-up
+        hw.loop_timing.reset()
+        cpu0 = time.process_time()
+        spin_for(executor, seconds, pacing=pacing)
+        cpu = time.process_time() - cpu0
+        summary = hw.loop_timing.summary().as_dict()
+        summary["cpu_share_of_hardware_process"] = cpu / max(summary["elapsed_s"], 1e-9)
+        hw.shutdown_safely()
+    for n in nodes:
+        executor.remove_node(n)
+        n.destroy_node()
+    executor.shutdown()
+    return summary
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seconds", type=float, default=5.0, help="measured time per case [s]")
+    ap.add_argument("--rates", default="500,1000,2000,5000", help="real-time rates across processes [Hz]")
+    ap.add_argument("--json", help="write all figures to this file")
+    args = ap.parse_args(argv)
+    rclpy.init()
+    results: dict = {}
+    try:
+        print("1. cost per period in this process, no DDS partner:")
+        costs = per_period_costs()
+        results["costs_us"] = costs
+        for k, v in costs.items():
+            print(f"   {k:40s} {v:7.1f} us")
+
+        print("\n2. DDS floor: Float64 ping-pong between two processes (EventsExecutor):")
+        pp = ping_pong(args.seconds)
+        results["ping_pong"] = pp
+        print(f"   {pp['round_trips_per_s']:7.0f} round trips/s, p50 {pp['p50_ms']:.3f} ms, p99 {pp['p99_ms']:.3f} ms")
+
+        print("\n3. real-time loop across processes (hardware here, valve_controller in its own process):")
+        results["realtime"] = {}
+        for rate in [float(x) for x in args.rates.split(",")]:
+            s = rig_loop("realtime", 1.0 / rate, args.seconds)
+            results["realtime"][str(int(rate))] = s
+            print(f"   {rate:6.0f} Hz: achieved {s['achieved_rate_hz']:7.1f} Hz, in time "
+                  f"{100 * s['in_time_share']:6.2f} %, unanswered {s['unanswered']}, latency p50 "
+                  f"{s['latency_p50_s'] * 1e3:.3f} ms p99 {s['latency_p99_s'] * 1e3:.3f} ms, "
+                  f"hardware process CPU {100 * s['cpu_share_of_hardware_process']:.0f} %")
+
+        print("\n4. lockstep across processes (10 kHz sim time, one period per command):")
+        s = rig_loop("lockstep", 1e-4, args.seconds)
+        results["lockstep"] = s
+        print(f"   {s['achieved_rate_hz']:7.0f} control steps/s (target >= 3000), round trip p50 "
+              f"{s['latency_p50_s'] * 1e3:.3f} ms p99 {s['latency_p99_s'] * 1e3:.3f} ms "
+              f"(DDS floor {pp['round_trips_per_s']:.0f}/s)")
+
+        s = rig_loop("lockstep", 1e-4, args.seconds, composed=True)
+        results["lockstep_composed"] = s
+        print(f"   {s['achieved_rate_hz']:7.0f} control steps/s composed (both nodes in one process, loop on topics)")
+
+        print("\n5. composed (both nodes in one process), real time:")
+        results["composed"] = {}
+        for rate in (10000.0,):
+            s = rig_loop("realtime", 1.0 / rate, args.seconds, composed=True)
+            results["composed"][str(int(rate))] = s
+            print(f"   {rate:6.0f} Hz: achieved {s['achieved_rate_hz']:7.1f} Hz, in time "
+                  f"{100 * s['in_time_share']:6.2f} %, unanswered {s['unanswered']}, latency p50 "
+                  f"{s['latency_p50_s'] * 1e3:.3f} ms p99 {s['latency_p99_s'] * 1e3:.3f} ms, "
+                  f"interval p99 {s['interval_p99_s'] * 1e3:.3f} ms, CPU {100 * s['cpu_share_of_hardware_process']:.0f} %")
+    finally:
+        rclpy.try_shutdown()
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

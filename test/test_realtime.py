@@ -1,0 +1,247 @@
+"""The real-time loop: loop timing, the simulated DAQ's sample clock, the paced spin loop, composed
+mode with the direct link, and a real-time hardware process (watchdog, SIGTERM)."""
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from ros_helpers import ros_env, start, wait_for_text
+
+os.environ.update({k: ros_env()[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
+
+import rclpy  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from std_msgs.msg import Float64, Float64MultiArray  # noqa: E402
+
+from piezo_valve_ros.backends import SimBackend  # noqa: E402
+from piezo_valve_ros.core.simulator import ValveSimConfig  # noqa: E402
+from piezo_valve_ros.loop_timing import LoopTiming  # noqa: E402
+from piezo_valve_ros.nodes.common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, claim_pacing,  # noqa: E402
+                                          make_executor, samples_from_message, spin_loop)
+from piezo_valve_ros.nodes.rig import ProcessGroup, node_command  # noqa: E402
+
+
+# ---------------------------------------------------------------------------- ROS-free pieces
+def test_loop_timing_counts_in_time_unanswered_and_late_commands():
+    lt = LoopTiming(control_period_s=1e-3, capacity=4)
+    lt.measured(0.0000)
+    lt.commanded(0.0003)       # in time, 0.3 ms
+    lt.commanded(0.0004)       # a second command for the same measurement: late
+    lt.measured(0.0010)        # never answered
+    lt.measured(0.0020)
+    lt.commanded(0.0032)       # 1.2 ms: answered, not in time
+    lt.measured(0.0030)
+    lt.commanded(0.0035)       # in time
+    s = lt.summary()
+    assert (s.periods, s.answered, s.in_time, s.unanswered, s.late) == (4, 3, 2, 1, 1)
+    assert s.in_time_share == pytest.approx(2 / 4)
+    assert s.latency_p50_s == pytest.approx(0.5e-3) and s.latency_max_s == pytest.approx(1.2e-3)
+    assert s.achieved_rate_hz == pytest.approx(1000.0)
+    # a tick that came 3 periods late: the periods that should have elapsed count, not the ticks
+    lt.measured(0.0070)
+    lt.commanded(0.0071)
+    assert lt.summary().in_time_share == pytest.approx(3 / 8)
+    assert "commands in time 37.50 %" in lt.summary().line()
+    lt.reset()
+    assert lt.summary().periods == 0
+    with pytest.raises(ValueError):
+        LoopTiming(0.0)
+
+
+def test_latency_ring_keeps_the_most_recent_periods():
+    lt = LoopTiming(1e-3, capacity=3)
+    for k, lat in enumerate([9e-4, 1e-4, 2e-4, 3e-4]):
+        lt.measured(k * 1e-3)
+        lt.commanded(k * 1e-3 + lat)
+    assert lt.summary().latency_max_s == pytest.approx(3e-4)  # 9e-4 fell out of the ring
+    assert lt.summary().answered == 4
+
+
+class FakeClock:
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self):
+        return self.t
+
+
+def test_simulated_daq_locks_its_phase_to_a_jittery_reader():
+    clock = FakeClock()
+    b = SimBackend(ValveSimConfig(seed=1), clock=clock)
+    b.open()
+    rng = np.random.default_rng(0)
+    period = 2 * b.sample_period_s          # a 5 kHz reader of a 10 kHz DAQ
+    clock.t += 0.37 * b.sample_period_s     # the reader starts at an arbitrary phase
+    counts = []
+    for k in range(2000):
+        jitter = rng.uniform(-0.3, 0.3) * b.sample_period_s
+        clock.t = 100.0 + 0.37e-4 + k * period + jitter
+        counts.append(b.read_samples().shape[0])
+    assert sum(counts[100:]) == 2 * len(counts[100:])   # every read after the lock-in: exactly one period
+    assert set(counts[100:]) == {2}
+    # a reader three periods late gets what it missed, nothing is dropped or repeated
+    done = b._done
+    clock.t += 3 * period
+    rows = b.read_samples()
+    assert rows.shape[0] == 6
+    np.testing.assert_allclose(np.diff(rows[:, 0]), b.sample_period_s)
+    assert rows[0, 0] == pytest.approx(done * b.sample_period_s)
+
+
+def test_short_advances_step_sample_by_sample_with_the_batch_result():
+    a, b = SimBackend(ValveSimConfig(seed=4)), SimBackend(ValveSimConfig(seed=4))
+    a.open(), b.open()
+    b.per_sample_below = 0  # always the batch path
+    for n, v in [(1, 6.0), (5, 7.5), (13, 3.0), (2, 5.0)]:
+        a.write_voltage(v), b.write_voltage(v)
+        np.testing.assert_allclose(a.advance(n), b.advance(n), rtol=0, atol=1e-15)
+
+
+class FakeExecutor:
+    """spin_once advances the fake clock by its timeout (nothing arrives) and counts the calls."""
+
+    def __init__(self, clock):
+        self.clock = clock
+        self.calls = []
+
+    def spin_once(self, timeout_sec):
+        self.calls.append((self.clock.t, timeout_sec))
+        self.clock.t += timeout_sec
+
+
+def test_spin_loop_ticks_on_a_grid_skips_missed_periods_and_never_starves_callbacks():
+    clock = FakeClock()
+    ex = FakeExecutor(clock)
+    ticks = []
+
+    def tick():
+        ticks.append(clock.t)
+        if len(ticks) == 3:
+            clock.t += 3.5e-3   # preempted for 3.5 periods
+    spin_loop(ex, lambda: len(ticks) < 6, Pacing(1e-3, tick), clock=clock)
+    t = np.array(ticks) - 100.0
+    np.testing.assert_allclose(t, [1e-3, 2e-3, 3e-3, 7e-3, 8e-3, 9e-3], atol=1e-9)  # 4, 5, 6 ms skipped
+    assert any(timeout == 0.0 for _, timeout in ex.calls)  # callbacks ran right after the late tick
+    ex2 = FakeExecutor(FakeClock())
+    n = iter(range(5))
+    spin_loop(ex2, lambda: next(n, None) is not None)  # unpaced: plain spin_once(0.1) calls
+    assert [timeout for _, timeout in ex2.calls] == [0.1] * 5
+
+
+# ---------------------------------------------------------------------------- ROS
+@pytest.fixture(scope="module")
+def ros_context():
+    rclpy.init()
+    yield
+    rclpy.try_shutdown()
+
+
+def test_composed_realtime_loop_tracks_a_reference_by_direct_link(ros_context):
+    """Both nodes in one process on the wall clock at the paper's 10 kHz: every measurement gets
+    its command within the tick; topics still carry positions and samples for observers."""
+    from piezo_valve_ros.nodes.controller import ValveControllerNode
+    from piezo_valve_ros.nodes.hardware import ValveHardwareNode
+    ns = f"/rt{os.getpid()}"
+    hw = ValveHardwareNode(namespace=ns, parameter_overrides=[
+        Parameter("clock", value="realtime"), Parameter("control_period_s", value=1e-4),
+        Parameter("sim.seed", value=2)])
+    ctl = ValveControllerNode(namespace=ns, parameter_overrides=[
+        Parameter("gain_set", value="pid_hc_5"), Parameter("reference_ramp_s", value=0.002)])
+    hw.attach_controller(ctl.direct_link())
+    observer = rclpy.create_node("observer", namespace=ns)
+    seen = {"positions": 0, "rows": []}
+    observer.create_subscription(Float64, "spool_position", lambda m: seen.__setitem__(
+        "positions", seen["positions"] + 1), SENSOR_QOS)
+    observer.create_subscription(Float64MultiArray, "samples",
+                                 lambda m: seen["rows"].append(samples_from_message(m)[0]), SAMPLES_QOS)
+    ref_pub = observer.create_publisher(Float64, "position_reference", 10)
+    nodes = [hw, ctl, observer]
+    executor = make_executor()
+    for n in nodes:
+        executor.add_node(n)
+    pacing = claim_pacing(nodes)
+    assert pacing is not None and pacing.period_s == pytest.approx(1e-4)
+    assert claim_pacing(nodes) is None  # claimed once
+    try:
+        t0 = time.monotonic()
+        spin_loop(executor, lambda: time.monotonic() - t0 < 0.3, pacing)
+        ref_pub.publish(Float64(data=30e-6))
+        t0 = time.monotonic()
+        spin_loop(executor, lambda: time.monotonic() - t0 < 1.0, pacing)
+        hw.shutdown_safely()
+        spin_loop(executor, lambda: time.monotonic() - t0 < 1.3)
+        s = hw.loop_timing.summary()
+        assert s.periods > 1000
+        assert s.unanswered <= 1 and s.late == 0 and s.answered >= s.periods - 1  # answered within the tick
+        assert seen["positions"] > 100
+        rows = np.concatenate(seen["rows"])
+        assert abs(rows[-2, 2] * 1e6 - 30.0) < 1.0   # tracking (the last row is the safe voltage's)
+        np.testing.assert_allclose(np.diff(rows[:, 0]), 1e-4, atol=1e-12)  # nothing lost in samples
+        assert hw.backend.voltage_v == 5.0 and not hw.backend.is_open  # safe voltage, then closed
+    finally:
+        for n in nodes:
+            executor.remove_node(n)
+            n.destroy_node()
+        executor.shutdown()
+
+
+def test_direct_link_needs_the_realtime_clock(ros_context):
+    from piezo_valve_ros.nodes.hardware import ValveHardwareNode
+    hw = ValveHardwareNode(namespace=f"/ls{os.getpid()}", parameter_overrides=[Parameter("clock", value="lockstep")])
+    try:
+        with pytest.raises(ValueError, match="realtime"):
+            hw.attach_controller(lambda y: 5.0)
+        assert hw.claim_pacing() is None
+    finally:
+        hw.destroy_node()
+
+
+def test_realtime_hardware_process_watchdog_and_sigterm(ros_context, tmp_path):
+    """valve_hardware on the wall clock at 10 kHz in its own process: commands apply, the watchdog
+    puts it on safe_voltage within command_timeout_s plus a period, SIGTERM ends it cleanly."""
+    ns, timeout, period = f"/rtp{os.getpid()}", 0.2, 1e-4
+    node = rclpy.create_node("commander", namespace=ns)
+    rows = []
+    node.create_subscription(Float64MultiArray, "samples", lambda m: rows.append(samples_from_message(m)[0]),
+                             SAMPLES_QOS)
+    pub = node.create_publisher(Float64, "voltage_command", COMMAND_QOS)
+    executor = make_executor()
+    executor.add_node(node)
+    with ProcessGroup() as procs:
+        hw = start(procs, "hardware", node_command("valve_hardware", {
+            "clock": "realtime", "control_period_s": period, "command_timeout_s": timeout,
+            "samples_batch": 200}, ns), str(tmp_path))
+        try:
+            deadline = time.monotonic() + 30
+            while pub.get_subscription_count() == 0 or not rows:
+                assert time.monotonic() < deadline, open(tmp_path / "hardware.log").read()
+                executor.spin_once(timeout_sec=0.05)
+            commands = [6.0 + 0.05 * k for k in range(20)]  # distinct values, one every 10 ms, then silence
+            for v in commands:
+                pub.publish(Float64(data=v))
+                end = time.monotonic() + 0.01
+                while time.monotonic() < end:
+                    executor.spin_once(timeout_sec=0.005)
+            wait_for_text(tmp_path / "hardware.log", "applying safe_voltage", timeout_s=5)
+            end = time.monotonic() + 0.3
+            while time.monotonic() < end:
+                executor.spin_once(timeout_sec=0.02)
+            hw.send_signal(signal.SIGTERM)
+            assert hw.wait(10) == 0
+        finally:
+            executor.remove_node(node)
+            node.destroy_node()
+            executor.shutdown()
+    data = np.concatenate(rows)
+    np.testing.assert_allclose(np.diff(data[:, 0]), period, atol=1e-12)  # every sample, none lost
+    cmd = data[:, 1]
+    applied = [v for v in commands if np.any(cmd == v)]
+    assert len(applied) >= 18 and applied[-1] == commands[-1]  # (a command may be overtaken by the next)
+    first_last = np.flatnonzero(cmd == commands[-1])[0]   # the tick after the last command arrived
+    safe = first_last + np.flatnonzero(cmd[first_last:] == 5.0)[0]
+    held_s = (safe - first_last) * period   # from applying the last command to the watchdog's tick
+    assert timeout - period - 1e-9 <= held_s <= timeout + period + 0.05, held_s  # (+ scheduling on a busy box)
+    log = open(tmp_path / "hardware.log").read()
+    assert "safe_voltage 5.0 V applied; loop:" in log and "commands in time" in log
