@@ -27,6 +27,7 @@ setup(
             "valve_hardware = piezo_valve_ros.nodes.hardware:main",
             "valve_controller = piezo_valve_ros.nodes.controller:main",
             "valve_rig = piezo_valve_ros.nodes.rig:main",
+            "valve_composed = piezo_valve_ros.nodes.composed:main",
             "valve_identification = piezo_valve_ros.nodes.identification:main",
             "valve_identify = piezo_valve_ros.identify_cli:main",
         ],

@@ -139,20 +139,19 @@ def ping_pong(seconds: float) -> dict:
 
 def rig_loop(clock: str, period_s: float, seconds: float, composed: bool = False, tick: str = "loop") -> dict:
     """Sections 3-5: the hardware node here, the controller in another process (or here, composed)."""
-    from piezo_valve_ros.nodes.controller import ValveControllerNode
+    from piezo_valve_ros.nodes.composed import build
     from piezo_valve_ros.nodes.hardware import ValveHardwareNode
     hw_params = {"clock": clock, "control_period_s": period_s, "command_timeout_s": 0.5}
     ctl_params = {"gain_set": "pid_hc_5", "control_period_s": period_s, "reference_ramp_s": 0.002}
-    hw = ValveHardwareNode(parameter_overrides=[Parameter(k, value=v) for k, v in hw_params.items()])
-    nodes = [hw]
+    overrides = (lambda d: [Parameter(k, value=v) for k, v in d.items()])
     executor = make_executor()
     with ProcessGroup() as procs:
-        if composed:
-            ctl = ValveControllerNode(parameter_overrides=[Parameter(k, value=v) for k, v in ctl_params.items()])
-            nodes.append(ctl)
-            if clock == "realtime":
-                hw.attach_controller(ctl.direct_link())
+        if composed:  # exactly what valve_composed runs (direct link on the real-time clock)
+            nodes = list(build(overrides(hw_params), overrides(ctl_params)))
+            hw = nodes[0]
         else:
+            hw = ValveHardwareNode(parameter_overrides=overrides(hw_params))
+            nodes = [hw]
             procs.start("valve_controller", node_command("valve_controller", ctl_params), env=env(),
                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         for n in nodes:

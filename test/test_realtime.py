@@ -141,15 +141,15 @@ def ros_context():
 def test_composed_realtime_loop_tracks_a_reference_by_direct_link(ros_context):
     """Both nodes in one process on the wall clock at the paper's 10 kHz: every measurement gets
     its command within the tick; topics still carry positions and samples for observers."""
-    from piezo_valve_ros.nodes.controller import ValveControllerNode
-    from piezo_valve_ros.nodes.hardware import ValveHardwareNode
+    from piezo_valve_ros.nodes.composed import build
     ns = f"/rt{os.getpid()}"
-    hw = ValveHardwareNode(namespace=ns, parameter_overrides=[
-        Parameter("clock", value="realtime"), Parameter("control_period_s", value=1e-4),
-        Parameter("sim.seed", value=2)])
-    ctl = ValveControllerNode(namespace=ns, parameter_overrides=[
-        Parameter("gain_set", value="pid_hc_5"), Parameter("reference_ramp_s", value=0.002)])
-    hw.attach_controller(ctl.direct_link())
+    with pytest.raises(ValueError, match="control_period_s differs"):
+        build([Parameter("control_period_s", value=1e-4)], [Parameter("control_period_s", value=1e-3)], namespace=ns)
+    hw, ctl = build([Parameter("clock", value="realtime"), Parameter("control_period_s", value=1e-4),
+                     Parameter("sim.seed", value=2)],
+                    [Parameter("gain_set", value="pid_hc_5"), Parameter("reference_ramp_s", value=0.002),
+                     Parameter("control_period_s", value=1e-4)], namespace=ns)
+    assert hw._linked_controller is not None
     observer = rclpy.create_node("observer", namespace=ns)
     seen = {"positions": 0, "rows": []}
     observer.create_subscription(Float64, "spool_position", lambda m: seen.__setitem__(
@@ -245,3 +245,39 @@ def test_realtime_hardware_process_watchdog_and_sigterm(ros_context, tmp_path):
     assert timeout - period - 1e-9 <= held_s <= timeout + period + 0.05, held_s  # (+ scheduling on a busy box)
     log = open(tmp_path / "hardware.log").read()
     assert "safe_voltage 5.0 V applied; loop:" in log and "commands in time" in log
+
+
+def test_valve_composed_process_runs_10khz_on_the_wall_clock_and_stops_on_sigterm(ros_context, tmp_path):
+    ns = f"/cp{os.getpid()}"
+    node = rclpy.create_node("client", namespace=ns)
+    rows = []
+    node.create_subscription(Float64MultiArray, "samples", lambda m: rows.append(samples_from_message(m)[0]),
+                             SAMPLES_QOS)
+    ref = node.create_publisher(Float64, "position_reference", 10)
+    executor = make_executor()
+    executor.add_node(node)
+    with ProcessGroup() as procs:
+        proc = start(procs, "composed", node_command("valve_composed", {
+            "clock": "realtime", "control_period_s": 1e-4, "gain_set": "ff_pid_g_2", "reference_ramp_s": 0.002},
+            ns), str(tmp_path))
+        try:
+            deadline = time.monotonic() + 30
+            while ref.get_subscription_count() == 0 or not rows:
+                assert time.monotonic() < deadline, open(tmp_path / "composed.log").read()
+                executor.spin_once(timeout_sec=0.05)
+            ref.publish(Float64(data=-25e-6))
+            end = time.monotonic() + 1.0
+            while time.monotonic() < end:
+                executor.spin_once(timeout_sec=0.02)
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(10) == 0
+        finally:
+            executor.remove_node(node)
+            node.destroy_node()
+            executor.shutdown()
+    data = np.concatenate(rows)
+    assert abs(data[-1, 2] * 1e6 + 25.0) < 1.0  # settled on the reference (the loop ran at 10 kHz)
+    np.testing.assert_allclose(np.diff(data[:, 0]), 1e-4, atol=1e-12)
+    log = open(tmp_path / "composed.log").read()
+    assert "position and command pass by function call" in log
+    assert "safe_voltage 5.0 V applied; loop:" in log and "unanswered 0, late 0" in log

@@ -78,7 +78,7 @@ class ValveControllerNode(Node):
             ("gain_set", "", "Table 1 gain set name, overrides strategy/kp/ki/kd when set"),
             ("kp", g.kp, "proportional gain (normalised, um/um)"), ("ki", g.ki, "integral gain [1/s]"),
             ("kd", g.kd, "derivative gain [s] (the paper uses 0)"),
-            ("control_period_s", 1e-4, "control period [s]; must match the hardware's"),
+            ("control_period_s", 1e-3, "control period [s]; must match the hardware's (same default)"),
             ("command_min_v", 0.0, "[V]"), ("command_max_v", 10.0, "[V]"), ("centre_voltage_v", 5.0, "[V]"),
             ("reference_ramp_s", 0.0, "reference changes become ramps of this duration [s] (paper: 0.002)"),
             ("initial_reference_m", 0.0, "reference until the first position_reference [m]"),

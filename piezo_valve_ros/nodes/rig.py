@@ -34,7 +34,7 @@ from .common import REFERENCE_QOS, SAMPLES_QOS, claim_pacing, make_executor, sam
 def node_command(executable: str, params: dict, namespace: str = "") -> list[str]:
     """Command line that starts one of the package's nodes with ``params`` (optionally in a namespace)."""
     module = {"valve_hardware": "hardware", "valve_controller": "controller",
-              "valve_identification": "identification"}[executable]
+              "valve_identification": "identification", "valve_composed": "composed"}[executable]
     cmd = [sys.executable, "-m", f"piezo_valve_ros.nodes.{module}", "--ros-args"]
     if namespace:
         cmd += ["-r", f"__ns:={namespace}"]
@@ -249,12 +249,9 @@ def main(argv=None) -> int:
     code = 0
     try:
         if args.composed:
-            from .controller import ValveControllerNode
-            from .hardware import ValveHardwareNode
-            hardware = ValveHardwareNode(parameter_overrides=[Parameter(k, value=v) for k, v in hw_params.items()])
-            controller = ValveControllerNode(parameter_overrides=[Parameter(k, value=v) for k, v in ctl_params.items()])
-            if args.clock == "realtime":  # position and command by function call, as rclcpp intra-process
-                hardware.attach_controller(controller.direct_link())
+            from .composed import build
+            hardware, controller = build([Parameter(k, value=v) for k, v in hw_params.items()],
+                                         [Parameter(k, value=v) for k, v in ctl_params.items()])
             nodes += [hardware, controller]
         else:
             procs.start("valve_hardware", node_command("valve_hardware", hw_params))

@@ -1,0 +1,58 @@
+"""``valve_composed``: ``valve_hardware`` and ``valve_controller`` in one process (the fastest loop).
+
+    valve_composed --ros-args --params-file config/rig.yaml -p valve_hardware:clock:=realtime
+
+Parameters are the two nodes' own (address one node with ``valve_hardware:name:=value`` or a
+parameters file with a section per node).  With ``clock: realtime`` the position and the command
+pass by function call, as rclcpp's intra-process communication would, and the spin loop ticks the
+hardware itself: this is what runs the paper's 10 kHz loop in real time (bench/realtime_loop.py).
+``spool_position`` and ``samples`` are still published, and ``voltage_command`` from other nodes is
+still applied.  In lockstep the loop stays on the topics (in-process DDS).
+"""
+from __future__ import annotations
+
+import sys
+
+import rclpy
+
+from .common import spin
+from .controller import ValveControllerNode
+from .hardware import ValveHardwareNode
+
+
+def build(hardware_overrides=(), controller_overrides=(), **node_kwargs) -> tuple[ValveHardwareNode,
+                                                                                ValveControllerNode]:
+    """Both nodes (``node_kwargs``, e.g. ``namespace``, go to both), linked directly on the real-time
+    clock; raises ValueError (nothing left open) when a node refuses its parameters or the two
+    control periods differ."""
+    hardware = ValveHardwareNode(parameter_overrides=list(hardware_overrides), **node_kwargs)
+    try:
+        controller = ValveControllerNode(parameter_overrides=list(controller_overrides), **node_kwargs)
+    except Exception:
+        hardware.shutdown_safely()
+        hardware.destroy_node()
+        raise
+    dt = controller.controller.config.dt
+    if abs(dt - hardware.control_period_s) > 1e-9 * hardware.control_period_s:
+        hardware.shutdown_safely()
+        hardware.destroy_node()
+        controller.destroy_node()
+        raise ValueError(f"control_period_s differs: hardware {hardware.control_period_s} s, controller {dt} s")
+    if hardware.clock_mode == "realtime":
+        hardware.attach_controller(controller.direct_link())
+    return hardware, controller
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args)
+    try:
+        hardware, controller = build()
+    except Exception as exc:
+        print(f"valve_composed: {exc}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    return spin([hardware, controller], on_exit=hardware.shutdown_safely)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
