@@ -1,15 +1,17 @@
 """The control loop through ROS: where the time goes, real-time rates, lockstep speed, composed mode.
 
-    python bench/realtime_loop.py                 # everything (about 2 min)
+    python bench/realtime_loop.py                 # everything (about 3 min)
     python bench/realtime_loop.py --seconds 10 --json loop.json
 
 Sections (figures from this run; the machine is shared, so compare them with each other):
   1. cost per period without DDS: hardware tick (sim backend + publishing) and controller callback
   2. DDS floor: plain Float64 ping-pong between two processes (EventsExecutor on both sides)
-  3. real-time loop across processes (position -> controller -> command) at 500 Hz .. 5 kHz:
-     achieved rate, share of periods whose command arrived within one period, latency p50/p99
+  3. real-time loop across processes (position -> controller -> command) at 500 Hz .. 5 kHz, the
+     hardware sleeping or polling between ticks: achieved rate, share of periods whose command
+     arrived within one period, latency p50/p99
   4. lockstep across processes: control steps per second
-  5. composed mode (hardware and controller in one process) at the paper's 10 kHz in real time
+  5. composed mode (hardware and controller in one process) at the paper's 10 kHz in real time:
+     polling, sleeping, and ticked by an rclpy timer
 
 The hardware node runs in this process exactly as ``valve_hardware`` runs it (same executor, same
 spin loop); the controller is a separate ``valve_controller`` process.  Latency is measured by the
@@ -137,11 +139,13 @@ def ping_pong(seconds: float) -> dict:
             "p99_ms": float(np.percentile(a, 99) * 1e3)}
 
 
-def rig_loop(clock: str, period_s: float, seconds: float, composed: bool = False, tick: str = "loop") -> dict:
+def rig_loop(clock: str, period_s: float, seconds: float, composed: bool = False, tick: str = "loop",
+             busy_poll_s: float = 0.0) -> dict:
     """Sections 3-5: the hardware node here, the controller in another process (or here, composed)."""
     from piezo_valve_ros.nodes.composed import build
     from piezo_valve_ros.nodes.hardware import ValveHardwareNode
-    hw_params = {"clock": clock, "control_period_s": period_s, "command_timeout_s": 0.5}
+    hw_params = {"clock": clock, "control_period_s": period_s, "command_timeout_s": 0.5,
+                 "realtime.busy_poll_s": busy_poll_s}
     ctl_params = {"gain_set": "pid_hc_5", "control_period_s": period_s, "reference_ramp_s": 0.002}
     overrides = (lambda d: [Parameter(k, value=v) for k, v in d.items()])
     executor = make_executor()
@@ -197,18 +201,19 @@ def main(argv=None) -> int:
         results["ping_pong"] = pp
         print(f"   {pp['round_trips_per_s']:7.0f} round trips/s, p50 {pp['p50_ms']:.3f} ms, p99 {pp['p99_ms']:.3f} ms")
 
-        print("\n3. real-time loop across processes (hardware here, valve_controller in its own process):")
+        print("\n3. real-time loop across processes (hardware here, valve_controller in its own process);\n"
+              "   hardware sleeping between ticks (realtime.busy_poll_s 0) / polling (busy_poll_s = period):")
         results["realtime"] = {}
         for rate in [float(x) for x in args.rates.split(",")]:
-            runs = []
-            for _ in range(args.repeats if rate == 2000 else 1):
-                runs.append(rig_loop("realtime", 1.0 / rate, args.seconds))
-            results["realtime"][str(int(rate))] = runs
-            for s in runs:
-                print(f"   {rate:6.0f} Hz: achieved {s['achieved_rate_hz']:7.1f} Hz, in time "
-                  f"{100 * s['in_time_share']:6.2f} %, unanswered {s['unanswered']}, latency p50 "
-                      f"{s['latency_p50_s'] * 1e3:.3f} ms p99 {s['latency_p99_s'] * 1e3:.3f} ms, "
-                      f"hardware process CPU {100 * s['cpu_share_of_hardware_process']:.0f} %")
+            for mode, busy in (("sleep", 0.0), ("poll", 1.0 / rate)):
+                runs = [rig_loop("realtime", 1.0 / rate, args.seconds, busy_poll_s=busy)
+                        for _ in range(args.repeats if rate == 2000 else 1)]
+                results["realtime"][f"{int(rate)}_{mode}"] = runs
+                for s in runs:
+                    print(f"   {rate:6.0f} Hz {mode:5s}: achieved {s['achieved_rate_hz']:7.1f} Hz, in time "
+                          f"{100 * s['in_time_share']:6.2f} %, unanswered {s['unanswered']}, latency p50 "
+                          f"{s['latency_p50_s'] * 1e3:.3f} ms p99 {s['latency_p99_s'] * 1e3:.3f} ms, "
+                          f"hardware process CPU {100 * s['cpu_share_of_hardware_process']:.0f} %")
 
         print("\n4. lockstep across processes (10 kHz sim time, one period per command):")
         results["lockstep"] = []
@@ -223,21 +228,16 @@ def main(argv=None) -> int:
         results["lockstep_composed"] = s
         print(f"   {s['achieved_rate_hz']:7.0f} control steps/s composed (both nodes in one process, loop on topics)")
 
-        print("\n5. composed (both nodes in one process), real time:")
-        results["composed"] = {"10000": []}
-        for _ in range(args.repeats):
-            rate = 10000.0
-            s = rig_loop("realtime", 1.0 / rate, args.seconds, composed=True)
-            results["composed"]["10000"].append(s)
-            print(f"   {rate:6.0f} Hz: achieved {s['achieved_rate_hz']:7.1f} Hz, in time "
-                  f"{100 * s['in_time_share']:6.2f} %, unanswered {s['unanswered']}, latency p50 "
-                  f"{s['latency_p50_s'] * 1e3:.3f} ms p99 {s['latency_p99_s'] * 1e3:.3f} ms, "
-                  f"interval p99 {s['interval_p99_s'] * 1e3:.3f} ms, CPU {100 * s['cpu_share_of_hardware_process']:.0f} %")
-        s = rig_loop("realtime", 1e-4, args.seconds, composed=True, tick="timer")
-        results["composed"]["10000_rclpy_timer"] = s
-        print(f"   the same ticked by an rclpy timer instead of the spin loop: achieved {s['achieved_rate_hz']:7.1f} Hz, "
-              f"in time {100 * s['in_time_share']:6.2f} %, interval p99 {s['interval_p99_s'] * 1e3:.3f} ms, "
-              f"CPU {100 * s['cpu_share_of_hardware_process']:.0f} %")
+        print("\n5. composed (both nodes in one process, valve_composed), real time at the paper's 10 kHz:")
+        results["composed"] = {}
+        cases = [("poll", "loop", 1e-4)] * args.repeats + [("sleep", "loop", 0.0), ("rclpy timer", "timer", 0.0)]
+        for label, tick, busy in cases:
+            s = rig_loop("realtime", 1e-4, args.seconds, composed=True, tick=tick, busy_poll_s=busy)
+            results["composed"].setdefault(label, []).append(s)
+            print(f"   {label:11s}: achieved {s['achieved_rate_hz']:7.1f} Hz, in time {100 * s['in_time_share']:6.2f} %, "
+                  f"unanswered {s['unanswered']}, latency p50 {s['latency_p50_s'] * 1e3:.3f} ms p99 "
+                  f"{s['latency_p99_s'] * 1e3:.3f} ms, interval p99 {s['interval_p99_s'] * 1e3:.3f} ms, "
+                  f"CPU {100 * s['cpu_share_of_hardware_process']:.0f} %")
     finally:
         rclpy.try_shutdown()
     if args.json:

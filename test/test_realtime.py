@@ -108,7 +108,7 @@ class FakeExecutor:
 
     def spin_once(self, timeout_sec):
         self.calls.append((self.clock.t, timeout_sec))
-        self.clock.t += timeout_sec
+        self.clock.t += max(timeout_sec, 2e-5)  # a poll costs time too
 
 
 def test_spin_loop_ticks_on_a_grid_skips_missed_periods_and_never_starves_callbacks():
@@ -124,6 +124,18 @@ def test_spin_loop_ticks_on_a_grid_skips_missed_periods_and_never_starves_callba
     t = np.array(ticks) - 100.0
     np.testing.assert_allclose(t, [1e-3, 2e-3, 3e-3, 7e-3, 8e-3, 9e-3], atol=1e-9)  # 4, 5, 6 ms skipped
     assert any(timeout == 0.0 for _, timeout in ex.calls)  # callbacks ran right after the late tick
+    # busy polling: sleeps until busy_poll_s before the tick, then polls (spin_once(0)) up to it
+    clock3 = FakeClock()
+    ex3 = FakeExecutor(clock3)
+    ticks3 = []
+    spin_loop(ex3, lambda: len(ticks3) < 3, Pacing(1e-3, lambda: ticks3.append(clock3.t), busy_poll_s=1e-4),
+              clock=clock3)
+    sleeps = [timeout for _, timeout in ex3.calls if timeout > 0]
+    polls = [t for t, timeout in ex3.calls if timeout == 0]
+    assert sleeps and max(sleeps) <= 0.9e-3 + 1e-12 and len(polls) >= 3 * 4
+    assert all(0 <= (t - 100.0) % 1e-3 < 2e-5 + 1e-9 or (t - 100.0) % 1e-3 > 1e-3 - 1e-4 - 1e-9
+               for t in polls)  # polls only in the last 0.1 ms before a tick
+    np.testing.assert_allclose(np.array(ticks3) - 100.0, [1e-3, 2e-3, 3e-3], atol=2.1e-5)  # late by < one poll
     ex2 = FakeExecutor(FakeClock())
     n = iter(range(5))
     spin_loop(ex2, lambda: next(n, None) is not None)  # unpaced: plain spin_once(0.1) calls
@@ -193,6 +205,9 @@ def test_direct_link_needs_the_realtime_clock(ros_context):
     try:
         with pytest.raises(ValueError, match="realtime"):
             hw.attach_controller(lambda y: 5.0)
+        with pytest.raises(ValueError, match="busy_poll_s must be >= 0"):
+            ValveHardwareNode(namespace=f"/ls{os.getpid()}", parameter_overrides=[
+                Parameter("clock", value="realtime"), Parameter("realtime.busy_poll_s", value=-1.0)])
         assert hw.claim_pacing() is None
     finally:
         hw.destroy_node()

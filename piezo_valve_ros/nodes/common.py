@@ -100,9 +100,11 @@ def make_executor(context=None):
 
 @dataclass(frozen=True)
 class Pacing:
-    """A periodic job the spin loop runs itself: ``tick()`` every ``period_s`` seconds."""
+    """A periodic job the spin loop runs itself: ``tick()`` every ``period_s`` seconds; during the last
+    ``busy_poll_s`` before a tick the loop polls for messages instead of sleeping."""
     period_s: float
     tick: Callable[[], None]
+    busy_poll_s: float = 0.0
 
 
 def claim_pacing(nodes) -> Optional[Pacing]:
@@ -118,8 +120,11 @@ def spin_loop(executor, keep_going: Callable[[], bool], pacing: Optional[Pacing]
     """Run callbacks (and the ``pacing`` tick on its period) while ``keep_going()``.
 
     Waits happen inside ``executor.spin_once(timeout)``, so a message is handled as soon as it
-    arrives, also between ticks; with EventsExecutor and a tight timer slack the tick keeps time to
-    a few microseconds, at about half the CPU of an rclpy timer at 10 kHz (bench/realtime_loop.py).
+    arrives, also between ticks; with EventsExecutor and a tight timer slack this costs about half
+    the CPU of an rclpy timer at 10 kHz (bench/realtime_loop.py).  Waking from a sleep takes tens of
+    microseconds on a virtual machine (now and then milliseconds), so within ``busy_poll_s`` of a
+    tick the loop polls (``spin_once(0)``) instead: a core's worth of CPU for a punctual tick and a
+    quicker answer to messages.
     A tick more than a period late skips the periods it missed and stays on its grid.  Before a
     paced loop starts, everything allocated so far is moved out of the garbage collector's sight
     (``gc.freeze``): a full collection over all that the imported libraries allocated would stop the
@@ -132,12 +137,15 @@ def spin_loop(executor, keep_going: Callable[[], bool], pacing: Optional[Pacing]
         return
     gc.collect()
     gc.freeze()
-    period, tick = pacing.period_s, pacing.tick
+    period, tick, busy_poll = pacing.period_s, pacing.tick, pacing.busy_poll_s
     next_tick = clock() + period
     while keep_going():
         now = clock()
         if now < next_tick:
-            executor.spin_once(timeout_sec=min(next_tick - now, 0.1))
+            if next_tick - now > busy_poll:
+                executor.spin_once(timeout_sec=min(next_tick - now - busy_poll, 0.1))
+            else:
+                executor.spin_once(timeout_sec=0.0)
             continue
         tick()
         next_tick += period

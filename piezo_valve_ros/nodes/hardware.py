@@ -68,6 +68,9 @@ class ValveHardwareNode(Node):
         declare(self, "command_min_v", 0.0, "commands below are clamped [V]")
         declare(self, "command_max_v", 10.0, "commands above are clamped [V]")
         declare(self, "lockstep.step_budget", -1, "lockstep only: periods to run before pausing (-1 = no pause)")
+        declare(self, "realtime.busy_poll_s", 0.0,
+                "realtime clock: poll for messages instead of sleeping this long before each tick [s] "
+                "(costs a core; >= control_period_s polls all the time)")
         declare(self, "loop_stats_period_s", 0.0,
                 "log the loop timing (rate, commands in time, latency) this often [s]; 0: only at shutdown")
         for name, default, text in [("sim.seed", 0, "noise seed"), ("sim.sample_period_s", 1e-4, "[s]"),
@@ -110,6 +113,9 @@ class ValveHardwareNode(Node):
         stats_period = as_float("loop_stats_period_s", p["loop_stats_period_s"])
         if stats_period < 0:
             raise ValueError("loop_stats_period_s must be >= 0")
+        self.busy_poll_s = as_float("realtime.busy_poll_s", p["realtime.busy_poll_s"])
+        if self.busy_poll_s < 0:
+            raise ValueError("realtime.busy_poll_s must be >= 0")
         self.create_subscription(Float64, "voltage_command", self._on_command, COMMAND_QOS)
         self.add_on_set_parameters_callback(self._on_parameters)
 
@@ -166,7 +172,7 @@ class ValveHardwareNode(Node):
         self._tick_timer.cancel()
         self.destroy_timer(self._tick_timer)
         self._tick_timer = None
-        return Pacing(self.control_period_s, self._realtime_tick)
+        return Pacing(self.control_period_s, self._realtime_tick, self.busy_poll_s)
 
     def attach_controller(self, on_measurement: Callable[[float], Optional[float]]) -> None:
         """Composed mode, real-time clock: hand each position [m] to ``on_measurement`` by function call

@@ -210,6 +210,9 @@ def parse_args(argv=None):
                     help="control period [s] (default 1e-4 = the paper's 10 kHz; realtime across processes: 5e-4 "
                          "(2 kHz) or longer, composed: 1e-4 works)")
     ap.add_argument("--composed", action="store_true", help="hardware and controller in this process")
+    ap.add_argument("--busy-poll-s", type=float,
+                    help="realtime: the hardware polls instead of sleeping this long before each tick [s] "
+                         "(default: all the time, which costs a core; 0 = sleep)")
     ap.add_argument("--demo", choices=("steps", "none"), default="steps")
     ap.add_argument("--hold-s", type=float, default=0.1, help="hold before and after each step [s]")
     ap.add_argument("--sim-seed", type=int, default=0)
@@ -221,7 +224,9 @@ def parse_args(argv=None):
 
 
 def rig_parameters(args) -> tuple[dict, dict]:
+    busy_poll = args.control_period_s if args.busy_poll_s is None else args.busy_poll_s
     hw = {"clock": args.clock, "control_period_s": args.control_period_s, "sim.seed": args.sim_seed,
+          "realtime.busy_poll_s": busy_poll if args.clock == "realtime" else 0.0,
           "lockstep.step_budget": 0 if (args.clock == "lockstep" and args.demo == "steps") else -1}
     ctl = {"control_period_s": args.control_period_s, "reference_ramp_s": 0.002}
     if args.strategy:
