@@ -73,6 +73,30 @@ def spin_for(executor, seconds: float, until=None, pacing=None) -> None:
               pacing)
 
 
+def context_switches() -> dict:
+    """Voluntary / involuntary context switches of the calling thread so far (Linux; else empty)."""
+    try:
+        with open("/proc/thread-self/status") as f:
+            return {k.split("_")[0]: int(v) for k, v in (line.split(":") for line in f if "ctxt_switches" in line)}
+    except OSError:
+        return {}
+
+
+def wake_up_lateness(sleep_s: float = 8e-5, seconds: float = 2.0) -> dict:
+    """How late a thread wakes from a short sleep, with the 1 us timer slack the hardware node sets."""
+    from piezo_valve_ros.nodes.common import tighten_timer_slack
+    tighten_timer_slack()
+    late = []
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        t0 = time.perf_counter()
+        time.sleep(sleep_s)
+        late.append(time.perf_counter() - t0 - sleep_s)
+    a = np.asarray(late)
+    return {"p50_us": float(np.percentile(a, 50) * 1e6), "p99_us": float(np.percentile(a, 99) * 1e6),
+            "max_ms": float(a.max() * 1e3), "over_1ms": int(np.count_nonzero(a > 1e-3)), "sleeps": a.size}
+
+
 def per_period_costs(n: int = 5000) -> dict:
     """Section 1: CPU per control period with no DDS partner (publishers have no subscriber)."""
     from piezo_valve_ros.nodes.controller import ValveControllerNode
@@ -90,6 +114,14 @@ def per_period_costs(n: int = 5000) -> dict:
         for _ in range(n // 5):
             hw._publish(hw.backend.advance(k))
         out[f"hardware_realtime_tick_{int(1 / period)}hz_us"] = (time.perf_counter() - t0) / (n // 5) * 1e6
+    backend = hw.backend
+    for label, below in (("per_sample", backend.per_sample_below), ("batch_path", 0)):
+        backend.per_sample_below = below
+        t0 = time.perf_counter()
+        for _ in range(n // 5):
+            backend.advance(2)
+        out[f"sim_advance_2_samples_{label}_us"] = (time.perf_counter() - t0) / (n // 5) * 1e6
+    backend.per_sample_below = type(backend).per_sample_below
     hw.destroy_node()
     ctl = ValveControllerNode(parameter_overrides=[Parameter("gain_set", value="pid_hc_5")])
     msg = Float64(data=1e-6)
@@ -167,10 +199,13 @@ def rig_loop(clock: str, period_s: float, seconds: float, composed: bool = False
         spin_for(executor, 1.0, pacing=pacing)  # warm-up
         hw.loop_timing.reset()
         cpu0 = time.process_time()
+        switches0 = context_switches()
         spin_for(executor, seconds, pacing=pacing)
+        switches = {k: v - switches0.get(k, 0) for k, v in context_switches().items()}
         cpu = time.process_time() - cpu0
         summary = hw.loop_timing.summary().as_dict()
         summary["cpu_share_of_hardware_process"] = cpu / max(summary["elapsed_s"], 1e-9)
+        summary["loop_thread_context_switches"] = switches
         hw.shutdown_safely()
     for n in nodes:
         executor.remove_node(n)
@@ -195,6 +230,11 @@ def main(argv=None) -> int:
         results["costs_us"] = costs
         for k, v in costs.items():
             print(f"   {k:40s} {v:7.1f} us")
+
+        w = wake_up_lateness()
+        results["wake_up_lateness"] = w
+        print(f"   waking from an 80 us sleep is late by p50 {w['p50_us']:.0f} us, p99 {w['p99_us']:.0f} us, "
+              f"max {w['max_ms']:.2f} ms ({w['over_1ms']} of {w['sleeps']} sleeps > 1 ms)")
 
         print("\n2. DDS floor: Float64 ping-pong between two processes (EventsExecutor):")
         pp = ping_pong(args.seconds)
@@ -238,6 +278,9 @@ def main(argv=None) -> int:
                   f"unanswered {s['unanswered']}, latency p50 {s['latency_p50_s'] * 1e3:.3f} ms p99 "
                   f"{s['latency_p99_s'] * 1e3:.3f} ms, interval p99 {s['interval_p99_s'] * 1e3:.3f} ms, "
                   f"CPU {100 * s['cpu_share_of_hardware_process']:.0f} %")
+            sw = s["loop_thread_context_switches"]
+            print(f"   {'':11s}  {s['stalls']} stalls > 0.2 ms (longest {s['longest_gap_s'] * 1e3:.2f} ms); loop thread "
+                  f"context switches: voluntary {sw.get('voluntary', '?')}, involuntary {sw.get('nonvoluntary', '?')}")
     finally:
         rclpy.try_shutdown()
     if args.json:

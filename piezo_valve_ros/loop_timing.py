@@ -39,6 +39,8 @@ class LoopSummary:
     latency_p99_s: float
     latency_max_s: float
     interval_p99_s: float  # gap between successive measurements (timer jitter)
+    stalls: int            # gaps between measurements longer than two periods
+    longest_gap_s: float
 
     def line(self) -> str:
         """One human-readable line (ms / %)."""
@@ -46,7 +48,8 @@ class LoopSummary:
                 f"(nominal {self.nominal_rate_hz:.0f} Hz); commands in time {100 * self.in_time_share:.2f} %, "
                 f"unanswered {self.unanswered}, late {self.late}; latency p50 {self.latency_p50_s * 1e3:.3f} ms, "
                 f"p99 {self.latency_p99_s * 1e3:.3f} ms, max {self.latency_max_s * 1e3:.3f} ms; "
-                f"interval p99 {self.interval_p99_s * 1e3:.3f} ms")
+                f"interval p99 {self.interval_p99_s * 1e3:.3f} ms, {self.stalls} stalls > 2 periods "
+                f"(longest {self.longest_gap_s * 1e3:.2f} ms)")
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -119,4 +122,6 @@ class LoopTiming:
             answered=self.answered, in_time=self.in_time, unanswered=self.unanswered, late=self.late,
             in_time_share=self.in_time / due if due else float("nan"),
             latency_p50_s=q(lat, 50), latency_p99_s=q(lat, 99),
-            latency_max_s=float(lat.max()) if lat.size else float("nan"), interval_p99_s=q(gaps, 99))
+            latency_max_s=float(lat.max()) if lat.size else float("nan"), interval_p99_s=q(gaps, 99),
+            stalls=int(np.count_nonzero(gaps > 2 * self.control_period_s)),
+            longest_gap_s=float(gaps.max()) if gaps.size else float("nan"))
