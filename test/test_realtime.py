@@ -1,5 +1,6 @@
 """The real-time loop: loop timing, the simulated DAQ's sample clock, the paced spin loop, composed
 mode with the direct link, and a real-time hardware process (watchdog, SIGTERM)."""
+import contextlib
 import os
 import signal
 import time
@@ -143,6 +144,26 @@ def test_spin_loop_ticks_on_a_grid_skips_missed_periods_and_never_starves_callba
 
 
 # ---------------------------------------------------------------------------- ROS
+def spin_for(executor, seconds: float) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        executor.spin_once(timeout_sec=0.005)
+
+
+@contextlib.contextmanager
+def client(name: str, namespace: str):
+    """A node of this test process, spun on demand; removed however the test ends."""
+    node = rclpy.create_node(name, namespace=namespace)
+    executor = make_executor()
+    executor.add_node(node)
+    try:
+        yield node, executor
+    finally:
+        executor.remove_node(node)
+        node.destroy_node()
+        executor.shutdown()
+
+
 @pytest.fixture(scope="module")
 def ros_context():
     rclpy.init()
@@ -217,38 +238,26 @@ def test_realtime_hardware_process_watchdog_and_sigterm(ros_context, tmp_path):
     """valve_hardware on the wall clock at 10 kHz in its own process: commands apply, the watchdog
     puts it on safe_voltage within command_timeout_s plus a period, SIGTERM ends it cleanly."""
     ns, timeout, period = f"/rtp{os.getpid()}", 0.2, 1e-4
-    node = rclpy.create_node("commander", namespace=ns)
     rows = []
-    node.create_subscription(Float64MultiArray, "samples", lambda m: rows.append(samples_from_message(m)[0]),
-                             SAMPLES_QOS)
-    pub = node.create_publisher(Float64, "voltage_command", COMMAND_QOS)
-    executor = make_executor()
-    executor.add_node(node)
-    with ProcessGroup() as procs:
+    with client("commander", ns) as (node, executor), ProcessGroup() as procs:
+        node.create_subscription(Float64MultiArray, "samples", lambda m: rows.append(samples_from_message(m)[0]),
+                                 SAMPLES_QOS)
+        pub = node.create_publisher(Float64, "voltage_command", COMMAND_QOS)
         hw = start(procs, "hardware", node_command("valve_hardware", {
             "clock": "realtime", "control_period_s": period, "command_timeout_s": timeout,
             "samples_batch": 200}, ns), str(tmp_path))
-        try:
-            deadline = time.monotonic() + 30
-            while pub.get_subscription_count() == 0 or not rows:
-                assert time.monotonic() < deadline, open(tmp_path / "hardware.log").read()
-                executor.spin_once(timeout_sec=0.05)
-            commands = [6.0 + 0.05 * k for k in range(20)]  # distinct values, one every 10 ms, then silence
-            for v in commands:
-                pub.publish(Float64(data=v))
-                end = time.monotonic() + 0.01
-                while time.monotonic() < end:
-                    executor.spin_once(timeout_sec=0.005)
-            wait_for_text(tmp_path / "hardware.log", "applying safe_voltage", timeout_s=5)
-            end = time.monotonic() + 0.3
-            while time.monotonic() < end:
-                executor.spin_once(timeout_sec=0.02)
-            hw.send_signal(signal.SIGTERM)
-            assert hw.wait(10) == 0
-        finally:
-            executor.remove_node(node)
-            node.destroy_node()
-            executor.shutdown()
+        deadline = time.monotonic() + 30
+        while pub.get_subscription_count() == 0 or not rows:
+            assert time.monotonic() < deadline, open(tmp_path / "hardware.log").read()
+            executor.spin_once(timeout_sec=0.05)
+        commands = [6.0 + 0.05 * k for k in range(20)]  # distinct values, one every 10 ms, then silence
+        for v in commands:
+            pub.publish(Float64(data=v))
+            spin_for(executor, 0.01)
+        wait_for_text(tmp_path / "hardware.log", "applying safe_voltage", timeout_s=5)
+        spin_for(executor, 0.3)
+        hw.send_signal(signal.SIGTERM)
+        assert hw.wait(10) == 0
     data = np.concatenate(rows)
     np.testing.assert_allclose(np.diff(data[:, 0]), period, atol=1e-12)  # every sample, none lost
     cmd = data[:, 1]
@@ -264,32 +273,22 @@ def test_realtime_hardware_process_watchdog_and_sigterm(ros_context, tmp_path):
 
 def test_valve_composed_process_runs_10khz_on_the_wall_clock_and_stops_on_sigterm(ros_context, tmp_path):
     ns = f"/cp{os.getpid()}"
-    node = rclpy.create_node("client", namespace=ns)
     rows = []
-    node.create_subscription(Float64MultiArray, "samples", lambda m: rows.append(samples_from_message(m)[0]),
-                             SAMPLES_QOS)
-    ref = node.create_publisher(Float64, "position_reference", 10)
-    executor = make_executor()
-    executor.add_node(node)
-    with ProcessGroup() as procs:
+    with client("client", ns) as (node, executor), ProcessGroup() as procs:
+        node.create_subscription(Float64MultiArray, "samples", lambda m: rows.append(samples_from_message(m)[0]),
+                                 SAMPLES_QOS)
+        ref = node.create_publisher(Float64, "position_reference", 10)
         proc = start(procs, "composed", node_command("valve_composed", {
             "clock": "realtime", "control_period_s": 1e-4, "gain_set": "ff_pid_g_2", "reference_ramp_s": 0.002},
             ns), str(tmp_path))
-        try:
-            deadline = time.monotonic() + 30
-            while ref.get_subscription_count() == 0 or not rows:
-                assert time.monotonic() < deadline, open(tmp_path / "composed.log").read()
-                executor.spin_once(timeout_sec=0.05)
-            ref.publish(Float64(data=-25e-6))
-            end = time.monotonic() + 1.0
-            while time.monotonic() < end:
-                executor.spin_once(timeout_sec=0.02)
-            proc.send_signal(signal.SIGTERM)
-            assert proc.wait(10) == 0
-        finally:
-            executor.remove_node(node)
-            node.destroy_node()
-            executor.shutdown()
+        deadline = time.monotonic() + 30
+        while ref.get_subscription_count() == 0 or not rows:
+            assert time.monotonic() < deadline, open(tmp_path / "composed.log").read()
+            executor.spin_once(timeout_sec=0.05)
+        ref.publish(Float64(data=-25e-6))
+        spin_for(executor, 1.0)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0
     data = np.concatenate(rows)
     assert abs(data[-1, 2] * 1e6 + 25.0) < 1.0  # settled on the reference (the loop ran at 10 kHz)
     np.testing.assert_allclose(np.diff(data[:, 0]), 1e-4, atol=1e-12)

@@ -121,7 +121,7 @@ class ValveHardwareNode(Node):
 
         self._tick_timer = None
         self._linked_controller: Optional[Callable[[float], Optional[float]]] = None
-        self._batch: list[np.ndarray] = []
+        self._batch = np.empty((self.samples_batch + self.samples_per_period, 3))  # rows awaiting `samples`
         self._batch_rows = 0
         self._held_command: Optional[float] = None
         self._last_valid_command_wall = time.monotonic()
@@ -236,17 +236,28 @@ class ValveHardwareNode(Node):
             if v is not None:
                 self._accept_command(v)
         self.position_pub.publish(Float64(data=y))
-        self._batch.append(rows)
-        self._batch_rows += rows.shape[0]
+        self._collect(rows)
+
+    def _collect(self, rows: np.ndarray) -> None:
+        """Copy rows into the preallocated batch; a full batch goes out as one ``samples`` message."""
+        k, n = rows.shape[0], self._batch_rows
+        if n + k > self._batch.shape[0]:
+            self._flush_samples()
+            n = 0
+            if k > self._batch.shape[0]:  # more than a batch at once (a long stall): send it as it is
+                self.samples_pub.publish(samples_message(rows))
+                return
+        self._batch[n:n + k] = rows
+        self._batch_rows = n + k
         if self._batch_rows >= self.samples_batch:
             self._flush_samples()
 
     def _flush_samples(self) -> None:
-        if not self._batch:
+        if self._batch_rows == 0:
             return
-        rows = np.concatenate(self._batch)
-        self._batch, self._batch_rows = [], 0
-        self.samples_pub.publish(samples_message(rows))
+        msg = samples_message(self._batch[:self._batch_rows])
+        self._batch_rows = 0
+        self.samples_pub.publish(msg)
 
     def _check_watchdog(self) -> bool:
         """True when the watchdog fired just now."""
