@@ -192,3 +192,51 @@ def test_parameter_files_load_into_the_nodes(procs, tmp_path):
     cmd = node_command("valve_hardware", {}, "/pf") + ["--params-file", os.path.join(root, "config", "rig.yaml")]
     start(procs, "hardware", cmd, str(tmp_path))
     wait_for_text(tmp_path / "hardware.log", "clock=lockstep period=0.100 ms", timeout_s=20)
+
+
+def _demo_table(text: str) -> list[tuple[float, ...]]:
+    rows = []
+    for line in text.splitlines():
+        parts = line.replace("->", " ").split()
+        if len(parts) == 4 and all(p.lstrip("-").replace(".", "", 1).isdigit() for p in parts):
+            rows.append(tuple(float(p) for p in parts))
+    return rows
+
+
+def test_step_demo_prints_the_same_table_in_separate_processes_and_composed(tmp_path):
+    """The main job (`valve_rig`): the paper's three steps, settling time and overshoot, identical
+    whether the nodes run in separate processes or composed in one."""
+    tables = []
+    for extra in ([], ["--composed"]):
+        out = subprocess.run([sys.executable, "-m", "piezo_valve_ros.nodes.rig", *extra], env=ros_env(),
+                             capture_output=True, text=True, timeout=120)
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert "Paper step tests under pid_hc_5" in out.stdout
+        table = _demo_table(out.stdout)
+        assert [(a, b) for a, b, _, _ in table] == [(0.0, 17.5), (-17.5, 35.0), (-52.5, 35.0)]
+        assert all(0 < ts < 20 and 0 <= os_ < 5 for _, _, ts, os_ in table), table
+        tables.append(table)
+    assert tables[0] == tables[1]
+
+
+def test_composed_realtime_rig_runs_and_stops_on_sigint(tmp_path):
+    log = open(tmp_path / "rig.log", "w")
+    rig = subprocess.Popen([sys.executable, "-m", "piezo_valve_ros.nodes.rig", "--composed", "--clock", "realtime",
+                            "--demo", "none"], env=ros_env(), stdout=log, stderr=subprocess.STDOUT,
+                           start_new_session=True)
+    try:
+        wait_for_text(tmp_path / "rig.log", "running; Ctrl-C", timeout_s=30)
+        time.sleep(1.0)
+        rig.send_signal(signal.SIGINT)
+        assert rig.wait(15) == 0
+        text = open(tmp_path / "rig.log").read()
+        assert "rig up (composed, realtime)" in text and "position and command pass by function call" in text
+        line = [x for x in text.splitlines() if "safe_voltage 5.0 V applied; loop:" in x]
+        assert line and "(nominal 10000 Hz)" in line[0] and "unanswered 0, late 0" in line[0]
+        with pytest.raises(ProcessLookupError):
+            os.killpg(rig.pid, 0)
+    finally:
+        try:
+            os.killpg(rig.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
