@@ -42,13 +42,15 @@ from piezo_valve_ros.nodes.rig import ProcessGroup, node_command  # noqa: E402
 
 ECHO = """
 import sys, rclpy
+from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import Float64
 from piezo_valve_ros.nodes.common import COMMAND_QOS, SENSOR_QOS, make_executor
 rclpy.init()
 node = rclpy.create_node("bench_echo")
 pub = node.create_publisher(Float64, "voltage_command", COMMAND_QOS)
 node.create_subscription(Float64, "spool_position", lambda m: pub.publish(Float64(data=m.data)), SENSOR_QOS)
-ex = make_executor(); ex.add_node(node)
+ex = SingleThreadedExecutor() if sys.argv[1] == "single" else make_executor()
+ex.add_node(node)
 try:
     while rclpy.ok():
         ex.spin_once(timeout_sec=0.1)
@@ -140,8 +142,10 @@ def per_period_costs(n: int = 5000) -> dict:
     return out
 
 
-def ping_pong(seconds: float) -> dict:
-    """Section 2: DDS round trips between two processes, nothing else in the loop."""
+def ping_pong(seconds: float, executor_kind: str = "events") -> dict:
+    """Section 2: DDS round trips between two processes, nothing else in the loop; both sides use
+    EventsExecutor (what the nodes use) or SingleThreadedExecutor."""
+    from rclpy.executors import SingleThreadedExecutor
     node = rclpy.create_node("bench_ping")
     lat = []
     state = {"t": 0.0}
@@ -153,10 +157,10 @@ def ping_pong(seconds: float) -> dict:
         state["t"] = time.perf_counter()
         pub.publish(Float64(data=1.0))
     node.create_subscription(Float64, "voltage_command", on_echo, COMMAND_QOS)
-    executor = make_executor()
+    executor = SingleThreadedExecutor() if executor_kind == "single" else make_executor()
     executor.add_node(node)
     with ProcessGroup() as procs:
-        procs.start("echo", [sys.executable, "-c", ECHO], env=env())
+        procs.start("echo", [sys.executable, "-c", ECHO, executor_kind], env=env())
         deadline = time.monotonic() + 20
         while pub.get_subscription_count() == 0 or node.count_publishers("voltage_command") == 0:
             if time.monotonic() > deadline:
@@ -174,6 +178,7 @@ def ping_pong(seconds: float) -> dict:
         a = np.asarray(lat)
     executor.remove_node(node)
     node.destroy_node()
+    executor.shutdown()
     return {"round_trips_per_s": a.size / wall, "p50_ms": float(np.percentile(a, 50) * 1e3),
             "p99_ms": float(np.percentile(a, 99) * 1e3)}
 
@@ -243,10 +248,13 @@ def main(argv=None) -> int:
         print(f"   waking from an 80 us sleep is late by p50 {w['p50_us']:.0f} us, p99 {w['p99_us']:.0f} us, "
               f"max {w['max_ms']:.2f} ms ({w['over_1ms']} of {w['sleeps']} sleeps > 1 ms)")
 
-        print("\n2. DDS floor: Float64 ping-pong between two processes (EventsExecutor):")
-        pp = ping_pong(args.seconds)
-        results["ping_pong"] = pp
-        print(f"   {pp['round_trips_per_s']:7.0f} round trips/s, p50 {pp['p50_ms']:.3f} ms, p99 {pp['p99_ms']:.3f} ms")
+        print("\n2. DDS floor: Float64 ping-pong between two processes:")
+        for kind, label in (("events", "EventsExecutor (the nodes')"), ("single", "SingleThreadedExecutor")):
+            r = ping_pong(args.seconds, kind)
+            results[f"ping_pong_{kind}"] = r
+            print(f"   {label:28s} {r['round_trips_per_s']:7.0f} round trips/s, p50 {r['p50_ms']:.3f} ms, "
+                  f"p99 {r['p99_ms']:.3f} ms")
+        pp = results["ping_pong_events"]
 
         print("\n3. real-time loop across processes (hardware here, valve_controller in its own process);\n"
               "   hardware sleeping between ticks (realtime.busy_poll_s 0) / polling (busy_poll_s = period):")

@@ -226,6 +226,8 @@ def test_direct_link_needs_the_realtime_clock(ros_context):
     try:
         with pytest.raises(ValueError, match="realtime"):
             hw.attach_controller(lambda y: 5.0)
+        with pytest.raises(ValueError, match="samples_batch must be >= 1"):
+            ValveHardwareNode(namespace=f"/ls{os.getpid()}", parameter_overrides=[Parameter("samples_batch", value=0)])
         with pytest.raises(ValueError, match="busy_poll_s must be >= 0"):
             ValveHardwareNode(namespace=f"/ls{os.getpid()}", parameter_overrides=[
                 Parameter("clock", value="realtime"), Parameter("realtime.busy_poll_s", value=-1.0)])

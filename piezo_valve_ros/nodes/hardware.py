@@ -93,8 +93,16 @@ class ValveHardwareNode(Node):
         if not self.command_min_v <= self.safe_voltage <= self.command_max_v:
             raise ValueError("safe_voltage must lie within [command_min_v, command_max_v]")
         self.command_timeout_s = as_float("command_timeout_s", p["command_timeout_s"])
-        self.samples_batch = max(as_int("samples_batch", p["samples_batch"]), 1)
+        self.samples_batch = as_int("samples_batch", p["samples_batch"])
+        if self.samples_batch < 1:
+            raise ValueError("samples_batch must be >= 1")
         self.step_budget = as_int("lockstep.step_budget", p["lockstep.step_budget"])
+        stats_period = as_float("loop_stats_period_s", p["loop_stats_period_s"])
+        if stats_period < 0:
+            raise ValueError("loop_stats_period_s must be >= 0")
+        self.busy_poll_s = as_float("realtime.busy_poll_s", p["realtime.busy_poll_s"])
+        if self.busy_poll_s < 0:
+            raise ValueError("realtime.busy_poll_s must be >= 0")
         if backend is None:
             options = {"config": sim_config_from_parameters(p)} if p["backend"] == "sim" else {}
             backend = make_backend(str(p["backend"]), **options)
@@ -110,12 +118,6 @@ class ValveHardwareNode(Node):
         self.clock_pub = self.create_publisher(Clock, "/clock", 10) if self.clock_mode == "lockstep" else None
         self._clock_msg = Clock(clock=Time())
         self.loop_timing = LoopTiming(self.control_period_s)
-        stats_period = as_float("loop_stats_period_s", p["loop_stats_period_s"])
-        if stats_period < 0:
-            raise ValueError("loop_stats_period_s must be >= 0")
-        self.busy_poll_s = as_float("realtime.busy_poll_s", p["realtime.busy_poll_s"])
-        if self.busy_poll_s < 0:
-            raise ValueError("realtime.busy_poll_s must be >= 0")
         self.create_subscription(Float64, "voltage_command", self._on_command, COMMAND_QOS)
         self.add_on_set_parameters_callback(self._on_parameters)
 
