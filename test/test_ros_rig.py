@@ -161,25 +161,31 @@ def test_bad_commands_are_rejected_or_clamped_and_logged(ros, procs, tmp_path):
         ros.destroy_publisher(pub)
 
 
-def test_sigterm_to_rig_leaves_no_process(tmp_path):
+def run_rig_until_signal(tmp_path, args, sig, run_s=0.5) -> str:
+    """Start ``valve_rig --demo none ARGS`` in its own process group, send ``sig`` once it runs; it
+    must exit 0 and leave no process behind.  Returns its output."""
     log = open(tmp_path / "rig.log", "w")
-    rig = subprocess.Popen([sys.executable, "-m", "piezo_valve_ros.nodes.rig", "--demo", "none", "--clock", "realtime",
-                            "--control-period-s", "0.001"], env=ros_env(), stdout=log, stderr=subprocess.STDOUT,
-                           start_new_session=True)
+    rig = subprocess.Popen([sys.executable, "-m", "piezo_valve_ros.nodes.rig", "--demo", "none", *args],
+                           env=ros_env(), stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         wait_for_text(tmp_path / "rig.log", "running; Ctrl-C", timeout_s=30)
-        time.sleep(0.5)
-        rig.send_signal(signal.SIGTERM)
+        time.sleep(run_s)
+        rig.send_signal(sig)
         assert rig.wait(15) == 0
         time.sleep(0.5)
         with pytest.raises(ProcessLookupError):
             os.killpg(rig.pid, 0)  # nobody left in the rig's process group
-        assert "safe_voltage 5.0 V applied" in open(tmp_path / "rig.log").read()
+        return open(tmp_path / "rig.log").read()
     finally:
         try:
             os.killpg(rig.pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
+
+
+def test_sigterm_to_rig_leaves_no_process(tmp_path):
+    text = run_rig_until_signal(tmp_path, ["--clock", "realtime", "--control-period-s", "0.001"], signal.SIGTERM)
+    assert "safe_voltage 5.0 V applied" in text
 
 
 def test_parameter_files_load_into_the_nodes(procs, tmp_path):
@@ -220,23 +226,7 @@ def test_step_demo_prints_the_same_table_in_separate_processes_and_composed(tmp_
 
 
 def test_composed_realtime_rig_runs_and_stops_on_sigint(tmp_path):
-    log = open(tmp_path / "rig.log", "w")
-    rig = subprocess.Popen([sys.executable, "-m", "piezo_valve_ros.nodes.rig", "--composed", "--clock", "realtime",
-                            "--demo", "none"], env=ros_env(), stdout=log, stderr=subprocess.STDOUT,
-                           start_new_session=True)
-    try:
-        wait_for_text(tmp_path / "rig.log", "running; Ctrl-C", timeout_s=30)
-        time.sleep(1.0)
-        rig.send_signal(signal.SIGINT)
-        assert rig.wait(15) == 0
-        text = open(tmp_path / "rig.log").read()
-        assert "rig up (composed, realtime)" in text and "position and command pass by function call" in text
-        line = [x for x in text.splitlines() if "safe_voltage 5.0 V applied; loop:" in x]
-        assert line and "(nominal 10000 Hz)" in line[0] and "unanswered 0, late 0" in line[0]
-        with pytest.raises(ProcessLookupError):
-            os.killpg(rig.pid, 0)
-    finally:
-        try:
-            os.killpg(rig.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
+    text = run_rig_until_signal(tmp_path, ["--composed", "--clock", "realtime"], signal.SIGINT, run_s=1.0)
+    assert "rig up (composed, realtime)" in text and "position and command pass by function call" in text
+    line = [x for x in text.splitlines() if "safe_voltage 5.0 V applied; loop:" in x]
+    assert line and "(nominal 10000 Hz)" in line[0] and "unanswered 0, late 0" in line[0]

@@ -58,7 +58,7 @@ def samples_message(rows: np.ndarray, label: str = SAMPLES_LABEL) -> Float64Mult
     n, k = rows.shape
     msg.layout.dim = [MultiArrayDimension(label="sample", size=n, stride=n * k),
                       MultiArrayDimension(label=label, size=k, stride=k)]
-    data = array.array("d")  # array.array skips the per-element checks a list gets (~30x faster)
+    data = array.array("d")  # an array.array is taken as it is; a list is checked element by element
     data.frombytes(np.ascontiguousarray(rows, dtype=np.float64).tobytes())
     msg.data = data
     return msg
