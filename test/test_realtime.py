@@ -298,3 +298,32 @@ def test_valve_composed_process_runs_10khz_on_the_wall_clock_and_stops_on_sigter
     log = open(tmp_path / "composed.log").read()
     assert "position and command pass by function call" in log
     assert "safe_voltage 5.0 V applied; loop:" in log and "unanswered 0, late 0" in log
+
+
+def test_controller_steps_only_when_its_command_can_arrive(ros_context):
+    """A measurement that arrives before anyone subscribes to voltage_command is not used: stepping
+    then would integrate against a valve that never gets the command (and the hardware repeats its
+    position until answered, so the lockstep rig would see two steps for one period)."""
+    from piezo_valve_ros.nodes.controller import ValveControllerNode
+    ns = f"/cl{os.getpid()}"
+    ctl = ValveControllerNode(namespace=ns, parameter_overrides=[Parameter("gain_set", value="pid_1"),
+                                                                 Parameter("initial_reference_m", value=20e-6)])
+    try:
+        before = ctl.controller.integrator_um
+        ctl._on_position(Float64(data=0.0))
+        assert ctl.controller.integrator_um == before and ctl._said_no_listener
+        with client("listener", ns) as (node, executor):
+            seen = []
+            node.create_subscription(Float64, "voltage_command", lambda m: seen.append(m.data), COMMAND_QOS)
+            deadline = time.monotonic() + 10
+            while ctl.command_pub.get_subscription_count() <= 1:  # itself + the listener
+                assert time.monotonic() < deadline
+                spin_for(executor, 0.05)
+            ctl._on_position(Float64(data=0.0))
+            assert ctl.controller.integrator_um != before  # stepped once the command has a listener
+            deadline = time.monotonic() + 5
+            while not seen and time.monotonic() < deadline:
+                spin_for(executor, 0.05)
+            assert len(seen) == 1
+    finally:
+        ctl.destroy_node()

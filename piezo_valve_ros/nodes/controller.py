@@ -103,6 +103,7 @@ class ValveControllerNode(Node):
                                   as_float("reference_ramp_s", p["reference_ramp_s"]), config.dt)
         self.enabled = bool(p["enabled"])
         self._last_position_m = None
+        self._said_no_listener = False
         self._last_foreign_command_v = None
         self.command_pub = self.create_publisher(Float64, "voltage_command", COMMAND_QOS)
         self.create_subscription(Float64, "voltage_command", self._on_command_seen, COMMAND_QOS)
@@ -128,6 +129,13 @@ class ValveControllerNode(Node):
         return self.controller.step(self.ramp.step(), y)
 
     def _on_position(self, msg: Float64) -> None:
+        if self.command_pub.get_subscription_count() <= 1:  # our own _on_command_seen is one of them
+            # the command would go nowhere (e.g. the hardware's subscription is not matched yet): stepping
+            # would wind the controller up against a valve that never got the command
+            if not self._said_no_listener:
+                self._said_no_listener = True
+                self.get_logger().info("nobody subscribes to voltage_command yet: measurements wait for a listener")
+            return
         v = self.on_measurement(msg.data)
         if v is not None:
             self.command_pub.publish(Float64(data=v))
