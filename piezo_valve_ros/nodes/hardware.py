@@ -118,7 +118,7 @@ class ValveHardwareNode(Node):
         self.clock_pub = self.create_publisher(Clock, "/clock", 10) if self.clock_mode == "lockstep" else None
         self._clock_msg = Clock(clock=Time())
         self.loop_timing = LoopTiming(self.control_period_s)
-        self.create_subscription(Float64, "voltage_command", self._on_command, COMMAND_QOS)
+        self._command_sub = self.create_subscription(Float64, "voltage_command", self._on_command, COMMAND_QOS)
         self.add_on_set_parameters_callback(self._on_parameters)
 
         self._tick_timer = None
@@ -283,9 +283,11 @@ class ValveHardwareNode(Node):
             self._advance_and_publish()  # the safe voltage is applied for one period
             self._flush_samples()
         elif (not self._command_since_publish and self._held_command is None
-              and time.monotonic() - self._last_publish_wall > (1.0 if self._armed else 0.1)
-              and self.position_pub.get_subscription_count()):
-            # nobody answered the last position (e.g. the controller started late): say it again
+              and time.monotonic() - self._last_publish_wall > (1.0 if self._armed else 0.25)
+              and self.position_pub.get_subscription_count() and self._command_sub.get_publisher_count()):
+            # nobody answered the last position (e.g. the controller started late): say it again, once a
+            # commander's writer is matched on our side too (DDS matches each side on its own; an answer
+            # sent before our reader knows its writer is dropped, and a repeat would be answered twice)
             self._last_publish_wall = time.monotonic()
             self.position_pub.publish(Float64(data=float(self.backend.read_position_cached())))
 
