@@ -133,11 +133,19 @@ def per_period_costs(n: int = 5000) -> dict:
     backend.per_sample_below = type(backend).per_sample_below
     hw.destroy_node()
     ctl = ValveControllerNode(parameter_overrides=[Parameter("gain_set", value="pid_hc_5")])
+    listener = rclpy.create_node("bench_listener")  # the controller steps only when its command has a reader
+    listener.create_subscription(Float64, "voltage_command", lambda m: None, COMMAND_QOS)
+    deadline = time.monotonic() + 10
+    while ctl.command_pub.get_subscription_count() < 2:
+        if time.monotonic() > deadline:
+            raise TimeoutError("the controller's command writer never matched a reader")
+        time.sleep(0.01)
     msg = Float64(data=1e-6)
     t0 = time.perf_counter()
     for _ in range(n):
         ctl._on_position(msg)
     out["controller_callback_us"] = (time.perf_counter() - t0) / n * 1e6
+    listener.destroy_node()
     ctl.destroy_node()
     return out
 
