@@ -26,18 +26,18 @@ def build(hardware_overrides=(), controller_overrides=(), **node_kwargs) -> tupl
     clock; raises ValueError (nothing left open) when a node refuses its parameters or the two
     control periods differ."""
     hardware = ValveHardwareNode(parameter_overrides=list(hardware_overrides), **node_kwargs)
+    controller = None
     try:
         controller = ValveControllerNode(parameter_overrides=list(controller_overrides), **node_kwargs)
+        dt = controller.controller.config.dt
+        if abs(dt - hardware.control_period_s) > 1e-9 * hardware.control_period_s:
+            raise ValueError(f"control_period_s differs: hardware {hardware.control_period_s} s, controller {dt} s")
     except Exception:
         hardware.shutdown_safely()
         hardware.destroy_node()
+        if controller is not None:
+            controller.destroy_node()
         raise
-    dt = controller.controller.config.dt
-    if abs(dt - hardware.control_period_s) > 1e-9 * hardware.control_period_s:
-        hardware.shutdown_safely()
-        hardware.destroy_node()
-        controller.destroy_node()
-        raise ValueError(f"control_period_s differs: hardware {hardware.control_period_s} s, controller {dt} s")
     if hardware.clock_mode == "realtime":
         hardware.attach_controller(controller.direct_link())
     return hardware, controller
