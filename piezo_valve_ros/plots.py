@@ -24,36 +24,22 @@ def require():
     return plt
 
 
-def _diagnostic_variable(name: str, t: np.ndarray, v: np.ndarray, H: np.ndarray):
-    """(values, axis label, log x?) of the variable an effect's signature depends on."""
-    if name == "creep":
-        moving = np.flatnonzero(np.abs(np.diff(v)) > 1e-9 * (1 + np.abs(v[1:])))
-        last = np.full(t.size, t[0])
-        if moving.size:
-            idx = np.searchsorted(moving + 1, np.arange(t.size), side="right") - 1
-            ok = idx >= 0
-            last[ok] = t[moving[idx[ok]] + 1]
-        return np.maximum(t - last, 1e-4), "time since the input last moved [s]", True
-    if name == "dynamics":
-        return np.gradient(H, t), "model output rate [um/s]", False
-    if name == "asymmetry":
-        return v, "voltage [V]", False
-    if name == "drift":
-        return t - t[0], "time [s]", False
-    return H, "model output [um]", False
-
-
 def write_all(analysis: Analysis, directory) -> list[str]:
+    """Hysteresis loop, residual in time, one residual diagnostic per added effect (before: the final model
+    refitted without it) and a step-and-hold stretch, all on held-out data at the analysis rate."""
     plt = require()
     out_dir = Path(directory)
     out_dir.mkdir(parents=True, exist_ok=True)
-    val = analysis.validate
-    rec = val.record
-    sl = slice(val.start, None)
-    t, v, y = rec.time_s[sl], rec.voltage_v[sl], rec.position_um[sl]
-    y_base = val.predict(analysis.baseline)
-    y_final = val.predict(analysis.final)
-    label_b, label_f = "baseline " + analysis.report["baseline"]["fit"], analysis.final.name
+    split = analysis.split
+    rec, start = split.score, split.start
+    t, v, y = rec.time_s[start:], rec.voltage_v[start:], rec.position_um[start:]
+
+    def predict(model):
+        return model.predict(rec, split.score_t0)[start:]
+
+    y_base, y_final = predict(analysis.baseline), predict(analysis.final)
+    report = analysis.report
+    label_b, label_f = f"baseline {analysis.baseline.name}", analysis.final.name
     written = []
 
     def save(fig, name):
@@ -74,32 +60,38 @@ def write_all(analysis: Analysis, directory) -> list[str]:
     save(fig, "hysteresis_loop.png")
 
     fig, ax = plt.subplots(figsize=(9, 4))
-    ax.plot(t, y - y_base, lw=0.6, label=f"{label_b} (RMS {analysis.report['baseline']['validate']['rms_um']:.3f} um)")
-    ax.plot(t, y - y_final, lw=0.6, label=f"{label_f} (RMS {analysis.report['final']['validate']['rms_um']:.3f} um)")
+    ax.plot(t, y - y_base, lw=0.6, label=f"{label_b} (RMS {report['baseline']['validate']['rms_um']:.3f} um)")
+    ax.plot(t, y - y_final, lw=0.6, label=f"{label_f} (RMS {report['final']['validate']['rms_um']:.3f} um)")
     ax.set_xlabel("time [s]")
     ax.set_ylabel("residual [um]")
     ax.set_title("Residual before and after, held-out data")
     ax.legend()
     save(fig, "residual_time.png")
 
-    names = analysis.report["effects_added"] or ["saturation"]
-    fig, axes = plt.subplots(1, len(names), figsize=(5 * len(names), 4), squeeze=False)
+    added = [(e, analysis.drop_one.get(e.name, analysis.baseline)) for e in analysis.final.effects]
+    panels = added or [(None, analysis.baseline)]
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4), squeeze=False)
     step = max(t.size // 5000, 1)
-    for i, (ax, name) in enumerate(zip(axes[0], names)):
-        before = val.predict(analysis.history[i]) if analysis.report["effects_added"] else y_base
-        after = val.predict(analysis.history[i + 1]) if analysis.report["effects_added"] else y_final
-        x, xlabel, logx = _diagnostic_variable(name, t, v, before)
-        ax.plot(x[::step], (y - before)[::step], ".", ms=2, alpha=0.5, label=f"before adding {name}")
-        ax.plot(x[::step], (y - after)[::step], ".", ms=2, alpha=0.5, label="after")
+    for ax, (effect, without) in zip(axes[0], panels):
+        ctx = without.context(rec, split.score_t0)
+        if effect is None:
+            x, xlabel, logx = ctx.H[start:], "model output [um]", False
+            title = "no effect added"
+        else:
+            x, xlabel, logx = effect.plot_axis(ctx)
+            x, title = x[start:], effect.name
+        ax.plot(x[::step], (y - predict(without))[::step], ".", ms=2, alpha=0.5,
+                label="without it" if effect is not None else "baseline")
+        ax.plot(x[::step], (y - y_final)[::step], ".", ms=2, alpha=0.5, label="final model")
         if logx:
             ax.set_xscale("log")
         ax.set_xlabel(xlabel)
         ax.set_ylabel("residual [um]")
-        ax.set_title(f"{name}" + ("" if analysis.report["effects_added"] else " (none added)"))
+        ax.set_title(title)
         ax.legend()
     save(fig, "residual_diagnostic.png")
 
-    # step-and-hold: the longest stretch of constant input and what precedes it
+    # step-and-hold: the longest stretches of constant input and what precedes them
     flat = np.concatenate(([False], np.abs(np.diff(v)) <= 1e-9 * (1 + np.abs(v[1:]))))
     edges = np.flatnonzero(np.diff(np.concatenate(([0], flat.astype(int), [0]))))
     runs = edges.reshape(-1, 2) if edges.size else np.zeros((0, 2), int)

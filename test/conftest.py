@@ -1,5 +1,5 @@
 import os
 import sys
 
-# the tests run from a checkout as well as from an installed package
-sys.path.insert(0, os.path.abspath(os.path.join(os.path.dirname(__file__), "..")))
+# the package is installed editable (scripts/setup_venv.sh); the tests' own helpers live beside them
+sys.path.insert(0, os.path.dirname(__file__))

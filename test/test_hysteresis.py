@@ -139,3 +139,77 @@ def test_play_bank_step_does_not_allocate_new_state():
     bank.step(2.0, 2.0)
     assert bank.state is state
     np.testing.assert_allclose(state, [2.0, 1.0])
+
+
+def _play_by_definition(lower, upper, r, z0, scale=None):
+    """The play recursion written out sample by sample (the reference for the batch scan)."""
+    m = np.ones(lower.size) if scale is None else scale
+    z = np.array(z0, float)
+    out = np.empty((lower.size, r.size))
+    for k in range(lower.size):
+        lo = lower[k] - r * m[k]
+        z = np.minimum(np.maximum(z, lo), np.maximum(upper[k] + r * m[k], lo))
+        out[k] = z
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_play_batch_with_widening_and_scaled_thresholds_matches_the_definition(seed):
+    from piezo_valve_ros.core.hysteresis import play_batch
+    rng = np.random.default_rng(seed)
+    v = np.cumsum(rng.standard_normal(4000)) * 0.3
+    r = np.linspace(0, 3, 7)
+    rho = np.abs(np.convolve(np.gradient(v), np.ones(5) / 5, "same"))
+    lower, upper = v - 0.2 * rho, 1.03 * v + 0.1 + 0.2 * rho  # asymmetric and widening
+    z0 = np.zeros(r.size)
+    out, final = play_batch(lower, upper, r, z0, chunk=700)
+    assert np.array_equal(out, _play_by_definition(lower, upper, r, z0))
+    scale = 1.0 + 0.4 * rho
+    out, final = play_batch(lower, upper, r, z0, threshold_scale=scale, chunk=900)
+    ref = _play_by_definition(lower, upper, r, z0, scale)
+    assert np.max(np.abs(out - ref)) < 1e-12 and np.max(np.abs(final - ref[-1])) < 1e-12
+
+
+def test_last_contact_gives_the_exact_sensitivities():
+    """dH/dtheta from the last contacts equals central finite differences, for the descending envelope
+    (asymmetry) and for thresholds widened by a rate term (rate dependence)."""
+    from piezo_valve_ros.core.hysteresis import last_contact, play_batch
+    rng = np.random.default_rng(4)
+    v = np.cumsum(rng.standard_normal(5000)) * 0.3
+    r = np.linspace(0, 3, 9)
+    p = rng.uniform(0.5, 1.5, r.size)
+    z0 = np.zeros(r.size)
+    rho = np.abs(np.gradient(v))
+    eps = 1e-6
+
+    def weighted(lower, upper):
+        return play_batch(lower, upper, r, z0, p)[0]
+    # widening c * rho of every threshold
+    c = 0.2
+    states, _ = play_batch(v - c * rho, v + c * rho, r, z0)
+    side, idx = last_contact(states, v - c * rho, v + c * rho, r)
+    exact = (side * rho[np.maximum(idx, 0)]) @ p
+    fd = (weighted(v - (c + eps) * rho, v + (c + eps) * rho) - weighted(v - (c - eps) * rho, v + (c - eps) * rho)) / (2 * eps)
+    assert np.max(np.abs(exact - fd)) < 1e-6 * max(1.0, np.max(np.abs(fd)))
+    # slope b0 of the descending envelope b0 * v
+    b0 = 1.05
+    states, _ = play_batch(v, b0 * v, r, z0)
+    side, idx = last_contact(states, v, b0 * v, r)
+    exact = ((side > 0) * v[np.maximum(idx, 0)]) @ p
+    fd = (weighted(v, (b0 + eps) * v) - weighted(v, (b0 - eps) * v)) / (2 * eps)
+    assert np.max(np.abs(exact - fd)) < 1e-6 * max(1.0, np.max(np.abs(fd)))
+
+
+@pytest.mark.parametrize("method, delay", [("zoh", 0.0), ("foh", 0.0), ("foh", 5e-5)])
+def test_closed_form_discretisation_matches_scipy(method, delay):
+    from scipy import signal
+    from piezo_valve_ros.core.dynamics import ContinuousTF, PAPER_VALVE_MODEL, discretise
+    from piezo_valve_ros.core.valve_model import unity_dc_poles
+    x = np.random.default_rng(0).standard_normal(3000).cumsum()
+    for tf in (PAPER_VALVE_MODEL, unity_dc_poles([(1095.0, 1.32), (3000.0, 0.2)]), ContinuousTF((1.0,), (0.03, 1.0))):
+        num, den = np.asarray(tf.num), np.asarray(tf.den)
+        if delay:
+            num, den = np.polymul(num, [-delay / 2, 1]), np.polymul(den, [delay / 2, 1])
+        b0, a0, _ = signal.cont2discrete((num, den), 5e-4, method=method)
+        b1, a1 = discretise(tf, 5e-4, method, delay)
+        assert np.max(np.abs(signal.lfilter(np.squeeze(b0), a0, x) - signal.lfilter(b1, a1, x))) < 1e-8

@@ -43,17 +43,35 @@ def test_report_parameters_and_plots_from_10khz_bags(bags_10khz, tmp_path):
                   "--params-out", tmp_path / "fitted.yaml", "--plots", tmp_path / "plots")
     assert out.returncode == 0, out.stderr
     report = json.loads((tmp_path / "report.json").read_text())
-    assert {"dynamics", "creep"} <= set(report["effects_added"])
-    assert report["final"]["validate"]["peak_um"] < 0.2 * report["baseline"]["validate"]["peak_um"]
+    # the default simulated valve: creep is undeclared; its G_v is the baseline's own (no "dynamics")
+    assert "creep" in report["effects_added"] and "dynamics" not in report["effects_added"]
+    assert report["baseline"]["model"] == "gpim+G_v"
+    assert report["final"]["validate"]["peak_um"] < 0.5 * report["baseline"]["validate"]["peak_um"]
     assert report["source"]["topic"] == "/rig_a/valve1/samples"
+    # held-out figures at the record's own 10 kHz (the sensor noise shows), block means as extra keys
+    assert report["sample_rate_hz"] == pytest.approx(10000.0) and report["analysis_rate_hz"] == pytest.approx(2000.0)
+    assert report["final"]["validate"]["rms_um"] > report["final"]["validate_analysis_rate"]["rms_um"]
     params = yaml.safe_load((tmp_path / "fitted.yaml").read_text())["/**/valve_controller"]["ros__parameters"]
     assert len(params["gpim.thresholds"]) == len(params["gpim.weights"]) >= 10
+    assert min(params["gpim.weights"]) >= 0.0
     assert len(params["creep.gains"]) == len(params["creep.time_constants_s"]) >= 1
+    assert len(params["valve_model.den"]) == 3 and params["valve_model.num"][0] == pytest.approx(params["valve_model.den"][2])
     assert all(isinstance(x, float) for x in params["gpim.weights"])
     for name in ("hysteresis_loop", "residual_time", "residual_diagnostic", "step_hold"):
         png = tmp_path / "plots" / f"{name}.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "held-out rms" in out.stdout
+    assert "held-out rms" in out.stdout and "at the record's rate (10000 Hz)" in out.stdout
+
+
+def test_outputs_are_written_together_or_not_at_all(bags_10khz, tmp_path):
+    report = tmp_path / "report.json"
+    report.write_text("old report\n")
+    target_dir = tmp_path / "a_directory"
+    target_dir.mkdir()
+    out = run_cli(bags_10khz / "train", "--report", report, "--params-out", target_dir, "--quiet")
+    _one_error_line(out, str(target_dir), "is a directory")
+    assert report.read_text() == "old report\n"
+    assert list(tmp_path.glob(".*")) == []  # no temporary file left behind
 
 
 def test_foreign_rig_sqlite3_plus_minus_150_v_1khz_held_out(tmp_path):
@@ -64,7 +82,7 @@ def test_foreign_rig_sqlite3_plus_minus_150_v_1khz_held_out(tmp_path):
     out = run_cli(tmp_path / "bag", "--report", tmp_path / "r.json", "--quiet")
     assert out.returncode == 0, out.stderr
     report = json.loads((tmp_path / "r.json").read_text())
-    assert report["validation"].startswith("held-out")
+    assert report["validation"] == "held-out last 30 % of the training record"
     assert "creep" in report["effects_added"]
     assert report["final"]["validate"]["rms_um"] < 0.5 * report["baseline"]["validate"]["rms_um"]
 

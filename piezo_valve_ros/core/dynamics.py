@@ -11,7 +11,7 @@ from typing import Sequence
 import numpy as np
 from scipy import signal
 
-__all__ = ["ContinuousTF", "DiscreteFilter", "PAPER_VALVE_MODEL", "first_order_lag"]
+__all__ = ["ContinuousTF", "DiscreteFilter", "PAPER_VALVE_MODEL", "first_order_lag", "lag_bank", "discretise"]
 
 
 @dataclass(frozen=True)
@@ -47,8 +47,7 @@ class ContinuousTF:
         problems = self.problems()
         if problems:
             raise ValueError("invalid transfer function: " + "; ".join(problems))
-        b, a, _ = signal.cont2discrete((np.asarray(self.num, float), np.asarray(self.den, float)), dt, method="zoh")
-        return DiscreteFilter(np.atleast_1d(np.squeeze(b)), a)
+        return DiscreteFilter(*discretise(self, dt))
 
     def frequency_response(self, freqs_hz: np.ndarray) -> np.ndarray:
         _, h = signal.freqs(self.num, self.den, worN=2 * np.pi * np.asarray(freqs_hz, float))
@@ -58,9 +57,68 @@ class ContinuousTF:
 PAPER_VALVE_MODEL = ContinuousTF((1.2e6,), (1.0, 2900.0, 1.2e6))
 
 
+def discretise(tf: ContinuousTF, dt: float, method: str = "zoh", delay_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(b, a) of ``tf`` sampled every ``dt`` [s] behind a zero-order hold (``"zoh"``, exact for a DAC's
+    held samples) or a first-order hold (``"foh"``, inputs joined by straight lines), optionally with a
+    ``delay_s`` as a Pade 1/1 factor.
+
+    Strictly proper transfer functions with distinct poles (every fitted G) go through partial fractions
+    in closed form, microseconds instead of the milliseconds of a matrix exponential of a badly scaled
+    companion form; anything else through ``scipy.signal.cont2discrete``.
+    """
+    num = np.asarray(tf.num, float)
+    num = num[np.argmax(num != 0):] if np.any(num != 0) else num[-1:]
+    den = np.asarray(tf.den, float)
+    if delay_s:
+        num = np.polymul(num, [-0.5 * delay_s, 1.0])
+        den = np.polymul(den, [0.5 * delay_s, 1.0])
+    num, den = num / den[0], den / den[0]
+    poles = np.roots(den)
+    gaps = np.where(np.eye(poles.size, dtype=bool), np.inf, np.abs(np.subtract.outer(poles, poles)))
+    distinct = poles.size > 0 and bool(np.min(gaps) > 1e-6 * np.max(np.abs(poles)))
+    if num.size >= den.size or not distinct or np.any(poles == 0):
+        b, a, _ = signal.cont2discrete((num, den), dt, method=method)
+        return np.atleast_1d(np.squeeze(b)), np.asarray(a, float)
+    residues = np.polyval(num, poles) / np.polyval(np.polyder(den), poles)
+    E = np.exp(poles * dt)
+    if method == "zoh":
+        direct = 0.0
+        c = residues / poles * (E - 1.0)
+    elif method == "foh":
+        direct = complex(np.sum(residues * ((E - 1.0) / (poles * poles * dt) - 1.0 / poles)))
+        c = residues * (E - 1.0) ** 2 / (poles * poles * dt)
+    else:
+        raise ValueError(f"method must be zoh or foh, got {method!r}")
+    # a(z) = prod (z - E_i);  b(z) = direct a(z) + sum_i c_i prod_{j != i} (z - E_j)  (plain complex
+    # arithmetic: these polynomials have a handful of coefficients, numpy's per-call cost would dominate)
+    E_list, c_list = [complex(e) for e in E], [complex(x) for x in c]
+    a = [1.0 + 0j]
+    for e in E_list:
+        a = [x - e * y for x, y in zip(a + [0j], [0j] + a)]
+    b = [direct * x for x in a]
+    for i, e in enumerate(E_list):
+        q = [a[0]]  # a(z) / (z - E_i) by synthetic division (exact: E_i is a root)
+        for coef in a[1:-1]:
+            q.append(coef + e * q[-1])
+        for k, coef in enumerate(q):
+            b[k + 1] += c_list[i] * coef
+    b, a = np.array(b), np.array(a)
+    return np.real(b), np.real(a)
+
+
 def first_order_lag(time_constant_s: float, dt: float) -> "DiscreteFilter":
     """ZOH-exact first-order lag 1/(tau s + 1)."""
     return ContinuousTF((1.0,), (float(time_constant_s), 1.0)).discretise(dt)
+
+
+def lag_bank(x: np.ndarray, time_constants_s: Sequence[float], dt: float) -> np.ndarray:
+    """First-order lags 1/(tau s + 1) of ``x`` (ZOH-exact, started at rest at x[0]); shape (N, k)."""
+    out = np.empty((x.size, len(time_constants_s)))
+    for i, tau in enumerate(time_constants_s):
+        lag = first_order_lag(tau, dt)
+        lag.reset(float(x[0]))
+        out[:, i] = lag.run(x)
+    return out
 
 
 class DiscreteFilter:

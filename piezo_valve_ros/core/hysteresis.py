@@ -23,6 +23,7 @@ import numpy as np
 __all__ = [
     "PlayOperatorBank",
     "play_batch",
+    "last_contact",
     "GPIM",
     "GPIMParams",
     "InverseGPIM",
@@ -98,6 +99,37 @@ def _reversal_indices(drive: np.ndarray) -> np.ndarray:
     return np.concatenate(([0], change, [n - 1]))
 
 
+def _clamp_bounds(lower_drive: np.ndarray, upper_drive: np.ndarray, r: np.ndarray, symmetric: bool,
+                  scale: Optional[np.ndarray] = None):
+    """The clamp bounds (lower, upper), shape (N, n), as every batch path computes them (bit for bit: the
+    sensitivities test states for equality with them).  The upper bound may lie below the lower one.
+    ``scale`` (N,) multiplies the thresholds sample by sample."""
+    rs = r if scale is None else r * scale[:, None]
+    lo = lower_drive[:, None] - rs
+    return lo, (lo + 2.0 * rs if symmetric else upper_drive[:, None] + rs)
+
+
+def _turns_per_operator(drive: np.ndarray, r: np.ndarray, scale: np.ndarray, sign: float,
+                        chunk: int = 1 << 15) -> np.ndarray:
+    """Indices where ``drive + sign * r_j * scale`` reverses for any operator j (with 0 and N-1)."""
+    n = drive.shape[0]
+    d_drive, d_scale = np.diff(drive), np.diff(scale)
+    carried = np.zeros(r.size)
+    turns = [np.array([0])]
+    for start in range(0, n - 1, chunk):
+        stop = min(start + chunk, n - 1)
+        direction = np.sign(d_drive[start:stop, None] + sign * r * d_scale[start:stop, None])
+        rows = np.arange(stop - start)[:, None]
+        last = np.maximum.accumulate(np.where(direction != 0, rows, -1), axis=0)
+        filled = np.where(last >= 0, np.take_along_axis(direction, np.maximum(last, 0), axis=0), carried)
+        previous = np.vstack((carried[None, :], filled[:-1]))
+        change = np.any((filled != previous) & (previous != 0), axis=1)
+        turns.append(np.flatnonzero(change) + start)
+        carried = filled[-1]
+    turns.append(np.array([n - 1]))
+    return np.unique(np.concatenate(turns))
+
+
 def play_batch(
     lower_drive: np.ndarray,
     upper_drive: np.ndarray,
@@ -105,11 +137,17 @@ def play_batch(
     initial_state: np.ndarray,
     weights: Optional[np.ndarray] = None,
     chunk: int = 1 << 16,
+    threshold_scale: Optional[np.ndarray] = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Evaluate a bank of (generalized) play operators over a whole record.
 
-    ``lower_drive`` = gamma_asc(v) and ``upper_drive`` = gamma_desc(v), shape (N,), both
-    nondecreasing functions of the same input.  ``thresholds`` shape (n,).
+    ``lower_drive`` = gamma_asc(v) and ``upper_drive`` = gamma_desc(v), shape (N,), with
+    ``upper_drive >= lower_drive - 2 r`` wherever the lower bound is to win.  Within any stretch where
+    each drive is monotone (whichever way each goes) an operator's state is the clip of its state at the
+    stretch's start to the present bounds, so only the reversal points of either drive are scanned:
+    this covers asymmetric envelopes and thresholds that widen with time (rate dependence: pass
+    ``lower - w`` and ``upper + w``, and ``threshold_scale`` (N,) to scale the thresholds sample by sample,
+    which adds each operator's own reversal points).  ``thresholds`` shape (n,).
     Returns ``(out, final_state)``: with ``weights`` given, ``out`` is the weighted sum
     (N,); otherwise the operator states (N, n).
     """
@@ -121,15 +159,22 @@ def play_batch(
     if n_samples == 0:
         empty = np.zeros(0) if weights is not None else np.zeros((0, r.size))
         return empty, z0.copy()
-    turns = _reversal_indices(lower_drive + upper_drive)
-    lo_t = lower_drive[turns, None] - r
-    hi_t = np.maximum(upper_drive[turns, None] + r, lo_t)
+    same = lower_drive is upper_drive or np.array_equal(lower_drive, upper_drive)
+    scale = None if threshold_scale is None else np.asarray(threshold_scale, dtype=float)
+    if scale is not None:
+        turns = np.union1d(_turns_per_operator(lower_drive, r, scale, -1.0),
+                           _turns_per_operator(upper_drive, r, scale, 1.0))
+    elif same:
+        turns = _reversal_indices(lower_drive)
+    else:
+        turns = np.union1d(_reversal_indices(lower_drive), _reversal_indices(upper_drive))
+    lo_t, hi_t = _clamp_bounds(lower_drive[turns], upper_drive[turns], r, same, None if scale is None else scale[turns])
+    hi_t = np.maximum(hi_t, lo_t)
     A, B = _compose_clamps_scan(lo_t, hi_t)
     state_at_turns = np.minimum(np.maximum(z0, A), B)  # (R, n)
     # base state for sample t in (T_k, T_{k+1}] is the state at T_k; for t = 0 it is z0
     bases = np.vstack((z0[None, :], state_at_turns))
-    symmetric = lower_drive is upper_drive or np.array_equal(lower_drive, upper_drive)
-    two_r = 2.0 * r
+    symmetric = same
     if weights is not None:
         out = np.empty(n_samples)
     else:
@@ -137,11 +182,9 @@ def play_batch(
     for start in range(0, n_samples, chunk):
         stop = min(start + chunk, n_samples)
         idx = np.searchsorted(turns, np.arange(start, stop), side="left")
-        lo = lower_drive[start:stop, None] - r
-        if symmetric:
-            hi = lo + two_r
-        else:
-            hi = np.maximum(upper_drive[start:stop, None] + r, lo)
+        lo, hi = _clamp_bounds(lower_drive[start:stop], upper_drive[start:stop], r, symmetric,
+                               None if scale is None else scale[start:stop])
+        hi = np.maximum(hi, lo, out=hi)
         z = np.maximum(bases[idx], lo, out=lo)
         z = np.minimum(z, hi, out=z)
         if weights is not None:
@@ -149,6 +192,41 @@ def play_batch(
         else:
             out[start:stop] = z
     return out, state_at_turns[-1].copy()
+
+
+def last_contact(states: np.ndarray, lower_drive: np.ndarray, upper_drive: np.ndarray,
+                 thresholds: np.ndarray, threshold_scale: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+    """Which clamp each operator touched last, and when: the exact first-order sensitivity of a play bank.
+
+    ``states`` (N, n) as :func:`play_batch` returned them for the same drives, thresholds and scale.  An
+    operator's state is a copy of one of its clamp bounds taken at its last contact, so a small change
+    of the bounds moves the state by the change of that bound *at that time*.  Returns ``(side,
+    index)``, both (N, n): side +1 = upper (descending) bound, -1 = lower (ascending) bound, 0 = no
+    contact yet; index = sample of the last contact (-1: none).  Where both bounds coincide (threshold
+    0, equal drives) the side follows the direction of the input; where the upper bound lies below the
+    lower one the lower wins.
+    """
+    lower_drive = np.asarray(lower_drive, float)
+    upper_drive = np.asarray(upper_drive, float)
+    same = lower_drive is upper_drive or np.array_equal(lower_drive, upper_drive)
+    lo, hi = _clamp_bounds(lower_drive, upper_drive, np.asarray(thresholds, float), same,
+                           None if threshold_scale is None else np.asarray(threshold_scale, float))
+    on_lo = states == lo
+    on_hi = states == hi
+    side = on_hi.astype(np.int8) - on_lo.astype(np.int8)
+    both = on_lo & on_hi
+    if both.any():
+        drive = lower_drive + upper_drive
+        d = np.sign(np.diff(drive, prepend=drive[0]))
+        last = np.maximum.accumulate(np.where(d != 0, np.arange(d.size), 0))
+        descending = np.where(d[last] < 0, 1, -1).astype(np.int8)
+        side = np.where(both, descending[:, None], side)
+    n = states.shape[0]
+    index = np.where(on_lo | on_hi, np.arange(n, dtype=np.int32)[:, None], np.int32(-1))
+    np.maximum.accumulate(index, axis=0, out=index)
+    side_last = np.take_along_axis(side, np.maximum(index, 0), axis=0)
+    side_last[index < 0] = 0
+    return side_last, index
 
 
 class PlayOperatorBank:
@@ -189,7 +267,8 @@ class GPIM:
     thresholds: r_j (input-envelope units, i.e. V after gamma), strictly increasing, r_0 = 0.
     weights: p_j [um per envelope unit].
     a0, a1: ascending envelope gamma_asc(v) = a0*v + a1 (v in V).
-    b0, b1: descending envelope; None means the same as ascending (the paper's choice).
+    b0, b1, b2: descending envelope gamma_desc(v) = b0*v + b1 + b2*v**2 (b2 optional); None means the same
+        as ascending (the paper's choice).
     offset_um: constant output offset [um].
     """
 
@@ -200,6 +279,7 @@ class GPIM:
     offset_um: float = 0.0
     b0: Optional[float] = None
     b1: Optional[float] = None
+    b2: float = 0.0
 
     def __post_init__(self):
         r = np.array(self.thresholds, dtype=float).reshape(-1)
@@ -221,7 +301,7 @@ class GPIM:
             out.append("no operators")
         if r.shape != p.shape:
             out.append(f"{r.size} thresholds but {p.size} weights")
-        scalars = [self.a0, self.a1, self.offset_um] + [x for x in (self.b0, self.b1) if x is not None]
+        scalars = [self.a0, self.a1, self.offset_um, self.b2] + [x for x in (self.b0, self.b1) if x is not None]
         if not (np.all(np.isfinite(r)) and np.all(np.isfinite(p)) and np.all(np.isfinite(scalars))):
             out.append("non-finite value")
         elif r.size:
@@ -231,11 +311,13 @@ class GPIM:
                 out.append("envelope slope a0 (and b0) must be > 0")
         if (self.b0 is None) != (self.b1 is None):
             out.append("give both b0 and b1 or neither")
+        if self.b2 and self.b0 is None:
+            out.append("b2 needs b0 and b1")
         return out
 
     @property
     def symmetric(self) -> bool:
-        return self.b0 is None or (self.b0 == self.a0 and self.b1 == self.a1)
+        return self.b0 is None or (self.b0 == self.a0 and self.b1 == self.a1 and not self.b2)
 
     @property
     def n(self) -> int:
@@ -248,6 +330,8 @@ class GPIM:
     def descending_envelope(self, v):
         if self.b0 is None:
             return self.a0 * v + self.a1
+        if self.b2:
+            return self.b0 * v + self.b1 + self.b2 * v * v
         return self.b0 * v + self.b1
 
     def virgin_state(self, v0: float = 5.0) -> np.ndarray:

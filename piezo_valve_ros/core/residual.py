@@ -1,328 +1,402 @@
-"""The residual loop: find what the model lacks, add it, prove the gain on held-out data.
+"""The residual loop: fit the paper's model, find what it lacks, add it, prove the gain on held-out data.
 
-Round by round, for every effect of the catalogue not yet in the model:
+How it decides (every figure on data the fit has not seen: a validation record, or the last
+``HELD_OUT_FRACTION`` of the training record, through which the model runs on with its memory):
 
-1. **signature statistic** (computed on the residual): the effect's signature columns are built from
-   the present model, regressed on the *training* residual, and the share of the *held-out* residual
-   variance they explain is the statistic (threshold ``SIGNATURE_THRESHOLD``).  For ``asymmetry`` the
-   signature is the linearised descending-envelope term (operators on their descending clamp, times
-   1 and v) plus an even term of the output;
-2. **pay-off**: the model with the effect is refitted on the training data and its held-out RMS error
-   compared with the present one (threshold ``GAIN_THRESHOLD``, relative).
+1. **Baseline capacity first.**  The baseline is the paper's model, GPIM followed by a second-order G_v
+   with unity DC gain.  G_v's poles are fitted to the record (the paper's G_v as start, and as fallback
+   when the record cannot determine them); the GPIM's number of thresholds is chosen on held-out data
+   among ``CAPACITY_OPERATORS`` (and the grid of the paper's 5-parameter fit).  Only structure the best
+   baseline cannot fit may be blamed on an effect.
+2. **Effects, alone and in combination.**  Every subset of the catalogue is fitted from the baseline in
+   one linear solve each (the effects' search columns, their nonlinear structures to first order) and
+   scored on held-out data.  A subset is *supported* when each of its effects, removed last, raises the
+   held-out RMS: adding it last cuts the held-out RMS by at least ``GAIN_THRESHOLD`` and explains an RMS
+   of at least ``MIN_EFFECT_NOISE_RATIO`` times the sensor noise.  The supported subset with the lowest
+   held-out error wins, so effects that mask each other (neither pays alone) are found together.
+3. **Confirmation.**  The winning subset is refitted exactly (nonlinear structures, G's poles) and each
+   effect's support is checked again by an exact drop-one refit; an effect that fails is dropped and the
+   rest checked again.  The final model is never worse on held-out data than the baseline.
+4. **Unexplained.**  The final held-out residual's structured part (its RMS above the noise measured
+   on the residual itself, at the analysis rate) is compared with the sensor noise at the record's rate:
+   above ``UNEXPLAINED_NOISE_RATIO`` times it, structure remains that no catalogue effect explains; the
+   report says its size, its strongest spectral line and which effect comes closest.
 
-The effect that pays most among those that pass both is added; rounds go on while one pays.  After
-the last round the held-out residual is tested for remaining structure: when it is well above the
-sensor noise floor, correlated in time and larger than ``UNEXPLAINED_PCT`` of the range, the report
-says ``unexplained`` and what it saw (size, dominant period, best catalogue match).  Nothing here
-imports ROS.
+Held-out error figures are at the record's own rate; fits and decisions use block means at up to
+``ANALYSIS_RATE_HZ`` (extra keys give those figures too).  Nothing here imports ROS.
 """
 from __future__ import annotations
 
+import itertools
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Optional
 
 import numpy as np
+from scipy import linalg
 
-from .hysteresis import play_batch
-from .identification import (EFFECTS, Effect, FitQuality, Record, ValveModel, _Context,
-                             _design, analysis_record, fit_linear_gpim, fit_model, fit_paper_gpim, quality)
+from .effects import CATALOGUE, Effect
+from .fitting import BASIS_RIDGE, FitCache, fit_model, fit_paper_gpim, uniform_thresholds
+from .hysteresis import GPIM
+from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, SUPPORTED_RATE_HZ, Record,
+                      analysis_record, noise_floor_um, quality, split_held_out)
+from .valve_model import ValveModel, describe_dynamics
 
-__all__ = ["SIGNATURE_THRESHOLD", "GAIN_THRESHOLD", "UNEXPLAINED_PCT", "Analysis", "analyse", "noise_floor_um",
-           "split_held_out"]
+__all__ = ["analyse", "Analysis", "Split", "GAIN_THRESHOLD", "MIN_EFFECT_NOISE_RATIO", "UNEXPLAINED_NOISE_RATIO",
+           "CAPACITY_OPERATORS", "HELD_OUT_FRACTION", "MID_CAPACITY"]
 
-SIGNATURE_THRESHOLD = 0.2   # share of held-out residual variance the effect's signature must explain
-GAIN_THRESHOLD = 0.2        # relative cut of the held-out RMS error the refitted model must bring
-UNEXPLAINED_PCT = 0.4       # held-out RMS (% of range) above which remaining structure is reported
-HELD_OUT_FRACTION = 0.3
-
-
-def split_held_out(record: Record, fraction: float = HELD_OUT_FRACTION) -> tuple[Record, Record]:
-    """(first 1 - fraction, last fraction) of the record in time."""
-    cut = record.time_s[0] + (1.0 - fraction) * (record.time_s[-1] - record.time_s[0])
-    k = int(np.searchsorted(record.time_s, cut))
-    return record.slice(0, k), record.slice(k)
-
-
-def noise_floor_um(record: Record) -> float:
-    """Sensor noise RMS [um] from first differences (robust: median absolute deviation)."""
-    d = np.diff(record.position_um)
-    mad = float(np.median(np.abs(d - np.median(d))))
-    return 1.4826 * mad / math.sqrt(2.0)
+CAPACITY_OPERATORS = (12, 18, 27, 40, 60)   # GPIM sizes tried for the baseline
+MID_CAPACITY = 27                           # the size G_v's poles are first fitted with
+CAPACITY_TOLERANCE = 0.02                   # a smaller GPIM within 2 % of the best held-out RMS is preferred
+GAIN_THRESHOLD = 0.2                        # an effect added last must cut the held-out RMS by >= 20 %
+MIN_EFFECT_NOISE_RATIO = 1.0                # ... and explain an RMS >= the sensor noise RMS
+UNEXPLAINED_NOISE_RATIO = 2.0               # structured residual RMS above this many noise RMS: unexplained
+PEAK_TOLERANCE = 1.1                        # an effect added last must not raise the held-out peak by > 10 %
+MIN_STRUCTURE_PCT = 0.01                    # ... and above this % of the range (noise-free records)
+CONFIRM_ROUNDS = 4                          # exact drop-one rounds at most
 
 
-def _signature_columns(eff: Effect, ctx: _Context) -> np.ndarray:
-    if eff.name != "asymmetry":
-        return eff.columns(ctx)
-    g = ctx.gpim
-    x = g.ascending_envelope(ctx.v)
-    states, _ = play_batch(x, g.descending_envelope(ctx.v), g.thresholds, g.virgin_state(float(ctx.v[0])))
-    on_upper = np.abs(states - (g.descending_envelope(ctx.v)[:, None] + g.thresholds)) <= 1e-9 * (1 + np.abs(x))[:, None]
-    on_upper[:, 0] = False
-    u = on_upper @ g.weights / max(float(np.sum(np.abs(g.weights))), 1e-12)
-    v_mid, v_half = float(np.mean(ctx.v)), max(float(np.ptp(ctx.v)) / 2, 1e-12)
-    return np.column_stack((u, u * (ctx.v - v_mid) / v_half, eff.columns(ctx)))
+# --------------------------------------------------------------------------- the records of one analysis
+@dataclass(frozen=True)
+class Split:
+    """The fit and held-out records, at the analysis rate and at the record's own rate.
+
+    ``score`` is what the model runs over to be scored from row ``start`` on: the whole training record
+    (the held-out tail continues the fit part, the operators keep their memory) or the validation record.
+    """
+
+    fit: Record
+    score: Record
+    start: int
+    t0: float             # time origin of the fit (drift terms)
+    score_t0: float
+    fit_full: Record
+    score_full: Record
+    start_full: int
+    held_out: bool
+
+    def held_out_error(self, model: ValveModel, full: bool = False) -> np.ndarray:
+        rec, start = (self.score_full, self.start_full) if full else (self.score, self.start)
+        return rec.position_um[start:] - model.predict(rec, self.score_t0)[start:]
+
+    def fit_error(self, model: ValveModel, full: bool = False) -> np.ndarray:
+        rec = self.fit_full if full else self.fit
+        return rec.position_um - model.predict(rec, self.t0)
+
+
+def _split(train: Record, validate: Optional[Record], max_rate_hz: float) -> Split:
+    train = train.check("training record")
+    block = analysis_record(train, max_rate_hz).block
+    if validate is None:
+        cut = split_held_out(train, HELD_OUT_FRACTION, block)
+        pct = f"{100 * HELD_OUT_FRACTION:.0f} %"
+        train.slice(0, cut).check(f"training part (first {100 - 100 * HELD_OUT_FRACTION:.0f} %)")
+        train.slice(cut).check(f"held-out part (last {pct})", min_samples=50)
+        whole = analysis_record(train, max_rate_hz)
+        n_fit = cut // block
+        t0 = float(whole.time_s[0])
+        return Split(whole.slice(0, n_fit), whole, n_fit, t0, t0, train.slice(0, cut), train, cut, True)
+    validate = validate.check("validation record", min_samples=50)
+    fit = analysis_record(train, max_rate_hz)
+    score = analysis_record(validate, max_rate_hz)
+    return Split(fit, score, 0, float(fit.time_s[0]), float(score.time_s[0]), train, validate, 0, False)
+
+
+def _rms(e: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(e * e))) if e.size else 0.0
+
+
+# --------------------------------------------------------------------------- the subset search
+class _SubsetSearch:
+    """Every subset of the effects fitted from the baseline in one ridge least-squares solve each.
+
+    The columns (GPIM basis, offset, every effect's search columns, all through the baseline's G) are
+    built once for the fit rows and the held-out rows; one Gram matrix serves all subsets.
+    """
+
+    def __init__(self, baseline: ValveModel, split: Split, effects: list[Effect]):
+        self.effects = effects
+        ctx_f = baseline.context(split.fit, split.t0)
+        ctx_s = baseline.context(split.score, split.score_t0)
+        blocks_f = [ctx_f.states - ctx_f.states[0], np.ones((len(split.fit), 1))]
+        blocks_s = [ctx_s.states - ctx_f.states[0], np.ones((len(split.score), 1))]
+        self.groups = [np.arange(blocks_f[0].shape[1] + 1)]
+        ridge = [np.full(blocks_f[0].shape[1] + 1, BASIS_RIDGE)]
+        col = blocks_f[0].shape[1] + 1
+        for e in effects:
+            cf, cs = e.search_columns(ctx_f), e.search_columns(ctx_s)
+            blocks_f.append(cf)
+            blocks_s.append(cs)
+            self.groups.append(np.arange(col, col + cf.shape[1]))
+            ridge.append(np.full(cf.shape[1], e.ridge))
+            col += cf.shape[1]
+        A = ctx_f.through_dynamics(np.column_stack(blocks_f))
+        self.B = ctx_s.through_dynamics(np.column_stack(blocks_s))[split.start:]
+        y = split.fit.position_um
+        self.y_score = split.score.position_um[split.start:]
+        n = A.shape[0]
+        self.scale = np.sqrt(np.einsum("ij,ij->j", A, A) / n)
+        self.scale[self.scale == 0] = 1.0
+        self.gram = (A.T @ A) / np.outer(self.scale, self.scale)
+        self.gram[np.diag_indices_from(self.gram)] += np.concatenate(ridge) * n
+        self.rhs = (A.T @ y) / self.scale
+        self._cache: dict[frozenset, float] = {}
+
+    def score(self, subset: frozenset) -> "Score":
+        if subset not in self._cache:
+            idx = np.concatenate([self.groups[0]] + [self.groups[1 + i] for i, e in enumerate(self.effects)
+                                                     if e.name in subset])
+            x = linalg.solve(self.gram[np.ix_(idx, idx)], self.rhs[idx], assume_a="pos") / self.scale[idx]
+            self._cache[subset] = Score.of(self.y_score - self.B[:, idx] @ x)
+        return self._cache[subset]
 
 
 @dataclass(frozen=True)
-class Scored:
-    """A record the model runs over from its start, scored from ``start`` on (held-out tail or a whole record)."""
+class Score:
+    """Held-out error [um] at the analysis rate."""
 
-    record: Record
-    start: int
-    t0: float
+    rms: float
+    peak: float
 
-    @property
-    def measured(self) -> np.ndarray:
-        return self.record.position_um[self.start:]
-
-    def predict(self, model: ValveModel) -> np.ndarray:
-        return model.predict(self.record, self.t0)[self.start:]
-
-    def error(self, model: ValveModel) -> np.ndarray:
-        return self.measured - self.predict(model)
-
-    def quality(self, model: ValveModel, range_um: float) -> FitQuality:
-        return quality(self.measured, self.predict(model), range_um)
+    @classmethod
+    def of(cls, error: np.ndarray) -> "Score":
+        return cls(_rms(error), float(np.max(np.abs(error))) if error.size else 0.0)
 
 
-class _RoundBasis:
-    """What one round's signature statistics share: contexts of the present model and the QR of its design."""
-
-    def __init__(self, model: ValveModel, train: Record, validate: Scored):
-        self.ctx_t = _Context(train, model.gpim, model.t0)
-        self.ctx_v = _Context(validate.record, model.gpim, validate.t0)
-        self.start = validate.start
-        descending = None if model.gpim.symmetric else (model.gpim.b0, model.gpim.b1)
-
-        def design(rec, ctx):
-            return np.column_stack([_design(rec, model.gpim.thresholds, descending), np.ones(len(rec))]
-                                   + [e.columns(ctx) for e, _ in model.terms])
-        At = design(train, self.ctx_t)
-        self.Av = design(validate.record, self.ctx_v)[validate.start:]
-        self.scale = np.sqrt(np.mean(At * At, axis=0))
-        self.scale[self.scale == 0] = 1.0
-        self.Q, self.R = np.linalg.qr(At / self.scale)
-
-    def statistic(self, eff: Effect, e_train: np.ndarray, e_val: np.ndarray) -> float:
-        """Share of held-out residual variance explained by the effect's signature fitted on the training
-        residual, after projecting out what the present model could absorb by refitting (Frisch-Waugh)."""
-        ct = _signature_columns(eff, self.ctx_t)
-        cv = _signature_columns(eff, self.ctx_v)[self.start:]
-        QtC = self.Q.T @ ct
-        B = np.linalg.lstsq(self.R, QtC, rcond=None)[0] / self.scale[:, None]
-        ct = ct - self.Q @ QtC
-        cv = cv - self.Av @ B
-        c = np.linalg.lstsq(ct, e_train, rcond=None)[0]
-        rest = e_val - cv @ c
-        return float(1.0 - np.mean(rest ** 2) / max(np.mean(e_val ** 2), 1e-30))
+def _support(with_: Score, without: Score, noise_um: float) -> tuple[float, float, bool]:
+    """(held-out RMS cut, explained RMS [um], supported?) of an effect added last: it must cut the held-out
+    RMS by GAIN_THRESHOLD, explain MIN_EFFECT_NOISE_RATIO times the sensor noise and not raise the peak by
+    more than PEAK_TOLERANCE."""
+    cut = 1.0 - with_.rms / without.rms if without.rms > 0 else 0.0
+    explained = math.sqrt(max(without.rms ** 2 - with_.rms ** 2, 0.0))
+    return cut, explained, (cut >= GAIN_THRESHOLD and explained >= MIN_EFFECT_NOISE_RATIO * noise_um
+                            and with_.peak <= PEAK_TOLERANCE * without.peak)
 
 
-@dataclass
-class Candidate:
-    effect: str
-    statistic: float
-    rms_before_um: float
-    rms_after_um: float
-    peak_before_um: float
-    peak_after_um: float
-    model: Optional[ValveModel] = None
-
-    @property
-    def gain(self) -> float:
-        return 1.0 - self.rms_after_um / self.rms_before_um if self.rms_before_um > 0 else 0.0
-
-    @property
-    def passes(self) -> bool:
-        return (self.statistic >= SIGNATURE_THRESHOLD and self.gain >= GAIN_THRESHOLD
-                and self.peak_after_um <= 1.1 * self.peak_before_um)
-
-    def evidence(self) -> str:
-        sig = EFFECTS[self.effect].signature
-        return (f"{sig}; held-out residual variance explained by this signature {self.statistic:.3f} "
-                f"(threshold {SIGNATURE_THRESHOLD}); refitted with it, held-out RMS {self.rms_before_um:.3f} -> "
-                f"{self.rms_after_um:.3f} um ({100 * self.gain:+.1f} % cut, threshold {100 * GAIN_THRESHOLD:.0f} %), "
-                f"peak {self.peak_before_um:.3f} -> {self.peak_after_um:.3f} um")
-
-
+# --------------------------------------------------------------------------- result
 @dataclass
 class Analysis:
     report: dict
     baseline: ValveModel
     final: ValveModel
-    train: Record          # analysis-rate records the figures refer to
-    validate: Scored
-    rounds: list = field(default_factory=list)
-    history: list = field(default_factory=list)  # the model before each effect was added, then the final one
+    split: Split
+    drop_one: dict = field(default_factory=dict)   # effect name -> the final model refitted without it
 
 
-def _refit(train: Record, model: ValveModel, new: str, H_range) -> ValveModel:
-    """The present model's effects (with their chosen settings) plus ``new`` (best of its options)."""
-    fixed = [eff for eff, _ in model.terms]
-    best, best_rms = None, math.inf
-    for option in EFFECTS[new].prepare(train, H_range):
-        m = fit_model(train, fixed + [option], t0=model.t0)
-        rms = float(np.sqrt(np.mean((train.position_um - m.predict(train)) ** 2)))
-        if rms < best_rms:
-            best, best_rms = m, rms
-    return best
-
-
-def _unexplained(e_val: np.ndarray, dt: float, range_um: float, noise_um: float, stats: dict) -> tuple[bool, str]:
-    rms = float(np.sqrt(np.mean(e_val ** 2)))
-    ec = e_val - e_val.mean()
+def _structure(e_score: np.ndarray, dt: float, noise_um: float, range_um: float) -> dict:
+    """Size and shape of what remains in a held-out residual (analysis rate)."""
+    rms = _rms(e_score)
+    noise_here = noise_floor_um(e_score)
+    structured = math.sqrt(max(rms ** 2 - noise_here ** 2, 0.0))
+    ec = e_score - e_score.mean()
     r1 = float(np.dot(ec[1:], ec[:-1]) / max(np.dot(ec, ec), 1e-30))
     spectrum = np.abs(np.fft.rfft(ec * np.hanning(ec.size)))
     freqs = np.fft.rfftfreq(ec.size, dt)
     k = int(np.argmax(spectrum[1:]) + 1) if spectrum.size > 1 else 0
     share = float(spectrum[k] ** 2 / max(np.sum(spectrum[1:] ** 2), 1e-30)) if k else 0.0
-    best = max(stats.items(), key=lambda kv: kv[1]) if stats else ("none", 0.0)
-    structured = rms > 4.0 * noise_um and r1 > 0.5 and 100.0 * rms / range_um > UNEXPLAINED_PCT
-    text = (f"held-out residual RMS {rms:.3f} um ({100 * rms / range_um:.2f} % of range, threshold "
-            f"{UNEXPLAINED_PCT} %), {rms / max(noise_um, 1e-12):.1f}x the sensor noise {noise_um:.3f} um, "
-            f"lag-1 autocorrelation {r1:.2f}; strongest spectral line {freqs[k]:.3g} Hz "
-            f"({100 * share:.0f} % of residual power); best catalogue signature: {best[0]} explains "
-            f"{max(best[1], 0.0):.2f} of it")
-    return structured, text
+    return {"rms_um": rms, "structured_rms_um": structured, "noise_here_um": noise_here, "lag1": r1,
+            "line_hz": float(freqs[k]) if k else 0.0, "line_share": share,
+            "ratio_to_noise": structured / max(noise_um, 1e-12),
+            "pct_of_range": 100.0 * structured / range_um if range_um > 0 else 0.0}
 
 
-def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_rate_hz: float = 2000.0,
-            max_effects: int = 5, log: Callable[[str], None] = lambda s: None) -> Analysis:
-    """Fit, diagnose and extend; ``validate_full`` None holds out the last 30 % of ``train_full``."""
-    train_full = train_full.check("training record")
-    held_out = validate_full is None
-    if held_out:
-        train_full, validate_full = split_held_out(train_full)
-        train_full.check("training part (first 70 %)")
-        validate_full.check("held-out part (last 30 %)", min_samples=50)
-    else:
-        validate_full = validate_full.check("validation record", min_samples=50)
-    noise = noise_floor_um(train_full)
-    train = analysis_record(train_full, max_rate_hz)
-    t0 = float(train.time_s[0])
-    if held_out:  # the model runs on through the held-out tail: its operators keep their memory
-        whole = analysis_record(Record(np.concatenate((train_full.time_s, validate_full.time_s)),
-                                       np.concatenate((train_full.voltage_v, validate_full.voltage_v)),
-                                       np.concatenate((train_full.position_um, validate_full.position_um))),
-                                max_rate_hz)
-        validate = Scored(whole, len(train), t0)
-        train = whole.slice(0, len(train))
-    else:
-        va = analysis_record(validate_full, max_rate_hz)
-        validate = Scored(va, 0, float(va.time_s[0]))
-    noise_a = noise / math.sqrt(max(len(train_full) / max(len(train), 1), 1.0))
-    range_um = float(np.ptp(np.concatenate((train_full.position_um, validate_full.position_um))) if held_out
-                     else np.ptp(train_full.position_um))
-    range_val = range_um if held_out else float(np.ptp(validate_full.position_um))
+def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_rate_hz: float = ANALYSIS_RATE_HZ,
+            log: Callable[[str], None] = lambda s: None) -> Analysis:
+    """Fit, diagnose and extend; ``validate_full`` None holds out the last ``HELD_OUT_FRACTION`` of the record."""
     started = time.monotonic()
-    log(f"records: training {len(train_full)} samples ({train_full.duration_s:.1f} s at "
-        f"{1 / train_full.dt:.0f} Hz), validation {len(validate_full)} samples; analysis at "
-        f"{1 / train.dt:.0f} Hz; sensor noise {noise:.3f} um")
+    split = _split(train_full, validate_full, max_rate_hz)
+    fit, full = split.fit, split.fit_full
+    warnings = []
+    if full.rate_hz < SUPPORTED_RATE_HZ:
+        warnings.append(f"the record is sampled at {full.rate_hz:.0f} Hz, below the supported "
+                        f"{SUPPORTED_RATE_HZ:.0f} Hz: G_v's poles cannot be resolved and fast effects go unseen")
+        log("warning: " + warnings[-1])
+    noise = noise_floor_um(full.position_um)
+    range_um = float(np.ptp(split.score_full.position_um if split.held_out else full.position_um))
+    range_val = float(np.ptp(split.score_full.position_um[split.start_full:])) if not split.held_out else range_um
+    log(f"records: fit {len(full)} samples ({full.duration_s:.1f} s at {full.rate_hz:.0f} Hz), held-out "
+        f"{len(split.score_full) - split.start_full} samples ({'last ' + format(100 * HELD_OUT_FRACTION, '.0f') + ' %' if split.held_out else 'validation record'}); "
+        f"analysis at {fit.rate_hz:.0f} Hz; sensor noise {noise:.4f} um")
 
-    # -- baseline: both fits, the better on held-out data is used
-    linear = fit_linear_gpim(train)
-    paper = fit_paper_gpim(train)
-    paper_model = ValveModel(paper.params.model(), (), t0)
-    fits = {}
-    for name, m in (("linear", linear), ("paper_nls", paper_model)):
-        fits[name] = {"train": quality(train.position_um, m.predict(train), range_um).as_dict(),
-                      "validate": validate.quality(m, range_val).as_dict()}
-    fits["paper_nls"].update({"condition_number": paper.condition_number, "evaluations": paper.evaluations,
-                              "params": {k: getattr(paper.params, k) for k in ("a0", "a1", "alpha", "rho", "tau", "n",
-                                                                               "offset_um")}})
-    fits["linear"].update({"operators": linear.gpim.n, "invertible": True})
-    chosen = "linear" if fits["linear"]["validate"]["rms_um"] <= fits["paper_nls"]["validate"]["rms_um"] else "paper_nls"
-    baseline = linear if chosen == "linear" else paper_model
-    log(f"baseline fits: linear (fixed thresholds, bounded LS) held-out RMS {fits['linear']['validate']['rms_um']:.3f} um; "
-        f"paper 5-parameter NLS {fits['paper_nls']['validate']['rms_um']:.3f} um (Jacobian condition "
-        f"{paper.condition_number:.2g}); using {chosen}")
+    def held_out(model: ValveModel) -> Score:
+        return Score.of(split.held_out_error(model))
 
-    # -- rounds: extensions are built on the invertible linear form; where the paper's fit generalises better,
-    # its thresholds (in V) are the better grid for the linear form too
-    model = linear
-    if chosen == "paper_nls":
-        on_paper_grid = fit_model(train, thresholds=paper_model.gpim.thresholds / paper.params.a0)
-        if validate.quality(on_paper_grid, range_val).rms_um < validate.quality(linear, range_val).rms_um:
-            model = on_paper_grid
-            log("linear form refitted on the thresholds of the paper's fit")
-    rounds = []
-    verdicts: dict[str, Candidate] = {}
-    added: list[str] = []
-    H_train = model.predict(train)
-    H_range = (float(H_train.min()), float(H_train.max()))
-    last_stats: dict[str, float] = {}
-    history = [model]
-    while len(added) < max_effects:
-        e_train = train.position_um - model.predict(train)
-        e_val = validate.error(model)
-        rms0 = float(np.sqrt(np.mean(e_val ** 2)))
-        peak0 = float(np.max(np.abs(e_val)))
-        candidates = []
-        last_stats = {}
-        basis = _RoundBasis(model, train, validate)
-        for name in EFFECTS:
-            if name in added:
-                continue
-            options = EFFECTS[name].prepare(train, H_range)
-            if not options:
-                continue
-            stat = max(basis.statistic(o, e_train, e_val) for o in options)
-            last_stats[name] = stat
-            cand = Candidate(name, stat, rms0, rms0, peak0, peak0)
-            if stat >= SIGNATURE_THRESHOLD:
-                m = _refit(train, model, name, H_range)
-                ev = validate.error(m)
-                cand.rms_after_um = float(np.sqrt(np.mean(ev ** 2)))
-                cand.peak_after_um = float(np.max(np.abs(ev)))
-                cand.model = m
-            candidates.append(cand)
-            verdicts[name] = cand
-            log(f"round {len(rounds) + 1}: {name:10s} signature {stat:6.3f}  held-out RMS {rms0:.3f} -> "
-                f"{cand.rms_after_um:.3f} um{'  passes' if cand.passes else ''}")
-        rounds.append([{"effect": c.effect, "statistic": c.statistic, "rms_after_um": c.rms_after_um,
-                        "gain": c.gain, "passes": c.passes} for c in candidates])
-        passing = [c for c in candidates if c.passes]
-        if not passing:
+    # ---- 1. baseline: G_v's poles, then the GPIM's capacity on held-out data
+    def start_model(thresholds, like: Optional[ValveModel] = None):
+        m = ValveModel(GPIM(thresholds, np.ones(thresholds.size)), t0=split.t0)
+        if like is not None:
+            m = replace(m, sections=like.sections, dynamics_note=like.dynamics_note, dynamics_free=like.dynamics_free)
+        return m
+
+    cache = FitCache()  # operator states etc. shared by every fit on the fit record
+    first = fit_model(fit, start_model(uniform_thresholds(fit.voltage_v, MID_CAPACITY)), poles="baseline", cache=cache)
+    log(f"G_v: {first.dynamics_note}")
+    paper = fit_paper_gpim(fit, first.sections)
+    grids = {f"{n} operators": uniform_thresholds(fit.voltage_v, n) for n in CAPACITY_OPERATORS}
+    if paper.failed is None:
+        grids[f"paper grid ({paper.params.n} operators, alpha {paper.params.alpha:.4g} V)"] = paper.model.gpim.thresholds
+    capacity = []
+    for label, grid in grids.items():
+        m = fit_model(fit, start_model(grid, first), poles="fixed", cache=cache)
+        capacity.append((label, grid.size, held_out(m).rms, m))
+    best = min(c[2] for c in capacity)
+    label, _, _, chosen = min((c for c in capacity if c[2] <= (1 + CAPACITY_TOLERANCE) * best), key=lambda c: c[1])
+    baseline = fit_model(fit, chosen, poles="baseline", cache=cache)
+    log("capacity: " + ", ".join(f"{c[0]} {c[2]:.4f}" for c in capacity) + f" um held-out RMS; chosen {label}")
+
+    # ---- 2. every subset of the catalogue, from the baseline
+    H_fit = baseline.context(fit).H
+    effects = [e for e in (cls.prepare(fit, H_fit) for cls in CATALOGUE) if e is not None]
+    by_name = {e.name: e for e in effects}
+    search = _SubsetSearch(baseline, split, effects)
+    names = [e.name for e in effects]
+    subsets = [frozenset(c) for r in range(len(names) + 1) for c in itertools.combinations(names, r)]
+    table = []
+    for s in subsets:
+        sc = search.score(s)
+        checks = {e: _support(sc, search.score(s - {e}), noise) for e in s}
+        table.append({"effects": [n for n in names if n in s], "held_out_rms_um": round(sc.rms, 6),
+                      "held_out_peak_um": round(sc.peak, 5),
+                      "supported": all(c[2] for c in checks.values())})
+    supported = [(t["held_out_rms_um"], len(t["effects"]), frozenset(t["effects"])) for t in table if t["supported"]]
+    chosen_set = min(supported)[2]
+    log(f"search: {len(subsets)} subsets of {', '.join(names)}; best supported: "
+        f"{', '.join(n for n in names if n in chosen_set) or 'none'}")
+
+    # ---- 3. exact refits and drop-one checks
+    confirm_log = []
+    final, drop_one, verdicts = baseline, {}, {}
+    current = [n for n in names if n in chosen_set]
+    refits: dict[frozenset, ValveModel] = {frozenset(): baseline}
+
+    def refit(subset: list[str], forms_from: Optional[ValveModel] = None) -> ValveModel:
+        """Exact refit of a subset (cached); effects keep the forms ``forms_from`` chose, if given."""
+        key = frozenset(subset)
+        if key not in refits:
+            if forms_from is None:
+                refits[key] = fit_model(fit, baseline, [by_name[n] for n in subset], cache=cache)
+            else:
+                chosen = {e.name: e for e in forms_from.effects}
+                refits[key] = fit_model(fit, baseline, [chosen[n] for n in subset], try_forms=False, cache=cache)
+        return refits[key]
+
+    for _ in range(CONFIRM_ROUNDS):
+        if not current:
+            final = baseline
             break
-        best = max(passing, key=lambda c: c.gain)
-        model = best.model
-        history.append(model)
-        added.append(best.effect)
-        verdicts[best.effect] = best
-        log(f"added {best.effect}: held-out RMS {best.rms_before_um:.3f} -> {best.rms_after_um:.3f} um")
+        model = refit(current)
+        score_model = held_out(model)
+        drops, verdicts = {}, {}
+        for n in current:
+            drops[n] = refit([m for m in current if m != n], model)
+            without = held_out(drops[n])
+            verdicts[n] = _support(score_model, without, noise) + (without.rms, score_model.rms)
+        confirm_log.append({"effects": list(current), "held_out_rms_um": round(score_model.rms, 6),
+                            "drop_one": {n: round(v[0], 4) for n, v in verdicts.items()}})
+        failing = [n for n in current if not verdicts[n][2]]
+        if not failing:
+            final, drop_one = model, drops
+            break
+        weakest = min(failing, key=lambda n: verdicts[n][0])
+        log(f"confirm: {weakest} not supported by the exact refit (held-out RMS cut {100 * verdicts[weakest][0]:.1f} %); dropped")
+        current.remove(weakest)
+    else:
+        final, drop_one, current = baseline, {}, []
+    if held_out(final).rms > held_out(baseline).rms:
+        log("the extended model is worse on held-out data than the baseline: baseline kept")
+        final, drop_one, current = baseline, {}, []
+    added = [n for n in names if n in current]
 
-    e_val = validate.error(model)
-    unexplained, seen = _unexplained(e_val, validate.record.dt, range_val, noise_a, last_stats)
+    # ---- 4. what remains
+    e_score = split.held_out_error(final)
+    structure = _structure(e_score, split.score.dt, noise, range_val)
+    final_set = frozenset(added)
+    closest = {n: 1.0 - search.score(final_set | {n}).rms / max(search.score(final_set).rms, 1e-30)
+               for n in names if n not in final_set}
+    near = max(closest.items(), key=lambda kv: kv[1]) if closest else ("none", 0.0)
+    unexplained = (structure["ratio_to_noise"] > UNEXPLAINED_NOISE_RATIO
+                   and structure["pct_of_range"] > MIN_STRUCTURE_PCT)
+    seen = (f"held-out residual RMS {structure['rms_um']:.4f} um at {split.score.rate_hz:.0f} Hz, of which "
+            f"{structure['structured_rms_um']:.4f} um structured ({structure['ratio_to_noise']:.1f}x the sensor noise "
+            f"{noise:.4f} um, threshold {UNEXPLAINED_NOISE_RATIO:g}x), lag-1 autocorrelation {structure['lag1']:.2f}; "
+            f"strongest spectral line {structure['line_hz']:.3g} Hz ({100 * structure['line_share']:.0f} % of residual "
+            f"power); closest catalogue effect: {near[0]} (would cut the held-out RMS by {100 * max(near[1], 0):.1f} %)")
+    log(("structure remains: " if unexplained else "residual: ") + seen)
+
+    # ---- 5. figures at the record's own rate, report
+    def figures(model: ValveModel) -> dict:
+        return {"train": quality(split.fit_full.position_um, split.fit_full.position_um - split.fit_error(model, True),
+                                 range_um).as_dict(),
+                "validate": quality(split.score_full.position_um[split.start_full:],
+                                    split.score_full.position_um[split.start_full:] - split.held_out_error(model, True),
+                                    range_val).as_dict(),
+                "validate_analysis_rate": quality(split.score.position_um[split.start:],
+                                                  split.score.position_um[split.start:] - split.held_out_error(model),
+                                                  range_val).as_dict()}
+
     diagnosis = []
-    for name in EFFECTS:
-        c = verdicts.get(name)
-        if c is None:
-            continue
-        diagnosis.append({"effect": name, "added": name in added, "statistic": round(c.statistic, 4),
-                          "threshold": SIGNATURE_THRESHOLD, "held_out_gain": round(c.gain, 4),
-                          "evidence": c.evidence()})
-    diagnosis.sort(key=lambda d: (not d["added"], added.index(d["effect"]) if d["added"] else 0))
+    for n in names:
+        if n in verdicts and n in added:
+            cut, explained, ok, without, with_ = verdicts[n]
+            diagnosis.append({"effect": n, "added": True, "statistic": round(cut, 4), "threshold": GAIN_THRESHOLD,
+                              "held_out_gain": round(cut, 4), "explained_rms_um": round(explained, 5),
+                              "evidence": _evidence(by_name[n], cut, explained, without, with_, noise, exact=True)})
+        else:
+            with_s, without_s = search.score(final_set | {n}), search.score(final_set)
+            cut, explained, _ = _support(with_s, without_s, noise)
+            with_, without = with_s.rms, without_s.rms
+            diagnosis.append({"effect": n, "added": False, "statistic": round(cut, 4), "threshold": GAIN_THRESHOLD,
+                              "held_out_gain": round(cut, 4), "explained_rms_um": round(explained, 5),
+                              "evidence": _evidence(by_name[n], cut, explained, without, with_, noise, exact=False)})
+    diagnosis.sort(key=lambda d: (not d["added"], added.index(d["effect"]) if d["added"] else names.index(d["effect"])))
+    held_out_text = (f"held-out last {100 * HELD_OUT_FRACTION:.0f} % of the training record" if split.held_out
+                     else "separate validation record")
     report = {
         "range_um": round(range_um, 4),
-        "baseline": {"model": "gpim", "fit": chosen, "train": fits[chosen]["train"],
-                     "validate": fits[chosen]["validate"]},
+        "baseline": {"model": baseline.name, "fit": label, **figures(baseline),
+                     "G_v": describe_dynamics(baseline.dynamics, baseline.dynamics_note),
+                     "operators": baseline.gpim.n},
         "effects_added": added,
         "diagnosis": diagnosis,
-        "final": {"model": model.name, "train": quality(train.position_um, model.predict(train), range_um).as_dict(),
-                  "validate": validate.quality(model, range_val).as_dict()},
+        "final": {"model": final.name, **figures(final)},
         "unexplained": bool(unexplained),
         "residual": seen,
-        "baseline_fits": fits,
-        "validation": "held-out last 30 % of the training record" if held_out else "separate validation record",
+        "residual_structure": {k: round(v, 6) for k, v in structure.items()},
+        "baseline_fits": {
+            "capacity": [{"grid": c[0], "operators": c[1], "held_out_rms_um": round(c[2], 6)} for c in capacity],
+            "chosen": label,
+            "paper_nls": {"params": {k: getattr(paper.params, k) for k in ("a0", "a1", "alpha", "rho", "tau", "n",
+                                                                           "offset_um")},
+                          "fixed": "a0 = 1, a1 = 0: the 5-parameter form has two exact invariances (a0 with "
+                                   "alpha, rho, tau; a1 with the offset)",
+                          "condition_number": paper.condition_number, "evaluations": paper.evaluations,
+                          "failed": paper.failed,
+                          "validate_analysis_rate": quality(split.score.position_um[split.start:],
+                                                            split.score.position_um[split.start:]
+                                                            - split.held_out_error(paper.model), range_val).as_dict()},
+        },
+        "search": sorted(table, key=lambda t: t["held_out_rms_um"]),
+        "confirm": confirm_log,
+        "validation": held_out_text,
+        "held_out_fraction": HELD_OUT_FRACTION if split.held_out else None,
+        "held_out_samples": len(split.score_full) - split.start_full,
         "validate_range_um": round(range_val, 4),
-        "analysis_rate_hz": round(1.0 / train.dt, 3),
-        "noise_floor_um": round(noise, 5),
-        "thresholds": {"signature": SIGNATURE_THRESHOLD, "held_out_gain": GAIN_THRESHOLD,
-                       "unexplained_pct": UNEXPLAINED_PCT},
-        "rounds": rounds,
-        "final_model": model.describe(),
+        "sample_rate_hz": round(full.rate_hz, 3),
+        "analysis_rate_hz": round(fit.rate_hz, 3),
+        "noise_floor_um": round(noise, 6),
+        "thresholds": {"held_out_gain": GAIN_THRESHOLD, "min_effect_noise_ratio": MIN_EFFECT_NOISE_RATIO,
+                       "unexplained_noise_ratio": UNEXPLAINED_NOISE_RATIO, "capacity_tolerance": CAPACITY_TOLERANCE},
+        "warnings": warnings,
+        "final_model": final.describe(),
         "seconds": round(time.monotonic() - started, 3),
     }
-    log(("structure remains: " if unexplained else "residual: ") + seen)
-    return Analysis(report, baseline, model, train, validate, rounds, history)
+    return Analysis(report, baseline, final, split, drop_one)
+
+
+def _evidence(effect: Effect, cut: float, explained: float, without: float, with_: float, noise: float,
+              exact: bool) -> str:
+    how = "exact refit without it" if exact else "added last to the final model (one linear solve from the baseline)"
+    return (f"{effect.signature}; held-out RMS {without:.4f} -> {with_:.4f} um with it ({how}): "
+            f"{100 * cut:+.1f} % cut (threshold {100 * GAIN_THRESHOLD:.0f} %), explaining {explained:.4f} um RMS "
+            f"(threshold {MIN_EFFECT_NOISE_RATIO:g}x the sensor noise {noise:.4f} um)")

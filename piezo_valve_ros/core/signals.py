@@ -10,7 +10,8 @@ import numpy as np
 
 __all__ = ["time_base", "synchronising_sine", "training_voltage", "validation_shape", "validation_reference_m",
            "PAPER_STEPS_UM", "step_reference_m", "stepped_sine_reference_m", "step_and_hold_voltage",
-           "multisine_voltage", "identification_voltage", "validation_voltage", "ReferenceRamp"]
+           "multisine_voltage", "identification_voltage", "validation_voltage", "joined", "ReferenceRamp",
+           "IDENTIFICATION_STEPS_V", "IDENTIFICATION_MULTISINE_HZ"]
 
 
 def time_base(duration_s: float, dt: float) -> np.ndarray:
@@ -108,19 +109,47 @@ def multisine_voltage(dt: float, duration_s: float = 8.0, frequencies_hz=(0.5, 2
     return np.concatenate(parts)
 
 
+IDENTIFICATION_STEPS_V = ((7.5, 2.5, 8.5), (5.0, 1.5, 6.0))   # step-and-hold levels before / after eq. 11
+IDENTIFICATION_MULTISINE_HZ = ((0.5, 2.0, 8.0, 20.0), (1.0, 4.0, 12.0, 25.0))
+
+
 def identification_voltage(dt: float, training_s: float = 30.0) -> np.ndarray:
-    """A full identification experiment: synchronisation, training (eq. 11), step-and-hold, multisine."""
-    return np.concatenate((training_voltage(dt, training_s, synchronise=True), step_and_hold_voltage(dt),
-                           multisine_voltage(dt), np.full(int(round(0.5 / dt)), 5.0)))
+    """A full identification experiment [V]: synchronisation, step-and-hold and multisine segments (creep,
+    drift, dynamics), the paper's training signal (eq. 11), then step-and-hold and multisine segments
+    again at other levels and frequencies, and a hold at 5 V.
+
+    Every kind of excitation appears before and after the training signal, so a held-out last part of
+    the record (the analyser's default, 30 %) shows what the fit part shows.
+    """
+    return joined(dt, synchronising_sine(dt),
+                  step_and_hold_voltage(dt, IDENTIFICATION_STEPS_V[0]),
+                  multisine_voltage(dt, 4.0, IDENTIFICATION_MULTISINE_HZ[0]),
+                  training_voltage(dt, training_s, synchronise=False),
+                  step_and_hold_voltage(dt, IDENTIFICATION_STEPS_V[1]),
+                  multisine_voltage(dt, 4.0, IDENTIFICATION_MULTISINE_HZ[1]),
+                  np.full(int(round(0.5 / dt)), 5.0))
+
+
+def joined(dt: float, *segments: np.ndarray, ramp_s: float = 2e-3) -> np.ndarray:
+    """Segments one after another, each jump between them replaced by a ``ramp_s`` ramp (the paper's 2 ms:
+    an ideal step hits the amplifier's current limit)."""
+    n_ramp = max(int(round(ramp_s / dt)), 1)
+    parts = [segments[0]]
+    for seg in segments[1:]:
+        a, b = float(parts[-1][-1]), float(seg[0])
+        if a != b:
+            parts.append(a + (b - a) * np.arange(1, n_ramp) / n_ramp)
+        parts.append(seg)
+    return np.concatenate(parts)
 
 
 def validation_voltage(dt: float, duration_s: float = 30.0, amplitude_v: float = 4.5) -> np.ndarray:
     """A validation experiment unlike the training one: synchronisation, eq. 12 as a voltage about 5 V,
     step-and-hold at other levels, multisine at other frequencies."""
     f = validation_shape(time_base(duration_s, dt) + 8.0)
-    return np.concatenate((synchronising_sine(dt), 5.0 + amplitude_v * f / np.max(np.abs(f)),
-                           step_and_hold_voltage(dt, levels_v=(8.0, 3.0, 6.5, 2.0, 5.5), hold_s=1.5),
-                           multisine_voltage(dt, 4.0, (1.0, 5.0, 12.0, 25.0), 3.5), np.full(int(round(0.5 / dt)), 5.0)))
+    return joined(dt, synchronising_sine(dt), 5.0 + amplitude_v * f / np.max(np.abs(f)),
+                  step_and_hold_voltage(dt, levels_v=(8.0, 3.0, 6.5, 2.0, 5.5), hold_s=1.5),
+                  multisine_voltage(dt, 4.0, (1.0, 5.0, 12.0, 25.0), 3.5), np.full(int(round(0.5 / dt)), 5.0))
 
 
 class ReferenceRamp:

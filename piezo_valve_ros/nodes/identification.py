@@ -3,14 +3,15 @@
 The ``plan`` (comma-separated, run in order once the rig answers) is made of:
 
 ``train``     the controller is disabled and this node drives ``voltage_command`` one value per
-              ``spool_position`` (so it works in lockstep and in real time): synchronising sine, the
-              paper's training signal, step-and-hold segments (creep, drift), multisine segments
-              (dynamics, rate dependence), and a closing synchronising sine that leaves the valve in a
-              known state at 5 V; then the controller is re-enabled and resumes from there.
-``refit``     ``valve_identify``'s analysis of the last training bag (last 30 % held out), the
-              parameters file written atomically, and the model pushed to the controller with one
-              atomic parameter request (all or nothing).  A failed refit or a rejected push leaves the
-              last good parameters (file and controller) untouched.
+              ``spool_position`` (so it works in lockstep and in real time): the identification
+              experiment of ``core.signals.identification_voltage`` (synchronising sine, step-and-hold and
+              multisine segments before and after the paper's training signal) and a closing
+              synchronising sine that leaves the valve in a known state at 5 V; then the controller is
+              re-enabled and resumes from there.
+``refit``     ``valve_identify``'s analysis of the last training bag (last 30 % held out), the model
+              pushed to the controller with one atomic parameter request (all or nothing), then the
+              parameters file written atomically.  A failed refit or a rejected push leaves the last
+              good parameters (file and controller) untouched.
 ``validate``  the controller (switched to ``validation_strategy``, default ``ol_hc``) tracks the paper's
               validation demand (eq. 12) sent on ``position_reference``; the tracking error is logged.
 
@@ -36,20 +37,21 @@ from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Float64, Float64MultiArray
 
 from ..bagio import FLOAT64_TYPE, SAMPLES_TYPE, BagError, BagRecorder, qos_profile
-from ..core.identification import IdentificationError
-from ..core.signals import (multisine_voltage, step_and_hold_voltage, synchronising_sine, training_voltage,
-                            validation_reference_m)
-from ..identify_cli import compensation_model, controller_parameters_yaml, identify_bags, write_atomically
+from ..core.records import IdentificationError
+from ..core.signals import identification_voltage, joined, synchronising_sine, validation_reference_m
+from ..identify import (compensation, controller_parameters, controller_parameters_yaml, identify_bags, report_json,
+                        write_atomically)
 from .common import COMMAND_QOS, REFERENCE_QOS, SAMPLES_QOS, SENSOR_QOS, as_float, declare, run_node
 
 STEPS = ("train", "refit", "validate")
 
 
 def training_experiment(period_s: float, training_s: float = 30.0, time_scale: float = 1.0) -> np.ndarray:
-    """Voltages [V], one per control period: the identification excitation, ``time_scale`` < 1 compresses it."""
+    """Voltages [V], one per control period: ``core.signals.identification_voltage`` followed by a damped sine
+    that leaves the valve synchronised at 5 V; ``time_scale`` < 1 compresses the signals in time."""
     dt = period_s / time_scale  # the signals' own time axis
-    return np.concatenate((training_voltage(dt, training_s, synchronise=True), step_and_hold_voltage(dt),
-                           multisine_voltage(dt), synchronising_sine(dt), np.full(max(int(0.3 / period_s), 1), 5.0)))
+    return joined(dt, identification_voltage(dt, training_s), synchronising_sine(dt),
+                  np.full(max(int(0.3 / period_s), 1), 5.0))
 
 
 class _Player:
@@ -233,30 +235,33 @@ class ValveIdentificationNode(Node):
         return {"step": "train", "bag": str(bag), "periods": int(values.size), "messages": counts}
 
     def _step_refit(self) -> dict:
+        """Analyse the last training bag, push the compensation model to the controller (one atomic request),
+        and only then write the parameters file: a refused push or failed refit leaves the last good file
+        and the controller as they were.  The report goes into the training bag either way."""
         bag = getattr(self, "last_train_bag", None)
         if bag is None:
             raise RuntimeError("refit needs a train step before it")
         self.get_logger().info(f"refit: analysing {bag}")
         try:
             analysis, _ = identify_bags(bag, log=lambda s: self.get_logger().info(f"refit: {s}"))
-            model = compensation_model(analysis)
+            comp = compensation(analysis)
         except (BagError, IdentificationError) as exc:
             self.get_logger().error(f"refit failed, last good parameters kept: {exc}")
             return {"step": "refit", "ok": False, "reason": str(exc)}
         report = analysis.report
-        write_atomically(Path(str(bag)) / "report.json", json.dumps(report, indent=2) + "\n")
-        write_atomically(self.params_out, controller_parameters_yaml(model, str(bag), report))
-        creep = model.creep_compensation() or ([1.0], [0.0])
-        g = model.gpim
-        values = {"gpim.thresholds": [float(x) for x in g.thresholds], "gpim.weights": [float(x) for x in g.weights],
-                  "gpim.a0": float(g.a0), "gpim.a1": float(g.a1), "gpim.offset_um": float(g.offset_um),
-                  "creep.time_constants_s": [float(x) for x in creep[0]], "creep.gains": [float(x) for x in creep[1]]}
-        pushed, reason = (self._set_controller(values, atomically=True) if self.push else (False, "push disabled"))
+        write_atomically(Path(str(bag)) / "report.json", report_json(analysis))
+        for name, why in comp.refused.items():
+            self.get_logger().warning(f"refit: {why}")
+        pushed, reason = (self._set_controller(controller_parameters(comp), atomically=True) if self.push
+                          else (False, "push disabled"))
+        if pushed or not self.push:
+            write_atomically(self.params_out, controller_parameters_yaml(comp, str(bag), report))
         if pushed:
-            self.get_logger().info(f"refit: model {model.name} pushed to the controller; parameters in {self.params_out}")
-        else:
-            self.get_logger().warning(f"refit: model not pushed ({reason}); parameters in {self.params_out}")
-        return {"step": "refit", "ok": True, "model": model.name, "effects_added": report["effects_added"],
+            self.get_logger().info(f"refit: model {comp.model.name} pushed to the controller; parameters in "
+                                   f"{self.params_out}")
+        elif self.push:
+            self.get_logger().warning(f"refit: model not pushed ({reason}); last good parameters file kept")
+        return {"step": "refit", "ok": True, "model": comp.model.name, "effects_added": report["effects_added"],
                 "baseline_validate": report["baseline"]["validate"], "final_validate": report["final"]["validate"],
                 "params_out": str(self.params_out), "pushed": pushed, "reason": reason}
 

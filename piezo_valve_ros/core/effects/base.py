@@ -1,0 +1,95 @@
+"""What an effect of the catalogue is: one small class per module (see ``effects/__init__.py``).
+
+An effect knows
+* its **signature** (what it looks like in a residual, in words) and the axis to plot that residual on;
+* its **columns**: terms linear in their coefficients that it adds to the static part of the model
+  (before G), computed from the hysteresis output H, the input and time;
+* its **nonlinear structure**, if any (a descending envelope, thresholds that widen with the rate,
+  extra poles of G): ``switch_on`` puts it into a model, ``sensitivities`` are its exact first-order
+  columns and ``step`` applies a Gauss-Newton step to it;
+* its **search columns**: what the subset search uses to judge it from the baseline in one linear
+  solve (its columns and sensitivities, plus any first-order proxy of its structure);
+* its **description** for the report and its **compensation** (controller parameters), or the reason
+  the controller cannot use it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, ClassVar, Optional
+
+import numpy as np
+
+from ..records import Record
+
+if TYPE_CHECKING:
+    from ..valve_model import Context, ValveModel
+
+__all__ = ["Effect", "NotCompensable", "EFFECT_RIDGE", "normalised"]
+
+# Ridge on an effect's standardised columns, as a share of the record length: collinear columns (lags a
+# factor 3 apart, polynomial powers) then share a coefficient instead of cancelling each other with
+# large alternating ones, and a column that explains less than this share of its own variance is ignored.
+EFFECT_RIDGE = 1e-5
+
+
+class NotCompensable(Exception):
+    """The controller cannot use this effect (the message says why)."""
+
+
+def normalised(H: np.ndarray, centre: float, half: float) -> np.ndarray:
+    """(H - centre) / half: the model output on [-1, 1] over the training range."""
+    return (H - centre) / half
+
+
+@dataclass(frozen=True)
+class Effect:
+    """Base class: an effect with no terms.  Subclasses set the class variables and override what they use."""
+
+    name: ClassVar[str] = ""
+    signature: ClassVar[str] = ""
+    ridge: ClassVar[float] = EFFECT_RIDGE
+
+    @classmethod
+    def prepare(cls, train: Record, H: np.ndarray) -> Optional["Effect"]:
+        """The effect with settings fitted to the training record (time constants, scales); None when the
+        record cannot show it (e.g. too short for its time constants)."""
+        return cls()
+
+    # -- linear terms of the final model
+    def columns(self, ctx: "Context") -> np.ndarray:
+        """(N, k) terms added before G; k = 0 when the effect is purely structural."""
+        return np.zeros((len(ctx.record), 0))
+
+    # -- nonlinear structure
+    def switch_on(self, model: "ValveModel") -> "ValveModel":
+        """The model with this effect's structure in place (at its neutral value)."""
+        return model
+
+    def sensitivities(self, ctx: "Context") -> np.ndarray:
+        """(N, m) first-order columns of the nonlinear parameters (before G); m = 0 without any."""
+        return np.zeros((len(ctx.record), 0))
+
+    def step(self, model: "ValveModel", delta: np.ndarray) -> "ValveModel":
+        """Apply a Gauss-Newton step (coefficients of ``sensitivities``) to the nonlinear parameters."""
+        return model
+
+    def forms(self) -> list["Effect"]:
+        """Alternative structures of this effect; a refit tries each and keeps the best on training data.  The
+        last form combines the others and is fitted starting from the best of them."""
+        return [self]
+
+    def search_columns(self, ctx: "Context") -> np.ndarray:
+        """What the subset search fits for this effect (from the baseline, one linear solve)."""
+        return np.column_stack((self.columns(ctx), self.sensitivities(ctx)))
+
+    # -- reporting and use
+    def describe(self, model: "ValveModel", coefs: np.ndarray) -> dict:
+        return {}
+
+    def plot_axis(self, ctx: "Context") -> tuple[np.ndarray, str, bool]:
+        """(values, label, log scale?) to plot this effect's residual against."""
+        return ctx.H, "model output [um]", False
+
+    def compensation(self, model: "ValveModel", coefs: np.ndarray) -> dict:
+        """Controller parameters that compensate this effect; raises NotCompensable with the reason."""
+        raise NotCompensable(f"{self.name}: the controller has no compensation for it")

@@ -1,0 +1,66 @@
+"""Drift: a slow change of offset and gain (thermal), not tied to the hysteresis' memory.
+
+Terms: offset and gain (times the normalised output) multiplied by slow functions of
+* the time since the record started (ambient drift): linear, and exponential approaches over 0.3 and 1
+  times the training record's length;
+* the drive's activity (self-heating): the input rate |dv/dt| through first-order lags of 10 s and 40 s,
+  normalised by its mean over the training record.
+A separate validation record starts its own clock and its own heating (the same initial state).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from ..dynamics import lag_bank
+from ..records import Record
+from .base import Effect, NotCompensable, normalised
+
+__all__ = ["Drift", "TIME_SCALES", "HEATING_TIME_CONSTANTS_S"]
+
+TIME_SCALES = (0.3, 1.0)                # exponential approaches, as shares of the training record's length
+HEATING_TIME_CONSTANTS_S = (10.0, 40.0)
+
+
+@dataclass(frozen=True)
+class Drift(Effect):
+    name = "drift"
+    signature = ("slow change of offset or gain: the residual trends with the time since the start or with how "
+                 "hard the valve has been driven (self-heating)")
+    duration_s: float = 1.0
+    centre_um: float = 0.0
+    half_range_um: float = 1.0
+    mean_rate_v_s: float = 1.0
+
+    @classmethod
+    def prepare(cls, train: Record, H: np.ndarray) -> Optional["Drift"]:
+        lo, hi = float(np.min(H)), float(np.max(H))
+        rate = float(np.mean(np.abs(np.gradient(train.voltage_v, train.dt))))
+        return cls(train.duration_s, 0.5 * (lo + hi), max(0.5 * (hi - lo), 1e-9), max(rate, 1e-12))
+
+    def slow_functions(self, ctx) -> np.ndarray:
+        t, T = ctx.t, self.duration_s
+        activity = np.abs(np.gradient(ctx.v, ctx.dt)) / self.mean_rate_v_s
+        heating = lag_bank(activity, HEATING_TIME_CONSTANTS_S, ctx.dt)
+        heating -= heating[0]
+        return np.column_stack([t / T] + [1.0 - np.exp(-t / (f * T)) for f in TIME_SCALES] + [heating])
+
+    def columns(self, ctx) -> np.ndarray:
+        k = self.slow_functions(ctx)
+        h = normalised(ctx.H, self.centre_um, self.half_range_um)
+        return np.column_stack((k, k * h[:, None]))
+
+    def describe(self, model, coefs) -> dict:
+        names = ["t/T"] + [f"1-exp(-t/({f}T))" for f in TIME_SCALES] + [f"heating_{int(t)}s" for t in
+                                                                           HEATING_TIME_CONSTANTS_S]
+        n = len(names)
+        return {"functions": names, "T_s": self.duration_s, "offset_um": [float(c) for c in coefs[:n]],
+                "gain_um": [float(c) for c in coefs[n:]]}
+
+    def plot_axis(self, ctx):
+        return ctx.t, "time since start [s]", False
+
+    def compensation(self, model, coefs) -> dict:
+        raise NotCompensable("drift: left to the feedback (an integrator absorbs a slow offset)")

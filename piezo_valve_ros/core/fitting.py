@@ -1,0 +1,495 @@
+"""Fitting the valve model (``valve_model.ValveModel``) to a record.  Nothing here imports ROS.
+
+* GPIM weights, offset and every effect's linear terms: one bounded, ridge-regularised linear
+  least-squares problem on the columns passed through G (partial sums of the weights >= a floor: the
+  analytic inverse's condition, so the fitted GPIM is always invertible);
+* G's poles: nonlinear least squares on the static part's output (the paper's G_v as start, and as
+  fallback when the record cannot determine them);
+* nonlinear structures of effects (descending envelope, rate-dependent thresholds): Gauss-Newton on
+  their exact first-order sensitivities, alternated with the two steps above;
+* ``fit_paper_gpim``: the paper's 5-parameter GPIM by nonlinear least squares, for comparison, in its
+  identifiable form and with physical bounds (a fit that ends on a bound is reported as failed).
+"""
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass, replace
+from typing import Optional, Sequence
+
+import numpy as np
+from scipy import linalg, optimize
+
+from .effects.base import Effect
+from .hysteresis import GPIM, GPIMParams
+from .records import SUPPORTED_RATE_HZ, Record, analysis_record
+from .valve_model import PAPER_SECTION, Context, ValveModel, discretise_for, filter_at_rest, unity_dc_poles
+
+__all__ = ["uniform_thresholds", "partial_sum_basis", "solve_bounded", "fit_model", "fit_dynamics", "BASIS_RIDGE",
+           "fit_paper_gpim", "PaperFit", "DynamicsFit", "FitCache", "PARTIAL_SUM_FLOOR", "DYNAMICS_CONDITION_LIMIT", "POLE_STEP_LIMIT"]
+
+PARTIAL_SUM_FLOOR = 1e-4          # partial sums of weights >= this share of the record's um/V slope
+BASIS_RIDGE = 1e-10               # numerical only, on the standardised GPIM columns
+SENSITIVITY_RIDGE = 1e-6          # damps Gauss-Newton steps of nonlinear structures
+DYNAMICS_CONDITION_LIMIT = 1e4    # G's poles count as determined when their Jacobian is better conditioned
+DYNAMICS_MIN_GAIN = 0.01          # ... and the fitted poles cut the training RMS by at least 1 % vs the paper's
+PAPER_NLS_RATE_HZ = 500.0         # the 5-parameter NLS runs on block means at this rate
+
+
+def uniform_thresholds(voltage_v: np.ndarray, n: int) -> np.ndarray:
+    """n thresholds evenly over [0, half the input span) [V] (an operator with a larger one never moves)."""
+    return np.arange(n) * (0.5 * float(np.ptp(voltage_v)) / n)
+
+
+def partial_sum_basis(states: np.ndarray) -> np.ndarray:
+    """Basis Z D (N, n) of operator states Z in which the coefficients are the partial sums of the weights:
+    column j is Z_j - Z_{j+1}, the last is Z_{n-1} (y = Z p with p = D q)."""
+    basis = states.copy()
+    basis[:, :-1] -= states[:, 1:]
+    return basis
+
+
+def solve_bounded(A: np.ndarray, y: np.ndarray, lower: np.ndarray, ridge: np.ndarray) -> np.ndarray:
+    """min ||A x - y||^2 + N sum_j ridge_j (x_j s_j)^2 subject to x >= lower, s_j = RMS of column j.
+
+    Through the Gram matrix of the standardised columns (one BLAS pass over A), then a bounded
+    solve on its Cholesky factor only when the unbounded solution breaks a bound.
+    """
+    n_rows = A.shape[0]
+    scale = np.sqrt(np.einsum("ij,ij->j", A, A) / n_rows)
+    scale[scale == 0] = 1.0
+    gram = (A.T @ A) / np.outer(scale, scale)
+    rhs = (A.T @ y) / scale
+    gram[np.diag_indices_from(gram)] += np.asarray(ridge, float) * n_rows
+    factor = linalg.cho_factor(gram, lower=False, check_finite=False)
+    x = linalg.cho_solve(factor, rhs, check_finite=False)
+    lo = np.asarray(lower, float) * scale
+    if np.any(x < lo):
+        R = np.triu(factor[0])
+        d = linalg.solve_triangular(R, rhs, trans="T", check_finite=False)
+        x = optimize.lsq_linear(R, d, bounds=(lo, np.inf), method="bvls", lsmr_tol="auto").x
+    return x / scale
+
+
+# --------------------------------------------------------------------------- shared work
+class FitCache:
+    """What the fits of one analysis share on one record (a bounded LRU): per hysteresis structure the
+    operator states, their contacts and the rate terms; per structure and poles the GPIM columns through
+    G.  Gauss-Newton rounds that only move poles or linear terms, and the drop-one refits of an effect,
+    then run the play operators once instead of once a solve."""
+
+    SIZE = 8
+
+    def __init__(self):
+        self._shared: OrderedDict = OrderedDict()
+        self._basis: OrderedDict = OrderedDict()
+
+    def _get(self, table: OrderedDict, key, make):
+        if key in table:
+            table.move_to_end(key)
+        else:
+            table[key] = make()
+            if len(table) > self.SIZE:
+                table.popitem(last=False)
+        return table[key]
+
+    def context(self, record: Record, model: ValveModel) -> Context:
+        return model.context(record, shared=self._get(self._shared, (id(record), model.structure_key), dict))
+
+    def basis(self, ctx: Context) -> np.ndarray:
+        """The GPIM columns (states minus their first row) through G, (N, n)."""
+        key = (id(ctx.record), ctx.model.structure_key, ctx.model.sections)
+        return self._get(self._basis, key, lambda: ctx.through_dynamics(ctx.states - ctx.states[0]))
+
+
+# --------------------------------------------------------------------------- linear step
+@dataclass(frozen=True)
+class _Layout:
+    n: int                                  # GPIM columns; then the offset column
+    terms: tuple[slice, ...]                # each effect's linear terms
+    sens: tuple[slice, ...]                 # each effect's sensitivities (empty slices when not used)
+
+    @property
+    def static(self) -> slice:
+        """Columns that make up the static part S (all but the sensitivities)."""
+        return slice(0, self.terms[-1].stop if self.terms else self.n + 1)
+
+
+def _design(ctx: Context, effects: Sequence[Effect], with_sensitivities: bool):
+    """The columns before G except the GPIM's (their filtered form is cached: ``FitCache.basis``): the
+    offset, the effects' terms and (``with_sensitivities``) their nonlinear structures' sensitivities;
+    with the layout, lower bounds and ridge of the whole design (GPIM columns first)."""
+    y_slope = max(float(np.ptp(ctx.record.position_um)) / max(float(np.ptp(ctx.v)), 1e-12), 1e-12)
+    n = ctx.model.gpim.n
+    blocks = [np.ones((len(ctx.record), 1))]
+    lower = [np.concatenate(([PARTIAL_SUM_FLOOR * y_slope], np.zeros(n - 1))), [-np.inf]]
+    ridge = [np.full(n + 1, BASIS_RIDGE)]
+    terms, sens = [], []
+    col = n + 1
+    for e in effects:
+        c = e.columns(ctx)
+        blocks.append(c)
+        terms.append(slice(col, col + c.shape[1]))
+        col += c.shape[1]
+        lower.append(np.full(c.shape[1], -np.inf))
+        ridge.append(np.full(c.shape[1], e.ridge))
+    for e in effects:
+        c = e.sensitivities(ctx) if with_sensitivities else np.zeros((len(ctx.record), 0))
+        blocks.append(c)
+        sens.append(slice(col, col + c.shape[1]))
+        col += c.shape[1]
+        lower.append(np.full(c.shape[1], -np.inf))
+        ridge.append(np.full(c.shape[1], SENSITIVITY_RIDGE))
+    return (np.column_stack(blocks), _Layout(n, tuple(terms), tuple(sens)), np.concatenate(lower),
+            np.concatenate(ridge))
+
+
+def _apply(model: ValveModel, x: np.ndarray, layout: _Layout, z_first: np.ndarray) -> ValveModel:
+    """The model with the solved linear parameters (weights, offset, effect terms)."""
+    g = model.gpim
+    p = x[:layout.n]
+    offset = float(x[layout.n]) - float(p @ z_first)
+    gpim = GPIM(g.thresholds, p, g.a0, g.a1, offset, g.b0, g.b1, g.b2)
+    return replace(model, gpim=gpim, coefs=tuple(x[s].copy() for s in layout.terms))
+
+
+def _has_sensitivities(e: Effect) -> bool:
+    return type(e).sensitivities is not Effect.sensitivities
+
+
+POLE_STEP_LIMIT = 0.3      # a Gauss-Newton step moves log(omega) or log(zeta) of a pole pair by at most this
+GN_ROUNDS = 6              # Gauss-Newton steps of nonlinear parameters at most
+GN_HALVINGS = 4            # a Gauss-Newton step is halved this many times at most before the fit stops
+BASELINE_ROUNDS = 5        # the baseline alternates weights and G_v's poles at most this often ...
+BASELINE_POLE_TOLERANCE = 0.005  # ... until no pole parameter moves by more than this (log units, 0.5 %)
+GN_TOLERANCE = 1e-3        # ... and the fit stops when a step cuts the training error by less than this share
+POLE_DIFF_STEP = 1e-4      # finite-difference step for the poles' sensitivities (in log units)
+ZETA_BOUNDS = (0.1, 5.0)          # G_v's own pole pair: real poles at most ~100x apart (the paper's: 4.8x)
+EXTRA_ZETA_BOUNDS = (0.05, 30.0)  # an extra pole pair may also be one real pole (its partner far off)
+
+
+def _pole_bounds(record: Record, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of (log omega, log zeta) per section: omega from 1 Hz to twice the source's Nyquist rate."""
+    nyquist = math.pi / (record.source_dt or record.dt)
+    zetas = [ZETA_BOUNDS] + [EXTRA_ZETA_BOUNDS] * (count - 1)
+    lo = np.concatenate([[math.log(2 * math.pi * 1.0), math.log(z[0])] for z in zetas])
+    hi = np.concatenate([[math.log(2.0 * nyquist), math.log(z[1])] for z in zetas])
+    return lo, hi
+
+
+def _theta(secs) -> np.ndarray:
+    return np.concatenate([[math.log(w), math.log(z)] for w, z in secs])
+
+
+def _secs(theta) -> tuple[tuple[float, float], ...]:
+    return tuple((math.exp(theta[2 * i]), math.exp(theta[2 * i + 1])) for i in range(theta.size // 2))
+
+
+def _free_poles(model: ValveModel) -> np.ndarray:
+    """Which pole parameters a refit may move: G_v's own when the record determines them, extra ones always."""
+    free = np.ones(2 * len(model.sections), bool)
+    if not model.dynamics_free:
+        free[:2] = False
+    return free
+
+
+def _pole_columns(record: Record, model: ValveModel, static: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """d G_theta[static] / d theta for the free pole parameters (post-G columns), by forward differences."""
+    theta = _theta(model.sections)
+    base = filter_at_rest(*discretise_for(unity_dc_poles(list(model.sections)), record), static)
+    cols = []
+    for i in np.flatnonzero(free):
+        t = theta.copy()
+        t[i] += POLE_DIFF_STEP
+        cols.append((filter_at_rest(*discretise_for(unity_dc_poles(list(_secs(t))), record), static) - base)
+                    / POLE_DIFF_STEP)
+    return np.column_stack(cols) if cols else np.zeros((static.size, 0))
+
+
+def _linear_solve(train: Record, model: ValveModel, *, steps: bool, free: np.ndarray, cache: FitCache):
+    """One bounded linear solve at the model's nonlinear parameters.  With ``steps``, the nonlinear
+    structures' sensitivities and the free poles' columns join the solve (a Gauss-Newton step).
+    Returns (model with the solved linear parameters, training SSE, nonlinear step or None)."""
+    ctx = cache.context(train, model)
+    rest, layout, lower, ridge = _design(ctx, model.effects, with_sensitivities=steps)
+    A = np.column_stack((cache.basis(ctx), ctx.through_dynamics(rest)))
+    n_poles = int(free.sum()) if steps else 0
+    if n_poles:
+        static = ctx.H + sum((rest[:, sl.start - layout.n:sl.stop - layout.n] @ c
+                              for sl, c in zip(layout.terms, model.coefs) if c.size), np.zeros(len(train)))
+        A = np.column_stack((A, _pole_columns(train, model, static, free)))
+        lower = np.concatenate((lower, np.full(n_poles, -np.inf)))
+        ridge = np.concatenate((ridge, np.full(n_poles, SENSITIVITY_RIDGE)))
+    y = train.position_um
+    x = solve_bounded(A, y, lower, ridge)
+    fitted = _apply(model, x, layout, ctx.states[0])
+    if not steps:
+        e = y - A @ x
+        return fitted, float(e @ e), None
+    return fitted, None, (x, layout, x[A.shape[1] - n_poles:] if n_poles else np.zeros(0))
+
+
+def _step_nonlinear(model: ValveModel, x: np.ndarray, layout: "_Layout", pole_step: np.ndarray, free: np.ndarray,
+                    fraction: float, record: Record) -> ValveModel:
+    """The model's nonlinear parameters moved by ``fraction`` of a Gauss-Newton step."""
+    for e, sl in zip(model.effects, layout.sens):
+        if sl.stop > sl.start:
+            model = e.step(model, fraction * x[sl])
+    if free.any():
+        theta = _theta(model.sections)
+        step = np.zeros(theta.size)
+        step[free] = np.clip(fraction * pole_step, -POLE_STEP_LIMIT, POLE_STEP_LIMIT)
+        lo, hi = _pole_bounds(record, len(model.sections))
+        model = replace(model, sections=_secs(np.clip(theta + step, lo, hi)))
+    return model
+
+
+def fit_model(train: Record, start: ValveModel, effects: Sequence[Effect] = (), *, poles: str = "joint",
+              rounds: Optional[int] = None, try_forms: bool = True, cache: Optional[FitCache] = None) -> ValveModel:
+    """The model ``start`` extended by ``effects``, fitted to ``train`` (see ``_fit``); with ``try_forms`` an
+    effect with several forms (``Effect.forms``) is fitted in each and the form with the lowest training
+    error kept (without, each effect keeps the form it has)."""
+    cache = FitCache() if cache is None else cache
+    multi = [i for i, e in enumerate(effects) if try_forms and len(e.forms()) > 1]
+    if not multi:
+        return _fit(train, start, effects, poles=poles, rounds=rounds, cache=cache)[0]
+    best = None
+    for i in multi:  # (one effect with forms in practice: dynamics)
+        forms = effects[i].forms()
+        fits = []
+        for f in forms[:-1]:
+            fits.append(_fit(train, start, [f if j == i else e for j, e in enumerate(effects)], poles=poles,
+                             rounds=rounds, cache=cache))
+        # the last form combines the others: it starts from the best of them
+        seed = min(fits, key=lambda f: f[1])[0]
+        seeded = replace(seed, effects=(), coefs=())
+        fits.append(_fit(train, seeded, [forms[-1] if j == i else e for j, e in enumerate(effects)], poles=poles,
+                         rounds=rounds, cache=cache))
+        candidate = min(fits, key=lambda f: f[1])
+        best = candidate if best is None or candidate[1] < best[1] else best
+    return best[0]
+
+
+def _fit(train: Record, start: ValveModel, effects: Sequence[Effect], *, poles: str, rounds: Optional[int],
+         cache: FitCache) -> tuple[ValveModel, float]:
+    """The model ``start`` (thresholds, G, t0) extended by ``effects``, fitted to ``train``.
+
+    ``poles``:
+      ``"baseline"``  G_v's poles by nonlinear least squares on first differences (``fit_dynamics``), the
+                      paper's G_v kept when the record cannot determine them (the baseline's own fit);
+      ``"joint"``     the nonlinear parameters (the poles when an effect adds a pole pair, the effects'
+                      nonlinear structures) by Gauss-Newton
+                      on the variable-projection objective: each round one linear solve with their
+                      sensitivities gives the step, the linear parameters are solved again at the trial
+                      point, and the step is halved until the training error falls (an effect's refit);
+      ``"fixed"``     G as in ``start`` (the capacity scan).
+    """
+    model = replace(start, effects=tuple(effects), coefs=tuple(np.zeros(0) for _ in effects))
+    for e in effects:
+        model = e.switch_on(model)
+    nonlinear = any(_has_sensitivities(e) for e in effects)
+    none = np.zeros(2 * len(model.sections), bool)
+    if poles == "baseline":  # alternate weights and G_v's poles until the poles settle
+        for i in range(rounds or BASELINE_ROUNDS):
+            model, _, _ = _linear_solve(train, model, steps=False, free=none, cache=cache)
+            ctx = cache.context(train, model)
+            fit = fit_dynamics(train, model.static_output(ctx), train.position_um, (PAPER_SECTION,), baseline=True)
+            moved = max(abs(math.log(a / b)) for s1, s2 in zip(fit.sections, model.sections) for a, b in zip(s1, s2))
+            model = replace(model, sections=fit.sections, dynamics_note=fit.note, dynamics_free=fit.determined)
+            if moved < BASELINE_POLE_TOLERANCE:
+                break
+        model, sse, _ = _linear_solve(train, model, steps=False, free=none, cache=cache)
+        return model, sse
+    rounds = GN_ROUNDS if rounds is None else rounds
+    model, sse, _ = _linear_solve(train, model, steps=False, free=none, cache=cache)
+    if len(model.sections) > len(start.sections):  # a new pole pair: place it first (its fit has local minima)
+        free = np.zeros(2 * len(model.sections), bool)
+        free[2 * len(start.sections):] = True
+        fit = fit_dynamics(train, model.static_output(cache.context(train, model)), train.position_um, model.sections,
+                           free=free, multistart=True)
+        model, sse, _ = _linear_solve(train, replace(model, sections=fit.sections), steps=False, free=none, cache=cache)
+    # G_v's own poles come from the baseline (fitted on differences, so slow structure cannot bend them);
+    # a joint refit moves them only together with an extra pole pair
+    free = _free_poles(model) if poles == "joint" and len(model.sections) > 1 else none
+    if not (nonlinear or free.any()):
+        return _linear_solve(train, model, steps=False, free=none, cache=cache)[:2] if effects else (model, sse)
+    for _ in range(rounds):
+        _, _, (x, layout, pole_step) = _linear_solve(train, model, steps=True, free=free, cache=cache)
+        fraction, accepted = 1.0, False
+        for _ in range(GN_HALVINGS):
+            trial, sse_trial, _ = _linear_solve(train, _step_nonlinear(model, x, layout, pole_step, free, fraction,
+                                                                       train), steps=False, free=none, cache=cache)
+            if sse_trial < sse:
+                accepted = True
+                gain = 1.0 - sse_trial / sse
+                model, sse = trial, sse_trial
+                break
+            fraction *= 0.5
+        if not accepted or gain < GN_TOLERANCE:
+            break
+    return model, sse
+
+
+# --------------------------------------------------------------------------- G's poles
+@dataclass(frozen=True)
+class DynamicsFit:
+    sections: tuple[tuple[float, float], ...]
+    note: str           # "fitted (...)" or "paper (why)"
+    determined: bool
+    condition: float
+
+
+def _levenberg_marquardt(residual, theta, lo, hi, max_iterations: int = 20, step: float = 1e-4,
+                         tolerance: float = 1e-7):
+    """min ||residual(theta)||^2 within bounds, for a few parameters and a long residual: a forward-difference
+    Jacobian (p + 1 residual evaluations an iteration) and p x p normal equations, no N x p factorisation.
+    Returns (theta, sse, J at theta)."""
+    r = residual(theta)
+    sse = float(r @ r)
+    mu = 1e-3
+    J = np.zeros((r.size, theta.size))
+    for _ in range(max_iterations):
+        J = np.empty((r.size, theta.size))
+        for i in range(theta.size):
+            t = theta.copy()
+            t[i] += step
+            J[:, i] = (residual(t) - r) / step
+        JtJ = J.T @ J
+        g = J.T @ r
+        improved = done = False
+        for _ in range(8):
+            delta = np.linalg.solve(JtJ + mu * np.diag(np.diag(JtJ) + 1e-12), -g)
+            trial = np.clip(theta + delta, lo, hi)
+            r_trial = residual(trial)
+            sse_trial = float(r_trial @ r_trial)
+            if sse_trial < sse:
+                improved = True
+                done = sse - sse_trial < tolerance * sse or np.max(np.abs(trial - theta)) < 1e-6
+                theta, r, sse = trial, r_trial, sse_trial
+                mu = max(mu / 5.0, 1e-9)
+                break
+            mu *= 8.0
+        if not improved or done:
+            break
+    return theta, sse, J
+
+
+def fit_dynamics(record: Record, static_um: np.ndarray, measured_um: np.ndarray,
+                 start: Sequence[tuple[float, float]] = (PAPER_SECTION,), *, free: Optional[np.ndarray] = None,
+                 baseline: bool = False, multistart: bool = False) -> DynamicsFit:
+    """Pole pairs (unity DC gain) so that G[static] fits the measurement, by Levenberg-Marquardt.
+
+    Fitted on first differences: the poles shape the fast part of the response, and slow structure the
+    static part lacks (creep, drift) then cannot bend them.  ``free`` masks the (log omega, log zeta)
+    parameters that may move.  ``baseline``: ``start`` is the paper's G_v, which is kept when the record
+    cannot determine the poles (too slow a record, an ill-conditioned Jacobian, a pole on its bound) or when
+    fitted ones do not cut the error by ``DYNAMICS_MIN_GAIN``.  ``multistart`` also tries the last pole
+    pair slower and resonant (an extra pair's fit has local minima).
+    """
+    start = tuple(start)
+    y = np.diff(np.asarray(measured_um, float))
+    S = np.asarray(static_um, float)
+    lo, hi = _pole_bounds(record, len(start))
+    theta0 = np.clip(_theta(start), lo, hi)
+    free = np.ones(theta0.size, bool) if free is None else np.asarray(free, bool)
+    if record.rate_hz < SUPPORTED_RATE_HZ:
+        return DynamicsFit(start, f"paper (the record's {record.rate_hz:.0f} Hz cannot resolve G_v's poles)", False,
+                           float("inf"))
+
+    def residual(th_free):
+        th = theta0.copy()
+        th[free] = th_free
+        return np.diff(filter_at_rest(*discretise_for(unity_dc_poles(list(_secs(th))), record), S)) - y
+
+    r0 = residual(theta0[free])
+    sse0 = float(r0 @ r0)
+    starts = [theta0[free]]
+    if multistart:
+        for w_f, z in ((0.3, 1.1), (1.0, 0.3), (3.0, 0.2)):
+            alt = theta0.copy()
+            alt[-2:] = np.clip([math.log(w_f * start[0][0]), math.log(z)], lo[-2:], hi[-2:])
+            starts.append(alt[free])
+    best = None
+    for th in starts:
+        fit = _levenberg_marquardt(residual, th, lo[free], hi[free])
+        if best is None or fit[1] < best[1]:
+            best = fit
+    th_free, sse, J = best
+    theta = theta0.copy()
+    theta[free] = th_free
+    secs = _secs(theta)
+    sv = np.linalg.svd(J / np.maximum(np.linalg.norm(J, axis=0), 1e-300), compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    if not baseline:
+        return DynamicsFit(secs if sse < sse0 else start, "fitted", sse < sse0, cond)
+    poles = ", ".join(f"{abs(p):.0f}" for p in sorted(np.roots(unity_dc_poles(list(secs)).den), key=abs))
+    at_bound = bool(np.any(np.isclose(theta, lo, atol=1e-6) | np.isclose(theta, hi, atol=1e-6)))
+    gain = 1.0 - sse / max(sse0, 1e-300)
+    if cond > DYNAMICS_CONDITION_LIMIT or at_bound:
+        why = "on a bound" if at_bound else f"Jacobian condition {cond:.2g} > {DYNAMICS_CONDITION_LIMIT:g}"
+        return DynamicsFit(start, f"paper (the record cannot determine the poles: {why})", False, cond)
+    if gain < DYNAMICS_MIN_GAIN:
+        return DynamicsFit(start, f"paper (fitted poles {poles} rad/s cut the training error by only "
+                                  f"{100 * gain:.1f} %)", True, cond)
+    return DynamicsFit(secs, f"fitted (poles {poles} rad/s, Jacobian condition {cond:.2g})", True, cond)
+
+
+# --------------------------------------------------------------------------- the paper's NLS
+@dataclass(frozen=True)
+class PaperFit:
+    params: GPIMParams
+    model: ValveModel
+    condition_number: float
+    evaluations: int
+    failed: Optional[str]   # why the fit cannot be used (None: it can)
+
+
+def fit_paper_gpim(train: Record, sections: Sequence[tuple[float, float]] = (PAPER_SECTION,), n: int = 15,
+                   max_evaluations: int = 200) -> PaperFit:
+    """The paper's GPIM (r_j = alpha j, p_j = rho exp(-tau r_j), n fixed) followed by G (``sections``), by NLS.
+
+    The 5-parameter form has two exact invariances: (a0, alpha, rho, tau) -> (c a0, c alpha, rho/c, tau/c)
+    and a1 against the output offset, so a0 = 1 and a1 = 0 are fixed and (alpha, rho, tau) fitted with
+    the offset projected out, within physical bounds; a fit that ends on a bound or does not converge
+    is returned with ``failed`` saying so.
+    """
+    rec = analysis_record(train, PAPER_NLS_RATE_HZ)
+    v, y = rec.voltage_v, rec.position_um
+    span = max(float(np.ptp(v)), 1e-12)
+    slope = max(float(np.ptp(y)) / span, 1e-12)
+    b, a = discretise_for(unity_dc_poles(list(sections)), rec)
+    lo = np.array([0.01 * span / max(n - 1, 1), 1e-6 * slope, -2.0 / span])
+    hi = np.array([2.0 * span / max(n - 1, 1), 100.0 * slope, 100.0 / span])
+
+    def model_of(x) -> GPIM:
+        return GPIMParams(a0=1.0, a1=0.0, alpha=float(x[0]), rho=float(x[1]), tau=float(x[2]), n=n, offset_um=0.0).model()
+
+    def residual(x):
+        h, _ = model_of(x).run(v)
+        e = filter_at_rest(b, a, h) - y
+        return e - e.mean()
+
+    x0 = np.array([0.5 * span / n, 1.0, 4.0 / span])
+    e0 = residual(x0) + 0.0
+    h0, _ = model_of(x0).run(v)
+    hc = h0 - h0.mean()
+    x0[1] = float(np.clip(np.dot(hc, y - y.mean()) / max(np.dot(hc, hc), 1e-12), lo[1] * 1.01, hi[1] * 0.99))
+    del e0
+    res = optimize.least_squares(residual, x0, bounds=(lo, hi), x_scale="jac", max_nfev=max_evaluations,
+                                 diff_step=1e-6)
+    gpim = model_of(res.x)
+    h, _ = gpim.run(v)
+    offset = float(np.mean(y - filter_at_rest(b, a, h)))
+    sv = np.linalg.svd(res.jac, compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    params = GPIMParams(a0=1.0, a1=0.0, alpha=float(res.x[0]), rho=float(res.x[1]), tau=float(res.x[2]), n=n,
+                        offset_um=offset)
+    names = ("alpha", "rho", "tau")
+    on_bound = [names[i] for i in range(3) if np.isclose(res.x[i], lo[i], rtol=1e-6) or np.isclose(res.x[i], hi[i], rtol=1e-6)]
+    failed = None
+    if res.status <= 0:
+        failed = f"did not converge in {res.nfev} evaluations"
+    elif on_bound:
+        failed = f"ended on the physical bound of {', '.join(on_bound)}"
+    model = ValveModel(params.model(), tuple(sections), t0=float(train.time_s[0]))
+    return PaperFit(params, model, cond, int(res.nfev), failed)

@@ -1,0 +1,183 @@
+"""Measured records for identification: checks, block means, the held-out split, noise and error figures.
+
+A record is time [s], applied voltage [V] and spool position [um] at one sampling rate.  Nothing here
+imports ROS.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Optional
+
+import numpy as np
+
+__all__ = ["IdentificationError", "Record", "FitQuality", "quality", "analysis_record", "split_held_out",
+           "noise_floor_um", "join", "HELD_OUT_FRACTION", "ANALYSIS_RATE_HZ", "SUPPORTED_RATE_HZ",
+           "MIN_SAMPLES"]
+
+HELD_OUT_FRACTION = 0.3      # without a validation record, the last 30 % (in time) is held out (CONTRACT.md)
+ANALYSIS_RATE_HZ = 2000.0    # fits run on block means at most this rate (error figures are at the record's rate)
+SUPPORTED_RATE_HZ = 1000.0   # below this the valve's G_v (poles near 80 and 380 Hz) is not resolved: a warning
+MIN_SAMPLES = 200
+
+
+class IdentificationError(ValueError):
+    """Data that cannot be identified from (the message says why, in one line)."""
+
+
+@dataclass(frozen=True)
+class Record:
+    """A measured record: time [s], applied voltage [V], spool position [um].
+
+    ``block`` is the number of source samples each row averages (1: raw samples); ``source_dt`` [s] is
+    the source's sampling period (the models use it to reproduce the source's sample-and-hold).
+    """
+
+    time_s: np.ndarray
+    voltage_v: np.ndarray
+    position_um: np.ndarray
+    block: int = 1
+    source_dt: Optional[float] = None
+
+    def __post_init__(self):
+        t, v, y = (np.asarray(a, float).reshape(-1) for a in (self.time_s, self.voltage_v, self.position_um))
+        if not (t.size == v.size == y.size):
+            raise IdentificationError(f"record columns differ in length ({t.size}, {v.size}, {y.size})")
+        object.__setattr__(self, "time_s", t)
+        object.__setattr__(self, "voltage_v", v)
+        object.__setattr__(self, "position_um", y)
+        if self.source_dt is None and self.block == 1:
+            object.__setattr__(self, "source_dt", self.dt)
+
+    @classmethod
+    def from_rows(cls, rows: np.ndarray) -> "Record":
+        """From ``samples`` rows (time [s], voltage [V], position [m])."""
+        rows = np.asarray(rows, float)
+        if rows.ndim != 2 or rows.shape[1] < 3:
+            raise IdentificationError(f"samples rows must be (N, 3) or wider, got shape {rows.shape}")
+        return cls(rows[:, 0], rows[:, 1], rows[:, 2] * 1e6)
+
+    def __len__(self) -> int:
+        return int(self.time_s.size)
+
+    @cached_property
+    def dt(self) -> float:
+        """Sampling period [s] (median spacing)."""
+        return float(np.median(np.diff(self.time_s))) if len(self) > 1 else float("nan")
+
+    @property
+    def rate_hz(self) -> float:
+        return 1.0 / self.dt
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.time_s[-1] - self.time_s[0] + self.dt) if len(self) > 1 else 0.0
+
+    @property
+    def range_um(self) -> float:
+        return float(np.ptp(self.position_um)) if len(self) else 0.0
+
+    def slice(self, start: int, stop: Optional[int] = None) -> "Record":
+        return Record(self.time_s[start:stop], self.voltage_v[start:stop], self.position_um[start:stop],
+                      self.block, self.source_dt)
+
+    def check(self, what: str = "record", min_samples: int = MIN_SAMPLES) -> "Record":
+        """Raise IdentificationError unless the record can be fitted; returns it (time-ordered)."""
+        if len(self) < min_samples:
+            raise IdentificationError(f"{what} has {len(self)} samples; at least {min_samples} are needed")
+        bad = ~(np.isfinite(self.time_s) & np.isfinite(self.voltage_v) & np.isfinite(self.position_um))
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise IdentificationError(f"{what} has {int(bad.sum())} non-finite samples (first at row {k}, "
+                                      f"t={float(self.time_s[k]):.6g} s)")
+        if np.any(np.diff(self.time_s) <= 0):
+            order = np.argsort(self.time_s, kind="stable")
+            t = self.time_s[order]
+            if np.any(np.diff(t) <= 0):
+                raise IdentificationError(f"{what} has repeated sample times")
+            return Record(t, self.voltage_v[order], self.position_um[order]).check(what, min_samples)
+        gaps = np.diff(self.time_s)
+        if float(np.max(gaps)) > 10.0 * self.dt:
+            k = int(np.argmax(gaps))
+            raise IdentificationError(f"{what} has a gap of {float(gaps[k]):.4g} s at t={float(self.time_s[k]):.6g} s "
+                                      f"({float(gaps[k]) / self.dt:.0f} sample periods): record it again or cut it there")
+        v_span = float(np.ptp(self.voltage_v))
+        v_scale = max(float(np.max(np.abs(self.voltage_v))), 1e-12)
+        if v_span <= 1e-6 * v_scale or v_span == 0.0:
+            raise IdentificationError(f"{what}: the voltage is constant ({float(self.voltage_v[0]):.6g} V): "
+                                      "no excitation to fit a hysteresis model")
+        dv = np.diff(self.voltage_v)
+        reversals = np.count_nonzero(np.diff(np.sign(dv[dv != 0])))
+        if reversals < 2:
+            raise IdentificationError(f"{what}: the voltage reverses direction {reversals} time(s); a hysteresis "
+                                      "fit needs at least one full cycle")
+        if self.range_um <= 0:
+            raise IdentificationError(f"{what}: the position is constant: nothing to fit")
+        return self
+
+
+def join(first: Record, second: Record) -> Record:
+    """``second`` appended to ``first`` (same rate; used to run a model on through a held-out tail)."""
+    return Record(np.concatenate((first.time_s, second.time_s)), np.concatenate((first.voltage_v, second.voltage_v)),
+                  np.concatenate((first.position_um, second.position_um)), first.block, first.source_dt)
+
+
+def analysis_record(record: Record, max_rate_hz: float = ANALYSIS_RATE_HZ) -> Record:
+    """Block means down to at most ``max_rate_hz`` (a trailing partial block is dropped).
+
+    Hysteresis is rate-independent and the linear dynamics carry over exactly (block means commute
+    with a linear filter); the models reproduce the source's sample-and-hold from ``source_dt``.
+    """
+    dt = record.dt
+    k = max(int(math.floor(1.0 / (max_rate_hz * dt) + 1e-9)), 1) if math.isfinite(max_rate_hz) else 1
+    if k == 1:
+        return record
+    n = len(record) // k * k
+
+    def blocks(a):
+        return a[:n].reshape(-1, k).mean(axis=1)
+    return Record(blocks(record.time_s), blocks(record.voltage_v), blocks(record.position_um), k * record.block,
+                  record.source_dt)
+
+
+def split_held_out(record: Record, fraction: float = HELD_OUT_FRACTION, multiple: int = 1) -> int:
+    """Index where the held-out last ``fraction`` (in time) of ``record`` starts (a multiple of ``multiple``
+    samples, so block means of both parts line up)."""
+    if not 0.0 < fraction < 1.0:
+        raise ValueError(f"held-out fraction must lie in (0, 1), got {fraction}")
+    cut = record.time_s[0] + (1.0 - fraction) * (record.time_s[-1] - record.time_s[0])
+    k = int(np.searchsorted(record.time_s, cut))
+    return k // multiple * multiple
+
+
+def noise_floor_um(position_um: np.ndarray) -> float:
+    """White-noise RMS [um] of a signal from its second differences (median absolute deviation: the smooth
+    part and occasional fast moves do not count).  Applied to a model's residual it measures the noise at
+    that signal's own rate."""
+    y = np.asarray(position_um, float)
+    if y.size < 5:
+        return float("nan")
+    d2 = y[2:] - 2.0 * y[1:-1] + y[:-2]
+    mad = float(np.median(np.abs(d2 - np.median(d2))))
+    return 1.4826 * mad / math.sqrt(6.0)
+
+
+@dataclass(frozen=True)
+class FitQuality:
+    """Error figures of a prediction: RMS and peak [um], peak as % of the measured range."""
+
+    rms_um: float
+    peak_um: float
+    peak_pct: float
+
+    def as_dict(self) -> dict:
+        return {"rms_um": round(self.rms_um, 6), "peak_um": round(self.peak_um, 6),
+                "peak_pct": round(self.peak_pct, 6)}
+
+
+def quality(measured_um: np.ndarray, predicted_um: np.ndarray, range_um: float) -> FitQuality:
+    e = np.asarray(measured_um, float) - np.asarray(predicted_um, float)
+    peak = float(np.max(np.abs(e))) if e.size else 0.0
+    return FitQuality(float(np.sqrt(np.mean(e * e))) if e.size else 0.0, peak,
+                      100.0 * peak / range_um if range_um > 0 else float("nan"))
