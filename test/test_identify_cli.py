@@ -182,3 +182,32 @@ def test_recorder_survives_being_killed(tmp_path):
     # about 100 messages/s of 100 rows; at most the last segment (0.5 s) plus scheduling slack is lost
     assert rows.shape[0] >= (killed_after - 1.0) * 90 * 100
     assert np.all(np.diff(rows[:, 0]) == 1.0)  # nothing lost in the middle
+
+
+# every key path of the reports written before the residual loop was rebuilt (CONTRACT.md: keys may be
+# added, never removed); final_model's sub-keys depend on the effects found and are not listed
+EARLIER_REPORT_KEYS = """range_um baseline baseline.model baseline.fit baseline.train.rms_um baseline.train.peak_um
+baseline.train.peak_pct baseline.validate.rms_um baseline.validate.peak_um baseline.validate.peak_pct effects_added
+diagnosis diagnosis.[].effect diagnosis.[].added diagnosis.[].statistic diagnosis.[].threshold
+diagnosis.[].held_out_gain diagnosis.[].evidence final.model final.train.rms_um final.train.peak_um
+final.train.peak_pct final.validate.rms_um final.validate.peak_um final.validate.peak_pct unexplained residual
+baseline_fits.linear.train.rms_um baseline_fits.linear.validate.peak_pct baseline_fits.linear.operators
+baseline_fits.linear.invertible baseline_fits.paper_nls.train.rms_um baseline_fits.paper_nls.validate.peak_pct
+baseline_fits.paper_nls.condition_number baseline_fits.paper_nls.evaluations baseline_fits.paper_nls.params.a0
+baseline_fits.paper_nls.params.a1 baseline_fits.paper_nls.params.alpha baseline_fits.paper_nls.params.rho
+baseline_fits.paper_nls.params.tau baseline_fits.paper_nls.params.n baseline_fits.paper_nls.params.offset_um
+validation validate_range_um analysis_rate_hz noise_floor_um thresholds.signature thresholds.held_out_gain
+thresholds.unexplained_pct rounds final_model.model final_model.gpim.thresholds final_model.gpim.weights
+final_model.gpim.a0 final_model.gpim.a1 final_model.gpim.offset_um seconds source.train_bag source.validate_bag
+source.topic""".split()
+
+
+def test_report_keeps_every_key_earlier_reports_had(bags_10khz, tmp_path):
+    out = run_cli(bags_10khz / "train", "--validate", bags_10khz / "validate", "--report", tmp_path / "r.json",
+                  "--quiet")
+    assert out.returncode == 0, out.stderr
+    report = json.loads((tmp_path / "r.json").read_text())
+    for path in EARLIER_REPORT_KEYS:
+        node = report
+        for part in path.split("."):
+            node = node[0] if part == "[]" else node[part]

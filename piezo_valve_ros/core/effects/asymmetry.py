@@ -1,11 +1,11 @@
 """Asymmetry: ascending and descending branches follow different envelopes.
 
-Structure: every operator's descending envelope gets its own slope and curvature about the centre of the
-input range, ``gamma_desc(v) = v + beta1 (v - v_c) + beta2 (v - v_c)^2 / h`` (``gamma_asc(v) = v``, h
-the half span): the generalized PI model with different envelope functions (Al Janaideh, Rakheja, Su),
-fitted by Gauss-Newton on the exact sensitivity of the operators to their upper bound.  A common shift
-of the descending envelope is not part of it: it equals a shift of every threshold and of the offset,
-which the baseline already has.
+Structure: every operator's descending envelope gets its own shift, slope and curvature about the
+centre of the input range, ``gamma_desc(v) = v + beta0 + beta1 (v - v_c) + beta2 (v - v_c)^2 / h``
+(``gamma_asc(v) = v``, h the half span): the generalized PI model with different envelope functions (Al
+Janaideh, Rakheja, Su), fitted by Gauss-Newton on the exact sensitivity of the operators to their upper
+bound.  (A shift that widens the loop is also a shift of the thresholds, which the baseline has; one that
+narrows it is not: thresholds cannot go below zero.)
 """
 from __future__ import annotations
 
@@ -18,16 +18,17 @@ from ..hysteresis import GPIM
 from ..records import Record
 from .base import Effect
 
-__all__ = ["Asymmetry", "MAX_SLOPE_CHANGE"]
+__all__ = ["Asymmetry", "MAX_SLOPE_CHANGE", "MAX_SHIFT_SHARE"]
 
 MAX_SLOPE_CHANGE = 0.5  # |beta1|, |beta2| <= 0.5: the descending envelope stays monotone over the range
+MAX_SHIFT_SHARE = 0.2   # |beta0| <= 0.2 of the half span
 
 
 @dataclass(frozen=True)
 class Asymmetry(Effect):
     name = "asymmetry"
     signature = ("ascending and descending branches differ: the residual follows the operators' sensitivity to a "
-                 "descending envelope of another slope and curvature")
+                 "descending envelope of another shift, slope and curvature")
     centre_v: float = 5.0
     half_span_v: float = 5.0
 
@@ -36,42 +37,44 @@ class Asymmetry(Effect):
         lo, hi = float(np.min(train.voltage_v)), float(np.max(train.voltage_v))
         return cls(0.5 * (lo + hi), max(0.5 * (hi - lo), 1e-9))
 
-    def betas(self, gpim: GPIM) -> tuple[float, float]:
-        """(beta1, beta2) of a GPIM's descending envelope (relative to its ascending one, a0 = 1, a1 = 0)."""
+    def betas(self, gpim: GPIM) -> tuple[float, float, float]:
+        """(beta0 [V], beta1, beta2) of a GPIM's descending envelope relative to its ascending one (a0 = 1, a1 = 0)."""
         if gpim.b0 is None:
-            return 0.0, 0.0
-        beta2 = float(gpim.b2) * self.half_span_v / gpim.a0
-        beta1 = float(gpim.b0) / gpim.a0 - 1.0 + 2.0 * beta2 * self.centre_v / self.half_span_v
-        return beta1, beta2
+            return 0.0, 0.0, 0.0
+        c, h, a0 = self.centre_v, self.half_span_v, gpim.a0
+        beta2 = float(gpim.b2) * h / a0
+        beta1 = float(gpim.b0) / a0 - 1.0 + 2.0 * beta2 * c / h
+        beta0 = (float(gpim.b0) * c + float(gpim.b1) + float(gpim.b2) * c * c - (a0 * c + gpim.a1)) / a0
+        return beta0, beta1, beta2
 
-    def with_betas(self, gpim: GPIM, beta1: float, beta2: float) -> GPIM:
+    def with_betas(self, gpim: GPIM, beta0: float, beta1: float, beta2: float) -> GPIM:
         c, h, a0 = self.centre_v, self.half_span_v, gpim.a0
         b2 = a0 * beta2 / h
         b0 = a0 * (1.0 + beta1) - 2.0 * b2 * c
-        b1 = gpim.a1 - a0 * beta1 * c + b2 * c * c
+        b1 = gpim.a1 + a0 * (beta0 - beta1 * c) + b2 * c * c
         return GPIM(gpim.thresholds, gpim.weights, gpim.a0, gpim.a1, gpim.offset_um, float(b0), float(b1), float(b2))
 
     def switch_on(self, model):
         g = model.gpim
-        return model if g.b0 is not None else replace(model, gpim=self.with_betas(g, 0.0, 0.0))
+        return model if g.b0 is not None else replace(model, gpim=self.with_betas(g, 0.0, 0.0, 0.0))
 
     def sensitivities(self, ctx) -> np.ndarray:
         a0 = ctx.model.gpim.a0
         dv = ctx.v - self.centre_v
-        return np.column_stack((ctx.bound_sensitivity(None, a0 * dv),
+        return np.column_stack((ctx.bound_sensitivity(None, np.full(dv.size, a0)),
+                                ctx.bound_sensitivity(None, a0 * dv),
                                 ctx.bound_sensitivity(None, a0 * dv * dv / self.half_span_v)))
 
     def step(self, model, delta):
-        b1, b2 = self.betas(model.gpim)
-        b1 = float(np.clip(b1 + float(delta[0]), -MAX_SLOPE_CHANGE, MAX_SLOPE_CHANGE))
-        b2 = float(np.clip(b2 + float(delta[1]), -MAX_SLOPE_CHANGE, MAX_SLOPE_CHANGE))
-        return replace(model, gpim=self.with_betas(model.gpim, b1, b2))
+        limits = (MAX_SHIFT_SHARE * self.half_span_v, MAX_SLOPE_CHANGE, MAX_SLOPE_CHANGE)
+        betas = [float(np.clip(b + float(d), -lim, lim)) for b, d, lim in zip(self.betas(model.gpim), delta, limits)]
+        return replace(model, gpim=self.with_betas(model.gpim, *betas))
 
     def describe(self, model, coefs) -> dict:
         g = model.gpim
-        b1, b2 = self.betas(g)
-        return {"descending_slope_change": b1, "descending_curvature": b2, "b0": g.b0, "b1": g.b1, "b2": g.b2,
-                "centre_v": self.centre_v, "half_span_v": self.half_span_v}
+        b0_, b1_, b2_ = self.betas(g)
+        return {"descending_shift_v": b0_, "descending_slope_change": b1_, "descending_curvature": b2_,
+                "b0": g.b0, "b1": g.b1, "b2": g.b2, "centre_v": self.centre_v, "half_span_v": self.half_span_v}
 
     def plot_axis(self, ctx):
         return ctx.v, "voltage [V]", False
