@@ -1,4 +1,5 @@
-"""Identification as a library: bags -> analysis -> the model the controller can use -> its parameters.
+"""Identification as a library: bags (or CSV records) -> analysis -> the model the controller can use -> its
+parameters.
 
 ``valve_identify`` (``identify_cli``) and the ``valve_identification`` node are thin faces over this
 module.  No ROS import: it runs wherever ``rosbags`` does.
@@ -15,26 +16,33 @@ from typing import Callable, Optional
 from .bagio import read_samples
 from .core.effects import NotCompensable
 from .core.fitting import fit_model
-from .core.records import Record
+from .core.records import Record, read_csv
 from .core.residual import Analysis, analyse
 from .core.valve_model import ValveModel, unity_dc_poles
 
-__all__ = ["identify_bags", "Compensation", "compensation", "controller_parameters", "controller_parameters_yaml",
+__all__ = ["identify_bags", "read_record", "Compensation", "compensation", "controller_parameters", "controller_parameters_yaml",
            "report_json", "write_atomically", "write_outputs"]
 
 
+def read_record(path, topic: Optional[str] = None, log: Callable[[str], None] = print) -> tuple[Record, Optional[str]]:
+    """A record from a bag directory (its samples topic) or from a ``.csv`` file (``records.read_csv``);
+    returns (record, topic name or None)."""
+    if str(path).lower().endswith(".csv") and not Path(path).is_dir():
+        record = read_csv(path)
+        log(f"{path}: {len(record)} samples (CSV)")
+        return record, None
+    rows, name = read_samples(path, topic)
+    log(f"{path}: {rows.shape[0]} samples on {name}")
+    return Record.from_rows(rows), name
+
+
 def identify_bags(train_bag, validate_bag=None, topic: Optional[str] = None,
-                  log: Callable[[str], None] = print) -> tuple[Analysis, str]:
-    """Read the bag(s) and run the residual loop; returns (analysis, samples topic name).  Raises BagError or
-    IdentificationError with a one-line reason."""
-    rows, name = read_samples(train_bag, topic)
-    log(f"{train_bag}: {rows.shape[0]} samples on {name}")
-    validate = None
-    if validate_bag is not None:
-        vrows, vname = read_samples(validate_bag, topic)
-        log(f"{validate_bag}: {vrows.shape[0]} samples on {vname}")
-        validate = Record.from_rows(vrows)
-    analysis = analyse(Record.from_rows(rows), validate, log=log)
+                  log: Callable[[str], None] = print) -> tuple[Analysis, Optional[str]]:
+    """Read the bag(s) or CSV record(s) and run the residual loop; returns (analysis, samples topic name, None
+    for CSV).  Raises BagError or IdentificationError with a one-line reason."""
+    train, name = read_record(train_bag, topic, log)
+    validate = None if validate_bag is None else read_record(validate_bag, topic, log)[0]
+    analysis = analyse(train, validate, log=log)
     analysis.report["source"] = {"train_bag": str(train_bag), "validate_bag": None if validate_bag is None
                                  else str(validate_bag), "topic": name}
     return analysis, name

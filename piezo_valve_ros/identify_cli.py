@@ -3,6 +3,8 @@
     valve_identify TRAIN_BAG [--validate VAL_BAG] [--report report.json] [--params-out fitted.yaml]
                    [--plots DIR] [--topic /valve1/samples]
 
+A record may also be a ``.csv`` file whose header names time_s, voltage_v and position_m or position_um.
+
 Progress goes to stdout; any failure ends with one line on stderr and exit code 2 (bad input) or 1.
 The report and the parameters file are written together or not at all (every path is checked before
 either is replaced, and each is replaced atomically), so a failed refit never overwrites the last good
@@ -14,7 +16,7 @@ import argparse
 import sys
 
 from .bagio import BagError
-from .core.records import IdentificationError
+from .core.records import HELD_OUT_FRACTION, IdentificationError
 from .identify import compensation, controller_parameters_yaml, identify_bags, report_json, write_outputs
 
 __all__ = ["main"]
@@ -37,8 +39,8 @@ def _summary(report: dict) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="valve_identify", description=__doc__.split("\n\n")[0])
-    ap.add_argument("train_bag", help="bag directory with a samples topic")
-    ap.add_argument("--validate", metavar="VAL_BAG", help="validation bag (default: hold out the last 30 %%)")
+    ap.add_argument("train_bag", help="bag directory with a samples topic, or a .csv record")
+    ap.add_argument("--validate", metavar="VAL_BAG", help=f"validation bag or .csv (default: hold out the last {100 * HELD_OUT_FRACTION:.0f} %%)")
     ap.add_argument("--report", metavar="FILE", help="write report.json here")
     ap.add_argument("--params-out", metavar="FILE", help="write a valve_controller parameters file here")
     ap.add_argument("--plots", metavar="DIR", help="write PNG figures here (needs matplotlib)")
@@ -59,7 +61,7 @@ def main(argv=None) -> int:
             outputs[args.report] = report_json(analysis)
         written = write_outputs(outputs)
         if args.plots:
-            written += plots.write_all(analysis, args.plots)
+            written += plots.write_all(analysis, args.plots, log)
     except (BagError, IdentificationError) as exc:
         print(f"valve_identify: error: {exc}", file=sys.stderr)
         return 2

@@ -5,12 +5,15 @@ Nodes never import this module.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
 from .core.residual import Analysis
 
-__all__ = ["require", "write_all"]
+__all__ = ["require", "write_all", "MIN_HOLD_SAMPLES"]
+
+MIN_HOLD_SAMPLES = 20   # a step-and-hold figure needs a constant-input stretch at least this long
 
 
 def require():
@@ -24,9 +27,10 @@ def require():
     return plt
 
 
-def write_all(analysis: Analysis, directory) -> list[str]:
+def write_all(analysis: Analysis, directory, log: Callable[[str], None] = lambda s: None) -> list[str]:
     """Hysteresis loop, residual in time, one residual diagnostic per added effect (before: the final model
-    refitted without it) and a step-and-hold stretch, all on held-out data at the analysis rate."""
+    refitted without it) and a step-and-hold stretch (when the input holds still somewhere), all on held-out
+    data at the analysis rate.  Returns the paths written."""
     plt = require()
     out_dir = Path(directory)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -95,15 +99,18 @@ def write_all(analysis: Analysis, directory) -> list[str]:
     flat = np.concatenate(([False], np.abs(np.diff(v)) <= 1e-9 * (1 + np.abs(v[1:]))))
     edges = np.flatnonzero(np.diff(np.concatenate(([0], flat.astype(int), [0]))))
     runs = edges.reshape(-1, 2) if edges.size else np.zeros((0, 2), int)
+    runs = runs[runs[:, 1] - runs[:, 0] >= MIN_HOLD_SAMPLES]
+    if not runs.size:
+        log(f"no step_hold.png: the held-out input never holds still for {MIN_HOLD_SAMPLES} samples")
+        return written
     fig, ax = plt.subplots(figsize=(9, 4))
-    if runs.size:
-        long_runs = runs[np.argsort(runs[:, 1] - runs[:, 0])[::-1][:4]]
-        a = max(int(long_runs[:, 0].min()) - 20, 0)
-        b = int(long_runs[:, 1].max())
-        ax.plot(t[a:b], y[a:b], color="0.5", lw=0.8, label="measured")
-        ax.plot(t[a:b], y_base[a:b], lw=0.8, label=label_b)
-        ax.plot(t[a:b], y_final[a:b], lw=0.8, ls="--", label=label_f)
-        ax.legend()
+    long_runs = runs[np.argsort(runs[:, 1] - runs[:, 0])[::-1][:4]]
+    a = max(int(long_runs[:, 0].min()) - 20, 0)
+    b = int(long_runs[:, 1].max())
+    ax.plot(t[a:b], y[a:b], color="0.5", lw=0.8, label="measured")
+    ax.plot(t[a:b], y_base[a:b], lw=0.8, label=label_b)
+    ax.plot(t[a:b], y_final[a:b], lw=0.8, ls="--", label=label_f)
+    ax.legend()
     ax.set_xlabel("time [s]")
     ax.set_ylabel("spool position [um]")
     ax.set_title("Step and hold, held-out data")

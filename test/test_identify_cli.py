@@ -132,6 +132,34 @@ def test_bad_input_ends_with_one_clear_line_and_keeps_the_last_good_parameters(t
         assert not (tmp_path / f"{name}.json").exists()
 
 
+REAL_CSV = os.path.join(ROOT, "test", "data", "smart_hysteresis", "hysteresis_v_150_1hz_1khz.csv")
+
+
+def test_a_measured_csv_record_from_another_lab(tmp_path):
+    """A real piezo actuator's record as CSV (µm, V): the CLI reads it, fits, reports and writes parameters."""
+    out = run_cli(REAL_CSV, "--report", tmp_path / "r.json", "--params-out", tmp_path / "p.yaml", "--plots", tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert "1529 samples (CSV)" in out.stdout and "initial state:" in out.stdout
+    # a sine never holds still: no empty step-and-hold figure, and the log says why
+    assert (tmp_path / "hysteresis_loop.png").exists() and not (tmp_path / "step_hold.png").exists()
+    assert "no step_hold.png: the held-out input never holds still" in out.stdout
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["source"] == {"train_bag": REAL_CSV, "validate_bag": None, "topic": None}
+    assert report["baseline_fits"]["initial_state"]["chosen"] == "cycled"
+    params = yaml.safe_load((tmp_path / "p.yaml").read_text())["/**/valve_controller"]["ros__parameters"]
+    assert min(params["gpim.weights"]) >= 0.0
+
+
+def test_bad_csv_records_end_with_one_clear_line(tmp_path):
+    cases = {"no_position.csv": ("time_s,voltage_v\n0,1\n", ("lacks position_m or position_um",)),
+             "bad_row.csv": ("time_s,voltage_v,position_m\n0,1,2e-6\n0.001,x,3e-6\n", ("data row 3",)),
+             "header_only.csv": ("time_s,voltage_v,position_um\n", ("a header but no samples",))}
+    for name, (text, needles) in cases.items():
+        (tmp_path / name).write_text(text)
+        _one_error_line(run_cli(tmp_path / name), name, *needles)
+    _one_error_line(run_cli(tmp_path / "missing.csv"), "cannot read")
+
+
 def test_two_samples_topics_need_a_choice(tmp_path):
     rows = simulate_rows(identification_voltage(1e-3, 10.0), ValveSimConfig(dt=1e-3))
     write_samples_bag(tmp_path / "a", rows, topic="/v1/samples")

@@ -22,7 +22,7 @@ from scipy import linalg, optimize
 
 from .effects.base import Effect
 from .hysteresis import GPIM, GPIMParams
-from .records import SUPPORTED_RATE_HZ, Record, analysis_record
+from .records import Record, analysis_record
 from .valve_model import PAPER_SECTION, Context, ValveModel, discretise_for, filter_at_rest, unity_dc_poles
 
 __all__ = ["uniform_thresholds", "partial_sum_basis", "solve_bounded", "fit_model", "fit_dynamics", "BASIS_RIDGE",
@@ -392,7 +392,7 @@ def fit_dynamics(record: Record, static_um: np.ndarray, measured_um: np.ndarray,
     lo, hi = _pole_bounds(record, len(start))
     theta0 = np.clip(_theta(start), lo, hi)
     free = np.ones(theta0.size, bool) if free is None else np.asarray(free, bool)
-    if record.rate_hz < SUPPORTED_RATE_HZ:
+    if record.undersampled:
         return DynamicsFit(start, f"paper (the record's {record.rate_hz:.0f} Hz cannot resolve G_v's poles)", False,
                            float("inf"))
 
@@ -445,13 +445,13 @@ class PaperFit:
 
 
 def fit_paper_gpim(train: Record, sections: Sequence[tuple[float, float]] = (PAPER_SECTION,), n: int = 15,
-                   max_evaluations: int = 200) -> PaperFit:
+                   max_evaluations: int = 200, history: str = "rest") -> PaperFit:
     """The paper's GPIM (r_j = alpha j, p_j = rho exp(-tau r_j), n fixed) followed by G (``sections``), by NLS.
 
     The 5-parameter form has two exact invariances: (a0, alpha, rho, tau) -> (c a0, c alpha, rho/c, tau/c)
     and a1 against the output offset, so a0 = 1 and a1 = 0 are fixed and (alpha, rho, tau) fitted with
     the offset projected out, within physical bounds; a fit that ends on a bound or does not converge
-    is returned with ``failed`` saying so.
+    is returned with ``failed`` saying so.  ``history``: the operators' initial state (``ValveModel.history``).
     """
     rec = analysis_record(train, PAPER_NLS_RATE_HZ)
     v, y = rec.voltage_v, rec.position_um
@@ -464,22 +464,20 @@ def fit_paper_gpim(train: Record, sections: Sequence[tuple[float, float]] = (PAP
     def model_of(x) -> GPIM:
         return GPIMParams(a0=1.0, a1=0.0, alpha=float(x[0]), rho=float(x[1]), tau=float(x[2]), n=n, offset_um=0.0).model()
 
+    def hysteresis(g: GPIM) -> np.ndarray:
+        return g.run(v, g.cycled_state(v) if history == "cycled" else None)[0]
+
     def residual(x):
-        h, _ = model_of(x).run(v)
-        e = filter_at_rest(b, a, h) - y
+        e = filter_at_rest(b, a, hysteresis(model_of(x))) - y
         return e - e.mean()
 
     x0 = np.array([0.5 * span / n, 1.0, 4.0 / span])
-    e0 = residual(x0) + 0.0
-    h0, _ = model_of(x0).run(v)
+    h0 = hysteresis(model_of(x0))
     hc = h0 - h0.mean()
     x0[1] = float(np.clip(np.dot(hc, y - y.mean()) / max(np.dot(hc, hc), 1e-12), lo[1] * 1.01, hi[1] * 0.99))
-    del e0
     res = optimize.least_squares(residual, x0, bounds=(lo, hi), x_scale="jac", max_nfev=max_evaluations,
                                  diff_step=1e-6)
-    gpim = model_of(res.x)
-    h, _ = gpim.run(v)
-    offset = float(np.mean(y - filter_at_rest(b, a, h)))
+    offset = float(np.mean(y - filter_at_rest(b, a, hysteresis(model_of(res.x)))))
     sv = np.linalg.svd(res.jac, compute_uv=False)
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
     params = GPIMParams(a0=1.0, a1=0.0, alpha=float(res.x[0]), rho=float(res.x[1]), tau=float(res.x[2]), n=n,
@@ -491,5 +489,5 @@ def fit_paper_gpim(train: Record, sections: Sequence[tuple[float, float]] = (PAP
         failed = f"did not converge in {res.nfev} evaluations"
     elif on_bound:
         failed = f"ended on the physical bound of {', '.join(on_bound)}"
-    model = ValveModel(params.model(), tuple(sections), t0=float(train.time_s[0]))
+    model = ValveModel(params.model(), tuple(sections), t0=float(train.time_s[0]), history=history)
     return PaperFit(params, model, cond, int(res.nfev), failed)

@@ -340,6 +340,21 @@ class GPIM:
         return np.clip(np.full(self.n, x0), self.ascending_envelope(v0) - self.thresholds,
                        self.descending_envelope(v0) + self.thresholds)
 
+    def cycled_state(self, v: np.ndarray) -> np.ndarray:
+        """Operator states at ``v[0]`` after the input swept the whole range of ``v`` before it: down to its
+        minimum if ``v`` starts rising, having come from its maximum (and the mirror image if it starts
+        falling).  The state of a record cut from running operation, where :meth:`virgin_state` is that
+        of a valve started from rest."""
+        v = np.asarray(v, dtype=float).reshape(-1)
+        lo, hi = float(np.min(v)), float(np.max(v))
+        moves = np.diff(v)
+        rising = bool(moves[np.flatnonzero(moves)[0]] > 0) if np.any(moves) else True
+        path = np.array([hi, lo, v[0]] if rising else [lo, hi, v[0]])
+        lower = self.ascending_envelope(path)
+        upper = lower if self.symmetric else self.descending_envelope(path)
+        states, _ = play_batch(lower, upper, self.thresholds, self.virgin_state(float(path[0])))
+        return states[-1].copy()
+
     def output_from_state(self, state: np.ndarray) -> float:
         return float(self.weights @ state + self.offset_um)
 

@@ -14,7 +14,7 @@ import numpy as np
 
 __all__ = ["IdentificationError", "Record", "FitQuality", "quality", "analysis_record", "split_held_out",
            "noise_floor_um", "join", "HELD_OUT_FRACTION", "ANALYSIS_RATE_HZ", "SUPPORTED_RATE_HZ",
-           "MIN_SAMPLES"]
+           "MIN_SAMPLES", "read_csv", "CSV_POSITION_COLUMNS"]
 
 HELD_OUT_FRACTION = 0.3      # without a validation record, the last 30 % (in time) is held out (CONTRACT.md)
 ANALYSIS_RATE_HZ = 2000.0    # fits run on block means at most this rate (error figures are at the record's rate)
@@ -71,6 +71,11 @@ class Record:
         return 1.0 / self.dt
 
     @property
+    def undersampled(self) -> bool:
+        """Sampled below SUPPORTED_RATE_HZ (0.1 % below it, so a jittered 1 kHz time column counts as 1 kHz)."""
+        return self.rate_hz < SUPPORTED_RATE_HZ * (1.0 - 1e-3)
+
+    @property
     def duration_s(self) -> float:
         return float(self.time_s[-1] - self.time_s[0] + self.dt) if len(self) > 1 else 0.0
 
@@ -82,8 +87,13 @@ class Record:
         return Record(self.time_s[start:stop], self.voltage_v[start:stop], self.position_um[start:stop],
                       self.block, self.source_dt)
 
-    def check(self, what: str = "record", min_samples: int = MIN_SAMPLES) -> "Record":
-        """Raise IdentificationError unless the record can be fitted; returns it (time-ordered)."""
+    def check(self, what: str = "record", min_samples: int = MIN_SAMPLES, min_reversals: int = 2) -> "Record":
+        """Raise IdentificationError unless the record can be fitted; returns it (time-ordered).
+
+        ``min_reversals`` is how often the voltage must change direction: 2 (a full cycle) for a record a
+        model is fitted on or started from, 1 for a held-out tail that continues the fitted record (the
+        operators keep their memory, so one reversal already tests it).
+        """
         if len(self) < min_samples:
             raise IdentificationError(f"{what} has {len(self)} samples; at least {min_samples} are needed")
         bad = ~(np.isfinite(self.time_s) & np.isfinite(self.voltage_v) & np.isfinite(self.position_um))
@@ -96,7 +106,7 @@ class Record:
             t = self.time_s[order]
             if np.any(np.diff(t) <= 0):
                 raise IdentificationError(f"{what} has repeated sample times")
-            return Record(t, self.voltage_v[order], self.position_um[order]).check(what, min_samples)
+            return Record(t, self.voltage_v[order], self.position_um[order]).check(what, min_samples, min_reversals)
         gaps = np.diff(self.time_s)
         if float(np.max(gaps)) > 10.0 * self.dt:
             k = int(np.argmax(gaps))
@@ -109,12 +119,48 @@ class Record:
                                       "no excitation to fit a hysteresis model")
         dv = np.diff(self.voltage_v)
         reversals = np.count_nonzero(np.diff(np.sign(dv[dv != 0])))
-        if reversals < 2:
-            raise IdentificationError(f"{what}: the voltage reverses direction {reversals} time(s); a hysteresis "
-                                      "fit needs at least one full cycle")
+        if reversals < min_reversals:
+            need = "at least one full cycle" if min_reversals >= 2 else "a reversal to test the model's memory"
+            raise IdentificationError(f"{what}: the voltage reverses direction {reversals} time(s); it needs {need}")
         if self.range_um <= 0:
             raise IdentificationError(f"{what}: the position is constant: nothing to fit")
         return self
+
+
+CSV_POSITION_COLUMNS = {"position_m": 1e6, "position_um": 1.0}   # header name -> factor to um
+
+
+def read_csv(path) -> Record:
+    """A record from a CSV file with a header naming ``time_s``, ``voltage_v`` and ``position_m`` or
+    ``position_um`` (any order, other columns ignored; ``#`` starts a comment line).  Raises
+    IdentificationError with a one-line reason for a missing file, column or number."""
+    import csv
+
+    try:
+        with open(path, newline="") as f:
+            lines = [line for line in f if line.strip() and not line.lstrip().startswith("#")]
+    except OSError as exc:
+        raise IdentificationError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if not lines:
+        raise IdentificationError(f"{path}: no header and no samples")
+    reader = csv.reader(lines)
+    header = [h.strip() for h in next(reader)]
+    position = [h for h in header if h in CSV_POSITION_COLUMNS]
+    missing = [h for h in ("time_s", "voltage_v") if h not in header] + ([] if position else ["position_m or position_um"])
+    if missing:
+        raise IdentificationError(f"{path}: the header ({', '.join(header)}) lacks {', '.join(missing)}")
+    cols = [header.index(h) for h in ("time_s", "voltage_v", position[0])]
+    rows = []
+    for k, row in enumerate(reader, start=2):
+        try:
+            rows.append([float(row[c]) for c in cols])
+        except (ValueError, IndexError):
+            raise IdentificationError(f"{path}: data row {k} is not three numbers in those columns: "
+                                      f"{','.join(row)[:80]!r}") from None
+    if not rows:
+        raise IdentificationError(f"{path}: a header but no samples")
+    a = np.asarray(rows)
+    return Record(a[:, 0], a[:, 1], a[:, 2] * CSV_POSITION_COLUMNS[position[0]])
 
 
 def join(first: Record, second: Record) -> Record:

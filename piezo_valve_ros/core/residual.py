@@ -44,7 +44,7 @@ from .fitting import BASIS_RIDGE, FitCache, fit_model, fit_paper_gpim, uniform_t
 from .hysteresis import GPIM
 from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, SUPPORTED_RATE_HZ, Record,
                       analysis_record, noise_floor_um, quality, split_held_out)
-from .valve_model import ValveModel, describe_dynamics
+from .valve_model import INITIAL_STATES, ValveModel, describe_dynamics
 
 __all__ = ["analyse", "Analysis", "Split", "GAIN_THRESHOLD", "MIN_EFFECT_NOISE_RATIO", "UNEXPLAINED_NOISE_RATIO",
            "CAPACITY_OPERATORS", "HELD_OUT_FRACTION", "MID_CAPACITY"]
@@ -52,6 +52,7 @@ __all__ = ["analyse", "Analysis", "Split", "GAIN_THRESHOLD", "MIN_EFFECT_NOISE_R
 CAPACITY_OPERATORS = (12, 18, 27, 40, 60)   # GPIM sizes tried for the baseline
 MID_CAPACITY = 27                           # the size G_v's poles are first fitted with
 CAPACITY_TOLERANCE = 0.02                   # a smaller GPIM within 2 % of the best held-out RMS is preferred
+INITIAL_STATE_TOLERANCE = 0.02              # "cycled" replaces "rest" only if it cuts the held-out RMS by more
 GAIN_THRESHOLD = 0.2                        # an effect added last must cut the held-out RMS by >= 20 %
 MIN_EFFECT_NOISE_RATIO = 1.0                # ... and explain an RMS >= the sensor noise RMS
 UNEXPLAINED_NOISE_RATIO = 2.0               # structured residual RMS above this many noise RMS: unexplained
@@ -96,7 +97,7 @@ def _split(train: Record, validate: Optional[Record], max_rate_hz: float) -> Spl
         cut = split_held_out(train, HELD_OUT_FRACTION, block)
         pct = f"{100 * HELD_OUT_FRACTION:.0f} %"
         train.slice(0, cut).check(f"training part (first {100 - 100 * HELD_OUT_FRACTION:.0f} %)")
-        train.slice(cut).check(f"held-out part (last {pct})", min_samples=50)
+        train.slice(cut).check(f"held-out part (last {pct})", min_samples=50, min_reversals=1)
         whole = analysis_record(train, max_rate_hz)
         n_fit = cut // block
         t0 = float(whole.time_s[0])
@@ -212,7 +213,7 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
     split = _split(train_full, validate_full, max_rate_hz)
     fit, full = split.fit, split.fit_full
     warnings = []
-    if full.rate_hz < SUPPORTED_RATE_HZ:
+    if full.undersampled:
         warnings.append(f"the record is sampled at {full.rate_hz:.0f} Hz, below the supported "
                         f"{SUPPORTED_RATE_HZ:.0f} Hz: G_v's poles cannot be resolved and fast effects go unseen")
         log("warning: " + warnings[-1])
@@ -227,16 +228,23 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
         return Score.of(split.held_out_error(model))
 
     # ---- 1. baseline: G_v's poles, then the GPIM's capacity on held-out data
-    def start_model(thresholds, like: Optional[ValveModel] = None):
-        m = ValveModel(GPIM(thresholds, np.ones(thresholds.size)), t0=split.t0)
+    def start_model(thresholds, like: Optional[ValveModel] = None, history: str = "rest"):
+        m = ValveModel(GPIM(thresholds, np.ones(thresholds.size)), t0=split.t0, history=history)
         if like is not None:
-            m = replace(m, sections=like.sections, dynamics_note=like.dynamics_note, dynamics_free=like.dynamics_free)
+            m = replace(m, sections=like.sections, dynamics_note=like.dynamics_note, dynamics_free=like.dynamics_free,
+                        history=like.history)
         return m
 
     cache = FitCache()  # operator states etc. shared by every fit on the fit record
-    first = fit_model(fit, start_model(uniform_thresholds(fit.voltage_v, MID_CAPACITY)), poles="baseline", cache=cache)
+    # the operators' state at the first sample: a valve started from rest, or a record cut from running operation
+    mid = uniform_thresholds(fit.voltage_v, MID_CAPACITY)
+    starts = {h: fit_model(fit, start_model(mid, history=h), poles="baseline", cache=cache) for h in INITIAL_STATES}
+    start_rms = {h: held_out(m).rms for h, m in starts.items()}
+    history = "cycled" if start_rms["cycled"] < (1 - INITIAL_STATE_TOLERANCE) * start_rms["rest"] else "rest"
+    first = starts[history]
+    log("initial state: " + ", ".join(f"{h} {r:.4f}" for h, r in start_rms.items()) + f" um held-out RMS; chosen {history}")
     log(f"G_v: {first.dynamics_note}")
-    paper = fit_paper_gpim(fit, first.sections)
+    paper = fit_paper_gpim(fit, first.sections, history=history)
     grids = {f"{n} operators": uniform_thresholds(fit.voltage_v, n) for n in CAPACITY_OPERATORS}
     if paper.failed is None:
         grids[f"paper grid ({paper.params.n} operators, alpha {paper.params.alpha:.4g} V)"] = paper.model.gpim.thresholds
@@ -390,6 +398,7 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
         "baseline_fits": {
             "capacity": [{"grid": c[0], "operators": c[1], "held_out_rms_um": round(c[2], 6)} for c in capacity],
             "chosen": label,
+            "initial_state": {"held_out_rms_um": {h: round(r, 6) for h, r in start_rms.items()}, "chosen": history},
             "linear": {**figures(baseline), "operators": baseline.gpim.n, "invertible": True},
             "paper_nls": {**figures(paper.model),
                           "params": {k: getattr(paper.params, k) for k in ("a0", "a1", "alpha", "rho", "tau", "n",
@@ -415,7 +424,8 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
         "thresholds": {"held_out_gain": GAIN_THRESHOLD, "signature": GAIN_THRESHOLD,
                        "min_effect_noise_ratio": MIN_EFFECT_NOISE_RATIO, "peak_tolerance": PEAK_TOLERANCE,
                        "unexplained_noise_ratio": UNEXPLAINED_NOISE_RATIO, "unexplained_pct": MIN_STRUCTURE_PCT,
-                       "capacity_tolerance": CAPACITY_TOLERANCE},
+                       "capacity_tolerance": CAPACITY_TOLERANCE,
+                       "initial_state_tolerance": INITIAL_STATE_TOLERANCE},
         "warnings": warnings,
         "final_model": final.describe(),
         "seconds": round(time.monotonic() - started, 3),

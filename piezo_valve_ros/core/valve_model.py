@@ -27,8 +27,9 @@ if TYPE_CHECKING:
 
 __all__ = ["ValveModel", "Context", "second_order", "unity_dc_poles", "sections", "discretise_for", "filter_at_rest",
            "describe_dynamics", "RATE_FILTERS_S", "RATE_SCALES_V_S", "PAPER_VALVE_MODEL",
-           "PAPER_SECTION"]
+           "PAPER_SECTION", "INITIAL_STATES"]
 
+INITIAL_STATES = ("rest", "cycled")      # the operators' state before a record's first sample (ValveModel.history)
 RATE_FILTERS_S = (0.02, 0.1)             # the input rate |dv/dt| through first-order lags of these [s] (cycling rates) ...
 RATE_SCALES_V_S = (10.0, 100.0, 1000.0)  # ... widens the thresholds by sum c rho / (rho + rate_k), for each lag
 
@@ -78,6 +79,9 @@ class ValveModel:
     effects:   the effects added, each with its coefficients (possibly none: its structure is nonlinear)
     t0:        record time [s] from which drift terms count
     dynamics_note, dynamics_free: where G's poles came from, and whether refits may move them
+    history:   the operators' state at a record's first sample: "rest" (no history at the first voltage, a
+               valve started from rest) or "cycled" (the record's own range swept before it, a record cut
+               from running operation); see ``GPIM.virgin_state`` and ``GPIM.cycled_state``
     """
 
     gpim: GPIM
@@ -88,6 +92,11 @@ class ValveModel:
     t0: float = 0.0
     dynamics_note: str = "paper"
     dynamics_free: bool = True   # the record determines G_v's poles (refits may move them)
+    history: str = "rest"
+
+    def __post_init__(self):
+        if self.history not in INITIAL_STATES:
+            raise ValueError(f"history must be one of {INITIAL_STATES}, got {self.history!r}")
 
     @property
     def dynamics(self) -> ContinuousTF:
@@ -115,9 +124,9 @@ class ValveModel:
 
     @property
     def structure_key(self) -> tuple:
-        """What operator states depend on besides the input: thresholds, envelopes, rate widening."""
+        """What operator states depend on besides the input: thresholds, envelopes, rate widening, history."""
         g = self.gpim
-        return (g.thresholds.tobytes(), g.a0, g.a1, g.b0, g.b1, g.b2, tuple(self.rate_widening_v))
+        return (g.thresholds.tobytes(), g.a0, g.a1, g.b0, g.b1, g.b2, tuple(self.rate_widening_v), self.history)
 
     def static_output(self, ctx: "Context") -> np.ndarray:
         """S = H + effect terms [um] (before G)."""
@@ -141,7 +150,8 @@ class ValveModel:
         out = {"model": self.name,
                "gpim": {"thresholds": [float(x) for x in g.thresholds], "weights": [float(x) for x in g.weights],
                         "a0": g.a0, "a1": g.a1, "offset_um": g.offset_um},
-               "G_v": describe_dynamics(self.dynamics, self.dynamics_note)}
+               "G_v": describe_dynamics(self.dynamics, self.dynamics_note),
+               "initial_state": self.history}
         if not g.symmetric:
             out["gpim"].update({"b0": g.b0, "b1": g.b1})
         if any(self.rate_widening_v):
@@ -221,7 +231,10 @@ class Context:
 
     @property
     def initial_state(self) -> np.ndarray:
-        return self._structural("initial_state", lambda: self.model.gpim.virgin_state(float(self.v[0])))
+        g = self.model.gpim
+        if self.model.history == "cycled":
+            return self._structural("initial_state", lambda: g.cycled_state(self.v))
+        return self._structural("initial_state", lambda: g.virgin_state(float(self.v[0])))
 
     @property
     def states(self) -> np.ndarray:
