@@ -14,7 +14,7 @@ setup(
         ("share/" + package_name + "/config", glob("config/*.yaml")),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=["setuptools", "numpy", "scipy", "rosbags>=0.11,<0.12"],
+    install_requires=["setuptools", "numpy", "scipy", "rosbags>=0.11,<0.12", "threadpoolctl"],
     extras_require={"plots": ["matplotlib"], "test": ["pytest"]},
     zip_safe=True,
     maintainer="piezo_valve_ros developers",

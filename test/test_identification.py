@@ -266,3 +266,14 @@ def test_a_real_piezo_record_is_fitted_to_its_noise_and_nothing_is_invented():
     assert report["baseline"]["validate"]["rms_um"] < 1.5 * noise   # 0.06 um of a 39 um stroke
     assert report["effects_added"] == [] and report["unexplained"] is False
     assert report["warnings"] == []                                 # 1 kHz is the supported rate, not below it
+
+
+def test_the_report_does_not_depend_on_the_number_of_threads():
+    """Refits run on a thread pool; the judgement and every figure must be the same on one thread."""
+    train, validate = records("masking pair: creep + drift")
+    reports = [analyse(train, validate, threads=n).report for n in (1, 3)]
+    for r in reports:
+        r.pop("seconds")
+    assert reports[0] == reports[1]
+    with pytest.raises(ValueError, match="threads must be >= 1"):
+        analyse(train, validate, threads=0)

@@ -112,13 +112,14 @@ def first_order_lag(time_constant_s: float, dt: float) -> "DiscreteFilter":
 
 
 def lag_bank(x: np.ndarray, time_constants_s: Sequence[float], dt: float) -> np.ndarray:
-    """First-order lags 1/(tau s + 1) of ``x`` (ZOH-exact, started at rest at x[0]); shape (N, k)."""
-    out = np.empty((x.size, len(time_constants_s)))
+    """First-order lags 1/(tau s + 1) of ``x`` (ZOH-exact, started at rest at x[0]); shape (N, k), each column
+    contiguous (a transposed view: the filters write whole rows)."""
+    out = np.empty((len(time_constants_s), x.size))
     for i, tau in enumerate(time_constants_s):
         lag = first_order_lag(tau, dt)
         lag.reset(float(x[0]))
-        out[:, i] = lag.run(x)
-    return out
+        out[i] = lag.run(x)
+    return out.T
 
 
 class DiscreteFilter:

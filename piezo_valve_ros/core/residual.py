@@ -32,12 +32,15 @@ from __future__ import annotations
 
 import itertools
 import math
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Callable, Optional
 
 import numpy as np
 from scipy import linalg
+from threadpoolctl import threadpool_limits
 
 from .effects import CATALOGUE, Effect
 from .fitting import BASIS_RIDGE, FitCache, fit_model, fit_paper_gpim, uniform_thresholds
@@ -58,6 +61,7 @@ MIN_EFFECT_NOISE_RATIO = 1.0                # ... and explain an RMS >= the sens
 UNEXPLAINED_NOISE_RATIO = 2.0               # structured residual RMS above this many noise RMS: unexplained
 PEAK_TOLERANCE = 1.1                        # an effect added last must not raise the held-out peak by > 10 %
 MIN_STRUCTURE_PCT = 0.01                    # ... and above this % of the range (noise-free records)
+REFIT_THREADS = min(4, os.cpu_count() or 1)  # independent refits run on this many threads (BLAS on one each)
 CONFIRM_ROUNDS = 4                          # exact drop-one rounds at most
 EXACT_CHECK_GAIN = 0.05                     # effects the linear search credits with >= 5 % are checked exactly
 
@@ -120,24 +124,29 @@ class _SubsetSearch:
     built once for the fit rows and the held-out rows; one Gram matrix serves all subsets.
     """
 
-    def __init__(self, baseline: ValveModel, split: Split, effects: list[Effect]):
+    def __init__(self, baseline: ValveModel, split: Split, effects: list[Effect],
+                 each: Callable[[list[Callable[[], object]]], list] = lambda jobs: [job() for job in jobs]):
         self.effects = effects
         ctx_f = baseline.context(split.fit, split.t0)
         ctx_s = baseline.context(split.score, split.score_t0)
-        blocks_f = [ctx_f.states - ctx_f.states[0], np.ones((len(split.fit), 1))]
-        blocks_s = [ctx_s.states - ctx_f.states[0], np.ones((len(split.score), 1))]
-        self.groups = [np.arange(blocks_f[0].shape[1] + 1)]
-        ridge = [np.full(blocks_f[0].shape[1] + 1, BASIS_RIDGE)]
-        col = blocks_f[0].shape[1] + 1
-        for e in effects:
-            cf, cs = e.search_columns(ctx_f), e.search_columns(ctx_s)
-            blocks_f.append(cf)
-            blocks_s.append(cs)
-            self.groups.append(np.arange(col, col + cf.shape[1]))
-            ridge.append(np.full(cf.shape[1], e.ridge))
-            col += cf.shape[1]
-        A = ctx_f.through_dynamics(np.column_stack(blocks_f))
-        self.B = ctx_s.through_dynamics(np.column_stack(blocks_s))[split.start:]
+        z_first = ctx_f.states[0]
+
+        def design(ctx) -> tuple[np.ndarray, list[int]]:
+            """The columns through the baseline's G, and each effect's width (``each`` runs fit and score
+            records side by side)."""
+            blocks = [ctx.states - z_first, np.ones((len(ctx.record), 1))] + [e.search_columns(ctx) for e in effects]
+            return ctx.through_dynamics(np.column_stack(blocks)), [b.shape[1] for b in blocks[2:]]
+
+        (A, widths), (B, _) = each([lambda: design(ctx_f), lambda: design(ctx_s)])
+        n_basis = z_first.size + 1
+        self.groups = [np.arange(n_basis)]
+        ridge = [np.full(n_basis, BASIS_RIDGE)]
+        col = n_basis
+        for e, width in zip(effects, widths):
+            self.groups.append(np.arange(col, col + width))
+            ridge.append(np.full(width, e.ridge))
+            col += width
+        self.B = B[split.start:]
         y = split.fit.position_um
         self.y_score = split.score.position_um[split.start:]
         n = A.shape[0]
@@ -207,9 +216,28 @@ def _structure(e_score: np.ndarray, dt: float, noise_um: float, range_um: float)
 
 
 def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_rate_hz: float = ANALYSIS_RATE_HZ,
-            log: Callable[[str], None] = lambda s: None) -> Analysis:
-    """Fit, diagnose and extend; ``validate_full`` None holds out the last ``HELD_OUT_FRACTION`` of the record."""
+            log: Callable[[str], None] = lambda s: None, threads: int = REFIT_THREADS) -> Analysis:
+    """Fit, diagnose and extend; ``validate_full`` None holds out the last ``HELD_OUT_FRACTION`` of the record.
+
+    Independent refits run on ``threads`` threads (the result does not depend on how many).  BLAS runs on
+    one thread meanwhile: its threads gain nothing on these tall, narrow least-squares problems and, beside
+    other busy processes, oversubscribe the cores (measured 3-4x slower on a loaded 2-core machine).
+    """
+    if threads < 1:
+        raise ValueError(f"threads must be >= 1, got {threads}")
+    with threadpool_limits(limits=1, user_api="blas"), \
+            ThreadPoolExecutor(threads, thread_name_prefix="refit") as pool:
+        return _analyse(train_full, validate_full, max_rate_hz, log, pool)
+
+
+def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: float,
+             log: Callable[[str], None], pool: ThreadPoolExecutor) -> Analysis:
     started = time.monotonic()
+
+    def each(jobs: list[Callable[[], object]]) -> list:
+        """Independent jobs on the pool, results in order (a job never waits for another)."""
+        return [f.result() for f in [pool.submit(job) for job in jobs]]
+
     split = _split(train_full, validate_full, max_rate_hz)
     fit, full = split.fit, split.fit_full
     warnings = []
@@ -238,20 +266,29 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
     cache = FitCache()  # operator states etc. shared by every fit on the fit record
     # the operators' state at the first sample: a valve started from rest, or a record cut from running operation
     mid = uniform_thresholds(fit.voltage_v, MID_CAPACITY)
-    starts = {h: fit_model(fit, start_model(mid, history=h), poles="baseline", cache=cache) for h in INITIAL_STATES}
-    start_rms = {h: held_out(m).rms for h, m in starts.items()}
+    def fitted_and_scored(start: ValveModel, poles: str) -> tuple[ValveModel, float]:
+        m = fit_model(fit, start, poles=poles, cache=cache)
+        return m, held_out(m).rms
+
+    fits = each([lambda h=h: fitted_and_scored(start_model(mid, history=h), "baseline") for h in INITIAL_STATES])
+    starts = {h: m for h, (m, _) in zip(INITIAL_STATES, fits)}
+    start_rms = {h: r for h, (_, r) in zip(INITIAL_STATES, fits)}
     history = "cycled" if start_rms["cycled"] < (1 - INITIAL_STATE_TOLERANCE) * start_rms["rest"] else "rest"
     first = starts[history]
     log("initial state: " + ", ".join(f"{h} {r:.4f}" for h, r in start_rms.items()) + f" um held-out RMS; chosen {history}")
     log(f"G_v: {first.dynamics_note}")
-    paper = fit_paper_gpim(fit, first.sections, history=history)
+    paper_job = pool.submit(fit_paper_gpim, fit, first.sections, history=history)
     grids = {f"{n} operators": uniform_thresholds(fit.voltage_v, n) for n in CAPACITY_OPERATORS}
+    jobs = {label: pool.submit(fitted_and_scored, start_model(grid, first), "fixed") for label, grid in grids.items()}
+    paper = paper_job.result()
     if paper.failed is None:
-        grids[f"paper grid ({paper.params.n} operators, alpha {paper.params.alpha:.4g} V)"] = paper.model.gpim.thresholds
+        label = f"paper grid ({paper.params.n} operators, alpha {paper.params.alpha:.4g} V)"
+        grids[label] = paper.model.gpim.thresholds
+        jobs[label] = pool.submit(fitted_and_scored, start_model(grids[label], first), "fixed")
     capacity = []
     for label, grid in grids.items():
-        m = fit_model(fit, start_model(grid, first), poles="fixed", cache=cache)
-        capacity.append((label, grid.size, held_out(m).rms, m))
+        m, rms = jobs[label].result()
+        capacity.append((label, grid.size, rms, m))
     best = min(c[2] for c in capacity)
     label, _, _, chosen = min((c for c in capacity if c[2] <= (1 + CAPACITY_TOLERANCE) * best), key=lambda c: c[1])
     baseline = fit_model(fit, chosen, poles="baseline", cache=cache)
@@ -261,7 +298,7 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
     H_fit = baseline.context(fit).H
     effects = [e for e in (cls.prepare(fit, H_fit) for cls in CATALOGUE) if e is not None]
     by_name = {e.name: e for e in effects}
-    search = _SubsetSearch(baseline, split, effects)
+    search = _SubsetSearch(baseline, split, effects, each)
     names = [e.name for e in effects]
     subsets = [frozenset(c) for r in range(len(names) + 1) for c in itertools.combinations(names, r)]
     table = []
@@ -280,30 +317,47 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
     confirm_log = []
     final, drop_one, verdicts = baseline, {}, {}
     current = [n for n in names if n in chosen_set]
-    refits: dict[frozenset, ValveModel] = {frozenset(): baseline}
+    refits: dict[frozenset, tuple[ValveModel, Score]] = {frozenset(): (baseline, held_out(baseline))}
 
-    def refit(subset: list[str], forms_from: Optional[ValveModel] = None) -> ValveModel:
-        """Exact refit of a subset (cached); effects keep the forms ``forms_from`` chose, if given."""
-        key = frozenset(subset)
-        if key not in refits:
-            if forms_from is None:
-                refits[key] = fit_model(fit, baseline, [by_name[n] for n in subset], cache=cache)
-            else:
-                chosen = {e.name: e for e in forms_from.effects}
-                refits[key] = fit_model(fit, baseline, [chosen[n] for n in subset], try_forms=False, cache=cache)
-        return refits[key]
+    def refit_many(requests: list[tuple[list[str], Optional[ValveModel]]]) -> list[tuple[ValveModel, Score]]:
+        """Exact refits of subsets with their held-out scores (cached; the missing ones on the pool).  In a
+        request ``(subset, like)``, effects that ``like`` has keep the form it chose and start from the
+        nonlinear structure it fitted (a warm start: drop-one refits and additions stay near it); the others
+        are fitted in each of their forms from their neutral structure."""
+        def job(subset: list[str], like: Optional[ValveModel]) -> tuple[ValveModel, Score]:
+            chosen = {e.name: e for e in like.effects} if like is not None else {}
+            effects = [chosen.get(n, by_name[n]) for n in subset]
+            m = fit_model(fit, baseline, effects, try_forms={n for n in subset if n not in chosen}, cache=cache,
+                          warm=like)
+            return m, held_out(m)
+
+        missing = {}
+        for subset, like in requests:
+            if frozenset(subset) not in refits:
+                missing.setdefault(frozenset(subset), (subset, like))
+        for key, result in zip(missing, each([lambda r=r: job(*r) for r in missing.values()])):
+            refits[key] = result
+        return [refits[frozenset(subset)] for subset, _ in requests]
+
+    def exact_options(current: list[str]) -> list[str]:
+        """Effects outside ``current`` that the linear search credits with >= EXACT_CHECK_GAIN on top of it."""
+        linear_base = search.score(frozenset(current))
+        return [n for n in names if n not in current
+                and 1.0 - search.score(frozenset(current) | {n}).rms / max(linear_base.rms, 1e-30) >= EXACT_CHECK_GAIN]
 
     def confirm(current: list[str]):
-        """Backward elimination with exact refits: (final model, drop-one models, verdicts, effects kept)."""
+        """Backward elimination with exact refits: (final model, drop-one models, verdicts, effects kept).  The
+        exact checks that follow a confirmed set are refitted beside its drop-one refits (speculatively: if an
+        effect is dropped they were not needed)."""
         for _ in range(CONFIRM_ROUNDS):
             if not current:
                 return baseline, {}, {}, []
-            model = refit(current)
-            score_model = held_out(model)
+            (model, score_model), = refit_many([(current, None)])
+            requests = [([m for m in current if m != n], model) for n in current]
+            dropped = refit_many(requests + [(current + [n], model) for n in exact_options(current)])[:len(current)]
             drops, verdicts = {}, {}
-            for n in current:
-                drops[n] = refit([m for m in current if m != n], model)
-                without = held_out(drops[n])
+            for n, (without_model, without) in zip(current, dropped):
+                drops[n] = without_model
                 verdicts[n] = _support(score_model, without, noise) + (without.rms, score_model.rms)
             confirm_log.append({"effects": list(current), "held_out_rms_um": round(score_model.rms, 6),
                                 "drop_one": {n: round(v[0], 4) for n, v in verdicts.items()}})
@@ -322,12 +376,9 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
     # that is supported joins (then everything is confirmed again)
     while len(current) < len(names):
         base_score = held_out(final)
-        linear_base = search.score(frozenset(current))
-        options = [n for n in names if n not in current
-                   and 1.0 - search.score(frozenset(current) | {n}).rms / max(linear_base.rms, 1e-30) >= EXACT_CHECK_GAIN]
+        options = exact_options(current)
         best = None
-        for n in options:
-            score = held_out(refit(current + [n]))
+        for n, (_, score) in zip(options, refit_many([(current + [n], final) for n in options])):
             if _support(score, base_score, noise)[2] and (best is None or score.rms < best[1].rms):
                 best = (n, score)
         if best is None:
@@ -367,6 +418,9 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
                                                   split.score.position_um[split.start:] - split.held_out_error(model),
                                                   range_val).as_dict()}
 
+    unique = list({id(m): m for m in (baseline, final, paper.model)}.values())
+    figured = {id(m): f for m, f in zip(unique, each([lambda m=m: figures(m) for m in unique]))}  # once each
+
     diagnosis = []
     for n in names:
         if n in verdicts and n in added:
@@ -386,12 +440,12 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
                      else "separate validation record")
     report = {
         "range_um": round(range_um, 4),
-        "baseline": {"model": baseline.name, "fit": label, **figures(baseline),
+        "baseline": {"model": baseline.name, "fit": label, **figured[id(baseline)],
                      "G_v": describe_dynamics(baseline.dynamics, baseline.dynamics_note),
                      "operators": baseline.gpim.n},
         "effects_added": added,
         "diagnosis": diagnosis,
-        "final": {"model": final.name, **figures(final)},
+        "final": {"model": final.name, **figured[id(final)]},
         "unexplained": bool(unexplained),
         "residual": seen,
         "residual_structure": {k: round(v, 6) for k, v in structure.items()},
@@ -399,17 +453,14 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
             "capacity": [{"grid": c[0], "operators": c[1], "held_out_rms_um": round(c[2], 6)} for c in capacity],
             "chosen": label,
             "initial_state": {"held_out_rms_um": {h: round(r, 6) for h, r in start_rms.items()}, "chosen": history},
-            "linear": {**figures(baseline), "operators": baseline.gpim.n, "invertible": True},
-            "paper_nls": {**figures(paper.model),
+            "linear": {**figured[id(baseline)], "operators": baseline.gpim.n, "invertible": True},
+            "paper_nls": {**figured[id(paper.model)],
                           "params": {k: getattr(paper.params, k) for k in ("a0", "a1", "alpha", "rho", "tau", "n",
                                                                            "offset_um")},
                           "fixed": "a0 = 1, a1 = 0: the 5-parameter form has two exact invariances (a0 with "
                                    "alpha, rho, tau; a1 with the offset)",
                           "condition_number": paper.condition_number, "evaluations": paper.evaluations,
-                          "failed": paper.failed,
-                          "validate_analysis_rate": quality(split.score.position_um[split.start:],
-                                                            split.score.position_um[split.start:]
-                                                            - split.held_out_error(paper.model), range_val).as_dict()},
+                          "failed": paper.failed},
         },
         "search": sorted(table, key=lambda t: t["held_out_rms_um"]),
         "confirm": confirm_log,
@@ -430,6 +481,10 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
         "final_model": final.describe(),
         "seconds": round(time.monotonic() - started, 3),
     }
+    b, f = report["baseline"]["validate"], report["final"]["validate"]
+    log(f"added: {', '.join(added) or 'nothing'}; held-out RMS {b['rms_um']:.4f} -> {f['rms_um']:.4f} um, peak "
+        f"{b['peak_um']:.3f} -> {f['peak_um']:.3f} um at {full.rate_hz:.0f} Hz; unexplained: {str(unexplained).lower()} "
+        f"({report['seconds']:.1f} s)")
     return Analysis(report, baseline, final, split, drop_one)
 
 

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from .effects.base import Effect
 
 __all__ = ["ValveModel", "Context", "second_order", "unity_dc_poles", "sections", "discretise_for", "filter_at_rest",
-           "describe_dynamics", "RATE_FILTERS_S", "RATE_SCALES_V_S", "PAPER_VALVE_MODEL",
+           "filter_rows_at_rest", "describe_dynamics", "RATE_FILTERS_S", "RATE_SCALES_V_S", "PAPER_VALVE_MODEL",
            "PAPER_SECTION", "INITIAL_STATES"]
 
 INITIAL_STATES = ("rest", "cycled")      # the operators' state before a record's first sample (ValveModel.history)
@@ -276,12 +276,13 @@ class Context:
 
     # ------------------------------------------------------------------ the linear dynamics
     @cached_property
-    def _filter(self) -> tuple[np.ndarray, np.ndarray]:
+    def filter(self) -> tuple[np.ndarray, np.ndarray]:
+        """(b, a) of G on this record (``discretise_for``)."""
         return discretise_for(self.model.dynamics, self.record)
 
     def through_dynamics(self, x: np.ndarray) -> np.ndarray:
         """G(s) applied to x (N,) or to each column of x (N, k), at rest at the first sample."""
-        return filter_at_rest(*self._filter, x)
+        return filter_at_rest(*self.filter, x)
 
 
 def discretise_for(tf: ContinuousTF, record: Record) -> tuple[np.ndarray, np.ndarray]:
@@ -297,8 +298,12 @@ def filter_at_rest(b: np.ndarray, a: np.ndarray, x: np.ndarray) -> np.ndarray:
     """lfilter of x (N,) or each column of x (N, k), started at rest at the first sample.  Columns are
     filtered as contiguous rows of the transpose (about twice as fast as strided columns)."""
     x = np.asarray(x, float)
-    zi = signal.lfilter_zi(b, a)
     if x.ndim == 1:
-        return signal.lfilter(b, a, x, zi=zi * x[0])[0]
-    rows = np.ascontiguousarray(x.T)
-    return signal.lfilter(b, a, rows, axis=1, zi=rows[:, :1] * zi[None, :])[0].T
+        return signal.lfilter(b, a, x, zi=signal.lfilter_zi(b, a) * x[0])[0]
+    return filter_rows_at_rest(b, a, np.ascontiguousarray(x.T)).T
+
+
+def filter_rows_at_rest(b: np.ndarray, a: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """lfilter of each row of ``rows`` (k, N), started at rest at its first sample; (k, N)."""
+    zi = signal.lfilter_zi(b, a)
+    return signal.lfilter(b, a, rows, axis=1, zi=rows[:, :1] * zi[None, :])[0]

@@ -58,6 +58,11 @@ class Asymmetry(Effect):
         g = model.gpim
         return model if g.b0 is not None else replace(model, gpim=self.with_betas(g, 0.0, 0.0, 0.0))
 
+    def carry(self, source, target):
+        if source.term(self.name) is None:
+            return target
+        return replace(target, gpim=self.with_betas(target.gpim, *self.betas(source.gpim)))
+
     def sensitivities(self, ctx) -> np.ndarray:
         a0 = ctx.model.gpim.a0
         dv = ctx.v - self.centre_v

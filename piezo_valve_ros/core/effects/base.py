@@ -65,6 +65,11 @@ class Effect:
         """The model with this effect's structure in place (at its neutral value)."""
         return model
 
+    def carry(self, source: "ValveModel", target: "ValveModel") -> "ValveModel":
+        """``target`` with this effect's nonlinear structure as fitted in ``source`` (a warm start for a refit
+        of a related subset); ``target`` unchanged when ``source`` lacks the effect or it has no structure."""
+        return target
+
     def sensitivities(self, ctx: "Context") -> np.ndarray:
         """(N, m) first-order columns of the nonlinear parameters (before G); m = 0 without any."""
         return np.zeros((len(ctx.record), 0))

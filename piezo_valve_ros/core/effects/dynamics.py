@@ -51,6 +51,15 @@ class Dynamics(Effect):
             model = replace(model, sections=model.sections + ((EXTRA_START * w, 1.1),))
         return model
 
+    def carry(self, source, target):
+        if source.term(self.name) is None:
+            return target
+        if self.form in ("rate", "both") and source.rate_widening_v:
+            target = replace(target, rate_widening_v=source.rate_widening_v)
+        if self.form in ("poles", "both") and len(source.sections) > 1:
+            target = replace(target, sections=source.sections)
+        return target
+
     def sensitivities(self, ctx) -> np.ndarray:
         if self.form == "poles":
             return np.zeros((len(ctx.record), 0))
