@@ -3,17 +3,14 @@
 Prints figures; compare as ratios within one run (the machine is shared).
     python bench/core_speed.py
 """
-import os
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
-from piezo_valve_ros.core.hysteresis import PAPER_GPIM  # noqa: E402
-from piezo_valve_ros.core.signals import training_voltage  # noqa: E402
-from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig  # noqa: E402
-from piezo_valve_ros.core.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController  # noqa: E402
+from piezo_valve_ros.core.hysteresis import PAPER_GPIM
+from piezo_valve_ros.core.signals import training_voltage
+from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController
 
 
 def best_of(fn, repeats=3):

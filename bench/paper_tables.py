@@ -5,15 +5,13 @@ ranking the paper reports.  ``--markdown FILE`` also writes the tables as Markdo
     python bench/paper_tables.py [--quick] [--markdown out.md]
 """
 import argparse
-import os
 import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
-from piezo_valve_ros.core.experiments import DEFAULT_SWEEP_HZ, frequency_response, paper_step_tests  # noqa: E402
-from piezo_valve_ros.core.strategies import TABLE1_GAINS, ControllerConfig, PIDGains  # noqa: E402
+from piezo_valve_ros.core.experiments import DEFAULT_SWEEP_HZ, frequency_response, paper_step_tests
+from piezo_valve_ros.core.strategies import TABLE1_GAINS, ControllerConfig, PIDGains
 
 # paper Table 1: name -> (ts 17.5, 52.5, 87.5, avg [ms]; os 17.5, 52.5, 87.5, avg [%])
 PAPER_T1 = {

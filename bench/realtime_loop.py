@@ -28,17 +28,16 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
-import rclpy  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from std_msgs.msg import Float64  # noqa: E402
+import rclpy
+from rclpy.parameter import Parameter
+from std_msgs.msg import Float64
 
-from piezo_valve_ros.nodes.common import (COMMAND_QOS, SENSOR_QOS, claim_pacing, make_executor,  # noqa: E402
+from piezo_valve_ros.nodes.common import (COMMAND_QOS, SENSOR_QOS, claim_pacing, make_executor,
                                           spin_loop)
-from piezo_valve_ros.nodes.rig import ProcessGroup, node_command  # noqa: E402
+from piezo_valve_ros.nodes.rig import ProcessGroup, node_command
 
 ECHO = """
 import sys, rclpy
