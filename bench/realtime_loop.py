@@ -37,7 +37,7 @@ from std_msgs.msg import Float64
 
 from piezo_valve_ros.nodes.common import (COMMAND_QOS, SENSOR_QOS, claim_pacing, make_executor,
                                           spin_loop)
-from piezo_valve_ros.nodes.rig import ProcessGroup, node_command
+from piezo_valve_ros.processes import ProcessGroup, node_command
 
 ECHO = """
 import sys, rclpy

@@ -51,6 +51,15 @@ class LoopSummary:
                 f"interval p99 {self.interval_p99_s * 1e3:.3f} ms, {self.stalls} stalls > 2 periods "
                 f"(longest {self.longest_gap_s * 1e3:.2f} ms)")
 
+    def lockstep_line(self) -> str:
+        """The same run in lockstep, where time is simulated: deadlines and stalls mean nothing there; what
+        counts is how fast the rig stepped and how long a command took to come back (ms)."""
+        sim_s = self.periods / self.nominal_rate_hz if self.nominal_rate_hz else float("nan")
+        return (f"lockstep: {self.periods} periods ({sim_s:.3f} s simulated) in {self.elapsed_s:.2f} s wall "
+                f"= {self.periods / self.elapsed_s if self.elapsed_s > 0 else 0.0:.0f} periods/s; "
+                f"{self.answered} commands answered positions, round trip p50 {self.latency_p50_s * 1e3:.3f} ms, "
+                f"p99 {self.latency_p99_s * 1e3:.3f} ms")
+
     def as_dict(self) -> dict:
         return asdict(self)
 
@@ -96,19 +105,22 @@ class LoopTiming:
         self._t_measured = t
         self._waiting = True
 
-    def commanded(self, t: float | None = None) -> None:
-        """A valid command arrived (only the first one after a measurement counts)."""
+    def commanded(self, t: float | None = None) -> bool | None:
+        """A valid command arrived (only the first one after a measurement counts).  Returns whether it came
+        within a period of its measurement; None for a command that answers no measurement."""
         if not self._waiting:
             self.late += 1
-            return
+            return None
         t = self.clock() if t is None else t
         latency = t - self._t_measured
         self._waiting = False
         self.answered += 1
-        if latency <= self.control_period_s:
+        in_time = latency <= self.control_period_s
+        if in_time:
             self.in_time += 1
         self._latency[self._n_latency % self._latency.size] = latency
         self._n_latency += 1
+        return in_time
 
     def summary(self) -> LoopSummary:
         lat = self._latency[:min(self._n_latency, self._latency.size)]

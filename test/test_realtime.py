@@ -21,7 +21,7 @@ from piezo_valve_ros.core.simulator import ValveSimConfig  # noqa: E402
 from piezo_valve_ros.loop_timing import LoopTiming  # noqa: E402
 from piezo_valve_ros.nodes.common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, claim_pacing,  # noqa: E402
                                           make_executor, samples_from_message, spin_loop)
-from piezo_valve_ros.nodes.rig import ProcessGroup, node_command  # noqa: E402
+from piezo_valve_ros.processes import ProcessGroup, node_command  # noqa: E402
 
 
 # ---------------------------------------------------------------------------- ROS-free pieces

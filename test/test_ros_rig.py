@@ -21,7 +21,8 @@ from piezo_valve_ros.core.signals import step_reference_m  # noqa: E402
 from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig  # noqa: E402
 from piezo_valve_ros.core.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set  # noqa: E402
 from piezo_valve_ros.nodes.common import COMMAND_QOS  # noqa: E402
-from piezo_valve_ros.nodes.rig import ProcessGroup, RigClient, node_command, run_in_background  # noqa: E402
+from piezo_valve_ros.nodes.rig import RigClient, run_in_background  # noqa: E402
+from piezo_valve_ros.processes import ProcessGroup, node_command  # noqa: E402
 
 DT = 1e-4
 GAINS = {"pid": "pid_1", "pid_hc": "pid_hc_5", "ff_pid": "ff_pid_1", "ff_pid_g": "ff_pid_g_2"}
@@ -141,7 +142,7 @@ def test_watchdog_applies_safe_voltage_when_controller_dies(ros, procs, tmp_path
 
 
 def test_bad_commands_are_rejected_or_clamped_and_logged(ros, procs, tmp_path):
-    start_rig(procs, tmp_path, ros.get_namespace(), hw={"lockstep.step_budget": -1, "command_timeout_s": 30.0}, controller=False)
+    start_rig(procs, tmp_path, ros.get_namespace(), hw={"lockstep.step_budget": -1, "command_timeout_s": 10.0}, controller=False)
     pub = ros.create_publisher(Float64, "voltage_command", COMMAND_QOS)
     try:
         deadline = time.monotonic() + 20
@@ -186,6 +187,47 @@ def run_rig_until_signal(tmp_path, args, sig, run_s=0.5) -> str:
 def test_sigterm_to_rig_leaves_no_process(tmp_path):
     text = run_rig_until_signal(tmp_path, ["--clock", "realtime", "--control-period-s", "0.001"], signal.SIGTERM)
     assert "safe_voltage 5.0 V applied" in text
+    assert "FATAL" not in text and "Traceback" not in text and "Error occurred" not in text, text
+
+
+def test_sigterm_to_a_lockstep_rig_stops_every_node_without_a_stack_trace(tmp_path):
+    """Lockstep runs flat out: a signal lands inside a callback nearly every time (it used to print
+    "[FATAL] Exception in 'subscriptions' callback" with a trace).  The shutdown line says what lockstep
+    measures, not real-time deadlines."""
+    text = run_rig_until_signal(tmp_path, [], signal.SIGTERM, run_s=2.0)
+    assert "FATAL" not in text and "Traceback" not in text and "Error occurred" not in text, text
+    line = [x for x in text.splitlines() if "safe_voltage 5.0 V applied; lockstep:" in x]
+    assert line and "periods/s" in line[0] and "commands in time" not in line[0]
+
+
+def test_nodes_die_with_a_rig_killed_by_sigkill(tmp_path):
+    """SIGKILL gives the rig no chance to stop its children: they get SIGTERM from the kernel
+    (PR_SET_PDEATHSIG), apply the safe voltage and exit."""
+    log = open(tmp_path / "rig.log", "w")
+    rig = subprocess.Popen([sys.executable, "-m", "piezo_valve_ros.nodes.rig", "--demo", "none", "--clock", "realtime",
+                            "--control-period-s", "0.001"], env=ros_env(), stdout=log, stderr=subprocess.STDOUT,
+                           start_new_session=True)
+    try:
+        wait_for_text(tmp_path / "rig.log", "running; Ctrl-C", timeout_s=30)
+        rig.kill()
+        rig.wait(5)
+        deadline = time.monotonic() + 15
+        while time.monotonic() < deadline:
+            try:
+                os.killpg(rig.pid, 0)  # the children are still in the rig's process group
+            except ProcessLookupError:
+                break
+            time.sleep(0.1)
+        else:
+            ps = subprocess.run(["ps", "-o", "pid,ppid,stat,etime,args", "-g", str(rig.pid)], capture_output=True,
+                                text=True).stdout
+            raise AssertionError(f"the rig's children outlived it:\n{ps}\n{open(tmp_path / 'rig.log').read()}")
+        assert "safe_voltage 5.0 V applied" in open(tmp_path / "rig.log").read()
+    finally:
+        try:
+            os.killpg(rig.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
 
 
 def test_parameter_files_load_into_the_nodes(procs, tmp_path):
@@ -223,6 +265,17 @@ def test_step_demo_prints_the_same_table_in_separate_processes_and_composed(tmp_
         assert all(0 < ts < 20 and 0 <= os_ < 5 for _, _, ts, os_ in table), table
         tables.append(table)
     assert tables[0] == tables[1]
+
+
+def test_step_demo_counts_control_periods_not_sample_rows():
+    """At 2 ms a control period holds 20 samples: settling times and the period count are in periods."""
+    out = subprocess.run([sys.executable, "-m", "piezo_valve_ros.nodes.rig", "--control-period-s", "0.002",
+                          "--hold-s", "0.2"], env=ros_env(), capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    table = _demo_table(out.stdout)
+    assert len(table) == 3 and all(ts >= 2.0 for _, _, ts, _ in table), out.stdout  # at least one period
+    periods = int(out.stdout.split(" control periods in ")[0].split()[-1])
+    assert periods == 2 + 3 * 2 * 100, out.stdout  # the start-up period, the first command, hold + after x 3
 
 
 def test_composed_realtime_rig_runs_and_stops_on_sigint(tmp_path):

@@ -201,3 +201,64 @@ def test_signals_shapes():
     ref = validation_reference_m(1e-3)
     assert ref.size == 53000 and np.max(np.abs(ref)) == pytest.approx(60e-6)
     assert identification_voltage(1e-3).min() >= 0
+
+
+# ---------------------------------------------------------------------------- oscillation guard
+def _delayed_loop(strategy_gains: str, delay_periods, dt=1e-3, duration_s=3.0, seed=0):
+    """A 1 kHz loop on the simulated valve whose measurements reach the controller ``delay_periods(t)``
+    periods late (a busy computer between two processes); a 2 Hz, 30 um sine demand."""
+    from collections import deque
+    cfg = ValveSimConfig(seed=seed)
+    valve = SimulatedValve(cfg)
+    per = int(round(dt / cfg.dt))
+    strategy, gains = gain_set(strategy_gains)
+    ctl = ValveController(ControllerConfig(strategy=strategy, gains=gains, dt=dt))
+    n = int(duration_s / dt)
+    t = np.arange(n) * dt
+    ref = 30e-6 * np.sin(2 * np.pi * 2.0 * t)
+    measured, commands, positions = deque(), np.empty(n), np.empty(n)
+    v = cfg.initial_voltage_v
+    for k in range(n):
+        for _ in range(per):
+            y = valve.step(v)
+        positions[k], commands[k] = y, v
+        measured.append((k, y))
+        while measured and k - measured[0][0] >= delay_periods(t[k]):
+            kk, yy = measured.popleft()
+            v = ctl.step(ref[kk], yy)
+    return t, ref * 1e6, positions * 1e6, commands, ctl
+
+
+def test_a_loop_delay_that_makes_pid_hc_swing_rail_to_rail_is_caught_and_held_on_feedforward():
+    """Two periods of extra delay for 0.8 s make PID HC 5 at 1 kHz oscillate rail to rail (the +-60 um swings
+    seen on a loaded rig).  The guard notices (both rails within 20 ms), runs on the inverse alone with the
+    integrator frozen, and hands back to feedback bumplessly once the delay has gone."""
+    episode = (1.0, 1.8)
+    delay = (lambda t: 2 if episode[0] <= t < episode[1] else 0)
+    t, ref, y, v, ctl = _delayed_loop("pid_hc_5", delay)
+    rails = (v <= 0.0) | (v >= 10.0)
+    during = (t >= episode[0]) & (t < episode[1] + 0.5)
+    assert ctl.guard_trips >= 1
+    assert rails[during].mean() < 0.05      # unguarded: about 40 % of the periods on a rail
+    err = np.abs(y - ref)
+    assert np.mean(err[during] > 10.0) < 0.1
+    # no effect before the episode, and normal tracking again after it (feedback back in charge)
+    assert not rails[t < episode[0]].any()
+    after = t > episode[1] + 2 * 0.25 + 0.3
+    assert not ctl.in_fallback and err[after].max() < 2.0
+    assert np.max(np.abs(np.diff(v[after]))) < 0.5   # the hand-back is bumpless
+
+
+def test_the_guard_never_trips_on_the_paper_step_tests_or_without_delay():
+    """Every Table 1 set on the paper's three steps at 10 kHz: no trip, so the paper's results stand."""
+    from piezo_valve_ros.core.signals import PAPER_STEPS_UM, step_reference_m
+    for name, (strategy, gains) in TABLE1_GAINS.items():
+        for a, b in PAPER_STEPS_UM:
+            config = ValveSimConfig()
+            ctl = ValveController(ControllerConfig(strategy=strategy, gains=gains, dt=config.dt))
+            ctl.reset(config.initial_voltage_v)
+            ref, _ = step_reference_m(config.dt, a, b, 0.1, 0.1)
+            run_closed_loop(SimulatedValve(config), ctl, ref)
+            assert ctl.guard_trips == 0, (name, a, b)
+    _, _, _, _, ctl = _delayed_loop("pid_hc_5", lambda t: 0, duration_s=1.0)
+    assert ctl.guard_trips == 0

@@ -17,6 +17,13 @@ ff_pid_g    v = inverse(y_ref) + PID(G_v(y_ref) - y) / k
 The output is clamped to the command range with conditional-integration anti-windup.
 Switching strategy (or gains) is bumpless: the integrator absorbs the difference where the
 new law has one, and any rest decays with ``bump_time_constant_s``.
+
+Oscillation guard (cannot be switched off): a feedback loop whose commands hit both rails within
+``GUARD_WINDOW_S`` is oscillating (a loop delay of two periods makes PID HC 5 at 1 kHz swing rail to
+rail: a busy computer does that to a loop across processes).  The controller then runs on its
+feedforward path alone (the inverse, OL HC, or OL for ``pid``), which needs no timing, with the
+integrator frozen, for ``GUARD_HOLD_S`` (doubled while it recurs, up to ``GUARD_MAX_HOLD_S``), and
+returns to feedback bumplessly.
 """
 from __future__ import annotations
 
@@ -32,8 +39,10 @@ __all__ = ["STRATEGIES", "PIDGains", "ControllerConfig", "ValveController", "TAB
            "nominal_static_gain", "CreepModel", "CreepCompensator"]
 
 STRATEGIES = ("ol", "ol_hc", "pid", "pid_hc", "ff_pid", "ff_pid_g")
-_HAS_PID = {"pid", "pid_hc", "ff_pid", "ff_pid_g"}
-_USES_INVERSE = {"ol_hc", "pid_hc", "ff_pid", "ff_pid_g"}
+FALLBACK_LAW = {"pid": "ol", "pid_hc": "ol_hc", "ff_pid": "ol_hc", "ff_pid_g": "ol_hc"}  # feedback -> feedforward
+GUARD_WINDOW_S = 0.02     # commands on both rails within this long: the loop oscillates
+GUARD_HOLD_S = 0.25       # ... and runs on feedforward alone this long
+GUARD_MAX_HOLD_S = 4.0    # ... doubled each time it recurs within two holds of the last, up to this
 
 
 @dataclass(frozen=True)
@@ -167,6 +176,8 @@ class ControllerConfig:
         if not (math.isfinite(self.command_min_v) and math.isfinite(self.command_max_v)
                 and self.command_min_v < self.command_max_v):
             out.append("command range must be finite with command_min_v < command_max_v")
+        elif not self.command_min_v <= self.centre_voltage_v <= self.command_max_v:
+            out.append(f"centre_voltage_v {self.centre_voltage_v} V must lie within the command range")
         if self.static_gain_um_per_v is not None and not (math.isfinite(self.static_gain_um_per_v)
                                                           and self.static_gain_um_per_v > 0):
             out.append("static_gain_um_per_v must be > 0")
@@ -219,8 +230,46 @@ class ValveController:
         self._bump_v = 0.0
         self.last_command_v = v0
         self.saturated = False
+        self._rail = 0                      # +1/-1: the last command was held at the upper/lower limit
         self._bump_decay = math.exp(-c.dt / c.bump_time_constant_s)
         self._d_alpha = c.dt / (c.derivative_filter_s + c.dt)
+        self._tick = 0                      # periods since reset
+        self._rail_high_at = self._rail_low_at = -(1 << 30)
+        self._fallback_left = 0             # periods still to run on feedforward alone
+        self._fallback_ended_at = -(1 << 30)
+        self._hold_periods = max(int(round(GUARD_HOLD_S / c.dt)), 1)
+        self.guard_trips = 0
+
+    @property
+    def guard_hold_s(self) -> float:
+        """How long the guard's last (or current) hold on feedforward lasts [s]."""
+        return self._hold_periods * self.config.dt
+
+    @property
+    def in_fallback(self) -> bool:
+        """True while the oscillation guard holds the loop on its feedforward path."""
+        return self._fallback_left > 0
+
+    def _guard(self) -> None:
+        """After each feedback command: both rails within GUARD_WINDOW_S -> feedforward alone for a hold."""
+        c = self.config
+        if self._rail > 0:
+            self._rail_high_at = self._tick
+        elif self._rail < 0:
+            self._rail_low_at = self._tick
+        else:
+            return
+        window = max(int(round(GUARD_WINDOW_S / c.dt)), 1)
+        if abs(self._rail_high_at - self._rail_low_at) > window:
+            return
+        base = max(int(round(GUARD_HOLD_S / c.dt)), 1)
+        recurs = self._tick - self._fallback_ended_at <= 2 * self._hold_periods
+        self._hold_periods = min(2 * self._hold_periods, int(round(GUARD_MAX_HOLD_S / c.dt))) if recurs else base
+        self._fallback_left = self._hold_periods
+        self._rail_high_at = self._rail_low_at = -(1 << 30)
+        self.guard_trips += 1
+        self._bump_v = 0.0      # no continuity with a rail-to-rail swing: straight to the feedforward command
+        self.integrator_um = 0.0
 
     def set_strategy(self, strategy: str, gains: Optional[PIDGains] = None) -> None:
         """Switch law (and optionally gains) at run time without a jump in the command."""
@@ -231,6 +280,18 @@ class ValveController:
         old_strategy = self.config.strategy
         self.config = new
         self._transfer(old_strategy)
+
+    def set_command_range(self, command_min_v: float, command_max_v: float, centre_voltage_v: float) -> None:
+        """New command range [V]: the static gain and the demand limits follow it; bumpless."""
+        new = replace(self.config, command_min_v=command_min_v, command_max_v=command_max_v,
+                      centre_voltage_v=centre_voltage_v)
+        problems = new.problems()
+        if problems:
+            raise ValueError("; ".join(problems))
+        self.config = new
+        self._setup_model(self.model)
+        self.last_command_v = min(max(self.last_command_v, command_min_v), command_max_v)
+        self._transfer(self.config.strategy)
 
     def set_gains(self, gains: PIDGains) -> None:
         self.set_strategy(self.config.strategy, gains)
@@ -286,6 +347,14 @@ class ValveController:
         """One control period: demand and measured position [m] -> command [V]."""
         c = self.config
         s = c.strategy
+        self._tick += 1
+        if self._fallback_left:
+            self._fallback_left -= 1
+            if self._fallback_left:
+                s = FALLBACK_LAW[s]
+            else:  # back to feedback, continuous with the last feedforward command
+                self._fallback_ended_at = self._tick
+                self._transfer(FALLBACK_LAW[s])
         y_ref = reference_m * 1e6
         self._last_ref_um = y_ref
         h_ref = self._creep.step(y_ref) if self._creep is not None else y_ref
@@ -308,9 +377,12 @@ class ValveController:
         u = g.kp * e + self.integrator_um + di + self._d_state
         if s == "pid_hc":
             u_c = min(max(u, self._demand_min_um), self._demand_max_um)
-            return self._finish(self.loop_inverse.step(u_c), e, di, int(u > u_c) - int(u < u_c))
-        base = c.centre_voltage_v if s == "pid" else ff_v
-        return self._finish(base + u / self._k, e, di)
+            v = self._finish(self.loop_inverse.step(u_c), e, di, int(u > u_c) - int(u < u_c))
+        else:
+            base = c.centre_voltage_v if s == "pid" else ff_v
+            v = self._finish(base + u / self._k, e, di)
+        self._guard()
+        return v
 
     def _finish(self, v_raw: float, e: float, di: float, demand_clip: int = 0) -> float:
         """Add the decaying bump, clamp, and integrate unless that pushes further into a limit.
@@ -327,6 +399,7 @@ class ValveController:
         high = v_raw > c.command_max_v or demand_clip > 0
         low = v_raw < c.command_min_v or demand_clip < 0
         self.saturated = high or low
+        self._rail = 1 if high else (-1 if low else 0)
         if not ((high and e > 0) or (low and e < 0)):
             self.integrator_um += di
         self.last_command_v = v

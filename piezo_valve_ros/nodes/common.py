@@ -4,19 +4,23 @@ from __future__ import annotations
 import array
 import gc
 import math
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
 import numpy as np
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType, SetParametersResult
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy, DurabilityPolicy, qos_profile_sensor_data
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 SENSOR_QOS = qos_profile_sensor_data  # spool_position: best effort, keep last
+LATEST_SENSOR_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST,
+                               durability=DurabilityPolicy.VOLATILE)  # a reader that wants only the newest sample
 COMMAND_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 REFERENCE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 SAMPLES_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
@@ -24,10 +28,36 @@ SAMPLES_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, hist
 SAMPLES_LABEL = "time,voltage_command,spool_position"
 
 
-def declare(node: Node, name: str, default: Any, description: str):
-    """Declare a parameter; numbers are dynamically typed so ``kp: 1`` works as well as ``kp: 1.0``."""
-    return node.declare_parameter(name, default, ParameterDescriptor(description=description,
-                                                                     dynamic_typing=True))
+def declare(node: Node, name: str, default: Any, description: str, *, read_only: bool = False,
+            low: Optional[float] = None, high: Optional[float] = None):
+    """Declare a parameter with a typed descriptor.
+
+    Booleans and strings are statically typed (``enabled: 'false'`` is refused by rclpy with its reason);
+    numbers and lists stay dynamically typed so ``kp: 1`` works as well as ``kp: 1.0`` (the node validates
+    them itself).  ``read_only`` parameters can be given at start-up only; ``low``/``high`` document the
+    admissible range in the descriptor (``ros2 param describe``) and are checked by rclpy for doubles.
+    """
+    descriptor = ParameterDescriptor(description=description, read_only=read_only)
+    if isinstance(default, bool):
+        descriptor.type = ParameterType.PARAMETER_BOOL
+    elif isinstance(default, str):
+        descriptor.type = ParameterType.PARAMETER_STRING
+    else:
+        descriptor.dynamic_typing = True
+        if low is not None and high is not None:
+            descriptor.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high))]
+    return node.declare_parameter(name, default, descriptor)
+
+
+def parameter_values(node: Node) -> dict[str, Any]:
+    """Every parameter of ``node`` by name (public API)."""
+    return {name: prm.value for name, prm in node.get_parameters_by_prefix("").items()}
+
+
+def refuse(node: Node, reason: str) -> SetParametersResult:
+    """One log line and the refusal a parameter client sees."""
+    node.get_logger().warning(f"rejected parameter update: {reason}")
+    return SetParametersResult(successful=False, reason=reason)
 
 
 def as_float(name: str, value: Any) -> float:
@@ -158,6 +188,27 @@ def spin_loop(executor, keep_going: Callable[[], bool], pacing: Optional[Pacing]
             executor.spin_once(timeout_sec=0.0)
 
 
+_STOP_REQUESTED = threading.Event()
+
+
+def init_ros(args=None) -> None:
+    """``rclpy.init`` for a node process, with signal handling of our own: Ctrl-C/SIGTERM only ask the spin
+    loop to stop (within its 0.1 s wait), so no callback is interrupted half-way (rclpy's handler raises
+    into whatever callback runs, which the executor reports as a FATAL exception) and the shutdown path
+    (safe voltage, flushing the samples) runs with the ROS context still valid."""
+    import signal
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    _STOP_REQUESTED.clear()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: _STOP_REQUESTED.set())
+
+
+def stop_requested() -> bool:
+    """True once Ctrl-C/SIGTERM arrived in a process set up by :func:`init_ros`."""
+    return _STOP_REQUESTED.is_set()
+
+
 def spin(nodes, on_exit: Optional[Callable[[], None]] = None, executor=None) -> int:
     """Spin until shutdown (Ctrl-C / SIGTERM); ``on_exit`` runs whatever ends the loop.
 
@@ -168,7 +219,7 @@ def spin(nodes, on_exit: Optional[Callable[[], None]] = None, executor=None) -> 
         executor.add_node(node)
     code = 0
     try:
-        spin_loop(executor, rclpy.ok, claim_pacing(nodes))
+        spin_loop(executor, lambda: rclpy.ok() and not _STOP_REQUESTED.is_set(), claim_pacing(nodes))
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:
@@ -208,7 +259,9 @@ def run_node(factory: Callable[[], Node], name: str, args=None, on_exit_of=None)
     ``on_exit_of(node)`` gives the callable run when spinning ends (e.g. apply safe_voltage).
     """
     import sys
-    rclpy.init(args=args)
+    from ..processes import die_with_parent
+    die_with_parent()
+    init_ros(args)
     try:
         node = factory()
     except Exception as exc:

@@ -15,7 +15,8 @@ import sys
 
 import rclpy
 
-from .common import spin
+from ..processes import die_with_parent
+from .common import init_ros, spin
 from .controller import ValveControllerNode
 from .hardware import ValveHardwareNode
 
@@ -44,7 +45,8 @@ def build(hardware_overrides=(), controller_overrides=(), **node_kwargs) -> tupl
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args)
+    die_with_parent()
+    init_ros(args)
     try:
         hardware, controller = build()
     except Exception as exc:

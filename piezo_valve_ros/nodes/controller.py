@@ -1,41 +1,65 @@
 """``valve_controller``: the selected strategy with the inverse GPIM, one command per measurement.
 
 Every parameter change is validated as a whole before anything is applied (a rejected update
-leaves the controller as it was and returns the reason); strategy and gain changes are bumpless.
-``gain_set`` (e.g. ``pid_hc_5``), when non-empty, selects strategy and gains from Table 1 and
-overrides ``strategy``/``kp``/``ki``/``kd``.
+leaves the controller as it was and returns the reason); what is accepted is applied, and strategy,
+gain, range and model changes are bumpless.
+
+``gain_set`` (e.g. ``pid_hc_5``), when non-empty, selects strategy and gains from Table 1 and writes them
+into ``strategy``/``kp``/``ki``/``kd``, which then read back what runs.  While a set is active those four
+are refused unless the same request clears it (``gain_set: ''``); clearing it alone keeps the set's values.
+
+Hand-over: with ``enabled: false`` another node drives ``voltage_command`` (e.g. identification).  The
+controller tracks the voltage actually applied (those commands, and the hardware's ``samples``); when the
+other node's commands stop for ``handback_timeout_s`` (it died, say), the controller enables itself.
+Either way it resumes bumplessly from the applied voltage.
 """
 from __future__ import annotations
 
 import math
 import sys
-from dataclasses import replace
+import time
 from typing import Any, Callable, Optional
 
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
-from std_msgs.msg import Float64
+from rclpy.parameter import Parameter
+from std_msgs.msg import Float64, Float64MultiArray
 
 from ..core.dynamics import PAPER_VALVE_MODEL, ContinuousTF
 from ..core.hysteresis import GPIM, PAPER_GPIM, GPIMParams, inverse_problems
 from ..core.signals import ReferenceRamp
-from ..core.strategies import STRATEGIES, ControllerConfig, CreepModel, PIDGains, ValveController, gain_set
-from .common import COMMAND_QOS, SENSOR_QOS, as_float, as_float_list, as_int, declare, run_node
+from ..core.strategies import (GUARD_WINDOW_S, STRATEGIES, ControllerConfig, CreepModel, PIDGains, ValveController,
+                               gain_set)
+from .common import (COMMAND_QOS, LATEST_SENSOR_QOS, SAMPLES_QOS, as_float, as_float_list, as_int, declare, parameter_values,
+                     refuse, run_node, samples_from_message)
 
 GPIM_KEYS = ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")
+GAIN_SET_KEYS = ("strategy", "kp", "ki", "kd")   # what an active gain_set decides
+HANDBACK_TIMEOUT_RANGE_S = (0.05, 10.0)          # handback_timeout_s may not be shorter or longer than this
+HANDBACK_CHECK_S = 0.02                          # how often the hand-back condition is checked [s]
+SWITCH_INTERVAL_RANGE_S = (1e-6, 0.005)
+
+
+def gain_set_values(name: str) -> dict[str, Any]:
+    """strategy/kp/ki/kd of a Table 1 set; ValueError for an unknown name."""
+    try:
+        strategy, gains = gain_set(name)
+    except KeyError as exc:
+        raise ValueError(str(exc.args[0])) from None
+    return {"strategy": strategy, "kp": gains.kp, "ki": gains.ki, "kd": gains.kd}
 
 
 def settings_from_parameters(p: dict[str, Any]) -> tuple[ControllerConfig, GPIM, ContinuousTF, CreepModel]:
     """Controller settings from a flat parameter dict; raises ValueError with every problem found."""
+    strategy = str(p["strategy"])
+    gains = PIDGains(as_float("kp", p["kp"]), as_float("ki", p["ki"]), as_float("kd", p["kd"]))
     name = str(p.get("gain_set", "") or "")
     if name:
-        try:
-            strategy, gains = gain_set(name)
-        except KeyError as exc:
-            raise ValueError(str(exc.args[0])) from None
-    else:
-        strategy = str(p["strategy"])
-        gains = PIDGains(as_float("kp", p["kp"]), as_float("ki", p["ki"]), as_float("kd", p["kd"]))
+        wanted = gain_set_values(name)
+        differ = [k for k in GAIN_SET_KEYS if p[k] != wanted[k]]
+        if differ:
+            raise ValueError(f"gain_set {name!r} is active and decides {', '.join(GAIN_SET_KEYS)}: to set "
+                             f"{', '.join(differ)}, clear it in the same request (gain_set: '')")
     config = ControllerConfig(
         strategy=strategy, gains=gains, dt=as_float("control_period_s", p["control_period_s"]),
         command_min_v=as_float("command_min_v", p["command_min_v"]),
@@ -75,10 +99,9 @@ class ValveControllerNode(Node):
         pg = PAPER_GPIM
         for name, default, text in [
             ("strategy", "pid_hc", f"one of {', '.join(STRATEGIES)}"),
-            ("gain_set", "", "Table 1 gain set name, overrides strategy/kp/ki/kd when set"),
+            ("gain_set", "", "Table 1 gain set name: sets strategy/kp/ki/kd (which read back its values); '' = none"),
             ("kp", g.kp, "proportional gain (normalised, um/um)"), ("ki", g.ki, "integral gain [1/s]"),
             ("kd", g.kd, "derivative gain [s] (the paper uses 0)"),
-            ("control_period_s", 1e-3, "control period [s]; must match the hardware's (same default)"),
             ("command_min_v", 0.0, "[V]"), ("command_max_v", 10.0, "[V]"), ("centre_voltage_v", 5.0, "[V]"),
             ("reference_ramp_s", 0.0, "reference changes become ramps of this duration [s] (paper: 0.002)"),
             ("initial_reference_m", 0.0, "reference until the first position_reference [m]"),
@@ -93,29 +116,74 @@ class ValveControllerNode(Node):
             ("creep.time_constants_s", [], "creep compensation (feedforward path): lag time constants [s]"),
             ("creep.gains", [], "creep compensation: gains [-] (empty or all 0: none)"),
             ("enabled", True, "false: publish no commands (another node drives voltage_command, e.g. identification); "
-                              "true again resumes from the last command seen"),
+                              "true again resumes from the applied voltage"),
         ]:
             declare(self, name, default, text)
-        p = self._values()
+        declare(self, "control_period_s", 1e-3, "control period [s]; must match the hardware's (same default)",
+                read_only=True)
+        lo, hi = HANDBACK_TIMEOUT_RANGE_S
+        declare(self, "handback_timeout_s", 1.0, "disabled: when the commands of the node that took over stop for "
+                f"this long, take control back [s] ({lo:g}..{hi:g})", low=lo, high=hi)
+        lo, hi = SWITCH_INTERVAL_RANGE_S
+        declare(self, "realtime.switch_interval_s", 5e-5, "CPython's GIL switch interval in this process [s] "
+                "(the default 5 ms lets DDS threads hold the interpreter for several periods)", read_only=True,
+                low=lo, high=hi)
+        name = str(self.get_parameter("gain_set").value or "")
+        if name:  # the set's values are what runs: the parameters say so
+            self.set_parameters([Parameter(k, value=v) for k, v in gain_set_values(name).items()])
+        p = parameter_values(self)
         config, model, valve_model, creep = settings_from_parameters(p)
+        self.handback_timeout_s = self._handback_timeout(p["handback_timeout_s"])
+        switch_interval = as_float("realtime.switch_interval_s", p["realtime.switch_interval_s"])
+        if not SWITCH_INTERVAL_RANGE_S[0] <= switch_interval <= SWITCH_INTERVAL_RANGE_S[1]:
+            raise ValueError(f"realtime.switch_interval_s must lie in {list(SWITCH_INTERVAL_RANGE_S)} s, "
+                             f"got {switch_interval}")
+        sys.setswitchinterval(switch_interval)
         self.controller = ValveController(config, model, valve_model, creep)
         self.ramp = ReferenceRamp(as_float("initial_reference_m", p["initial_reference_m"]),
-                                  as_float("reference_ramp_s", p["reference_ramp_s"]), config.dt)
+                                  self._ramp_s(p["reference_ramp_s"]), config.dt)
         self.enabled = bool(p["enabled"])
         self._last_position_m = None
+        self._guarding = False
         self._said_no_listener = False
-        self._last_foreign_command_v = None
+        self._applied_v: Optional[float] = None       # while disabled: the voltage last applied, as far as we know
+        self._foreign_command_at: Optional[float] = None  # while disabled: monotonic time of the last foreign command
+        self._samples_sub = None
         self.command_pub = self.create_publisher(Float64, "voltage_command", COMMAND_QOS)
         self.create_subscription(Float64, "voltage_command", self._on_command_seen, COMMAND_QOS)
-        self._position_sub = self.create_subscription(Float64, "spool_position", self._on_position, SENSOR_QOS)
+        # depth 1: after a stall the controller answers the newest position, never a queue of stale ones
+        self._position_sub = self.create_subscription(Float64, "spool_position", self._on_position, LATEST_SENSOR_QOS)
         self.create_subscription(Float64, "position_reference", self._on_reference, 10)
+        self.add_pre_set_parameters_callback(self._expand_gain_set)
         self.add_on_set_parameters_callback(self._on_parameters)
+        self.create_timer(HANDBACK_CHECK_S, self._check_handback)
+        if not self.enabled:
+            self._watch_applied_voltage(True)
         self.rejected_references = 0
-        self.get_logger().info(f"valve_controller up: strategy={config.strategy} kp={config.gains.kp} "
-                               f"ki={config.gains.ki} period={config.dt * 1e3:.3f} ms")
+        self.get_logger().info(f"valve_controller up: strategy={config.strategy}{self._gains_text(config)} "
+                               f"period={config.dt * 1e3:.3f} ms" + (f" (gain_set {p['gain_set']})" if p["gain_set"] else ""))
 
-    def _values(self) -> dict[str, Any]:
-        return {name: param.value for name, param in self._parameters.items()}
+    @staticmethod
+    def _gains_text(config: ControllerConfig) -> str:
+        if config.strategy in ("ol", "ol_hc"):
+            return ""  # no feedback: the gains are not used
+        g = config.gains
+        return f" kp={g.kp} ki={g.ki}" + (f" kd={g.kd}" if g.kd else "")
+
+    @staticmethod
+    def _ramp_s(value) -> float:
+        ramp_s = as_float("reference_ramp_s", value)
+        if ramp_s < 0:
+            raise ValueError(f"reference_ramp_s must be >= 0 (0: steps), got {ramp_s}")
+        return ramp_s
+
+    @staticmethod
+    def _handback_timeout(value) -> float:
+        timeout = as_float("handback_timeout_s", value)
+        lo, hi = HANDBACK_TIMEOUT_RANGE_S
+        if not lo <= timeout <= hi:
+            raise ValueError(f"handback_timeout_s must lie in [{lo:g}, {hi:g}] s, got {timeout}")
+        return timeout
 
     # ------------------------------------------------------------------ loop
     def on_measurement(self, y: float) -> Optional[float]:
@@ -126,7 +194,19 @@ class ValveControllerNode(Node):
         self._last_position_m = y
         if not self.enabled:
             return None
-        return self.controller.step(self.ramp.step(), y)
+        ctl = self.controller
+        trips = ctl.guard_trips
+        v = ctl.step(self.ramp.step(), y)
+        if ctl.guard_trips != trips:
+            self.get_logger().warning(
+                f"oscillation guard: commands on both rails within {GUARD_WINDOW_S * 1e3:.0f} ms (the loop "
+                f"oscillates, e.g. measurements delayed by a busy computer): feedforward only, integrator frozen, "
+                f"for {ctl.guard_hold_s:.2f} s (trip {ctl.guard_trips})")
+            self._guarding = True
+        elif self._guarding and not ctl.in_fallback:
+            self._guarding = False
+            self.get_logger().info("oscillation guard: feedback back in charge (bumpless)")
+        return v
 
     def _on_position(self, msg: Float64) -> None:
         if self.command_pub.get_subscription_count() <= 1:  # our own _on_command_seen is one of them
@@ -151,9 +231,44 @@ class ValveControllerNode(Node):
         return self.on_measurement
 
     def _on_command_seen(self, msg: Float64) -> None:
-        """While disabled, remember what others command (to resume from it)."""
+        """While disabled: what others command is what the valve gets (to resume from it, and to notice when
+        it stops)."""
         if not self.enabled and math.isfinite(msg.data):
-            self._last_foreign_command_v = msg.data
+            self._applied_v = msg.data
+            self._foreign_command_at = time.monotonic()
+
+    def _on_samples(self, msg: Float64MultiArray) -> None:
+        """While disabled: the hardware's own account of the applied voltage (e.g. its safe voltage after its
+        watchdog fired)."""
+        try:
+            rows, labels = samples_from_message(msg)
+        except ValueError:
+            return
+        if rows.shape[0] and "voltage_command" in labels:
+            v = float(rows[-1, labels.index("voltage_command")])
+            if math.isfinite(v):
+                self._applied_v = v
+
+    def _watch_applied_voltage(self, on: bool) -> None:
+        if on and self._samples_sub is None:
+            self._samples_sub = self.create_subscription(Float64MultiArray, "samples", self._on_samples, SAMPLES_QOS)
+        elif not on and self._samples_sub is not None:
+            self.destroy_subscription(self._samples_sub)
+            self._samples_sub = None
+
+    def _check_handback(self) -> None:
+        """Disabled, and the node that took over stopped commanding: take control back."""
+        if self.enabled or self._foreign_command_at is None:
+            return
+        silent = time.monotonic() - self._foreign_command_at
+        if silent < self.handback_timeout_s:
+            return
+        self.get_logger().warning(f"no voltage_command from the node that took over for {silent:.2f} s "
+                                  f"(handback_timeout_s {self.handback_timeout_s} s): taking control back")
+        result = self.set_parameters([Parameter("enabled", value=True)])[0]
+        if not result.successful:
+            self.get_logger().error(f"could not take control back: {result.reason}")
+            self._foreign_command_at = time.monotonic()  # try again after another timeout
 
     def _set_enabled(self, enabled: bool) -> None:
         if enabled == self.enabled:
@@ -161,15 +276,19 @@ class ValveControllerNode(Node):
         self.enabled = enabled
         if enabled:
             ctl = self.controller
-            v = ctl.last_command_v if self._last_foreign_command_v is None else self._last_foreign_command_v
+            v = ctl.last_command_v if self._applied_v is None else self._applied_v
             v = min(max(v, ctl.config.command_min_v), ctl.config.command_max_v)
             ctl.reset(v, self._last_position_m)
             if self._last_position_m is not None:
                 self.ramp.hold(self._last_position_m)
-            self.get_logger().info(f"enabled: resuming from {v:.4g} V (operators in the state of a synchronised "
-                                   f"valve at that voltage)")
+            self._watch_applied_voltage(False)
+            self._foreign_command_at = None
+            self.get_logger().info(f"enabled: resuming from the applied {v:.4g} V (operators in the state of a "
+                                   f"synchronised valve at that voltage)")
         else:
-            self._last_foreign_command_v = None
+            self._applied_v = self.controller.last_command_v
+            self._foreign_command_at = None
+            self._watch_applied_voltage(True)
             self.get_logger().info("disabled: publishing no commands")
 
     def _on_reference(self, msg: Float64) -> None:
@@ -181,36 +300,48 @@ class ValveControllerNode(Node):
         self.ramp.set_target(r)
 
     # ------------------------------------------------------------------ parameters
+    def _expand_gain_set(self, params: list[Parameter]) -> list[Parameter]:
+        """A new gain_set brings its strategy and gains into the same update (so they read back what runs)."""
+        named = {prm.name for prm in params}
+        for prm in params:
+            if prm.name == "gain_set" and isinstance(prm.value, str) and prm.value:
+                try:
+                    values = gain_set_values(prm.value)
+                except ValueError:
+                    return params  # refused with its reason by _on_parameters
+                params = params + [Parameter(k, value=v) for k, v in values.items() if k not in named]
+        return params
+
     def _on_parameters(self, params) -> SetParametersResult:
-        p = self._values()
+        p = parameter_values(self)
         for prm in params:
             p[prm.name] = prm.value
         try:
             config, model, valve_model, creep = settings_from_parameters(p)
-            ramp_s = as_float("reference_ramp_s", p["reference_ramp_s"])
+            ramp_s = self._ramp_s(p["reference_ramp_s"])
+            handback = self._handback_timeout(p["handback_timeout_s"])
+            as_float("initial_reference_m", p["initial_reference_m"])
         except ValueError as exc:
-            reason = str(exc)
-            self.get_logger().warning(f"rejected parameter update ({', '.join(x.name for x in params)}): {reason}")
-            return SetParametersResult(successful=False, reason=reason)
+            return refuse(self, f"({', '.join(x.name for x in params)}): {exc}")
         ctl = self.controller
-        if config.dt != ctl.config.dt:
-            reason = "control_period_s cannot be changed at run time (restart the node)"
-            self.get_logger().warning(f"rejected parameter update: {reason}")
-            return SetParametersResult(successful=False, reason=reason)
         changed = {x.name for x in params}
+        if "initial_reference_m" in changed:
+            return refuse(self, "initial_reference_m applies at start-up only (send position_reference instead)")
+        old = ctl.config
         if changed & {f"gpim.{k}" for k in GPIM_KEYS + ("thresholds", "weights")} \
                 or changed & {"valve_model.num", "valve_model.den", "creep.time_constants_s", "creep.gains"}:
             ctl.set_model(model, valve_model, creep)
             self.get_logger().info("new model parameters in use")
-        if (config.strategy, config.gains) != (ctl.config.strategy, ctl.config.gains) or \
-                (config.command_min_v, config.command_max_v, config.centre_voltage_v) != \
-                (ctl.config.command_min_v, ctl.config.command_max_v, ctl.config.centre_voltage_v):
-            ctl.config = replace(ctl.config, command_min_v=config.command_min_v,
-                                 command_max_v=config.command_max_v, centre_voltage_v=config.centre_voltage_v)
+        if (config.command_min_v, config.command_max_v, config.centre_voltage_v) != \
+                (old.command_min_v, old.command_max_v, old.centre_voltage_v):
+            ctl.set_command_range(config.command_min_v, config.command_max_v, config.centre_voltage_v)
+            self.get_logger().info(f"command range {config.command_min_v:g}..{config.command_max_v:g} V "
+                                   f"(centre {config.centre_voltage_v:g} V) in use (bumpless)")
+        if (config.strategy, config.gains) != (old.strategy, old.gains):
             ctl.set_strategy(config.strategy, config.gains)
-            self.get_logger().info(f"strategy={config.strategy} kp={config.gains.kp} ki={config.gains.ki} "
-                                   f"kd={config.gains.kd} (bumpless)")
+            self.get_logger().info(f"strategy={config.strategy}{self._gains_text(config)} (bumpless)")
         self.ramp.set_ramp(ramp_s, config.dt)
+        self.handback_timeout_s = handback
         if "enabled" in changed:
             self._set_enabled(bool(p["enabled"]))
         return SetParametersResult(successful=True)

@@ -27,8 +27,8 @@ from ..backends import ValveBackend, make_backend
 from ..loop_timing import LoopTiming
 from ..core.simulator import (AmplifierParams, CreepParams, DriftParams, RateDependenceParams, SaturationParams,
                               SensorParams, ValveSimConfig)
-from .common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, as_float, as_int, declare, run_node, samples_message,
-                     tighten_timer_slack)
+from .common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, as_float, as_int, declare, parameter_values, refuse,
+                     run_node, samples_message, tighten_timer_slack)
 
 
 def sim_config_from_parameters(p: dict) -> ValveSimConfig:
@@ -56,62 +56,98 @@ def sim_config_from_parameters(p: dict) -> ValveSimConfig:
     )
 
 
+MAX_CONTROL_PERIOD_S = 0.1      # slower than 10 Hz is no control loop for this valve
+MAX_COMMAND_TIMEOUT_S = 10.0    # the watchdog may not be stretched beyond this
+MIN_TIMEOUT_PERIODS = 2         # ... nor shortened below this many control periods (it would fire between commands)
+PERIOD_TOLERANCE = 1e-3         # control_period_s must be a whole number of sample periods to this relative error
+DEFAULT_SWITCH_INTERVAL_S = 5e-5  # CPython's GIL switch interval in real-time processes (its default: 5 ms)
+
+
+def samples_per_period(control_period_s: float, sample_period_s: float) -> int:
+    """Whole number of backend samples in one control period; ValueError with the reason otherwise."""
+    if not (math.isfinite(control_period_s) and 0.0 < control_period_s <= MAX_CONTROL_PERIOD_S):
+        raise ValueError(f"control_period_s must lie in (0, {MAX_CONTROL_PERIOD_S}] s, got {control_period_s}")
+    k = round(control_period_s / sample_period_s)
+    if k < 1 or abs(k * sample_period_s - control_period_s) > PERIOD_TOLERANCE * control_period_s:
+        raise ValueError(f"control_period_s {control_period_s} s is not a whole number of the backend's sample "
+                         f"periods ({sample_period_s} s)")
+    return int(k)
+
+
 class ValveHardwareNode(Node):
     def __init__(self, backend: Optional[ValveBackend] = None, **kwargs):
         super().__init__("valve_hardware", **kwargs)
-        declare(self, "backend", "sim", "valve backend: sim (default) or a registered DAQ backend")
-        declare(self, "clock", "realtime", "realtime (wall clock) or lockstep (one period per command)")
-        declare(self, "control_period_s", 1e-3, "period of spool_position [s] (a multiple of the sample period)")
-        declare(self, "samples_batch", 1000, "rows per samples message")
-        declare(self, "command_timeout_s", 0.5, "no valid command for this long -> safe_voltage [s]")
-        declare(self, "safe_voltage", 5.0, "voltage applied on timeout and shutdown [V] (5 V = centre)")
-        declare(self, "command_min_v", 0.0, "commands below are clamped [V]")
-        declare(self, "command_max_v", 10.0, "commands above are clamped [V]")
-        declare(self, "lockstep.step_budget", -1, "lockstep only: periods to run before pausing (-1 = no pause)")
+        declare(self, "backend", "sim", "valve backend: sim (default) or a registered DAQ backend", read_only=True)
+        declare(self, "clock", "realtime", "realtime (wall clock) or lockstep (one period per command)", read_only=True)
+        declare(self, "control_period_s", 1e-3, "period of spool_position [s] (a multiple of the sample period)",
+                read_only=True, low=0.0, high=MAX_CONTROL_PERIOD_S)
+        declare(self, "samples_batch", 1000, "rows per samples message", read_only=True)
+        declare(self, "command_timeout_s", 0.5, "no valid command for this long -> safe_voltage [s] "
+                f"(> 0, at least {MIN_TIMEOUT_PERIODS} control periods, at most {MAX_COMMAND_TIMEOUT_S} s)",
+                low=0.0, high=MAX_COMMAND_TIMEOUT_S)
+        declare(self, "safe_voltage", 5.0, "voltage applied on timeout and shutdown [V] (5 V = centre)", read_only=True)
+        declare(self, "command_min_v", 0.0, "commands below are clamped [V]", read_only=True)
+        declare(self, "command_max_v", 10.0, "commands above are clamped [V]", read_only=True)
+        declare(self, "lockstep.step_budget", -1, "lockstep only: periods to run before pausing (-1 = no pause); "
+                "refused on the real-time clock (a paused watchdog would hold the last command)")
         declare(self, "realtime.busy_poll_s", 0.0,
                 "realtime clock: poll for messages instead of sleeping this long before each tick [s] "
-                "(costs a core; >= control_period_s polls all the time)")
+                "(costs a core; >= control_period_s polls all the time)", read_only=True)
+        declare(self, "realtime.switch_interval_s", DEFAULT_SWITCH_INTERVAL_S,
+                "realtime clock: CPython's GIL switch interval in this process [s] (default 5 ms is longer than a "
+                "period: other threads, e.g. DDS, could hold the interpreter that long)", read_only=True,
+                low=1e-6, high=0.005)
         declare(self, "loop_stats_period_s", 0.0,
-                "log the loop timing (rate, commands in time, latency) this often [s]; 0: only at shutdown")
+                "log the loop timing (rate, commands in time, latency) this often [s]; 0: only at shutdown",
+                read_only=True)
         for name, default, text in [("sim.seed", 0, "noise seed"), ("sim.sample_period_s", 1e-4, "[s]"),
                                     ("sim.slew_limit", True, "amplifier current limit"),
                                     ("sim.creep", True, "creep"), ("sim.saturation", True, "loop-end flattening"),
                                     ("sim.noise", True, "LVDT noise"), ("sim.dynamics", True, "G_v(s)"),
                                     ("sim.rate_dependence", False, "rate dependence"),
                                     ("sim.drift", False, "thermal drift"), ("sim.asymmetry", False, "asymmetry")]:
-            declare(self, name, default, f"sim backend: {text}")
+            declare(self, name, default, f"sim backend: {text}", read_only=True)
         from ..core.hysteresis import PAPER_GPIM
         for k in ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um"):  # a valve unlike the paper's, for tests
-            declare(self, f"sim.gpim.{k}", getattr(PAPER_GPIM, k), "sim backend: the valve's own GPIM (paper units)")
-        p = {name: param.value for name, param in self._parameters.items()}
+            declare(self, f"sim.gpim.{k}", getattr(PAPER_GPIM, k), "sim backend: the valve's own GPIM (paper units)",
+                    read_only=True)
+        p = parameter_values(self)
         self.clock_mode = str(p["clock"])
         if self.clock_mode not in ("realtime", "lockstep"):
             raise ValueError(f"clock must be realtime or lockstep, got {self.clock_mode!r}")
         self.safe_voltage = as_float("safe_voltage", p["safe_voltage"])
         self.command_min_v = as_float("command_min_v", p["command_min_v"])
         self.command_max_v = as_float("command_max_v", p["command_max_v"])
+        if not self.command_min_v < self.command_max_v:
+            raise ValueError(f"command_min_v ({self.command_min_v} V) must be below command_max_v "
+                             f"({self.command_max_v} V)")
         if not self.command_min_v <= self.safe_voltage <= self.command_max_v:
             raise ValueError("safe_voltage must lie within [command_min_v, command_max_v]")
-        self.command_timeout_s = as_float("command_timeout_s", p["command_timeout_s"])
         self.samples_batch = as_int("samples_batch", p["samples_batch"])
         if self.samples_batch < 1:
             raise ValueError("samples_batch must be >= 1")
-        self.step_budget = as_int("lockstep.step_budget", p["lockstep.step_budget"])
+        self.step_budget = self._step_budget(p["lockstep.step_budget"])
         stats_period = as_float("loop_stats_period_s", p["loop_stats_period_s"])
         if stats_period < 0:
             raise ValueError("loop_stats_period_s must be >= 0")
         self.busy_poll_s = as_float("realtime.busy_poll_s", p["realtime.busy_poll_s"])
         if self.busy_poll_s < 0:
             raise ValueError("realtime.busy_poll_s must be >= 0")
+        switch_interval = as_float("realtime.switch_interval_s", p["realtime.switch_interval_s"])
+        if not 1e-6 <= switch_interval <= 0.005:
+            raise ValueError(f"realtime.switch_interval_s must lie in [1e-6, 0.005] s, got {switch_interval}")
         if backend is None:
             options = {"config": sim_config_from_parameters(p)} if p["backend"] == "sim" else {}
             backend = make_backend(str(p["backend"]), **options)
-        self.backend = backend
         if self.clock_mode == "lockstep" and not backend.supports_lockstep:
             raise ValueError(f"backend {p['backend']!r} cannot run in lockstep")
-        control_period = as_float("control_period_s", p["control_period_s"])
-        self.samples_per_period = max(int(round(control_period / backend.sample_period_s)), 1)
+        self.samples_per_period = samples_per_period(as_float("control_period_s", p["control_period_s"]),
+                                                     backend.sample_period_s)
+        self.backend = backend
         self.control_period_s = self.samples_per_period * backend.sample_period_s
+        self.command_timeout_s = self._command_timeout(p["command_timeout_s"])
+        if self.clock_mode == "realtime":
+            sys.setswitchinterval(switch_interval)
 
         self.position_pub = self.create_publisher(Float64, "spool_position", SENSOR_QOS)
         self.samples_pub = self.create_publisher(Float64MultiArray, "samples", SAMPLES_QOS)
@@ -133,6 +169,7 @@ class ValveHardwareNode(Node):
         self._last_publish_wall = time.monotonic()
         self.rejected = 0
         self.clamped = 0
+        self.late_commands = 0
         self.periods = 0
         self._closed = False
         self.backend.open()
@@ -146,7 +183,7 @@ class ValveHardwareNode(Node):
             # fallback when nobody claims the pacing (an executor spun elsewhere); spin_loop claims it
             self._tick_timer = self.create_timer(self.control_period_s, self._realtime_tick)
         if stats_period > 0:
-            self.create_timer(stats_period, lambda: self.get_logger().info("loop: " + self.loop_timing.summary().line()))
+            self.create_timer(stats_period, lambda: self.get_logger().info(self._loop_line()))
         self.get_logger().info(
             f"valve_hardware up: backend={p['backend']} clock={self.clock_mode} "
             f"period={self.control_period_s * 1e3:.3f} ms ({self.samples_per_period} samples)")
@@ -192,7 +229,11 @@ class ValveHardwareNode(Node):
         v = self._validate(v)
         if v is None:
             return
-        self.loop_timing.commanded()
+        if self.loop_timing.commanded() is False and self.clock_mode == "realtime" and self.periods > 1:
+            self.late_commands += 1
+            self.get_logger().warning(f"command arrived more than a period after its measurement "
+                                      f"({self.late_commands} so far): the loop runs with extra delay",
+                                      throttle_duration_sec=5.0)
         self._last_valid_command_wall = time.monotonic()
         self._command_since_publish = True
         self._armed = True
@@ -292,32 +333,51 @@ class ValveHardwareNode(Node):
             self.position_pub.publish(Float64(data=float(self.backend.read_position_cached())))
 
     # ------------------------------------------------------------------ parameters
+    def _step_budget(self, value) -> int:
+        budget = as_int("lockstep.step_budget", value)
+        if budget < -1:
+            raise ValueError(f"lockstep.step_budget must be -1 (no pause) or >= 0, got {budget}")
+        if budget != -1 and self.clock_mode != "lockstep":
+            raise ValueError("lockstep.step_budget applies only to clock lockstep (on the real-time clock a "
+                             "paused loop would stop the watchdog)")
+        return budget
+
+    def _command_timeout(self, value) -> float:
+        timeout = as_float("command_timeout_s", value)
+        shortest = MIN_TIMEOUT_PERIODS * self.control_period_s
+        if not shortest <= timeout <= MAX_COMMAND_TIMEOUT_S:
+            raise ValueError(f"command_timeout_s must lie in [{shortest:g}, {MAX_COMMAND_TIMEOUT_S:g}] s "
+                             f"({MIN_TIMEOUT_PERIODS} control periods .. {MAX_COMMAND_TIMEOUT_S:g} s), got {timeout}")
+        return timeout
+
     def _on_parameters(self, params) -> SetParametersResult:
-        for prm in params:
-            if prm.name == "lockstep.step_budget":
-                try:
-                    budget = as_int(prm.name, prm.value)
-                except ValueError as exc:
-                    self.get_logger().warning(f"rejected parameter: {exc}")
-                    return SetParametersResult(successful=False, reason=str(exc))
-                self.step_budget = budget
-                if budget == 0:
-                    self._flush_samples()  # paused: everything so far goes out
-                else:
-                    self._last_valid_command_wall = time.monotonic()
-                    if self._held_command is not None:
-                        v, self._held_command = self._held_command, None
-                        self._apply_lockstep(v)
-            elif prm.name in ("command_timeout_s",):
-                try:
-                    self.command_timeout_s = as_float(prm.name, prm.value)
-                except ValueError as exc:
-                    return SetParametersResult(successful=False, reason=str(exc))
+        """Validate the whole update first, then apply all of it (or nothing)."""
+        budget, timeout = self.step_budget, self.command_timeout_s
+        try:
+            for prm in params:
+                if prm.name == "lockstep.step_budget":
+                    budget = self._step_budget(prm.value)
+                elif prm.name == "command_timeout_s":
+                    timeout = self._command_timeout(prm.value)
+                else:  # read-only ones never get here (rclpy refuses them); anything else is not applied
+                    raise ValueError(f"{prm.name} cannot be changed at run time (restart the node)")
+        except ValueError as exc:
+            return refuse(self, str(exc))
+        self.command_timeout_s = timeout
+        if budget != self.step_budget:
+            self.step_budget = budget
+            if budget == 0:
+                self._flush_samples()  # paused: everything so far goes out
             else:
-                reason = f"{prm.name} cannot be changed at run time (restart the node)"
-                self.get_logger().warning(f"rejected parameter: {reason}")
-                return SetParametersResult(successful=False, reason=reason)
+                self._last_valid_command_wall = time.monotonic()
+                if self._held_command is not None:
+                    v, self._held_command = self._held_command, None
+                    self._apply_lockstep(v)
         return SetParametersResult(successful=True)
+
+    def _loop_line(self) -> str:
+        summary = self.loop_timing.summary()
+        return summary.lockstep_line() if self.clock_mode == "lockstep" else f"loop: {summary.line()}"
 
     # ------------------------------------------------------------------ shutdown
     def shutdown_safely(self) -> None:
@@ -331,8 +391,7 @@ class ValveHardwareNode(Node):
                 self._flush_samples()
         finally:
             self.backend.close()
-            line = (f"valve_hardware stopped: safe_voltage {self.safe_voltage} V applied; "
-                    f"loop: {self.loop_timing.summary().line()}")
+            line = f"valve_hardware stopped: safe_voltage {self.safe_voltage} V applied; {self._loop_line()}"
             if self.context.ok():
                 self.get_logger().info(line)
             else:  # after Ctrl-C/SIGTERM the ROS context (and /rosout) is already gone

@@ -41,7 +41,7 @@ from ..core.records import IdentificationError
 from ..core.signals import identification_voltage, joined, synchronising_sine, validation_reference_m
 from ..identify import (compensation, controller_parameters, controller_parameters_yaml, identify_bags, report_json,
                         write_atomically)
-from .common import COMMAND_QOS, REFERENCE_QOS, SAMPLES_QOS, SENSOR_QOS, as_float, declare, run_node
+from .common import COMMAND_QOS, REFERENCE_QOS, SAMPLES_QOS, SENSOR_QOS, as_float, declare, parameter_values, run_node
 
 STEPS = ("train", "refit", "validate")
 
@@ -95,7 +95,7 @@ class ValveIdentificationNode(Node):
             ("exit_when_done", False, "shut down after the plan"),
         ]:
             declare(self, name, default, text)
-        p = {name: prm.value for name, prm in self._parameters.items()}
+        p = parameter_values(self)
         self.plan = [s.strip() for s in str(p["plan"]).split(",") if s.strip()]
         unknown = [s for s in self.plan if s not in STEPS]
         if unknown:
@@ -134,7 +134,8 @@ class ValveIdentificationNode(Node):
             self.create_subscription(msg_class, topic, self._make_raw_callback(full), qos, raw=True)
         self.create_subscription(Float64, "spool_position", self._on_position, SENSOR_QOS)
         self.create_timer(0.2, self._roll_recorder)
-        self.controller = AsyncParameterClient(self, str(p["controller"]))
+        self.controller_name = str(p["controller"])
+        self.controller = AsyncParameterClient(self, self.controller_name)
         self.summary: list[dict] = []
         self.finished = threading.Event()
         self.failed = False
@@ -295,7 +296,7 @@ class ValveIdentificationNode(Node):
         try:
             if not self.controller.wait_for_services(timeout_sec=30.0):
                 raise RuntimeError("no controller answers (parameter services of "
-                                   f"{self.controller._remote_node_name!r} not found)")
+                                   f"{self.controller_name!r} not found)")
             while self.count_subscribers("voltage_command") == 0 and rclpy.ok():
                 time.sleep(0.05)  # the hardware is not up yet
             for step in self.plan:

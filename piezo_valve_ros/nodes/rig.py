@@ -12,8 +12,6 @@ SIGKILL, each after a grace period.
 from __future__ import annotations
 
 import argparse
-import signal
-import subprocess
 import sys
 import threading
 import time
@@ -27,69 +25,18 @@ from std_msgs.msg import Float64, Float64MultiArray
 
 from ..core.metrics import step_metrics
 from ..core.signals import PAPER_STEPS_UM
+from ..core.simulator import ValveSimConfig
+from ..processes import ProcessGroup, node_command
 from .common import REFERENCE_QOS, SAMPLES_QOS, claim_pacing, make_executor, samples_from_message, spin_loop
-
-
-# ---------------------------------------------------------------------------- processes
-def node_command(executable: str, params: dict, namespace: str = "") -> list[str]:
-    """Command line that starts one of the package's nodes with ``params`` (optionally in a namespace)."""
-    module = {"valve_hardware": "hardware", "valve_controller": "controller",
-              "valve_identification": "identification", "valve_composed": "composed"}[executable]
-    cmd = [sys.executable, "-m", f"piezo_valve_ros.nodes.{module}", "--ros-args"]
-    if namespace:
-        cmd += ["-r", f"__ns:={namespace}"]
-    for k, v in params.items():
-        if isinstance(v, bool):
-            v = str(v).lower()
-        elif isinstance(v, str):
-            v = "'" + v.replace("'", "''") + "'"  # YAML string, also when empty
-        elif isinstance(v, (list, tuple)):
-            v = "[" + ",".join(repr(float(x)) for x in v) + "]" if v else "[]"
-        cmd += ["-p", f"{k}:={v}"]
-    return cmd
-
-
-class ProcessGroup:
-    """Child processes that are always cleaned up."""
-
-    def __init__(self):
-        self.procs: list[tuple[str, subprocess.Popen]] = []
-
-    def start(self, name: str, cmd: list[str], **kwargs) -> subprocess.Popen:
-        proc = subprocess.Popen(cmd, **kwargs)
-        self.procs.append((name, proc))
-        return proc
-
-    def stop(self, grace_s: float = 3.0) -> None:
-        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
-            alive = [p for _, p in self.procs if p.poll() is None]
-            if not alive:
-                break
-            for p in alive:
-                try:
-                    p.send_signal(sig)
-                except ProcessLookupError:
-                    pass
-            deadline = time.monotonic() + grace_s
-            for p in alive:
-                try:
-                    p.wait(max(deadline - time.monotonic(), 0.01))
-                except subprocess.TimeoutExpired:
-                    pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.stop()
 
 
 # ---------------------------------------------------------------------------- demo client
 class RigClient(Node):
     """Drives a lockstep rig: reference, pause/resume through the hardware's step budget, samples."""
 
-    def __init__(self, namespace: str = ""):
+    def __init__(self, namespace: str = "", samples_per_period: int = 1):
         super().__init__("valve_rig_client", namespace=namespace or None)
+        self.samples_per_period = int(samples_per_period)  # rows of `samples` per control period
         prefix = namespace.rstrip("/") + "/" if namespace else ""
         hardware_node, controller_node = prefix + "valve_hardware", prefix + "valve_controller"
         self.rows: list[np.ndarray] = []
@@ -149,15 +96,16 @@ class RigClient(Node):
         return future.result().results
 
     def run_periods(self, periods: int, timeout_s: float = 60.0) -> np.ndarray:
-        """Grant ``periods`` control periods to a paused lockstep rig; returns their rows."""
-        start = self.rows_count
+        """Grant ``periods`` control periods to a paused lockstep rig; returns one row per period (its last
+        sample: the position the controller measured)."""
+        start, k = self.rows_count, self.samples_per_period
         result = self.set_params(self.hardware, {"lockstep.step_budget": periods})
         if not result[0].successful:
             raise RuntimeError(f"hardware refused the step budget: {result[0].reason}")
-        if not self.wait_rows(start + periods, timeout_s):
+        if not self.wait_rows(start + periods * k, timeout_s):
             raise TimeoutError(f"rig did not run {periods} periods within {timeout_s} s")
         time.sleep(0.1)  # let the controller answer the last position (its command is held)
-        return self.all_rows()[start:start + periods]
+        return self.all_rows()[start:start + periods * k][k - 1::k]
 
     def set_reference(self, reference_m: float, settle_s: float = 0.2) -> None:
         self.reference_pub.publish(Float64(data=float(reference_m)))
@@ -264,7 +212,8 @@ def main(argv=None) -> int:
         if args.identify:
             procs.start("valve_identification", node_command("valve_identification", {
                 "plan": args.identify, "control_period_s": args.control_period_s, "bag_dir": args.bag_dir}))
-        client = RigClient()
+        samples_per_period = max(int(round(args.control_period_s / ValveSimConfig().dt)), 1)
+        client = RigClient(samples_per_period=samples_per_period)
         nodes.append(client)
         thread, stop, executor = run_in_background(nodes)
         client.wait_ready()
@@ -280,9 +229,9 @@ def main(argv=None) -> int:
             print(f"{'step [um]':>18} {'settling [ms]':>14} {'overshoot [%]':>14}")
             for a, b, ts, os_ in results:
                 print(f"{a:7.1f} -> {b:6.1f} {ts * 1e3:14.1f} {os_:14.2f}")
-            steps_run = client.rows_count
-            print(f"\n{steps_run} control periods in {wall:.1f} s wall time "
-                  f"({steps_run / wall:.0f} periods/s including pauses)")
+            periods_run = client.rows_count // samples_per_period
+            print(f"\n{periods_run} control periods in {wall:.1f} s wall time "
+                  f"({periods_run / wall:.0f} periods/s including pauses)")
         else:
             print("running; Ctrl-C or SIGTERM to stop", flush=True)
             while rclpy.ok():

@@ -1,0 +1,91 @@
+"""Child processes of a launcher (``valve_rig``, tests): start the package's nodes, stop them all, and make
+them die with their parent.
+
+A parent killed with SIGKILL cannot stop its children; on Linux each node started through
+:class:`ProcessGroup` asks the kernel for SIGTERM when its parent dies (``PR_SET_PDEATHSIG``, see
+:func:`die_with_parent`, called by every node's entry point), so its ordinary shutdown runs: the hardware
+applies its safe voltage.  No ROS import here.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+PARENT_PID_ENV = "PIEZO_VALVE_PARENT_PID"   # set by ProcessGroup: the pid the child must not outlive
+STOP_GRACE_S = 3.0                          # each of SIGINT, SIGTERM, SIGKILL gets this long
+NODE_MODULES = {"valve_hardware": "hardware", "valve_controller": "controller",
+                "valve_identification": "identification", "valve_composed": "composed"}
+
+
+def node_command(executable: str, params: dict, namespace: str = "") -> list[str]:
+    """Command line that starts one of the package's nodes with ``params`` (optionally in a namespace)."""
+    cmd = [sys.executable, "-m", f"piezo_valve_ros.nodes.{NODE_MODULES[executable]}", "--ros-args"]
+    if namespace:
+        cmd += ["-r", f"__ns:={namespace}"]
+    for k, v in params.items():
+        if isinstance(v, bool):
+            v = str(v).lower()
+        elif isinstance(v, str):
+            v = "'" + v.replace("'", "''") + "'"  # YAML string, also when empty
+        elif isinstance(v, (list, tuple)):
+            v = "[" + ",".join(repr(float(x)) for x in v) + "]" if v else "[]"
+        cmd += ["-p", f"{k}:={v}"]
+    return cmd
+
+
+def die_with_parent() -> bool:
+    """In a process started by :class:`ProcessGroup`: receive SIGTERM when the parent dies (Linux).  Returns
+    False where that is not possible (not Linux, or not started by a ProcessGroup)."""
+    parent = os.environ.get(PARENT_PID_ENV)
+    if not parent or not sys.platform.startswith("linux"):
+        return False
+    import ctypes
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(1, int(signal.SIGTERM), 0, 0, 0) != 0:  # PR_SET_PDEATHSIG
+            return False
+    except (OSError, AttributeError):
+        return False
+    if os.getppid() != int(parent):  # the parent died before the request: act on it now
+        os.kill(os.getpid(), signal.SIGTERM)
+    return True
+
+
+class ProcessGroup:
+    """Child processes that are always cleaned up, and that die with this process if it is killed."""
+
+    def __init__(self):
+        self.procs: list[tuple[str, subprocess.Popen]] = []
+
+    def start(self, name: str, cmd: list[str], env: dict | None = None, **kwargs) -> subprocess.Popen:
+        env = dict(os.environ if env is None else env)
+        env[PARENT_PID_ENV] = str(os.getpid())
+        proc = subprocess.Popen(cmd, env=env, **kwargs)
+        self.procs.append((name, proc))
+        return proc
+
+    def stop(self, grace_s: float = STOP_GRACE_S) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+            alive = [p for _, p in self.procs if p.poll() is None]
+            if not alive:
+                break
+            for p in alive:
+                try:
+                    p.send_signal(sig)
+                except ProcessLookupError:
+                    pass
+            deadline = time.monotonic() + grace_s
+            for p in alive:
+                try:
+                    p.wait(max(deadline - time.monotonic(), 0.01))
+                except subprocess.TimeoutExpired:
+                    pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()

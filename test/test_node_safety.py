@@ -1,0 +1,253 @@
+"""Safety that no parameter can switch off, and parameter updates that are applied or refused with a reason.
+
+The nodes run in this process; ``node.set_parameters`` goes through the same pre-set/on-set callbacks and
+descriptor checks as a remote ``ros2 param set`` (rclpy's parameter service calls it), so what is refused
+here is refused over ROS too.
+"""
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from ros_helpers import ros_env
+
+os.environ.update({k: ros_env()[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
+
+import rclpy  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from std_msgs.msg import Float64, Float64MultiArray  # noqa: E402
+
+from piezo_valve_ros.core.strategies import ControllerConfig, ValveController, gain_set  # noqa: E402
+from piezo_valve_ros.nodes.common import COMMAND_QOS, SAMPLES_QOS, make_executor, samples_message  # noqa: E402
+from piezo_valve_ros.nodes.controller import ValveControllerNode  # noqa: E402
+from piezo_valve_ros.nodes.hardware import ValveHardwareNode  # noqa: E402
+
+_ids = iter(range(1000))
+
+
+@pytest.fixture(scope="module")
+def ros_context():
+    rclpy.init()
+    yield
+    rclpy.try_shutdown()
+
+
+def namespace() -> str:
+    return f"/safety{os.getpid()}_{next(_ids)}"
+
+
+def params(**values) -> list[Parameter]:
+    return [Parameter(k.replace("__", "."), value=v) for k, v in values.items()]
+
+
+def set_one(node, name, value):
+    return node.set_parameters([Parameter(name, value=value)])[0]
+
+
+@pytest.fixture
+def hardware(ros_context):
+    made = []
+
+    def make(**overrides):
+        node = ValveHardwareNode(namespace=namespace(), parameter_overrides=params(**overrides))
+        made.append(node)
+        return node
+    yield make
+    for node in made:
+        node.shutdown_safely()
+        node.destroy_node()
+
+
+@pytest.fixture
+def controller(ros_context):
+    made = []
+
+    def make(**overrides):
+        node = ValveControllerNode(namespace=namespace(), parameter_overrides=params(**overrides))
+        made.append(node)
+        return node
+    yield make
+    for node in made:
+        node.destroy_node()
+
+
+# ---------------------------------------------------------------------------- hardware
+@pytest.mark.parametrize("overrides, says", [
+    ({"command_timeout_s": 0.0}, "command_timeout_s must lie in"),
+    ({"command_timeout_s": -1}, "command_timeout_s must lie in"),
+    ({"command_timeout_s": 0.001}, "command_timeout_s must lie in"),   # shorter than two periods
+    ({"command_timeout_s": 60.0}, "out of range"),
+    ({"control_period_s": 0.0}, "control_period_s must lie in"),
+    ({"control_period_s": -0.001}, "out of range"),
+    ({"control_period_s": 0.00015}, "not a whole number"),
+    ({"lockstep__step_budget": 5}, "applies only to clock lockstep"),
+    ({"lockstep__step_budget": -2, "clock": "lockstep"}, "must be -1"),
+    ({"safe_voltage": 11.0}, "safe_voltage must lie within"),
+    ({"command_min_v": 5.0, "command_max_v": 5.0, "safe_voltage": 5.0}, "must be below"),
+])
+def test_hardware_refuses_unsafe_start_up_parameters(hardware, overrides, says):
+    with pytest.raises(Exception, match=says):
+        hardware(**overrides)
+
+
+def test_hardware_start_up_refusal_is_one_line_and_a_nonzero_exit():
+    exe = os.path.join(os.path.dirname(sys.executable), "valve_hardware")  # the console script
+    proc = subprocess.run([exe, "--ros-args", "-p", "control_period_s:=0.0"], env=ros_env(),
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == ["valve_hardware: control_period_s must lie in (0, 0.1] s, got 0.0"]
+
+
+@pytest.mark.parametrize("value", [0.0, -1, -1.0, float("nan"), float("inf"), "abc", 0.0005, 11.0])
+def test_hardware_watchdog_cannot_be_switched_off_at_run_time(hardware, value):
+    hw = hardware(clock="realtime", command_timeout_s=0.5)
+    result = set_one(hw, "command_timeout_s", value)
+    assert not result.successful and result.reason
+    assert hw.command_timeout_s == 0.5 and hw.get_parameter("command_timeout_s").value == 0.5
+
+
+def test_hardware_applies_a_valid_timeout_and_refuses_step_budget_on_the_real_time_clock(hardware):
+    hw = hardware(clock="realtime")
+    assert set_one(hw, "command_timeout_s", 0.2).successful and hw.command_timeout_s == 0.2
+    result = set_one(hw, "lockstep.step_budget", 0)
+    assert not result.successful and "lockstep" in result.reason
+    assert hw.step_budget == -1 and hw.get_parameter("lockstep.step_budget").value == -1
+
+
+@pytest.mark.parametrize("name, value", [("safe_voltage", 8.0), ("command_max_v", 20.0), ("control_period_s", 2e-3),
+                                         ("clock", "lockstep"), ("backend", "other"), ("sim.noise", False)])
+def test_hardware_start_up_settings_are_read_only(hardware, name, value):
+    hw = hardware(clock="realtime")
+    before = hw.get_parameter(name).value
+    result = set_one(hw, name, value)
+    assert not result.successful and "read-only" in result.reason
+    assert hw.get_parameter(name).value == before
+
+
+def test_lockstep_step_budget_still_pauses_a_lockstep_rig(hardware):
+    hw = hardware(clock="lockstep", lockstep__step_budget=0)
+    assert set_one(hw, "lockstep.step_budget", 10).successful and hw.step_budget == 10
+
+
+# ---------------------------------------------------------------------------- controller
+def test_an_active_gain_set_decides_strategy_and_gains_and_says_so(controller):
+    ctl = controller(gain_set="pid_hc_5")
+    strategy, gains = gain_set("pid_hc_5")
+    # the parameters read back what runs
+    assert ctl.get_parameter("strategy").value == strategy == ctl.controller.config.strategy
+    assert ctl.get_parameter("kp").value == gains.kp == ctl.controller.config.gains.kp
+    assert ctl.get_parameter("ki").value == gains.ki
+    # strategy/gains alone are refused while the set is active, valid or not, and change nothing
+    for name, value in [("kp", 2.0), ("strategy", "pid"), ("strategy", "bogus"), ("kp", float("nan")),
+                        ("ki", float("inf")), ("kp", "abc"), ("kd", -1.0)]:
+        result = set_one(ctl, name, value)
+        assert not result.successful and result.reason, (name, value)
+        assert ctl.controller.config.gains == gains and ctl.controller.config.strategy == strategy
+        assert ctl.get_parameter("kp").value == gains.kp and ctl.get_parameter("strategy").value == strategy
+    # clearing the set in the same request lets them through, and they are applied
+    assert ctl.set_parameters_atomically(params(gain_set="", strategy="pid", kp=1.5, ki=400.0)).successful
+    assert ctl.controller.config.strategy == "pid" and ctl.controller.config.gains.kp == 1.5
+    # a new set brings its values; clearing it alone keeps them (nothing stored that is not applied)
+    assert set_one(ctl, "gain_set", "ff_pid_1").successful
+    strategy, gains = gain_set("ff_pid_1")
+    assert ctl.get_parameter("strategy").value == strategy == ctl.controller.config.strategy
+    assert ctl.get_parameter("ki").value == gains.ki == ctl.controller.config.gains.ki
+    assert set_one(ctl, "gain_set", "").successful
+    assert ctl.controller.config.strategy == strategy and ctl.controller.config.gains == gains
+    # a bad set name is refused
+    result = set_one(ctl, "gain_set", "bogus")
+    assert not result.successful and "unknown gain set" in result.reason
+    assert ctl.get_parameter("gain_set").value == ""
+
+
+@pytest.mark.parametrize("name, value", [("strategy", "bogus"), ("kp", float("nan")), ("kp", float("inf")),
+                                         ("kp", "abc"), ("ki", -1.0), ("enabled", "false"), ("enabled", 0),
+                                         ("reference_ramp_s", -1.0), ("handback_timeout_s", 0.0),
+                                         ("control_period_s", 2e-3), ("initial_reference_m", 1e-5),
+                                         ("command_min_v", 11.0)])
+def test_controller_refuses_what_it_would_not_apply(controller, name, value):
+    ctl = controller(gain_set="")
+    before = (ctl.controller.config, ctl.enabled, ctl.get_parameter(name).value)
+    result = set_one(ctl, name, value)
+    assert not result.successful and result.reason
+    assert (ctl.controller.config, ctl.enabled, ctl.get_parameter(name).value) == before
+
+
+def test_enabled_is_a_boolean_and_false_disables(controller):
+    ctl = controller(gain_set="")
+    assert set_one(ctl, "enabled", False).successful and not ctl.enabled
+
+
+def test_command_range_update_moves_static_gain_and_demand_limits(controller):
+    ctl = controller(gain_set="")
+    k_before = ctl.controller._k
+    assert ctl.set_parameters_atomically(params(command_min_v=2.0, command_max_v=8.0)).successful
+    fresh = ValveController(ControllerConfig(dt=1e-3, command_min_v=2.0, command_max_v=8.0))
+    assert ctl.controller._k == pytest.approx(fresh._k, rel=1e-12)
+    assert ctl.controller._k != pytest.approx(k_before, rel=1e-3)
+    assert (ctl.controller._demand_min_um, ctl.controller._demand_max_um) == \
+        pytest.approx((fresh._demand_min_um, fresh._demand_max_um))
+    assert ctl.controller.config.command_max_v == 8.0
+    # the centre outside the range is refused as a whole
+    result = ctl.set_parameters_atomically(params(command_min_v=6.0))
+    assert not result.successful and "centre_voltage_v" in result.reason
+    assert ctl.controller.config.command_min_v == 2.0
+
+
+# ---------------------------------------------------------------------------- hand-back
+def spin_until(executor, condition, timeout_s=5.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.01)
+        if condition():
+            return True
+    return False
+
+
+@pytest.mark.parametrize("hardware_timed_out", [False, True])
+def test_control_comes_back_when_the_node_that_took_over_falls_silent(controller, hardware_timed_out):
+    """The identification node disables the controller and commands the valve itself, then dies (no
+    re-enable).  When its commands stop for handback_timeout_s the controller enables itself and resumes
+    from the voltage actually applied: the dead node's last command, or the hardware's safe voltage when its
+    watchdog fired first (reported in samples)."""
+    ctl = controller(gain_set="pid_hc_5", handback_timeout_s=0.3)
+    ns = ctl.get_namespace()
+    other = rclpy.create_node("other_commander", namespace=ns)
+    executor = make_executor()
+    executor.add_node(ctl)
+    executor.add_node(other)
+    try:
+        commands = other.create_publisher(Float64, "voltage_command", COMMAND_QOS)
+        samples = other.create_publisher(Float64MultiArray, "samples", SAMPLES_QOS)
+        assert set_one(ctl, "enabled", False).successful
+        assert spin_until(executor, lambda: commands.get_subscription_count() >= 1
+                          and samples.get_subscription_count() >= 1)
+        for v in (6.0, 7.0, 7.6):
+            commands.publish(Float64(data=v))
+            spin_until(executor, lambda: False, 0.05)
+        assert not ctl.enabled  # still within the timeout: the other node has control
+        if hardware_timed_out:
+            samples.publish(samples_message(np.array([[1.0, 7.6, 30e-6], [1.0001, 5.0, 29e-6]])))
+        assert spin_until(executor, lambda: ctl.enabled, 3.0)
+        assert ctl.get_parameter("enabled").value is True  # the parameter says what runs
+        assert ctl.controller.last_command_v == pytest.approx(5.0 if hardware_timed_out else 7.6)
+    finally:
+        executor.remove_node(ctl)
+        executor.remove_node(other)
+        other.destroy_node()
+        executor.shutdown()
+
+
+def test_a_controller_disabled_by_hand_stays_disabled_without_a_commander(controller):
+    ctl = controller(gain_set="", handback_timeout_s=0.05)
+    executor = make_executor()
+    executor.add_node(ctl)
+    try:
+        assert set_one(ctl, "enabled", False).successful
+        assert not spin_until(executor, lambda: ctl.enabled, 0.5)
+    finally:
+        executor.remove_node(ctl)
+        executor.shutdown()
