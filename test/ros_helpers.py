@@ -3,7 +3,32 @@ import os
 import subprocess
 import time
 
-DOMAIN_ID = str(20 + os.getpid() % 80)
+DOMAIN_RANGE = range(20, 100)   # ROS_DOMAIN_IDs the tests may use (Fast DDS ports stay valid below 233)
+
+
+def _claim_domain_id() -> str:
+    """A domain id no other test suite on this machine holds: the first of DOMAIN_RANGE whose lock file this
+    process can lock (the lock is held until the process ends, whatever way it ends).  ``PIEZO_TEST_DOMAIN_ID``
+    overrides; a child process of a suite inherits the id through ROS_DOMAIN_ID in its environment."""
+    if os.environ.get("PIEZO_TEST_DOMAIN_ID"):
+        return os.environ["PIEZO_TEST_DOMAIN_ID"]
+    import fcntl
+    import tempfile
+    for domain in DOMAIN_RANGE:
+        handle = open(os.path.join(tempfile.gettempdir(), f"piezo_valve_ros_test_domain_{domain}.lock"), "a")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        _held.append(handle)
+        os.environ["PIEZO_TEST_DOMAIN_ID"] = str(domain)  # the same id for every test module of this suite
+        return str(domain)
+    raise RuntimeError(f"every test ROS domain ({DOMAIN_RANGE.start}..{DOMAIN_RANGE.stop - 1}) is in use")
+
+
+_held: list = []
+DOMAIN_ID = _claim_domain_id()
 
 
 def ros_env() -> dict:
