@@ -203,11 +203,112 @@ def write_samples_bag(path, rows: np.ndarray, topic: str = "/samples", storage: 
     rec.close()
 
 
-def read_samples(path, topic: Optional[str] = None) -> tuple[np.ndarray, str]:
+def _is_samples_topic(conn, topic: Optional[str]) -> bool:
+    if conn.msgtype != SAMPLES_TYPE:
+        return False
+    return conn.topic == topic if topic is not None else conn.topic.rstrip("/").split("/")[-1] == "samples"
+
+
+class _SamplesDecoder:
+    """CDR ``samples`` messages -> (N, 3) blocks of time, voltage, position; checks the layout as it goes."""
+
+    def __init__(self, name: str):
+        self.name = name
+        self.columns: Optional[list[int]] = None
+
+    def __call__(self, raw: bytes, msgtype: str) -> np.ndarray:
+        msg = TYPESTORE.deserialize_cdr(raw, msgtype)
+        dims = msg.layout.dim
+        if len(dims) != 2:
+            raise BagError(f"{self.name}: a message has {len(dims)} layout dimensions, expected 2")
+        if self.columns is None:
+            labels = dims[1].label.split(",")
+            missing = [c for c in SAMPLES_COLUMNS if c not in labels]
+            if missing:
+                raise BagError(f"{self.name}: columns {dims[1].label!r} lack {', '.join(missing)}")
+            self.columns = [labels.index(c) for c in SAMPLES_COLUMNS]
+        n, k = dims[0].size, dims[1].size
+        data = np.asarray(msg.data, dtype=float)
+        if data.size != n * k:
+            raise BagError(f"{self.name}: a message holds {data.size} values, its layout says {n}x{k}")
+        return data.reshape(n, k)[:, self.columns]
+
+
+def _first_line(exc: BaseException) -> str:
+    return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+
+
+def _read_file_by_file(path: Path, topic: Optional[str], skipped: list[str]) -> tuple[list[np.ndarray], str]:
+    """The bag's storage files one at a time (a crash or a copy can damage one segment of a multi-file bag):
+    the blocks of every readable file and the topic's name; each unreadable file is named in ``skipped``.
+    No blocks when nothing is readable (or the bag is compressed)."""
+    from rosbags.rosbag2.reader import DirectoryReader
+    from ruamel.yaml import YAML
+    try:
+        meta = YAML(typ="safe").load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        plugin = DirectoryReader.STORAGE_PLUGINS[meta["storage_identifier"]]
+        files = [path / Path(x).name for x in meta["relative_file_paths"]]
+        if meta.get("compression_mode"):
+            return [], ""
+    except Exception:
+        return [], ""
+    decode: Optional[_SamplesDecoder] = None
+    parts: list[np.ndarray] = []
+    for f in files:
+        storage = None
+        try:
+            storage = plugin(f)
+            storage.open()
+            conns = [c for c in storage.connections if _is_samples_topic(c, topic)]
+            names = sorted({c.topic for c in conns})
+            if len(names) > 1:
+                raise BagError(f"bag {path} has several samples topics ({', '.join(names)}); choose one with --topic")
+            if decode is None and names:
+                decode = _SamplesDecoder(names[0])
+            if decode is not None:
+                conns = [c for c in conns if c.topic == decode.name]
+            blocks = [decode(raw, conn.msgtype) for conn, _, raw in storage.messages(conns)] if conns else []
+        except BagError:
+            raise
+        except Exception as exc:
+            skipped.append(f"{f.name} ({_first_line(exc)})")
+            continue
+        finally:
+            if storage is not None:
+                try:
+                    storage.close()
+                except Exception:
+                    pass
+        parts += blocks
+    return parts, decode.name if decode is not None else ""
+
+
+def _time_ordered(parts: list[np.ndarray]) -> np.ndarray:
+    rows = np.concatenate(parts)
+    rows = rows[np.argsort(rows[:, 0], kind="stable")]
+    keep = np.concatenate(([True], np.diff(rows[:, 0]) > 0))  # a batch delivered twice counts once
+    return rows[keep]
+
+
+def _damaged(path: Path, topic: Optional[str], skipped: Optional[list[str]], reason: str) -> tuple[np.ndarray, str]:
+    """The whole-bag read failed: what the intact files hold, or the one-line error."""
+    skips: list[str] = []
+    parts, name = _read_file_by_file(path, topic, skips)
+    if not parts:
+        raise BagError(f"cannot read bag {path} (truncated or corrupt?): {reason}")
+    if skipped is not None:
+        skipped += skips
+    return _time_ordered(parts), name
+
+
+def read_samples(path, topic: Optional[str] = None,
+                 skipped: Optional[list[str]] = None) -> tuple[np.ndarray, str]:
     """Rows (time [s], voltage [V], position [m]) of the bag's ``samples`` topic, time-ordered; and its name.
 
     Any namespace is accepted (a topic whose last name is ``samples``); ``topic`` picks one explicitly.
-    Raises BagError with a one-line reason for anything unreadable.
+    A multi-file bag with damaged storage files is read file by file: the intact ones are used and each
+    file left out is appended to ``skipped`` (name and reason).  Raises BagError with a one-line reason
+    when nothing is readable.
     """
     path = Path(path)
     if not path.exists():
@@ -216,7 +317,9 @@ def read_samples(path, topic: Optional[str] = None) -> tuple[np.ndarray, str]:
         reader = Reader(path)
         reader.open()
     except Exception as exc:  # rosbags raises several types; the message is what matters
-        raise BagError(f"cannot read bag {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+        if (path / "metadata.yaml").exists():
+            return _damaged(path, topic, skipped, _first_line(exc))
+        raise BagError(f"cannot read bag {path}: {_first_line(exc)}") from None
     try:
         conns = [c for c in reader.connections if c.msgtype == SAMPLES_TYPE]
         if topic is not None:
@@ -233,36 +336,15 @@ def read_samples(path, topic: Optional[str] = None) -> tuple[np.ndarray, str]:
             if len(names) > 1:
                 raise BagError(f"bag {path} has several samples topics ({', '.join(names)}); choose one with --topic")
         name = chosen[0].topic
-        parts = []
-        columns = None
+        decode = _SamplesDecoder(name)
         try:
-            for conn, _, raw in reader.messages(connections=chosen):
-                msg = TYPESTORE.deserialize_cdr(raw, conn.msgtype)
-                dims = msg.layout.dim
-                if len(dims) != 2:
-                    raise BagError(f"{name}: a message has {len(dims)} layout dimensions, expected 2")
-                labels = dims[1].label.split(",")
-                if columns is None:
-                    missing = [c for c in SAMPLES_COLUMNS if c not in labels]
-                    if missing:
-                        raise BagError(f"{name}: columns {dims[1].label!r} lack {', '.join(missing)}")
-                    columns = [labels.index(c) for c in SAMPLES_COLUMNS]
-                n, k = dims[0].size, dims[1].size
-                data = np.asarray(msg.data, dtype=float)
-                if data.size != n * k:
-                    raise BagError(f"{name}: a message holds {data.size} values, its layout says {n}x{k}")
-                parts.append(data.reshape(n, k)[:, columns])
+            parts = [decode(raw, conn.msgtype) for conn, _, raw in reader.messages(connections=chosen)]
         except BagError:
             raise
         except Exception as exc:
-            raise BagError(f"cannot read bag {path} (truncated or corrupt?): "
-                           f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+            return _damaged(path, topic, skipped, _first_line(exc))
         if not parts:
             raise BagError(f"bag {path}: topic {name} holds no messages")
-        rows = np.concatenate(parts)
-        order = np.argsort(rows[:, 0], kind="stable")
-        rows = rows[order]
-        keep = np.concatenate(([True], np.diff(rows[:, 0]) > 0))  # a batch delivered twice counts once
-        return rows[keep], name
+        return _time_ordered(parts), name
     finally:
         reader.close()

@@ -24,15 +24,24 @@ __all__ = ["identify_bags", "read_record", "Compensation", "compensation", "cont
            "report_json", "write_atomically", "write_outputs"]
 
 
-def read_record(path, topic: Optional[str] = None, log: Callable[[str], None] = print) -> tuple[Record, Optional[str]]:
+def read_record(path, topic: Optional[str] = None, log: Callable[[str], None] = print,
+                warnings: Optional[list[str]] = None) -> tuple[Record, Optional[str]]:
     """A record from a bag directory (its samples topic) or from a ``.csv`` file (``records.read_csv``);
-    returns (record, topic name or None)."""
+    returns (record, topic name or None).  Storage files of a damaged bag that had to be left out are logged
+    and appended to ``warnings``."""
     if str(path).lower().endswith(".csv") and not Path(path).is_dir():
         record = read_csv(path)
         log(f"{path}: {len(record)} samples (CSV)")
         return record, None
-    rows, name = read_samples(path, topic)
+    skipped: list[str] = []
+    rows, name = read_samples(path, topic, skipped)
     log(f"{path}: {rows.shape[0]} samples on {name}")
+    if skipped:
+        text = (f"{path}: {len(skipped)} damaged storage file(s) left out, the rest used: "
+                + "; ".join(skipped))
+        log(f"warning: {text}")
+        if warnings is not None:
+            warnings.append(text)
     return Record.from_rows(rows), name
 
 
@@ -40,9 +49,11 @@ def identify_bags(train_bag, validate_bag=None, topic: Optional[str] = None,
                   log: Callable[[str], None] = print) -> tuple[Analysis, Optional[str]]:
     """Read the bag(s) or CSV record(s) and run the residual loop; returns (analysis, samples topic name, None
     for CSV).  Raises BagError or IdentificationError with a one-line reason."""
-    train, name = read_record(train_bag, topic, log)
-    validate = None if validate_bag is None else read_record(validate_bag, topic, log)[0]
+    damaged: list[str] = []
+    train, name = read_record(train_bag, topic, log, damaged)
+    validate = None if validate_bag is None else read_record(validate_bag, topic, log, damaged)[0]
     analysis = analyse(train, validate, log=log)
+    analysis.report["warnings"] = damaged + list(analysis.report.get("warnings", []))
     analysis.report["source"] = {"train_bag": str(train_bag), "validate_bag": None if validate_bag is None
                                  else str(validate_bag), "topic": name}
     return analysis, name

@@ -239,3 +239,41 @@ def test_report_keeps_every_key_earlier_reports_had(bags_10khz, tmp_path):
         node = report
         for part in path.split("."):
             node = node[0] if part == "[]" else node[part]
+
+
+def _segmented_bag(path, rows, storage, messages_per_segment=5, batch=1000):
+    """A recorder's multi-file bag: a new storage file every ``messages_per_segment`` messages."""
+    from piezo_valve_ros.bagio import SAMPLES_TYPE, serialize_samples
+    clock = [0.0]
+    rec = BagRecorder(path, {"/valve1/samples": (SAMPLES_TYPE, qos_profile(True, 100))}, storage,
+                      segment_s=float(messages_per_segment), clock=lambda: clock[0])
+    for i in range(0, rows.shape[0], batch):
+        chunk = rows[i:i + batch]
+        clock[0] += 1.0
+        rec.write("/valve1/samples", 1_700_000_000_000_000_000 + int(round(chunk[-1, 0] * 1e9)),
+                  serialize_samples(chunk, "time,voltage_command,spool_position"))
+    rec.close()
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_a_bag_with_one_damaged_segment_is_read_from_the_intact_ones_and_says_what_it_left_out(tmp_path, storage):
+    rows = simulate_rows(identification_voltage(1e-3, 30.0), ValveSimConfig(dt=1e-3, seed=4))
+    bag = tmp_path / "segmented"
+    _segmented_bag(bag, rows, storage)
+    files = sorted(f for f in bag.iterdir() if f.suffix in (".mcap", ".db3"))
+    assert len(files) >= 5
+    damaged = files[2]
+    damaged.write_bytes(damaged.read_bytes()[: damaged.stat().st_size // 2])
+    skipped: list[str] = []
+    got, name = read_samples(bag, skipped=skipped)
+    assert name == "/valve1/samples"
+    assert len(skipped) == 1 and skipped[0].startswith(damaged.name), skipped
+    # every row of the intact files, none of the damaged one's
+    assert 0 < rows.shape[0] - got.shape[0] <= 5 * 1000
+    assert np.isin(got[:, 0], rows[:, 0]).all()
+    # the analyser uses the rest and says so, in its log and in the report
+    out = run_cli(bag, "--report", tmp_path / "report.json")
+    assert out.returncode == 0, out.stderr
+    assert f"1 damaged storage file(s) left out, the rest used: {damaged.name}" in out.stdout
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert any(damaged.name in w for w in report["warnings"])
