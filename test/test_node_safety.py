@@ -251,3 +251,12 @@ def test_a_controller_disabled_by_hand_stays_disabled_without_a_commander(contro
     finally:
         executor.remove_node(ctl)
         executor.shutdown()
+
+
+@pytest.mark.parametrize("executable", ["valve_hardware", "valve_controller", "valve_identification", "valve_composed",
+                                        "valve_rig", "valve_identify"])
+def test_every_executable_answers_help_without_starting_anything(executable):
+    exe = os.path.join(os.path.dirname(sys.executable), executable)
+    proc = subprocess.run([exe, "--help"], env=ros_env(), capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and proc.stdout.startswith(f"usage: {executable}"), proc.stdout + proc.stderr
+    assert "[INFO]" not in proc.stdout + proc.stderr and "rig up" not in proc.stdout  # no node was started

@@ -253,6 +253,23 @@ def _ignore_signals_while_cleaning_up() -> None:
             signal.signal(sig, signal.SIG_IGN)
 
 
+def wants_help(args=None) -> bool:
+    """``-h``/``--help`` before any ``--ros-args`` (what follows those belongs to ROS)."""
+    import sys
+    argv = list(sys.argv[1:] if args is None else args)
+    if "--ros-args" in argv:
+        argv = argv[:argv.index("--ros-args")]
+    return "-h" in argv or "--help" in argv
+
+
+def print_help(name: str, doc: Optional[str]) -> None:
+    """What a node executable prints for ``--help`` (it does not start the node)."""
+    print(f"usage: {name} [--ros-args [-p NAME:=VALUE]... [--params-file FILE] [-r __ns:=/NAMESPACE]]\n")
+    print((doc or "").strip())
+    print("\nParameters, their units, ranges and whether they can change at run time: README.md ('Interface'), "
+          f"or on a running node `ros2 param describe /{name} NAME`.")
+
+
 def run_node(factory: Callable[[], Node], name: str, args=None, on_exit_of=None) -> int:
     """Console-script body: init, build the node (one clear line and exit 2 if that fails), spin.
 
@@ -260,6 +277,9 @@ def run_node(factory: Callable[[], Node], name: str, args=None, on_exit_of=None)
     """
     import sys
     from ..processes import die_with_parent
+    if wants_help(args):
+        print_help(name, sys.modules[getattr(factory, "__module__", __name__)].__doc__)
+        return 0
     die_with_parent()
     init_ros(args)
     try:

@@ -16,7 +16,7 @@ import sys
 import rclpy
 
 from ..processes import die_with_parent
-from .common import init_ros, spin
+from .common import init_ros, print_help, spin, wants_help
 from .controller import ValveControllerNode
 from .hardware import ValveHardwareNode
 
@@ -45,6 +45,9 @@ def build(hardware_overrides=(), controller_overrides=(), **node_kwargs) -> tupl
 
 
 def main(args=None) -> int:
+    if wants_help(args):
+        print_help("valve_composed", __doc__)
+        return 0
     die_with_parent()
     init_ros(args)
     try:

@@ -18,6 +18,7 @@ import time
 
 import numpy as np
 import rclpy
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -107,9 +108,15 @@ class RigClient(Node):
         time.sleep(0.1)  # let the controller answer the last position (its command is held)
         return self.all_rows()[start:start + periods * k][k - 1::k]
 
-    def set_reference(self, reference_m: float, settle_s: float = 0.2) -> None:
+    def set_reference(self, reference_m: float, timeout_s: float = 10.0) -> None:
+        """Publish a reference and return once every matched controller has received it (reliable ack).
+
+        In lockstep nothing else moves until the next ``run_periods``: the reference is then in the
+        controller's event queue ahead of the first position of the new budget, so it applies from that
+        period on (ordered by the acknowledgement, not by a sleep)."""
         self.reference_pub.publish(Float64(data=float(reference_m)))
-        time.sleep(settle_s)
+        if not self.reference_pub.wait_for_all_acked(Duration(seconds=timeout_s)):
+            raise TimeoutError(f"position_reference not acknowledged within {timeout_s} s")
 
 
 def run_in_background(nodes: list[Node]):
