@@ -87,6 +87,8 @@ def controller(ros_context):
     ({"lockstep__step_budget": -2, "clock": "lockstep"}, "must be -1"),
     ({"safe_voltage": 11.0}, "safe_voltage must lie within"),
     ({"command_min_v": 5.0, "command_max_v": 5.0, "safe_voltage": 5.0}, "must be below"),
+    ({"sim__sensor_delay_s": 0.00015}, "whole number of sample periods"),
+    ({"sim__sensor_delay_s": -0.001}, "whole number of sample periods"),
 ])
 def test_hardware_refuses_unsafe_start_up_parameters(hardware, overrides, says):
     with pytest.raises(Exception, match=says):

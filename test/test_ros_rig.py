@@ -283,3 +283,37 @@ def test_composed_realtime_rig_runs_and_stops_on_sigint(tmp_path):
     assert "rig up (composed, realtime)" in text and "position and command pass by function call" in text
     line = [x for x in text.splitlines() if "safe_voltage 5.0 V applied; loop:" in x]
     assert line and "(nominal 10000 Hz)" in line[0] and "unanswered 0, late 0" in line[0]
+
+
+def test_a_loop_with_two_periods_of_delay_is_caught_by_the_guard_through_ros(ros, procs, tmp_path):
+    """A sensor (or transport) delay of two control periods makes PID HC 5 at 1 kHz oscillate rail to rail
+    (the +-60 um swings a busy computer produced).  Through the ROS graph, in lockstep (deterministic): the
+    controller's oscillation guard catches it, says so, and the command spends almost no time on the rails;
+    the same run in process gives the same commands."""
+    period, delay_s = 1e-3, 2e-3
+    start_rig(procs, tmp_path, ros.get_namespace(), hw={"control_period_s": period, "sim.sensor_delay_s": delay_s},
+              ctl={"control_period_s": period, "gain_set": "pid_hc_5", "reference_ramp_s": 0.0})
+    ros.samples_per_period = 10
+    ros.wait_ready()
+    ros.run_periods(50)
+    ros.set_reference(30e-6)
+    rows = ros.run_periods(1500)
+    commands = rows[:, 1]
+    on_rail = (commands <= 0.0) | (commands >= 10.0)
+    log = open(tmp_path / "controller.log").read()
+    assert "oscillation guard: commands on both rails" in log
+    assert on_rail.mean() < 0.05, on_rail.mean()
+    # in process, the same valve (delay included) and controller: the guard is part of the controller
+    from piezo_valve_ros.core.simulator import SensorParams
+    config = ValveSimConfig(seed=3, sensor=SensorParams(delay_samples=20))
+    valve = SimulatedValve(config)
+    strategy, gains = gain_set("pid_hc_5")
+    ctl = ValveController(ControllerConfig(strategy=strategy, gains=gains, dt=period))
+    y = valve.run(np.full(10, config.initial_voltage_v))[-1]
+    v_core = []
+    for k in range(50 + 1500):  # the command applied first in the second budget was computed before the new reference
+        v = ctl.step(0.0 if k <= 50 else 30e-6, y)
+        v_core.append(v)
+        y = valve.run(np.full(10, v))[-1]
+    assert ctl.guard_trips >= 1
+    np.testing.assert_allclose(commands, v_core[50:], atol=1e-9)

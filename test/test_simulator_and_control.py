@@ -262,3 +262,17 @@ def test_the_guard_never_trips_on_the_paper_step_tests_or_without_delay():
             assert ctl.guard_trips == 0, (name, a, b)
     _, _, _, _, ctl = _delayed_loop("pid_hc_5", lambda t: 0, duration_s=1.0)
     assert ctl.guard_trips == 0
+
+
+def test_sensor_delay_shifts_the_measurement_exactly_and_step_equals_batch():
+    from piezo_valve_ros.core.simulator import SensorParams
+    v = 5.0 + 3.0 * np.sin(np.arange(3000) * 0.01)
+    quiet = dict(noise_enabled=False, quantisation_enabled=False)
+    plain = SimulatedValve(ValveSimConfig(sensor=SensorParams(**quiet))).run(v)
+    late = SimulatedValve(ValveSimConfig(sensor=SensorParams(delay_samples=7, **quiet))).run(v)
+    assert np.array_equal(late[7:], plain[:-7])
+    cfg = ValveSimConfig(sensor=SensorParams(delay_samples=7))
+    a, b = SimulatedValve(cfg), SimulatedValve(cfg)
+    stepped = np.array([a.step(x) for x in v])
+    mixed = np.concatenate([b.run(v[:1000]), [b.step(x) for x in v[1000:1003]], b.run(v[1003:])])
+    assert np.array_equal(stepped, mixed)

@@ -101,12 +101,14 @@ class DriftParams:
 
 @dataclass(frozen=True)
 class SensorParams:
-    """LVDT: white noise and quantisation."""
+    """LVDT: white noise and quantisation; optionally a transport delay (a conditioning filter or a DAQ
+    pipeline: the position read at sample k is the spool's at sample k - delay_samples)."""
 
     noise_enabled: bool = True
     noise_rms_um: float = 0.05
     quantisation_enabled: bool = True
     quantum_um: float = 0.005
+    delay_samples: int = 0
 
 
 @dataclass(frozen=True)
@@ -175,6 +177,11 @@ class SimulatedValve:
         self._gv = c.valve_model.discretise(c.dt)
         self._gv.reset(self._static(y0))
         self.last_voltage_v = v0
+        d = int(c.sensor.delay_samples)
+        if d < 0:
+            raise ValueError(f"sensor delay_samples must be >= 0, got {d}")
+        self._delay_line = np.full(d, self._static(y0))  # the spool's last d positions, oldest first
+        self._delay_pos = 0
 
     def _static(self, y_um: float) -> float:
         s = self.config.saturation
@@ -214,6 +221,10 @@ class SimulatedValve:
             y = self._gv.step(y)
         t = self.time_s
         y = self._drift_scalar(y, t)
+        if self._delay_line.size:
+            line, k = self._delay_line, self._delay_pos
+            y, line[k] = float(line[k]), y
+            self._delay_pos = (k + 1) % line.size
         y = self._sensor_scalar(y)
         self.sample_index += 1
         self.time_s = self.sample_index * c.dt
@@ -278,6 +289,10 @@ class SimulatedValve:
             d = c.drift
             k = 1.0 - np.exp(-t / d.time_constant_s)
             y = y * (1.0 + d.gain_change * k) + d.offset_um * k
+        if self._delay_line.size:
+            line = np.roll(self._delay_line, -self._delay_pos)  # oldest first
+            both = np.concatenate((line, y))
+            y, self._delay_line, self._delay_pos = both[:n], both[n:].copy(), 0
         s = c.sensor
         if s.noise_enabled:
             y = y + s.noise_rms_um * self._take_noise(n)

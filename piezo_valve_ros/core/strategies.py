@@ -19,7 +19,8 @@ Switching strategy (or gains) is bumpless: the integrator absorbs the difference
 new law has one, and any rest decays with ``bump_time_constant_s``.
 
 Oscillation guard (cannot be switched off): a feedback loop whose commands hit both rails within
-``GUARD_WINDOW_S`` is oscillating (a loop delay of two periods makes PID HC 5 at 1 kHz swing rail to
+``GUARD_WINDOW_S``, or come onto a rail ``GUARD_ENTRIES`` times within ``GUARD_ENTRY_WINDOW_S`` (coming
+away by ``GUARD_AWAY_SHARE`` of the range in between), is oscillating (a loop delay of two periods makes PID HC 5 at 1 kHz swing rail to
 rail: a busy computer does that to a loop across processes).  The controller then runs on its
 feedforward path alone (the inverse, OL HC, or OL for ``pid``), which needs no timing, with the
 integrator frozen, for ``GUARD_HOLD_S`` (doubled while it recurs, up to ``GUARD_MAX_HOLD_S``), and
@@ -41,6 +42,9 @@ __all__ = ["STRATEGIES", "PIDGains", "ControllerConfig", "ValveController", "TAB
 STRATEGIES = ("ol", "ol_hc", "pid", "pid_hc", "ff_pid", "ff_pid_g")
 FALLBACK_LAW = {"pid": "ol", "pid_hc": "ol_hc", "ff_pid": "ol_hc", "ff_pid_g": "ol_hc"}  # feedback -> feedforward
 GUARD_WINDOW_S = 0.02     # commands on both rails within this long: the loop oscillates
+GUARD_ENTRIES = 3         # ... and so does a command that comes onto a rail this often ...
+GUARD_ENTRY_WINDOW_S = 0.05  # ... within this long (a lopsided limit cycle that reaches only one rail),
+GUARD_AWAY_SHARE = 0.2    # ... having come away from the rails by this share of the range in between (not chatter)
 GUARD_HOLD_S = 0.25       # ... and runs on feedforward alone this long
 GUARD_MAX_HOLD_S = 4.0    # ... doubled each time it recurs within two holds of the last, up to this
 
@@ -235,6 +239,9 @@ class ValveController:
         self._d_alpha = c.dt / (c.derivative_filter_s + c.dt)
         self._tick = 0                      # periods since reset
         self._rail_high_at = self._rail_low_at = -(1 << 30)
+        self._rail_entries = [-(1 << 30)] * (GUARD_ENTRIES - 1)  # ticks of the last rail entries (a ring)
+        self._rail_entry_pos = 0
+        self._away_from_rails = True        # the command came away from the rails since the last entry
         self._fallback_left = 0             # periods still to run on feedforward alone
         self._fallback_ended_at = -(1 << 30)
         self._hold_periods = max(int(round(GUARD_HOLD_S / c.dt)), 1)
@@ -251,22 +258,34 @@ class ValveController:
         return self._fallback_left > 0
 
     def _guard(self) -> None:
-        """After each feedback command: both rails within GUARD_WINDOW_S -> feedforward alone for a hold."""
+        """After each feedback command: both rails within GUARD_WINDOW_S, or GUARD_ENTRIES entries onto a rail
+        within GUARD_ENTRY_WINDOW_S -> feedforward alone for a hold."""
         c = self.config
+        if self._rail == 0:
+            margin = GUARD_AWAY_SHARE * (c.command_max_v - c.command_min_v)
+            if c.command_min_v + margin < self.last_command_v < c.command_max_v - margin:
+                self._away_from_rails = True
+            return
+        entered, self._away_from_rails = self._away_from_rails, False
         if self._rail > 0:
             self._rail_high_at = self._tick
-        elif self._rail < 0:
-            self._rail_low_at = self._tick
         else:
-            return
-        window = max(int(round(GUARD_WINDOW_S / c.dt)), 1)
-        if abs(self._rail_high_at - self._rail_low_at) > window:
+            self._rail_low_at = self._tick
+        oscillating = abs(self._rail_high_at - self._rail_low_at) <= max(int(round(GUARD_WINDOW_S / c.dt)), 1)
+        if entered:
+            k = self._rail_entry_pos
+            oldest = self._rail_entries[k]  # the entry GUARD_ENTRIES - 1 entries before this one
+            self._rail_entries[k] = self._tick
+            self._rail_entry_pos = (k + 1) % len(self._rail_entries)
+            oscillating = oscillating or self._tick - oldest <= max(int(round(GUARD_ENTRY_WINDOW_S / c.dt)), 1)
+        if not oscillating:
             return
         base = max(int(round(GUARD_HOLD_S / c.dt)), 1)
         recurs = self._tick - self._fallback_ended_at <= 2 * self._hold_periods
         self._hold_periods = min(2 * self._hold_periods, int(round(GUARD_MAX_HOLD_S / c.dt))) if recurs else base
         self._fallback_left = self._hold_periods
         self._rail_high_at = self._rail_low_at = -(1 << 30)
+        self._rail_entries = [-(1 << 30)] * (GUARD_ENTRIES - 1)
         self.guard_trips += 1
         self._bump_v = 0.0      # no continuity with a rail-to-rail swing: straight to the feedforward command
         self.integrator_um = 0.0

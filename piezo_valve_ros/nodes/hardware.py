@@ -31,6 +31,16 @@ from .common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, as_float, as_
                      run_node, samples_message, tighten_timer_slack)
 
 
+def _delay_samples(p: dict, default_dt: float) -> int:
+    delay = as_float("sim.sensor_delay_s", p.get("sim.sensor_delay_s", 0.0))
+    dt = as_float("sim.sample_period_s", p.get("sim.sample_period_s", default_dt))
+    k = round(delay / dt)
+    if not 0.0 <= delay <= MAX_CONTROL_PERIOD_S or abs(k * dt - delay) > 1e-9 + 1e-6 * delay:
+        raise ValueError(f"sim.sensor_delay_s must be a whole number of sample periods ({dt} s) in "
+                         f"[0, {MAX_CONTROL_PERIOD_S}] s, got {delay}")
+    return int(k)
+
+
 def sim_config_from_parameters(p: dict) -> ValveSimConfig:
     """The simulated valve from ``sim.*`` parameters (effects switchable one by one)."""
     base = ValveSimConfig()
@@ -49,7 +59,8 @@ def sim_config_from_parameters(p: dict) -> ValveSimConfig:
         saturation=replace(SaturationParams(), enabled=bool(p.get("sim.saturation", True))),
         rate=replace(RateDependenceParams(), enabled=bool(p.get("sim.rate_dependence", False))),
         drift=replace(DriftParams(), enabled=bool(p.get("sim.drift", False))),
-        sensor=replace(SensorParams(), noise_enabled=bool(p.get("sim.noise", True))),
+        sensor=replace(SensorParams(), noise_enabled=bool(p.get("sim.noise", True)),
+                       delay_samples=_delay_samples(p, base.dt)),
         dynamics_enabled=bool(p.get("sim.dynamics", True)),
         descending_envelope=(0.95, 0.2) if asym else None,
         initial_voltage_v=as_float("safe_voltage", p.get("safe_voltage", 5.0)),
@@ -105,7 +116,9 @@ class ValveHardwareNode(Node):
                                     ("sim.creep", True, "creep"), ("sim.saturation", True, "loop-end flattening"),
                                     ("sim.noise", True, "LVDT noise"), ("sim.dynamics", True, "G_v(s)"),
                                     ("sim.rate_dependence", False, "rate dependence"),
-                                    ("sim.drift", False, "thermal drift"), ("sim.asymmetry", False, "asymmetry")]:
+                                    ("sim.drift", False, "thermal drift"), ("sim.asymmetry", False, "asymmetry"),
+                                    ("sim.sensor_delay_s", 0.0, "LVDT transport delay [s] (whole samples; "
+                                                                "e.g. a conditioning filter)")]:
             declare(self, name, default, f"sim backend: {text}", read_only=True)
         from ..core.hysteresis import PAPER_GPIM
         for k in ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um"):  # a valve unlike the paper's, for tests
