@@ -268,10 +268,14 @@ def test_step_demo_prints_the_same_table_in_separate_processes_and_composed(tmp_
 
 
 def test_step_demo_counts_control_periods_not_sample_rows():
-    """At 2 ms a control period holds 20 samples: settling times and the period count are in periods."""
+    """At 2 ms a control period holds 20 samples: settling times and the period count are in periods; the rig
+    runs in the namespace it is given."""
+    ns = f"demo{os.getpid()}"
     out = subprocess.run([sys.executable, "-m", "piezo_valve_ros.nodes.rig", "--control-period-s", "0.002",
-                          "--hold-s", "0.2"], env=ros_env(), capture_output=True, text=True, timeout=120)
+                          "--hold-s", "0.2", "--namespace", f"/{ns}"], env=ros_env(), capture_output=True, text=True,
+                         timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
+    assert f"[{ns}.valve_hardware]" in out.stderr and f"[{ns}.valve_controller]" in out.stderr  # --namespace
     table = _demo_table(out.stdout)
     assert len(table) == 3 and all(ts >= 2.0 for _, _, ts, _ in table), out.stdout  # at least one period
     periods = int(out.stdout.split(" control periods in ")[0].split()[-1])

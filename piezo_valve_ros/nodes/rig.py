@@ -175,6 +175,7 @@ def parse_args(argv=None):
                     help="also start valve_identification with this plan (e.g. validate,train,refit,validate); "
                          "needs --demo none")
     ap.add_argument("--bag-dir", default="identification_runs", help="where --identify writes its bags")
+    ap.add_argument("--namespace", default="", help="put the rig's nodes and topics in this namespace (e.g. /valve1)")
     return ap.parse_args(argv)
 
 
@@ -211,16 +212,17 @@ def main(argv=None) -> int:
         if args.composed:
             from .composed import build
             hardware, controller = build([Parameter(k, value=v) for k, v in hw_params.items()],
-                                         [Parameter(k, value=v) for k, v in ctl_params.items()])
+                                         [Parameter(k, value=v) for k, v in ctl_params.items()],
+                                         **({"namespace": args.namespace} if args.namespace else {}))
             nodes += [hardware, controller]
         else:
-            procs.start("valve_hardware", node_command("valve_hardware", hw_params))
-            procs.start("valve_controller", node_command("valve_controller", ctl_params))
+            procs.start("valve_hardware", node_command("valve_hardware", hw_params, args.namespace))
+            procs.start("valve_controller", node_command("valve_controller", ctl_params, args.namespace))
         if args.identify:
-            procs.start("valve_identification", node_command("valve_identification", {
+            procs.start("valve_identification", node_command("valve_identification", namespace=args.namespace, params={
                 "plan": args.identify, "control_period_s": args.control_period_s, "bag_dir": args.bag_dir}))
         samples_per_period = max(int(round(args.control_period_s / ValveSimConfig().dt)), 1)
-        client = RigClient(samples_per_period=samples_per_period)
+        client = RigClient(namespace=args.namespace, samples_per_period=samples_per_period)
         nodes.append(client)
         thread, stop, executor = run_in_background(nodes)
         client.wait_ready()
