@@ -89,6 +89,8 @@ def controller(ros_context):
     ({"command_min_v": 5.0, "command_max_v": 5.0, "safe_voltage": 5.0}, "must be below"),
     ({"sim__sensor_delay_s": 0.00015}, "whole number of sample periods"),
     ({"sim__sensor_delay_s": -0.001}, "whole number of sample periods"),
+    ({"realtime__switch_interval_s": 0.1}, "out of range"),
+    ({"realtime__switch_interval_s": 1}, "switch_interval_s must lie in"),
 ])
 def test_hardware_refuses_unsafe_start_up_parameters(hardware, overrides, says):
     with pytest.raises(Exception, match=says):

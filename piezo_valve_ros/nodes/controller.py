@@ -30,14 +30,13 @@ from ..core.hysteresis import GPIM, PAPER_GPIM, GPIMParams, inverse_problems
 from ..core.signals import ReferenceRamp
 from ..core.strategies import (GUARD_WINDOW_S, STRATEGIES, ControllerConfig, CreepModel, PIDGains, ValveController,
                                gain_set)
-from .common import (COMMAND_QOS, LATEST_SENSOR_QOS, SAMPLES_QOS, as_float, as_float_list, as_int, declare, parameter_values,
-                     refuse, run_node, samples_from_message)
+from .common import (COMMAND_QOS, LATEST_SENSOR_QOS, SAMPLES_QOS, apply_switch_interval, as_float, as_float_list, as_int,
+                     declare, declare_switch_interval, parameter_values, refuse, run_node, samples_from_message)
 
 GPIM_KEYS = ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")
 GAIN_SET_KEYS = ("strategy", "kp", "ki", "kd")   # what an active gain_set decides
 HANDBACK_TIMEOUT_RANGE_S = (0.05, 10.0)          # handback_timeout_s may not be shorter or longer than this
 HANDBACK_CHECK_S = 0.02                          # how often the hand-back condition is checked [s]
-SWITCH_INTERVAL_RANGE_S = (1e-6, 0.005)
 
 
 def gain_set_values(name: str) -> dict[str, Any]:
@@ -124,21 +123,14 @@ class ValveControllerNode(Node):
         lo, hi = HANDBACK_TIMEOUT_RANGE_S
         declare(self, "handback_timeout_s", 1.0, "disabled: when the commands of the node that took over stop for "
                 f"this long, take control back [s] ({lo:g}..{hi:g})", low=lo, high=hi)
-        lo, hi = SWITCH_INTERVAL_RANGE_S
-        declare(self, "realtime.switch_interval_s", 5e-5, "CPython's GIL switch interval in this process [s] "
-                "(the default 5 ms lets DDS threads hold the interpreter for several periods)", read_only=True,
-                low=lo, high=hi)
+        declare_switch_interval(self)
         name = str(self.get_parameter("gain_set").value or "")
         if name:  # the set's values are what runs: the parameters say so
             self.set_parameters([Parameter(k, value=v) for k, v in gain_set_values(name).items()])
         p = parameter_values(self)
         config, model, valve_model, creep = settings_from_parameters(p)
         self.handback_timeout_s = self._handback_timeout(p["handback_timeout_s"])
-        switch_interval = as_float("realtime.switch_interval_s", p["realtime.switch_interval_s"])
-        if not SWITCH_INTERVAL_RANGE_S[0] <= switch_interval <= SWITCH_INTERVAL_RANGE_S[1]:
-            raise ValueError(f"realtime.switch_interval_s must lie in {list(SWITCH_INTERVAL_RANGE_S)} s, "
-                             f"got {switch_interval}")
-        sys.setswitchinterval(switch_interval)
+        apply_switch_interval(p["realtime.switch_interval_s"])
         self.controller = ValveController(config, model, valve_model, creep)
         self.ramp = ReferenceRamp(as_float("initial_reference_m", p["initial_reference_m"]),
                                   self._ramp_s(p["reference_ramp_s"]), config.dt)

@@ -27,8 +27,8 @@ from ..backends import ValveBackend, make_backend
 from ..loop_timing import LoopTiming
 from ..core.simulator import (AmplifierParams, CreepParams, DriftParams, RateDependenceParams, SaturationParams,
                               SensorParams, ValveSimConfig)
-from .common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, as_float, as_int, declare, parameter_values, refuse,
-                     run_node, samples_message, tighten_timer_slack)
+from .common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, apply_switch_interval, as_float, as_int, declare,
+                     declare_switch_interval, parameter_values, refuse, run_node, samples_message, tighten_timer_slack)
 
 
 def _delay_samples(p: dict, default_dt: float) -> int:
@@ -71,7 +71,6 @@ MAX_CONTROL_PERIOD_S = 0.1      # slower than 10 Hz is no control loop for this 
 MAX_COMMAND_TIMEOUT_S = 10.0    # the watchdog may not be stretched beyond this
 MIN_TIMEOUT_PERIODS = 2         # ... nor shortened below this many control periods (it would fire between commands)
 PERIOD_TOLERANCE = 1e-3         # control_period_s must be a whole number of sample periods to this relative error
-DEFAULT_SWITCH_INTERVAL_S = 5e-5  # CPython's GIL switch interval in real-time processes (its default: 5 ms)
 
 
 def samples_per_period(control_period_s: float, sample_period_s: float) -> int:
@@ -104,10 +103,7 @@ class ValveHardwareNode(Node):
         declare(self, "realtime.busy_poll_s", 0.0,
                 "realtime clock: poll for messages instead of sleeping this long before each tick [s] "
                 "(costs a core; >= control_period_s polls all the time)", read_only=True)
-        declare(self, "realtime.switch_interval_s", DEFAULT_SWITCH_INTERVAL_S,
-                "realtime clock: CPython's GIL switch interval in this process [s] (default 5 ms is longer than a "
-                "period: other threads, e.g. DDS, could hold the interpreter that long)", read_only=True,
-                low=1e-6, high=0.005)
+        declare_switch_interval(self)
         declare(self, "loop_stats_period_s", 0.0,
                 "log the loop timing (rate, commands in time, latency) this often [s]; 0: only at shutdown",
                 read_only=True)
@@ -146,9 +142,6 @@ class ValveHardwareNode(Node):
         self.busy_poll_s = as_float("realtime.busy_poll_s", p["realtime.busy_poll_s"])
         if self.busy_poll_s < 0:
             raise ValueError("realtime.busy_poll_s must be >= 0")
-        switch_interval = as_float("realtime.switch_interval_s", p["realtime.switch_interval_s"])
-        if not 1e-6 <= switch_interval <= 0.005:
-            raise ValueError(f"realtime.switch_interval_s must lie in [1e-6, 0.005] s, got {switch_interval}")
         if backend is None:
             options = {"config": sim_config_from_parameters(p)} if p["backend"] == "sim" else {}
             backend = make_backend(str(p["backend"]), **options)
@@ -159,8 +152,7 @@ class ValveHardwareNode(Node):
         self.backend = backend
         self.control_period_s = self.samples_per_period * backend.sample_period_s
         self.command_timeout_s = self._command_timeout(p["command_timeout_s"])
-        if self.clock_mode == "realtime":
-            sys.setswitchinterval(switch_interval)
+        apply_switch_interval(p["realtime.switch_interval_s"], apply=self.clock_mode == "realtime")
 
         self.position_pub = self.create_publisher(Float64, "spool_position", SENSOR_QOS)
         self.samples_pub = self.create_publisher(Float64MultiArray, "samples", SAMPLES_QOS)
