@@ -31,6 +31,12 @@ from .common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, apply_switch_
                      declare_switch_interval, parameter_values, refuse, run_node, samples_message, tighten_timer_slack)
 
 
+MAX_CONTROL_PERIOD_S = 0.1      # slower than 10 Hz is no control loop for this valve
+MAX_COMMAND_TIMEOUT_S = 10.0    # the watchdog may not be stretched beyond this
+MIN_TIMEOUT_PERIODS = 2         # ... nor shortened below this many control periods (it would fire between commands)
+PERIOD_TOLERANCE = 1e-3         # control_period_s must be a whole number of sample periods to this relative error
+
+
 def _delay_samples(p: dict, default_dt: float) -> int:
     delay = as_float("sim.sensor_delay_s", p.get("sim.sensor_delay_s", 0.0))
     dt = as_float("sim.sample_period_s", p.get("sim.sample_period_s", default_dt))
@@ -65,12 +71,6 @@ def sim_config_from_parameters(p: dict) -> ValveSimConfig:
         descending_envelope=(0.95, 0.2) if asym else None,
         initial_voltage_v=as_float("safe_voltage", p.get("safe_voltage", 5.0)),
     )
-
-
-MAX_CONTROL_PERIOD_S = 0.1      # slower than 10 Hz is no control loop for this valve
-MAX_COMMAND_TIMEOUT_S = 10.0    # the watchdog may not be stretched beyond this
-MIN_TIMEOUT_PERIODS = 2         # ... nor shortened below this many control periods (it would fire between commands)
-PERIOD_TOLERANCE = 1e-3         # control_period_s must be a whole number of sample periods to this relative error
 
 
 def samples_per_period(control_period_s: float, sample_period_s: float) -> int:
