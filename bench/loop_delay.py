@@ -12,10 +12,9 @@ disabled, to show what it prevents.
 from __future__ import annotations
 
 import argparse
-from collections import deque
-
 import numpy as np
 
+from piezo_valve_ros.core.experiments import run_delayed_loop
 from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig
 from piezo_valve_ros.core.strategies import ControllerConfig, ValveController, gain_set
 
@@ -31,24 +30,14 @@ class UnguardedController(ValveController):
 
 def run(cls, gains_name: str, delay: int, dt: float = 1e-3, duration_s: float = 3.0):
     cfg = ValveSimConfig(seed=0)
-    valve = SimulatedValve(cfg)
-    per = int(round(dt / cfg.dt))
     strategy, gains = gain_set(gains_name)
     ctl = cls(ControllerConfig(strategy=strategy, gains=gains, dt=dt))
-    n = int(duration_s / dt)
-    t = np.arange(n) * dt
+    t = np.arange(int(duration_s / dt)) * dt
     ref = 30.0 * np.sin(2 * np.pi * 2.0 * t)
-    queue, y_um, v_all = deque(), np.empty(n), np.empty(n)
-    v = cfg.initial_voltage_v
-    for k in range(n):
-        for _ in range(per):
-            y = valve.step(v)
-        y_um[k], v_all[k] = y * 1e6, v
-        queue.append((k, y))
-        lag = delay if EPISODE_S[0] <= t[k] < EPISODE_S[1] else 0
-        while queue and k - queue[0][0] >= lag:
-            kk, yy = queue.popleft()
-            v = ctl.step(ref[kk] * 1e-6, yy)
+    rec = run_delayed_loop(SimulatedValve(cfg), ctl, ref * 1e-6,
+                           lambda k: delay if EPISODE_S[0] <= t[k] < EPISODE_S[1] else 0,
+                           samples_per_period=int(round(dt / cfg.dt)))
+    y_um, v_all = rec.position_m * 1e6, rec.command_v
     window = (t >= EPISODE_S[0]) & (t < EPISODE_S[1] + 0.5)
     rails = (v_all <= 0.0) | (v_all >= 10.0)
     return float(np.max(np.abs(y_um - ref)[window])), float(rails[window].mean()), ctl.guard_trips

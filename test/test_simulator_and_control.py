@@ -207,26 +207,15 @@ def test_signals_shapes():
 def _delayed_loop(strategy_gains: str, delay_periods, dt=1e-3, duration_s=3.0, seed=0):
     """A 1 kHz loop on the simulated valve whose measurements reach the controller ``delay_periods(t)``
     periods late (a busy computer between two processes); a 2 Hz, 30 um sine demand."""
-    from collections import deque
+    from piezo_valve_ros.core.experiments import run_delayed_loop
     cfg = ValveSimConfig(seed=seed)
-    valve = SimulatedValve(cfg)
-    per = int(round(dt / cfg.dt))
     strategy, gains = gain_set(strategy_gains)
     ctl = ValveController(ControllerConfig(strategy=strategy, gains=gains, dt=dt))
-    n = int(duration_s / dt)
-    t = np.arange(n) * dt
+    t = np.arange(int(duration_s / dt)) * dt
     ref = 30e-6 * np.sin(2 * np.pi * 2.0 * t)
-    measured, commands, positions = deque(), np.empty(n), np.empty(n)
-    v = cfg.initial_voltage_v
-    for k in range(n):
-        for _ in range(per):
-            y = valve.step(v)
-        positions[k], commands[k] = y, v
-        measured.append((k, y))
-        while measured and k - measured[0][0] >= delay_periods(t[k]):
-            kk, yy = measured.popleft()
-            v = ctl.step(ref[kk], yy)
-    return t, ref * 1e6, positions * 1e6, commands, ctl
+    rec = run_delayed_loop(SimulatedValve(cfg), ctl, ref, lambda k: delay_periods(t[k]),
+                           samples_per_period=int(round(dt / cfg.dt)))
+    return t, ref * 1e6, rec.position_m * 1e6, rec.command_v, ctl
 
 
 def test_a_loop_delay_that_makes_pid_hc_swing_rail_to_rail_is_caught_and_held_on_feedforward():

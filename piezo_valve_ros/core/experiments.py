@@ -7,7 +7,7 @@ voltage for one sample and reports ``y_0``; then for every period k the controll
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -44,6 +44,34 @@ def run_closed_loop(valve: SimulatedValve, controller: ValveController, referenc
         v = ctl_step(ref[k], y)
         commands[k] = v
         y = valve_step(v)
+    return ClosedLoopRecord(ref, commands, positions)
+
+
+def run_delayed_loop(valve: SimulatedValve, controller: ValveController, reference_m: np.ndarray,
+                     delay_periods: Callable[[int], int], samples_per_period: int = 1) -> ClosedLoopRecord:
+    """A loop whose measurements reach the controller late (two processes on a busy computer).
+
+    Every control period the valve runs ``samples_per_period`` samples at the last command and is measured;
+    the measurement of period k reaches the controller once ``delay_periods(now)`` periods have passed
+    (0: at once), and the controller answers it with the reference of period k.  ``position_m`` holds the
+    position at the start of each period, ``command_v`` the command in force during it.
+    """
+    from collections import deque
+    ref = np.asarray(reference_m, float)
+    n = ref.size
+    commands, positions = np.empty(n), np.empty(n)
+    queue: deque = deque()
+    v = valve.config.initial_voltage_v
+    step = controller.step
+    for k in range(n):
+        for _ in range(samples_per_period):
+            y = valve.step(v)
+        positions[k], commands[k] = y, v
+        queue.append((k, y))
+        lag = delay_periods(k)
+        while queue and k - queue[0][0] >= lag:
+            kk, yy = queue.popleft()
+            v = step(ref[kk], yy)
     return ClosedLoopRecord(ref, commands, positions)
 
 
