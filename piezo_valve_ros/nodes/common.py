@@ -219,8 +219,8 @@ _STOP_REQUESTED = threading.Event()
 def init_ros(args=None) -> None:
     """``rclpy.init`` for a node process, with signal handling of our own: Ctrl-C/SIGTERM only ask the spin
     loop to stop (within its 0.1 s wait), so no callback is interrupted half-way (rclpy's handler raises
-    into whatever callback runs, which the executor reports as a FATAL exception) and the shutdown path
-    (safe voltage, flushing the samples) runs with the ROS context still valid."""
+    into whatever callback runs, which the executor reports as a FATAL exception); the shutdown path (safe
+    voltage) then runs after the process has left DDS (see :func:`spin`)."""
     import signal
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     _STOP_REQUESTED.clear()
@@ -254,6 +254,10 @@ def spin(nodes, on_exit: Optional[Callable[[], None]] = None, executor=None) -> 
         # a callback ran into the context a signal had just shut down: that is the shutdown itself
     finally:
         _ignore_signals_while_cleaning_up()
+        if _STOP_REQUESTED.is_set():
+            # stopped by a signal (Ctrl-C, SIGTERM, the parent's death): leave DDS first, as rclpy's own handler
+            # would, so the cleanup below touches no peer (a write to a peer that was killed can block in DDS)
+            rclpy.try_shutdown()
         if on_exit is not None:
             on_exit()
         for node in nodes:
