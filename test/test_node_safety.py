@@ -47,31 +47,34 @@ def set_one(node, name, value):
     return node.set_parameters([Parameter(name, value=value)])[0]
 
 
-@pytest.fixture
-def hardware(ros_context):
+def _nodes(cls, close):
+    """A factory of ``cls`` nodes (each in a namespace of its own) and the cleanup of all it made."""
     made = []
 
     def make(**overrides):
-        node = ValveHardwareNode(namespace=namespace(), parameter_overrides=params(**overrides))
+        node = cls(namespace=namespace(), parameter_overrides=params(**overrides))
         made.append(node)
         return node
+
+    def cleanup():
+        for node in made:
+            close(node)
+            node.destroy_node()
+    return make, cleanup
+
+
+@pytest.fixture
+def hardware(ros_context):
+    make, cleanup = _nodes(ValveHardwareNode, lambda node: node.shutdown_safely())
     yield make
-    for node in made:
-        node.shutdown_safely()
-        node.destroy_node()
+    cleanup()
 
 
 @pytest.fixture
 def controller(ros_context):
-    made = []
-
-    def make(**overrides):
-        node = ValveControllerNode(namespace=namespace(), parameter_overrides=params(**overrides))
-        made.append(node)
-        return node
+    make, cleanup = _nodes(ValveControllerNode, lambda node: None)
     yield make
-    for node in made:
-        node.destroy_node()
+    cleanup()
 
 
 # ---------------------------------------------------------------------------- hardware
