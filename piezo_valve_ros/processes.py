@@ -16,6 +16,8 @@ import time
 
 PARENT_PID_ENV = "PIEZO_VALVE_PARENT_PID"   # set by ProcessGroup: the pid the child must not outlive
 STOP_GRACE_S = 3.0                          # each of SIGINT, SIGTERM, SIGKILL gets this long
+PARENT_POLL_S = 0.2                         # a child checks this often whether its parent is still there ...
+PARENT_DEATH_GRACE_S = 5.0                  # ... and ends itself this long after asking for an orderly stop
 NODE_MODULES = {"valve_hardware": "hardware", "valve_controller": "controller",
                 "valve_identification": "identification", "valve_composed": "composed"}
 
@@ -51,7 +53,23 @@ def die_with_parent() -> bool:
         return False
     if os.getppid() != int(parent):  # the parent died before the request: act on it now
         os.kill(os.getpid(), signal.SIGTERM)
+    _watch_parent(int(parent))
     return True
+
+
+def _watch_parent(parent: int) -> None:
+    """Backstop for the death signal: a daemon thread notices the parent gone (reparented), asks for an
+    orderly stop (SIGTERM) and, if the process still lives PARENT_DEATH_GRACE_S later (its shutdown hung),
+    ends it.  A process whose parent was killed must not live on, holding a valve or a CPU."""
+    import threading
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL_S)
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(PARENT_DEATH_GRACE_S)
+        os._exit(1)
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
 class ProcessGroup:
