@@ -68,6 +68,10 @@ def _watch_parent(parent: int) -> None:
             time.sleep(PARENT_POLL_S)
         os.kill(os.getpid(), signal.SIGTERM)
         time.sleep(PARENT_DEATH_GRACE_S)
+        import faulthandler
+        print(f"parent {parent} gone and this process still alive {PARENT_DEATH_GRACE_S:g} s after SIGTERM: "
+              "its shutdown hung; ending it (stacks follow)", file=sys.stderr, flush=True)
+        faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
         os._exit(1)
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 

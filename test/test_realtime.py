@@ -327,3 +327,43 @@ def test_controller_steps_only_when_its_command_can_arrive(ros_context):
             assert len(seen) == 1
     finally:
         ctl.destroy_node()
+
+
+SIGNAL_BURST_SCRIPT = """
+import sys, time
+import rclpy
+from piezo_valve_ros.nodes.common import init_ros, spin
+init_ros([])
+node = rclpy.create_node('signal_burst')
+node.create_timer(0.001, lambda: None)
+print('spinning', flush=True)
+sys.exit(spin([node], on_exit=lambda: print('cleaned up', flush=True)))
+"""
+
+
+@pytest.mark.parametrize("burst", [False, True])
+def test_a_burst_of_signals_stops_a_node_cleanly(tmp_path, burst):
+    """A node's stop request must survive signals arriving inside its own handler (a parent's death brings
+    two SIGTERMs at once: the kernel's and the parent watcher's).  A handler taking a lock deadlocked there."""
+    import subprocess
+    import sys
+    log = tmp_path / "burst.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen([sys.executable, "-c", SIGNAL_BURST_SCRIPT], env=ros_env(), stdout=out,
+                                stderr=subprocess.STDOUT)
+    try:
+        wait_for_text(log, "spinning", timeout_s=30)
+        deadline = time.monotonic() + (2.0 if burst else 0.0)
+        while True:  # one SIGTERM, or SIGTERMs without a pause until the process has ended (or 2 s)
+            try:
+                os.kill(proc.pid, signal.SIGTERM)
+            except ProcessLookupError:
+                break
+            if time.monotonic() > deadline or proc.poll() is not None:
+                break
+        assert proc.wait(10) == 0, log.read_text()
+        assert "cleaned up" in log.read_text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

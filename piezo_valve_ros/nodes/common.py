@@ -213,25 +213,37 @@ def spin_loop(executor, keep_going: Callable[[], bool], pacing: Optional[Pacing]
             executor.spin_once(timeout_sec=0.0)
 
 
-_STOP_REQUESTED = threading.Event()
+class _StopRequest:
+    """Set by the Ctrl-C/SIGTERM handler of :func:`init_ros`.  A plain attribute and no lock: a Python signal
+    handler runs in the main thread between two bytecodes, possibly inside another run of itself (a parent's
+    death brings two SIGTERMs, the kernel's and the parent watcher's), and a handler that takes a lock
+    (``threading.Event.set`` does) then waits for itself for ever: the node hung before its safe shutdown."""
+    requested = False
+
+    @classmethod
+    def set(cls, *_signal_args) -> None:
+        cls.requested = True
+
+
+_STOP_REQUESTED = _StopRequest
 
 
 def init_ros(args=None) -> None:
     """``rclpy.init`` for a node process, with signal handling of our own: Ctrl-C/SIGTERM only ask the spin
     loop to stop (within its 0.1 s wait), so no callback is interrupted half-way (rclpy's handler raises
-    into whatever callback runs, which the executor reports as a FATAL exception); the shutdown path (safe
-    voltage) then runs after the process has left DDS (see :func:`spin`)."""
+    into whatever callback runs, which the executor reports as a FATAL exception) and the shutdown path
+    (safe voltage, flushing the samples) runs with the ROS context still valid."""
     import signal
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    _STOP_REQUESTED.clear()
+    _STOP_REQUESTED.requested = False
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: _STOP_REQUESTED.set())
+            signal.signal(sig, _STOP_REQUESTED.set)
 
 
 def stop_requested() -> bool:
     """True once Ctrl-C/SIGTERM arrived in a process set up by :func:`init_ros`."""
-    return _STOP_REQUESTED.is_set()
+    return _STOP_REQUESTED.requested
 
 
 def spin(nodes, on_exit: Optional[Callable[[], None]] = None, executor=None) -> int:
@@ -244,7 +256,7 @@ def spin(nodes, on_exit: Optional[Callable[[], None]] = None, executor=None) -> 
         executor.add_node(node)
     code = 0
     try:
-        spin_loop(executor, lambda: rclpy.ok() and not _STOP_REQUESTED.is_set(), claim_pacing(nodes))
+        spin_loop(executor, lambda: rclpy.ok() and not _STOP_REQUESTED.requested, claim_pacing(nodes))
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:
@@ -254,10 +266,6 @@ def spin(nodes, on_exit: Optional[Callable[[], None]] = None, executor=None) -> 
         # a callback ran into the context a signal had just shut down: that is the shutdown itself
     finally:
         _ignore_signals_while_cleaning_up()
-        if _STOP_REQUESTED.is_set():
-            # stopped by a signal (Ctrl-C, SIGTERM, the parent's death): leave DDS first, as rclpy's own handler
-            # would, so the cleanup below touches no peer (a write to a peer that was killed can block in DDS)
-            rclpy.try_shutdown()
         if on_exit is not None:
             on_exit()
         for node in nodes:
