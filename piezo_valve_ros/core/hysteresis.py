@@ -533,6 +533,15 @@ class InverseGPIM:
         zh = self.bank.step(y_um - self._offset, y_um - self._offset)
         return (float(self.weights @ zh) - self._a1) / self._a0
 
+    def peek(self, y_um: float) -> float:
+        """What :meth:`step` would return for ``y_um`` [um], without advancing the state (allocates: for
+        occasional use such as a model swap, not per sample)."""
+        saved = self.bank.state.copy()
+        try:
+            return self.step(y_um)
+        finally:
+            self.bank.state[:] = saved
+
     def run(self, y_um: np.ndarray) -> np.ndarray:
         y = np.asarray(y_um, float) - self._offset
         x = self.bank.run(y, y, self.weights)

@@ -226,7 +226,7 @@ class ValveController:
         self._last_ref_um = y0 if reference_m is None else reference_m * 1e6
         self._gv.reset(self._last_ref_um)
         self._last_gv_out = self._last_ref_um
-        self._last_ff_v = v0
+        self._last_ff_v, self._last_ff_demand_um = v0, None
         self._last_measured_um = self._last_ref_um
         self.integrator_um = 0.0
         self._d_state = 0.0
@@ -331,6 +331,10 @@ class ValveController:
             self._creep = CreepCompensator(creep, self.config.dt, h_now) if creep.active else None
         self.model, self.ff_inverse, self.loop_inverse = model, ff, loop
         self._setup_model(model)
+        if self._last_ff_demand_um is not None:
+            # the voltage the new model asks for the last demand: the transfer below makes the command
+            # continuous from there (the integrator or the decaying bump takes the difference)
+            self._last_ff_v = ff.peek(self._last_ff_demand_um)
         if new_gv is not None:
             new_gv.reset(self._last_gv_out)
             self._gv, self.valve_model = new_gv, valve_model
@@ -377,8 +381,9 @@ class ValveController:
         y_ref = reference_m * 1e6
         self._last_ref_um = y_ref
         h_ref = self._creep.step(y_ref) if self._creep is not None else y_ref
-        ff_v = self.ff_inverse.step(min(max(h_ref, self._demand_min_um), self._demand_max_um))
-        self._last_ff_v = ff_v
+        ff_demand = min(max(h_ref, self._demand_min_um), self._demand_max_um)
+        ff_v = self.ff_inverse.step(ff_demand)
+        self._last_ff_v, self._last_ff_demand_um = ff_v, ff_demand
         gv_out = self._gv.step(y_ref)
         self._last_gv_out = gv_out
         y = measured_m * 1e6
