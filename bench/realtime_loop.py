@@ -2,6 +2,7 @@
 
     python bench/realtime_loop.py                 # everything (about 3 min)
     python bench/realtime_loop.py --seconds 10 --json loop.json
+    python bench/realtime_loop.py --conditions --only-conditions   # section 6 alone (about 3 min)
 
 Sections (figures from this run; the machine is shared, so compare them with each other):
   1. cost per period without DDS: hardware tick (sim backend + publishing) and controller callback
@@ -12,6 +13,9 @@ Sections (figures from this run; the machine is shared, so compare them with eac
   4. lockstep across processes: control steps per second
   5. composed mode (hardware and controller in one process) at the paper's 10 kHz in real time:
      polling, sleeping, and ticked by an rclpy timer
+  6. (--conditions) 2 kHz across processes on a quiet and on a loaded computer (one pure-Python busy
+     loop per CPU beside the rig), the two processes floating or pinned to their own CPUs, with the
+     GIL switch interval at CPython's 5 ms or the nodes' 50 us
 
 The hardware node runs in this process exactly as ``valve_hardware`` runs it (same executor, same
 spin loop); the controller is a separate ``valve_controller`` process.  Latency is measured by the
@@ -190,14 +194,37 @@ def ping_pong(seconds: float, executor_kind: str = "events") -> dict:
             "p99_ms": float(np.percentile(a, 99) * 1e3)}
 
 
+BUSY_LOOP = "import signal\nsignal.signal(signal.SIGINT, signal.SIG_DFL)\nwhile True:\n    pass\n"
+
+
+def back_to_normal_scheduling() -> None:
+    """Undo what a case's hardware node (in this process) asked for: any CPU, the normal scheduler."""
+    from piezo_valve_ros.realtime import available_cpus, pin
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            os.sched_setscheduler(int(tid), os.SCHED_OTHER, os.sched_param(0))
+        except (ProcessLookupError, PermissionError):
+            pass
+    pin(sorted(set(range(os.cpu_count() or 1)) | available_cpus()))
+
+
 def rig_loop(clock: str, period_s: float, seconds: float, composed: bool = False, tick: str = "loop",
-             busy_poll_s: float = 0.0) -> dict:
-    """Sections 3-5: the hardware node here, the controller in another process (or here, composed)."""
+             busy_poll_s: float = 0.0, switch_interval_s: float | None = None, priority: int = 0,
+             hardware_cpus: list[int] | None = None, controller_cpus: list[int] | None = None) -> dict:
+    """Sections 3-6: the hardware node here, the controller in another process (or here, composed);
+    ``priority`` and ``*_cpus`` are the nodes' realtime.priority / realtime.cpus."""
     from piezo_valve_ros.nodes.composed import build
     from piezo_valve_ros.nodes.hardware import ValveHardwareNode
     hw_params = {"clock": clock, "control_period_s": period_s, "command_timeout_s": 0.5,
                  "realtime.busy_poll_s": busy_poll_s}
     ctl_params = {"gain_set": "pid_hc_5", "control_period_s": period_s, "reference_ramp_s": 0.002}
+    if switch_interval_s is not None:
+        hw_params["realtime.switch_interval_s"] = ctl_params["realtime.switch_interval_s"] = switch_interval_s
+    hw_params["realtime.priority"] = ctl_params["realtime.priority"] = priority
+    if hardware_cpus:
+        hw_params["realtime.cpus"] = hardware_cpus
+    if controller_cpus:
+        ctl_params["realtime.cpus"] = controller_cpus
     overrides = (lambda d: [Parameter(k, value=v) for k, v in d.items()])
     executor = make_executor()
     with ProcessGroup() as procs:
@@ -240,10 +267,15 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3,
                     help="runs of each target case (2 kHz across processes, lockstep, composed 10 kHz)")
     ap.add_argument("--json", help="write all figures to this file")
+    ap.add_argument("--conditions", action="store_true", help="also run section 6 (load, pinning, switch interval)")
+    ap.add_argument("--only-conditions", action="store_true", help="run section 6 alone")
     args = ap.parse_args(argv)
     rclpy.init()
     results: dict = {}
     try:
+        if args.only_conditions:
+            results["conditions"] = conditions(args.seconds, args.repeats)
+            return 0
         print("1. cost per period in this process, no DDS partner:")
         costs = per_period_costs()
         results["costs_us"] = costs
@@ -303,12 +335,49 @@ def main(argv=None) -> int:
             sw = s["loop_thread_context_switches"]
             print(f"   {'':11s}  {s['stalls']} stalls > 0.2 ms (longest {s['longest_gap_s'] * 1e3:.2f} ms); loop thread "
                   f"context switches: voluntary {sw.get('voluntary', '?')}, involuntary {sw.get('nonvoluntary', '?')}")
+        if args.conditions:
+            results["conditions"] = conditions(args.seconds, args.repeats)
     finally:
         rclpy.try_shutdown()
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(results, f, indent=2)
+        if args.json:
+            with open(args.json, "w") as f:
+                json.dump(results, f, indent=2)
     return 0
+
+
+def conditions(seconds: float, repeats: int) -> list[dict]:
+    """Section 6: the 2 kHz loop across processes, quiet or loaded, floating or pinned (realtime.cpus),
+    GIL switch interval 5 ms or 50 us, normal scheduler or SCHED_FIFO (realtime.priority)."""
+    cpus = sorted(os.sched_getaffinity(0))
+    print(f"\n6. 2 kHz across processes on {len(cpus)} CPUs, hardware sleeping between ticks: quiet / loaded (one "
+          "busy loop per CPU beside),\n   floating / pinned (realtime.cpus: hardware [%d], controller [%d]), GIL "
+          "switch interval 5 ms / 50 us, normal scheduler / realtime.priority 50:" % (cpus[0], cpus[-1]))
+    plan = [(loaded, pinned, interval, 0) for loaded in (False, True) for pinned in (False, True)
+            for interval in (5e-3, 5e-5)] + [(True, pinned, 5e-5, 50) for pinned in (False, True)]
+    out = []
+    for loaded in (False, True):
+        with ProcessGroup() as load:
+            if loaded:
+                for _ in cpus:
+                    load.start("load", [sys.executable, "-c", BUSY_LOOP], env=env())
+            for _, pinned, interval, priority in [c for c in plan if c[0] == loaded]:
+                for _ in range(repeats):
+                    try:
+                        s = rig_loop("realtime", 5e-4, seconds, switch_interval_s=interval, priority=priority,
+                                     hardware_cpus=[cpus[0]] if pinned else None,
+                                     controller_cpus=[cpus[-1]] if pinned else None)
+                    except ValueError as exc:  # e.g. no permission for SCHED_FIFO here
+                        print(f"   {'loaded' if loaded else 'quiet':6s} priority {priority}: not run: {exc}")
+                        break
+                    finally:
+                        back_to_normal_scheduling()
+                    out.append({"loaded": loaded, "pinned": pinned, "switch_interval_s": interval,
+                                "priority": priority, **s})
+                    print(f"   {'loaded' if loaded else 'quiet ':6s} {'pinned  ' if pinned else 'floating'} "
+                          f"{interval * 1e6:5.0f} us {'FIFO 50' if priority else 'normal ':7s}: in time "
+                          f"{100 * s['in_time_share']:6.2f} %, achieved {s['achieved_rate_hz']:7.1f} Hz, latency "
+                          f"p50 {s['latency_p50_s'] * 1e3:.3f} ms p99 {s['latency_p99_s'] * 1e3:.3f} ms", flush=True)
+    return out
 
 
 if __name__ == "__main__":

@@ -94,6 +94,10 @@ def controller(ros_context):
     ({"sim__sensor_delay_s": -0.001}, "whole number of sample periods"),
     ({"realtime__switch_interval_s": 0.1}, "out of range"),
     ({"realtime__switch_interval_s": 1}, "switch_interval_s must lie in"),
+    ({"realtime__priority": 99}, "realtime.priority must lie in 0..98"),
+    ({"realtime__priority": 1.5}, "realtime.priority must be an integer"),
+    ({"realtime__cpus": [4096]}, "no CPU 4096 on this machine"),
+    ({"realtime__priority": 10, "realtime__busy_poll_s": 0.001}, "starves every other thread"),
 ])
 def test_hardware_refuses_unsafe_start_up_parameters(hardware, overrides, says):
     with pytest.raises(Exception, match=says):
@@ -267,3 +271,31 @@ def test_every_executable_answers_help_without_starting_anything(executable):
     proc = subprocess.run([exe, "--help"], env=ros_env(), capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0 and proc.stdout.startswith(f"usage: {executable}"), proc.stdout + proc.stderr
     assert "[INFO]" not in proc.stdout + proc.stderr and "rig up" not in proc.stdout  # no node was started
+
+
+def test_hardware_applies_its_real_time_priority_and_cpus(tmp_path):
+    """realtime.priority / realtime.cpus reach every thread of the process (DDS's included), or the node
+    refuses to start with the OS's reason and what to do."""
+    cpu = max(os.sched_getaffinity(0))
+    exe = os.path.join(os.path.dirname(sys.executable), "valve_hardware")
+    log = tmp_path / "hw.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen([exe, "--ros-args", "-p", "realtime.priority:=10", "-p", f"realtime.cpus:=[{cpu}]"],
+                                env=ros_env(), stdout=out, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 30
+        while "valve_hardware up" not in log.read_text() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if proc.poll() is not None:  # no permission for SCHED_FIFO on this machine: refused with the reason
+            assert proc.returncode == 2 and "the OS refused SCHED_FIFO" in log.read_text(), log.read_text()
+            return
+        assert f"SCHED_FIFO 10, CPUs {cpu}" in log.read_text()
+        tids = [int(t) for t in os.listdir(f"/proc/{proc.pid}/task")]
+        assert len(tids) > 3  # DDS's threads as well as the loop
+        for tid in tids:
+            assert os.sched_getscheduler(tid) == os.SCHED_FIFO
+            assert os.sched_getparam(tid).sched_priority == 10
+            assert os.sched_getaffinity(tid) == {cpu}
+    finally:
+        proc.terminate()
+        proc.wait(20)

@@ -49,29 +49,24 @@ def declare(node: Node, name: str, default: Any, description: str, *, read_only:
     return node.declare_parameter(name, default, descriptor)
 
 
-DEFAULT_SWITCH_INTERVAL_S = 5e-5           # CPython's GIL switch interval in real-time processes (its default: 5 ms)
-SWITCH_INTERVAL_RANGE_S = (1e-6, 0.005)
-
-
-def declare_switch_interval(node: Node) -> None:
-    """The ``realtime.switch_interval_s`` parameter of a real-time node (read-only)."""
+def declare_realtime(node: Node) -> None:
+    """The read-only ``realtime.*`` scheduling parameters of a real-time node (see :mod:`..realtime`)."""
+    from ..realtime import DEFAULT_SWITCH_INTERVAL_S, PRIORITY_RANGE, SWITCH_INTERVAL_RANGE_S
     lo, hi = SWITCH_INTERVAL_RANGE_S
     declare(node, "realtime.switch_interval_s", DEFAULT_SWITCH_INTERVAL_S,
             "CPython's GIL switch interval in this process [s] (the interpreter's default 5 ms lets another "
             "thread, e.g. DDS's, hold it for several control periods)", read_only=True, low=lo, high=hi)
+    declare(node, "realtime.priority", 0, f"SCHED_FIFO priority of the process's threads "
+            f"({PRIORITY_RANGE[0]}..{PRIORITY_RANGE[1]}; 0 = the normal scheduler); refused at start-up when "
+            "the OS does not allow it", read_only=True)
+    declare(node, "realtime.cpus", [], "CPUs the process may run on (e.g. [1]; empty = any)", read_only=True)
 
 
-def apply_switch_interval(value: Any, apply: bool = True) -> float:
-    """Validate ``realtime.switch_interval_s`` and (``apply``) set it for this process; ValueError with the
-    reason."""
-    interval = as_float("realtime.switch_interval_s", value)
-    lo, hi = SWITCH_INTERVAL_RANGE_S
-    if not lo <= interval <= hi:
-        raise ValueError(f"realtime.switch_interval_s must lie in [{lo:g}, {hi:g}] s, got {interval}")
-    if apply:
-        import sys
-        sys.setswitchinterval(interval)
-    return interval
+def realtime_settings(p: dict):
+    """Validated :class:`..realtime.RealtimeSettings` from a node's parameter values (ValueError)."""
+    from ..realtime import RealtimeSettings
+    return RealtimeSettings.from_values(p["realtime.switch_interval_s"], p["realtime.priority"],
+                                        p["realtime.cpus"])
 
 
 def parameter_values(node: Node) -> dict[str, Any]:

@@ -30,8 +30,8 @@ from ..core.hysteresis import GPIM, PAPER_GPIM, GPIMParams, inverse_problems
 from ..core.signals import ReferenceRamp
 from ..core.strategies import (GUARD_WINDOW_S, STRATEGIES, ControllerConfig, CreepModel, PIDGains, ValveController,
                                gain_set)
-from .common import (COMMAND_QOS, LATEST_SENSOR_QOS, SAMPLES_QOS, apply_switch_interval, as_float, as_float_list, as_int,
-                     declare, declare_switch_interval, parameter_values, refuse, run_node, samples_from_message)
+from .common import (COMMAND_QOS, LATEST_SENSOR_QOS, SAMPLES_QOS, as_float, as_float_list, as_int,
+                     declare, declare_realtime, parameter_values, realtime_settings, refuse, run_node, samples_from_message)
 
 GPIM_KEYS = ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")
 GAIN_SET_KEYS = ("strategy", "kp", "ki", "kd")   # what an active gain_set decides
@@ -123,14 +123,16 @@ class ValveControllerNode(Node):
         lo, hi = HANDBACK_TIMEOUT_RANGE_S
         declare(self, "handback_timeout_s", 1.0, "disabled: when the commands of the node that took over stop for "
                 f"this long, take control back [s] ({lo:g}..{hi:g})", low=lo, high=hi)
-        declare_switch_interval(self)
+        declare_realtime(self)
         name = str(self.get_parameter("gain_set").value or "")
         if name:  # the set's values are what runs: the parameters say so
             self.set_parameters([Parameter(k, value=v) for k, v in gain_set_values(name).items()])
         p = parameter_values(self)
         config, model, valve_model, creep = settings_from_parameters(p)
         self.handback_timeout_s = self._handback_timeout(p["handback_timeout_s"])
-        apply_switch_interval(p["realtime.switch_interval_s"])
+        from ..realtime import apply
+        self.realtime = realtime_settings(p)
+        apply(self.realtime)
         self.controller = ValveController(config, model, valve_model, creep)
         self.ramp = ReferenceRamp(as_float("initial_reference_m", p["initial_reference_m"]),
                                   self._ramp_s(p["reference_ramp_s"]), config.dt)
@@ -153,7 +155,8 @@ class ValveControllerNode(Node):
             self._watch_applied_voltage(True)
         self.rejected_references = 0
         self.get_logger().info(f"valve_controller up: strategy={config.strategy}{self._gains_text(config)} "
-                               f"period={config.dt * 1e3:.3f} ms" + (f" (gain_set {p['gain_set']})" if p["gain_set"] else ""))
+                               f"period={config.dt * 1e3:.3f} ms" + (f" (gain_set {p['gain_set']})" if p["gain_set"] else "")
+                               + f"; {self.realtime.describe()}")
 
     @staticmethod
     def _gains_text(config: ControllerConfig) -> str:

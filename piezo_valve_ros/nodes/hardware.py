@@ -27,8 +27,8 @@ from ..backends import ValveBackend, make_backend
 from ..loop_timing import LoopTiming
 from ..core.simulator import (AmplifierParams, CreepParams, DriftParams, RateDependenceParams, SaturationParams,
                               SensorParams, ValveSimConfig)
-from .common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, apply_switch_interval, as_float, as_int, declare,
-                     declare_switch_interval, parameter_values, refuse, run_node, samples_message, tighten_timer_slack)
+from .common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, as_float, as_int, declare,
+                     declare_realtime, parameter_values, realtime_settings, refuse, run_node, samples_message, tighten_timer_slack)
 
 
 MAX_CONTROL_PERIOD_S = 0.1      # slower than 10 Hz is no control loop for this valve
@@ -103,7 +103,7 @@ class ValveHardwareNode(Node):
         declare(self, "realtime.busy_poll_s", 0.0,
                 "realtime clock: poll for messages instead of sleeping this long before each tick [s] "
                 "(costs a core; >= control_period_s polls all the time)", read_only=True)
-        declare_switch_interval(self)
+        declare_realtime(self)
         declare(self, "loop_stats_period_s", 0.0,
                 "log the loop timing (rate, commands in time, latency) this often [s]; 0: only at shutdown",
                 read_only=True)
@@ -152,7 +152,14 @@ class ValveHardwareNode(Node):
         self.backend = backend
         self.control_period_s = self.samples_per_period * backend.sample_period_s
         self.command_timeout_s = self._command_timeout(p["command_timeout_s"])
-        apply_switch_interval(p["realtime.switch_interval_s"], apply=self.clock_mode == "realtime")
+        self.realtime = realtime_settings(p)
+        if self.realtime.priority and self.busy_poll_s > 0:
+            raise ValueError("realtime.priority with realtime.busy_poll_s > 0: a polling thread at real-time "
+                             "priority starves every other thread of its CPU, DDS's included; sleep "
+                             "(realtime.busy_poll_s 0) or use priority 0")
+        if self.clock_mode == "realtime":
+            from ..realtime import apply
+            apply(self.realtime)
 
         self.position_pub = self.create_publisher(Float64, "spool_position", SENSOR_QOS)
         self.samples_pub = self.create_publisher(Float64MultiArray, "samples", SAMPLES_QOS)
@@ -191,7 +198,8 @@ class ValveHardwareNode(Node):
             self.create_timer(stats_period, lambda: self.get_logger().info(self._loop_line()))
         self.get_logger().info(
             f"valve_hardware up: backend={p['backend']} clock={self.clock_mode} "
-            f"period={self.control_period_s * 1e3:.3f} ms ({self.samples_per_period} samples)")
+            f"period={self.control_period_s * 1e3:.3f} ms ({self.samples_per_period} samples)"
+            + (f"; {self.realtime.describe()}" if self.clock_mode == "realtime" else ""))
 
     # ------------------------------------------------------------------ commands
     def _validate(self, v: float) -> Optional[float]:
