@@ -30,6 +30,8 @@ setup(
             "valve_composed = piezo_valve_ros.nodes.composed:main",
             "valve_identification = piezo_valve_ros.nodes.identification:main",
             "valve_identify = piezo_valve_ros.identify_cli:main",
+            "valve_record = piezo_valve_ros.nodes.record:main",
+            "valve_command = piezo_valve_ros.nodes.command:main",
         ],
     },
 )

@@ -24,12 +24,13 @@ from rosbags.rosbag2.metadata import dump_qos_v9
 from rosbags.typesys import Stores, get_typestore
 
 __all__ = ["BagError", "BagRecorder", "qos_profile", "read_samples", "write_samples_bag", "SAMPLES_TYPE",
-           "FLOAT64_TYPE", "TYPESTORE", "serialize_samples", "serialize_float64", "SAMPLES_COLUMNS"]
+           "FLOAT64_TYPE", "CLOCK_TYPE", "TYPESTORE", "serialize_samples", "serialize_float64", "SAMPLES_COLUMNS"]
 
 BAG_VERSION = 9  # rosbag2 metadata version written by Jazzy
 STORAGES = {"mcap": (StoragePlugin.MCAP, ".mcap"), "sqlite3": (StoragePlugin.SQLITE3, ".db3")}
 SAMPLES_TYPE = "std_msgs/msg/Float64MultiArray"
 FLOAT64_TYPE = "std_msgs/msg/Float64"
+CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
 SAMPLES_COLUMNS = ("time", "voltage_command", "spool_position")
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 

@@ -21,7 +21,7 @@ from piezo_valve_ros.core.signals import step_reference_m  # noqa: E402
 from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig  # noqa: E402
 from piezo_valve_ros.core.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set  # noqa: E402
 from piezo_valve_ros.nodes.common import COMMAND_QOS  # noqa: E402
-from piezo_valve_ros.nodes.rig import RigClient, run_in_background  # noqa: E402
+from piezo_valve_ros.nodes.client import RigClient, run_in_background  # noqa: E402
 from piezo_valve_ros.processes import ProcessGroup, node_command  # noqa: E402
 
 DT = 1e-4

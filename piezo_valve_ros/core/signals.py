@@ -11,7 +11,7 @@ import numpy as np
 __all__ = ["time_base", "synchronising_sine", "training_voltage", "validation_shape", "validation_reference_m",
            "PAPER_STEPS_UM", "step_reference_m", "stepped_sine_reference_m", "step_and_hold_voltage",
            "multisine_voltage", "identification_voltage", "validation_voltage", "joined", "ReferenceRamp",
-           "IDENTIFICATION_STEPS_V", "IDENTIFICATION_MULTISINE_HZ"]
+           "IDENTIFICATION_STEPS_V", "IDENTIFICATION_MULTISINE_HZ", "ramp_profile", "sine_profile", "load_profile"]
 
 
 def time_base(duration_s: float, dt: float) -> np.ndarray:
@@ -181,3 +181,64 @@ class ReferenceRamp:
             self._i += 1
             self.value = self._start + (self._target - self._start) * self._i / self._n
         return self.value
+
+
+# ---------------------------------------------------------------------------- reference profiles
+# What an operator sends to a running rig (``valve_command``): times [s] from the start and positions [m].
+MAX_PROFILE_RATE_HZ = 10_000.0
+
+
+def _profile_times(duration_s: float, rate_hz: float) -> np.ndarray:
+    if not (np.isfinite(duration_s) and duration_s > 0):
+        raise ValueError(f"duration must be > 0 s, got {duration_s}")
+    if not (np.isfinite(rate_hz) and 0 < rate_hz <= MAX_PROFILE_RATE_HZ):
+        raise ValueError(f"rate must lie in (0, {MAX_PROFILE_RATE_HZ:g}] Hz, got {rate_hz}")
+    n = int(np.floor(duration_s * rate_hz + 1e-9))
+    return np.append(np.arange(n) / rate_hz, duration_s) if n / rate_hz < duration_s else np.arange(n + 1) / rate_hz
+
+
+def ramp_profile(start_m: float, end_m: float, duration_s: float, rate_hz: float = 100.0):
+    """A straight line from ``start_m`` to ``end_m`` [m] over ``duration_s``; (times [s], positions [m])."""
+    t = _profile_times(duration_s, rate_hz)
+    return t, start_m + (end_m - start_m) * t / duration_s
+
+
+def sine_profile(amplitude_m: float, frequency_hz: float, duration_s: float, offset_m: float = 0.0,
+                 rate_hz: float = 200.0):
+    """``offset_m + amplitude_m * sin(2 pi f t)``, ending back at the offset when the duration is a whole
+    number of periods; (times [s], positions [m])."""
+    if not (np.isfinite(frequency_hz) and 0 < frequency_hz < rate_hz / 2):
+        raise ValueError(f"frequency must lie in (0, rate/2 = {rate_hz / 2:g}) Hz, got {frequency_hz}")
+    if not np.isfinite(amplitude_m):
+        raise ValueError(f"amplitude must be finite, got {amplitude_m}")
+    t = _profile_times(duration_s, rate_hz)
+    return t, offset_m + amplitude_m * np.sin(2 * np.pi * frequency_hz * t)
+
+
+def load_profile(path) -> tuple[np.ndarray, np.ndarray]:
+    """Rows ``time_s, position_m`` (comma or white space separated, ``#`` comments, an optional header) from
+    a text file; times from 0 or later and never decreasing.  ValueError naming the problem."""
+    rows = []
+    first = True
+    with open(path, encoding="utf8") as f:
+        for number, line in enumerate(f, 1):
+            text = line.split("#", 1)[0].strip()
+            if not text:
+                continue
+            try:
+                values = [float(x) for x in text.replace(",", " ").split()]
+            except ValueError:
+                if first:  # a header line
+                    first = False
+                    continue
+                raise ValueError(f"{path}:{number}: not two numbers: {text!r}") from None
+            first = False
+            if len(values) != 2 or not all(np.isfinite(values)):
+                raise ValueError(f"{path}:{number}: expected 'time_s, position_m', got {text!r}")
+            rows.append(values)
+    if not rows:
+        raise ValueError(f"{path}: no 'time_s, position_m' rows")
+    a = np.asarray(rows)
+    if a[0, 0] < 0 or np.any(np.diff(a[:, 0]) < 0):
+        raise ValueError(f"{path}: times must start at 0 s or later and never decrease")
+    return a[:, 0], a[:, 1]

@@ -34,14 +34,16 @@ import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from std_msgs.msg import Float64, Float64MultiArray
+from std_msgs.msg import Float64
 
-from ..bagio import FLOAT64_TYPE, SAMPLES_TYPE, BagError, BagRecorder, qos_profile
+from ..bagio import BagError
 from ..core.records import IdentificationError
 from ..core.signals import identification_voltage, joined, synchronising_sine, validation_reference_m
 from ..identify import (compensation, controller_parameters, controller_parameters_yaml, identify_bags, report_json,
                         write_atomically)
-from .common import COMMAND_QOS, REFERENCE_QOS, SAMPLES_QOS, SENSOR_QOS, as_float, declare, parameter_values, run_node
+from .client import wait_future
+from .recording import RigRecorder
+from .common import COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, as_float, declare, parameter_values, run_node
 
 STEPS = ("train", "refit", "validate")
 
@@ -120,20 +122,9 @@ class ValveIdentificationNode(Node):
 
         self.command_pub = self.create_publisher(Float64, "voltage_command", COMMAND_QOS)
         self.reference_pub = self.create_publisher(Float64, "position_reference", REFERENCE_QOS)
-        self._recorder: Optional[BagRecorder] = None
-        self._recorder_lock = threading.Lock()
+        self.recorder = RigRecorder(self, self.storage)
         self._player: Optional[_Player] = None
-        topics = {"samples": (SAMPLES_TYPE, SAMPLES_QOS, True), "voltage_command": (FLOAT64_TYPE, COMMAND_QOS, True),
-                  "spool_position": (FLOAT64_TYPE, SENSOR_QOS, False),
-                  "position_reference": (FLOAT64_TYPE, REFERENCE_QOS, True)}
-        self._bag_topics = {}
-        for topic, (msgtype, qos, reliable) in topics.items():
-            full = self.resolve_topic_name(topic)
-            self._bag_topics[full] = (msgtype, qos_profile(reliable, qos.depth))
-            msg_class = Float64MultiArray if msgtype == SAMPLES_TYPE else Float64
-            self.create_subscription(msg_class, topic, self._make_raw_callback(full), qos, raw=True)
         self.create_subscription(Float64, "spool_position", self._on_position, SENSOR_QOS)
-        self.create_timer(0.2, self._roll_recorder)
         self.controller_name = str(p["controller"])
         self.controller = AsyncParameterClient(self, self.controller_name)
         self.summary: list[dict] = []
@@ -144,33 +135,12 @@ class ValveIdentificationNode(Node):
         self.get_logger().info(f"valve_identification up: plan {', '.join(self.plan) or '(none)'}; bags in {self.bag_dir}")
 
     # ------------------------------------------------------------------ recording
-    def _make_raw_callback(self, topic: str):
-        def callback(data: bytes) -> None:
-            with self._recorder_lock:
-                if self._recorder is not None:
-                    self._recorder.write(topic, time.time_ns(), data)
-        return callback
-
-    def _roll_recorder(self) -> None:
-        with self._recorder_lock:
-            if self._recorder is not None:
-                self._recorder.maybe_roll()
-
     def _start_recording(self, label: str) -> Path:
         stamp = datetime.now().strftime("%Y%m%d_%H%M%S_%f")
-        path = self.bag_dir / f"{label}_{stamp}"
-        self.bag_dir.mkdir(parents=True, exist_ok=True)
-        with self._recorder_lock:
-            self._recorder = BagRecorder(path, self._bag_topics, self.storage)
-        return path
+        return self.recorder.start(self.bag_dir / f"{label}_{stamp}")
 
     def _stop_recording(self) -> dict:
-        with self._recorder_lock:
-            rec, self._recorder = self._recorder, None
-        if rec is None:
-            return {}
-        rec.close()
-        return rec.message_counts
+        return self.recorder.stop()
 
     # ------------------------------------------------------------------ experiment playback
     def _on_position(self, msg: Float64) -> None:
@@ -204,12 +174,11 @@ class ValveIdentificationNode(Node):
         params = [Parameter(k, value=v) for k, v in values.items()]
         future = (self.controller.set_parameters_atomically(params) if atomically
                   else self.controller.set_parameters(params))
-        deadline = time.monotonic() + timeout_s
-        while not future.done():
-            if time.monotonic() > deadline or not rclpy.ok():
-                return False, "no answer from the controller"
-            time.sleep(0.005)
-        results = future.result().result if atomically else future.result().results
+        try:
+            answer = wait_future(future, timeout_s, "the controller")
+        except TimeoutError as exc:
+            return False, str(exc)
+        results = answer.result if atomically else answer.results
         results = [results] if atomically else results
         bad = [r.reason for r in results if not r.successful]
         return (not bad), "; ".join(bad)

@@ -13,130 +13,20 @@ from __future__ import annotations
 
 import argparse
 import sys
-import threading
 import time
 
-import numpy as np
 import rclpy
-from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.parameter_client import AsyncParameterClient
-from std_msgs.msg import Float64, Float64MultiArray
 
 from ..core.metrics import step_metrics
 from ..core.signals import PAPER_STEPS_UM
 from ..core.simulator import ValveSimConfig
 from ..processes import ProcessGroup, node_command
-from .common import REFERENCE_QOS, SAMPLES_QOS, claim_pacing, make_executor, samples_from_message, spin_loop
+from .client import RigClient, run_in_background
 
 
-# ---------------------------------------------------------------------------- demo client
-class RigClient(Node):
-    """Drives a lockstep rig: reference, pause/resume through the hardware's step budget, samples."""
-
-    def __init__(self, namespace: str = "", samples_per_period: int = 1):
-        super().__init__("valve_rig_client", namespace=namespace or None)
-        self.samples_per_period = int(samples_per_period)  # rows of `samples` per control period
-        prefix = namespace.rstrip("/") + "/" if namespace else ""
-        hardware_node, controller_node = prefix + "valve_hardware", prefix + "valve_controller"
-        self.rows: list[np.ndarray] = []
-        self._rows_count = 0
-        self._lock = threading.Lock()
-        self._new_rows = threading.Condition(self._lock)
-        self.create_subscription(Float64MultiArray, "samples", self._on_samples, SAMPLES_QOS)
-        self.reference_pub = self.create_publisher(Float64, "position_reference", REFERENCE_QOS)
-        self.hardware = AsyncParameterClient(self, hardware_node)
-        self.controller = AsyncParameterClient(self, controller_node)
-
-    def _on_samples(self, msg: Float64MultiArray) -> None:
-        rows, _ = samples_from_message(msg)
-        with self._new_rows:
-            self.rows.append(rows[:, :3])
-            self._rows_count += rows.shape[0]
-            self._new_rows.notify_all()
-
-    @property
-    def rows_count(self) -> int:
-        with self._lock:
-            return self._rows_count
-
-    def all_rows(self) -> np.ndarray:
-        with self._lock:
-            return np.concatenate(self.rows) if self.rows else np.zeros((0, 3))
-
-    def wait_rows(self, count: int, timeout_s: float = 30.0) -> bool:
-        deadline = time.monotonic() + timeout_s
-        with self._new_rows:
-            while self._rows_count < count:
-                left = deadline - time.monotonic()
-                if left <= 0 or not rclpy.ok():
-                    return False
-                self._new_rows.wait(min(left, 0.1))
-        return True
-
-    def wait_ready(self, timeout_s: float = 30.0) -> None:
-        """Both nodes' parameter services answer and the controller is subscribed to samples' source."""
-        for client, name in ((self.hardware, "valve_hardware"), (self.controller, "valve_controller")):
-            if not client.wait_for_services(timeout_sec=timeout_s):
-                raise TimeoutError(f"{name} did not come up within {timeout_s} s")
-        deadline = time.monotonic() + timeout_s
-        while self.reference_pub.get_subscription_count() == 0:
-            if time.monotonic() > deadline:
-                raise TimeoutError("nobody subscribes to position_reference")
-            time.sleep(0.05)
-
-    def set_params(self, client: AsyncParameterClient, values: dict, timeout_s: float = 10.0):
-        params = [Parameter(k, value=v) for k, v in values.items()]
-        future = client.set_parameters(params)
-        deadline = time.monotonic() + timeout_s
-        while not future.done():
-            if time.monotonic() > deadline or not rclpy.ok():
-                raise TimeoutError(f"setting {list(values)} timed out")
-            time.sleep(0.005)
-        return future.result().results
-
-    def run_periods(self, periods: int, timeout_s: float = 60.0) -> np.ndarray:
-        """Grant ``periods`` control periods to a paused lockstep rig; returns one row per period (its last
-        sample: the position the controller measured)."""
-        start, k = self.rows_count, self.samples_per_period
-        result = self.set_params(self.hardware, {"lockstep.step_budget": periods})
-        if not result[0].successful:
-            raise RuntimeError(f"hardware refused the step budget: {result[0].reason}")
-        if not self.wait_rows(start + periods * k, timeout_s):
-            raise TimeoutError(f"rig did not run {periods} periods within {timeout_s} s")
-        time.sleep(0.1)  # let the controller answer the last position (its command is held)
-        return self.all_rows()[start:start + periods * k][k - 1::k]
-
-    def set_reference(self, reference_m: float, timeout_s: float = 10.0) -> None:
-        """Publish a reference and return once every matched controller has received it (reliable ack).
-
-        In lockstep nothing else moves until the next ``run_periods``: the reference is then in the
-        controller's event queue ahead of the first position of the new budget, so it applies from that
-        period on (ordered by the acknowledgement, not by a sleep)."""
-        self.reference_pub.publish(Float64(data=float(reference_m)))
-        if not self.reference_pub.wait_for_all_acked(Duration(seconds=timeout_s)):
-            raise TimeoutError(f"position_reference not acknowledged within {timeout_s} s")
-
-
-def run_in_background(nodes: list[Node]):
-    """Spin ``nodes`` in a daemon thread (a real-time hardware node's tick included); returns
-    (thread, stop, executor)."""
-    executor = make_executor()
-    for n in nodes:
-        executor.add_node(n)
-    stop = threading.Event()
-    pacing = claim_pacing(nodes)
-
-    def loop():
-        try:
-            spin_loop(executor, lambda: rclpy.ok() and not stop.is_set(), pacing)
-        except Exception:
-            if rclpy.ok() and not stop.is_set():
-                raise
-    thread = threading.Thread(target=loop, daemon=True)
-    thread.start()
-    return thread, stop, executor
+# ---------------------------------------------------------------------------- demo
 
 
 def step_demo(client: RigClient, dt: float, hold_periods: int, after_periods: int,

@@ -1,0 +1,172 @@
+"""``valve_command``: send references to a running rig and get or set its nodes' parameters (no ros2cli
+needed).  Positions in metres, times in seconds (SI, as on the topics).
+
+    valve_command step 20e-6                                  # hold 20 um
+    valve_command ramp 0 30e-6 --duration 2                   # 0 -> 30 um in 2 s
+    valve_command sine --amplitude 40e-6 --frequency 1 --duration 10
+    valve_command file demand.csv                             # rows: time_s, position_m
+    valve_command get controller strategy kp ki               # all parameters without names
+    valve_command set controller gain_set:=ff_pid_1           # each answer: accepted, or refused and why
+    valve_command --namespace /rig2 set hardware command_timeout_s:=0.2
+
+Nodes are ``hardware``, ``controller``, ``identification`` (the rig's, in ``--namespace``) or any node
+name.  Values of ``set`` are read as YAML, like ``ros2 param set`` (``1`` an integer, ``1.0`` a double,
+``true`` a bool, ``'1'`` a string).  Exit status: 0 done, 1 a value refused or the rig not answering,
+2 bad arguments.  The rig may run on another machine in the same ROS domain.
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+
+import numpy as np
+import rclpy
+import yaml
+
+from ..core.signals import load_profile, ramp_profile, sine_profile
+from .client import RigClient, run_in_background
+from .common import init_ros, stop_requested
+
+PROFILE_HISTORY = 10_000   # references kept for readers that fall behind (the nodes keep 10)
+
+
+class _Parser(argparse.ArgumentParser):
+    """Takes ``-20e-6`` for a number, as Python 3.13's argparse does (3.11 reads it as an option)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-\.?\d")
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    ap = _Parser(prog="valve_command", description=__doc__.split("\n\n")[0],
+                                 epilog="ROS arguments may follow --ros-args.")
+    ap.add_argument("--namespace", default="", help="the rig's namespace (default: the root)")
+    ap.add_argument("--timeout", type=float, default=10.0, metavar="S",
+                    help="wait this long for the rig to answer (default 10 s)")
+    ap.add_argument("--wait-readers", type=int, default=1, metavar="N",
+                    help="send references once N nodes read them (default 1, the controller; 2 with a recorder)")
+    sub = ap.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("step", help="send one reference (the controller ramps to it)")
+    p.add_argument("position_m", type=float)
+    p = sub.add_parser("ramp", help="a straight line from one position to another")
+    p.add_argument("start_m", type=float)
+    p.add_argument("end_m", type=float)
+    p.add_argument("--duration", type=float, required=True, metavar="S")
+    p.add_argument("--rate", type=float, default=100.0, metavar="HZ", help="references per second (100)")
+    p = sub.add_parser("sine", help="offset + amplitude * sin(2 pi f t)")
+    p.add_argument("--amplitude", type=float, required=True, metavar="M")
+    p.add_argument("--frequency", type=float, required=True, metavar="HZ")
+    p.add_argument("--duration", type=float, required=True, metavar="S")
+    p.add_argument("--offset", type=float, default=0.0, metavar="M")
+    p.add_argument("--rate", type=float, default=200.0, metavar="HZ", help="references per second (200)")
+    p = sub.add_parser("file", help="a profile from a text file of 'time_s, position_m' rows")
+    p.add_argument("path")
+    p = sub.add_parser("get", help="print parameters of a node")
+    p.add_argument("node")
+    p.add_argument("names", nargs="*")
+    p = sub.add_parser("set", help="set parameters of a node (NAME:=VALUE ...)")
+    p.add_argument("node")
+    p.add_argument("assignments", nargs="+", metavar="NAME:=VALUE")
+    return ap.parse_args(argv)
+
+
+def parse_assignment(text: str) -> tuple[str, object]:
+    """``name:=value`` (or ``name=value``) with the value read as YAML; ValueError when malformed."""
+    sep = ":=" if ":=" in text else "="
+    name, found, value = text.partition(sep)
+    if not found or not name.strip():
+        raise ValueError(f"expected NAME:=VALUE, got {text!r}")
+    if not value.strip():
+        raise ValueError(f"{name}: a value is needed (an empty string is written '')")
+    try:
+        parsed = yaml.safe_load(value)
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{name}: value {value!r} is not YAML ({str(exc).splitlines()[0]})") from None
+    if parsed is None:
+        raise ValueError(f"{name}: {value!r} is no value")
+    return name.strip(), parsed
+
+
+def profile(args) -> tuple[np.ndarray, np.ndarray]:
+    """(times [s], positions [m]) for a reference command; ValueError with the reason."""
+    if args.command == "step":
+        if not np.isfinite(args.position_m):
+            raise ValueError(f"position must be finite, got {args.position_m}")
+        return np.zeros(1), np.array([args.position_m])
+    if args.command == "ramp":
+        return ramp_profile(args.start_m, args.end_m, args.duration, args.rate)
+    if args.command == "sine":
+        return sine_profile(args.amplitude, args.frequency, args.duration, args.offset, args.rate)
+    return load_profile(args.path)
+
+
+def run(args, client: RigClient, out=sys.stdout) -> int:
+    """Carry out one parsed command against a rig reachable through ``client`` (spun elsewhere)."""
+    if args.command == "get":
+        values = client.get_params(client.wait_for_node(args.node, args.timeout), args.names, args.timeout)
+        for name, value in values.items():
+            print(f"{name}: {value!r}" if value is not None else f"{name}: (not set)", file=out)
+        return 0 if all(v is not None for v in values.values()) else 1
+    if args.command == "set":
+        values = dict(parse_assignment(a) for a in args.assignments)
+        results = client.set_params(client.wait_for_node(args.node, args.timeout), values, args.timeout)
+        refused = 0
+        for (name, value), result in zip(values.items(), results):
+            if result.successful:
+                print(f"{client.node_name(args.node)}: {name} := {value!r} accepted", file=out)
+            else:
+                refused += 1
+                print(f"{client.node_name(args.node)}: {name} := {value!r} refused: {result.reason}", file=out)
+        return 1 if refused else 0
+    times, values = profile(args)
+
+    def progress(sent, total, elapsed):
+        print(f"valve_command: {sent}/{total} references sent, {elapsed:.1f} of {times[-1]:.1f} s", file=out,
+              flush=True)
+    sent, took, readers = client.play_reference(times, values, args.timeout, progress=progress,
+                                                keep_going=lambda: not stop_requested(),
+                                                min_readers=args.wait_readers)
+    if sent < len(values):
+        print(f"valve_command: {args.command}: stopped after {sent} of {len(values)} references ({took:.2f} s); "
+              "the controller holds the last one", file=out)
+        return 130
+    print(f"valve_command: {args.command}: {sent} reference(s) from {values.min() * 1e6:.2f} to "
+          f"{values.max() * 1e6:.2f} um sent in {took:.2f} s on {client.reference_pub.topic_name}, "
+          f"acknowledged by {readers} reader(s)", file=out)
+    return 0
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ros_args = argv[argv.index("--ros-args"):] if "--ros-args" in argv else []
+    args = parse_args(argv[:len(argv) - len(ros_args)])
+    try:  # bad input is refused before touching ROS
+        if args.command == "set":
+            for a in args.assignments:
+                parse_assignment(a)
+        elif args.command not in ("get",):
+            profile(args)
+    except (ValueError, OSError) as exc:
+        print(f"valve_command: {exc}", file=sys.stderr)
+        return 2
+    init_ros(["valve_command"] + ros_args)
+    client = RigClient(args.namespace, with_samples=False, name="valve_command", reference_history=PROFILE_HISTORY)
+    thread, stop, executor = run_in_background([client])
+    try:
+        return run(args, client)
+    except (TimeoutError, ValueError) as exc:
+        print(f"valve_command: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        stop.set()
+        thread.join(2.0)
+        executor.remove_node(client)
+        client.destroy_node()
+        executor.shutdown()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

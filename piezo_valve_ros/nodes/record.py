@@ -1,0 +1,119 @@
+"""``valve_record``: record a running rig to a rosbag2 bag (no ``ros2 bag`` needed).
+
+    valve_record run1                          # until Ctrl-C / SIGTERM
+    valve_record --duration 20 run1            # 20 s
+    valve_record --namespace /rig2 run1        # a rig started with valve_rig --namespace /rig2
+
+Records ``samples``, ``voltage_command``, ``spool_position``, ``position_reference`` (and ``/clock``, which
+only a lockstep rig publishes) with their offered QoS into a crash-safe bag (one storage file a second;
+``valve_identify``, ``valve_plot`` and ``ros2 bag info`` read it) and ends with one line: duration,
+messages per topic, size on disk, and the rows of ``samples`` missing between the first and the last one
+(dropped).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import rclpy
+
+from ..bagio import STORAGES, BagError, read_samples
+from .common import init_ros, make_executor, spin_loop, stop_requested
+from .recording import RigRecorder
+
+NO_RIG_WARNING_S = 5.0   # warn when nothing publishes the rig's topics this long after start
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(prog="valve_record", description=__doc__.split("\n\n")[0],
+                                 epilog="ROS arguments may follow --ros-args.")
+    ap.add_argument("out", help="bag directory to create (must not exist)")
+    ap.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: Ctrl-C)")
+    ap.add_argument("--namespace", default="", help="the rig's namespace (default: the root)")
+    ap.add_argument("--storage", default="mcap", choices=sorted(STORAGES), help="storage plugin (default mcap)")
+    return ap.parse_args(argv)
+
+
+def dropped_sample_rows(times_s: np.ndarray) -> int:
+    """Rows missing from a ``samples`` time column [s] between its first and last row (gaps of the
+    median sample period)."""
+    if times_s.size < 3:
+        return 0
+    steps = np.diff(times_s)
+    dt = float(np.median(steps))
+    if not dt > 0:
+        return 0
+    return int(np.sum(np.maximum(np.rint(steps / dt) - 1, 0)))
+
+
+def bag_size_bytes(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def summary_line(path: Path, elapsed_s: float, counts: dict[str, int]) -> str:
+    """The closing line: what went into the bag."""
+    rows = None
+    if any(t.endswith("/samples") and n for t, n in counts.items()):
+        try:
+            rows, _ = read_samples(path)
+        except BagError:
+            pass
+    dropped = dropped_sample_rows(rows[:, 0]) if rows is not None and rows.size else 0
+    per_topic = ", ".join(f"{t} {n}" for t, n in counts.items())
+    return (f"valve_record: {path}: {elapsed_s:.1f} s, {sum(counts.values())} messages ({per_topic or 'none'}), "
+            f"{bag_size_bytes(path) / 1e6:.2f} MB, samples rows {0 if rows is None else rows.shape[0]}, "
+            f"dropped {dropped}")
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ros_args = argv[argv.index("--ros-args"):] if "--ros-args" in argv else []
+    args = parse_args(argv[:len(argv) - len(ros_args)])
+    if args.duration is not None and not args.duration > 0:
+        print(f"valve_record: --duration must be > 0, got {args.duration}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    if out.exists():
+        print(f"valve_record: {out} exists already; every recording gets a new bag directory", file=sys.stderr)
+        return 2
+    init_ros(["valve_record"] + ros_args)
+    node = rclpy.create_node("valve_record", namespace=args.namespace or None)
+    executor = make_executor()
+    executor.add_node(node)
+    recorder = RigRecorder(node, args.storage, with_clock=True)
+    started = time.monotonic()
+    try:
+        recorder.start(out)
+        print(f"valve_record: recording {', '.join(recorder.topics)} to {out}"
+              + (f" for {args.duration:g} s" if args.duration else "; Ctrl-C or SIGTERM to stop"), flush=True)
+        end = started + args.duration if args.duration else float("inf")
+        warned = False
+
+        def keep_going() -> bool:
+            nonlocal warned
+            now = time.monotonic()
+            if not warned and now - started > NO_RIG_WARNING_S and not any(recorder.publishers().values()):
+                warned = True
+                print(f"valve_record: nothing publishes {', '.join(recorder.topics)} yet (is the rig running in "
+                      f"namespace {args.namespace or '/'}?); still recording", file=sys.stderr, flush=True)
+            return now < end and rclpy.ok() and not stop_requested()
+        spin_loop(executor, keep_going)
+    except (BagError, OSError) as exc:
+        print(f"valve_record: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        counts = recorder.stop()
+        elapsed = time.monotonic() - started
+        executor.remove_node(node)
+        node.destroy_node()
+        executor.shutdown()
+        rclpy.try_shutdown()
+    print(summary_line(out, elapsed, counts), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,97 @@
+"""Recording a rig's topics into crash-safe rosbag2 bags (``bagio.BagRecorder``): one recorder for
+``valve_record`` and the identification node.
+
+Messages are taken as serialized CDR (``raw=True`` subscriptions) and written with their receive time; a
+timer finishes a storage file every ``segment_s`` so that a crash loses at most that much.  The offered QoS
+stored for each topic is the rig's own (``common``), so ``ros2 bag play`` offers what the nodes offer.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from typing import Optional
+
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from std_msgs.msg import Float64, Float64MultiArray
+
+from ..bagio import CLOCK_TYPE, FLOAT64_TYPE, SAMPLES_TYPE, BagRecorder, qos_profile
+from .common import COMMAND_QOS, REFERENCE_QOS, SAMPLES_QOS, SENSOR_QOS
+
+# topic (relative to the rig's namespace) -> (message type, QoS it is offered with, reliable)
+RIG_TOPICS = {"samples": (SAMPLES_TYPE, SAMPLES_QOS, True),
+              "voltage_command": (FLOAT64_TYPE, COMMAND_QOS, True),
+              "spool_position": (FLOAT64_TYPE, SENSOR_QOS, False),
+              "position_reference": (FLOAT64_TYPE, REFERENCE_QOS, True)}
+CLOCK_QOS_DEPTH = 10                      # the lockstep hardware's /clock publisher
+RECORDER_HISTORY = 1000                   # messages a recorder's reader holds while its executor is busy
+_MESSAGE_CLASSES = {SAMPLES_TYPE: Float64MultiArray, FLOAT64_TYPE: Float64, CLOCK_TYPE: Clock}
+
+
+class RigRecorder:
+    """Subscribes ``node`` to the rig's topics (and ``/clock`` when ``with_clock``); :meth:`start` opens a
+    bag, :meth:`stop` closes it.  Messages arriving while no bag is open are not kept."""
+
+    def __init__(self, node: Node, storage: str = "mcap", with_clock: bool = False, roll_period_s: float = 0.2):
+        self.node = node
+        self.storage = storage
+        self._lock = threading.Lock()
+        self._recorder: Optional[BagRecorder] = None
+        self.topics: dict[str, tuple[str, object]] = {}
+        subscriptions = {topic: (msgtype, qos, reliable) for topic, (msgtype, qos, reliable) in RIG_TOPICS.items()}
+        if with_clock:
+            subscriptions["/clock"] = (CLOCK_TYPE, CLOCK_QOS_DEPTH, True)
+        for topic, (msgtype, qos, reliable) in subscriptions.items():
+            full = node.resolve_topic_name(topic)
+            depth = qos if isinstance(qos, int) else qos.depth
+            self.topics[full] = (msgtype, qos_profile(reliable, depth))  # what the rig offers, stored in the bag
+            # the recorder's own reader keeps more than the rig's depth: on a busy computer its executor falls
+            # behind now and then, and a reader's full history drops the oldest message
+            reader_qos = QoSProfile(depth=max(depth, RECORDER_HISTORY), history=HistoryPolicy.KEEP_LAST,
+                                    reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT)
+            node.create_subscription(_MESSAGE_CLASSES[msgtype], topic, self._callback(full), reader_qos, raw=True)
+        node.create_timer(roll_period_s, self._roll)
+
+    def _callback(self, topic: str):
+        def on_message(data: bytes) -> None:
+            with self._lock:
+                if self._recorder is not None:
+                    self._recorder.write(topic, time.time_ns(), data)
+        return on_message
+
+    def _roll(self) -> None:
+        with self._lock:
+            if self._recorder is not None:
+                self._recorder.maybe_roll()
+
+    @property
+    def recording(self) -> bool:
+        with self._lock:
+            return self._recorder is not None
+
+    def publishers(self) -> dict[str, int]:
+        """How many publishers each recorded topic has now (0 everywhere: no rig in this namespace)."""
+        return {topic: self.node.count_publishers(topic) for topic in self.topics}
+
+    def start(self, path: str | Path) -> Path:
+        """Open a new bag at ``path`` (which must not exist); BagError otherwise."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        recorder = BagRecorder(path, self.topics, self.storage)
+        with self._lock:
+            if self._recorder is not None:
+                recorder.close()
+                raise RuntimeError("a bag is open already")
+            self._recorder = recorder
+        return path
+
+    def stop(self) -> dict[str, int]:
+        """Close the bag (idempotent); messages per topic."""
+        with self._lock:
+            recorder, self._recorder = self._recorder, None
+        if recorder is None:
+            return {}
+        recorder.close()
+        return recorder.message_counts

@@ -1,0 +1,139 @@
+"""The everyday tools around a running rig: valve_record, valve_command (issue 12)."""
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from ros_helpers import ros_env, wait_for_text
+
+from piezo_valve_ros.bagio import FLOAT64_TYPE, TYPESTORE, read_samples
+from piezo_valve_ros.core.signals import load_profile, ramp_profile, sine_profile
+from piezo_valve_ros.nodes.command import parse_assignment
+from piezo_valve_ros.nodes.record import dropped_sample_rows
+from piezo_valve_ros.processes import ProcessGroup
+
+BIN = os.path.dirname(sys.executable)  # the console scripts of the installed package
+
+
+def tool(name: str, *args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess:
+    return subprocess.run([os.path.join(BIN, name), *args], env=ros_env(), capture_output=True, text=True,
+                          timeout=timeout_s)
+
+
+# ---------------------------------------------------------------------------- no ROS
+def test_reference_profiles_and_their_refusals(tmp_path):
+    t, y = ramp_profile(0.0, 30e-6, 2.0, rate_hz=10.0)
+    assert t[0] == 0 and t[-1] == 2.0 and y[-1] == pytest.approx(30e-6) and t.size == 21
+    t, y = sine_profile(40e-6, 1.0, 1.0, offset_m=5e-6, rate_hz=100.0)
+    assert y.max() == pytest.approx(45e-6, rel=1e-3) and y[-1] == pytest.approx(5e-6)
+    for call, says in [(lambda: ramp_profile(0, 1e-5, 0.0), "duration must be > 0"),
+                       (lambda: sine_profile(1e-5, 150.0, 1.0, rate_hz=200.0), "frequency must lie in"),
+                       (lambda: sine_profile(1e-5, 1.0, 1.0, rate_hz=1e6), "rate must lie in")]:
+        with pytest.raises(ValueError, match=says):
+            call()
+    good = tmp_path / "demand.csv"
+    good.write_text("time_s,position_m  # header\n0, 0\n0.5, 1e-5\n# a comment\n1.0 2e-5\n")
+    t, y = load_profile(good)
+    assert list(t) == [0, 0.5, 1.0] and list(y) == [0, 1e-5, 2e-5]
+    for text, says in [("0,0\n0.5,abc\n", "demand.csv:2: not two numbers"), ("0,0\n1,1,1\n", "expected"),
+                       ("1,0\n0.5,0\n", "never decrease"), ("# nothing\n", "no 'time_s, position_m' rows")]:
+        good.write_text(text)
+        with pytest.raises(ValueError, match=says):
+            load_profile(good)
+
+
+def test_parameter_assignments_read_as_yaml():
+    assert parse_assignment("kp:=1.5") == ("kp", 1.5)
+    assert parse_assignment("samples_batch:=10") == ("samples_batch", 10)
+    assert parse_assignment("enabled:=false") == ("enabled", False)
+    assert parse_assignment("strategy=ol_hc") == ("strategy", "ol_hc")
+    assert parse_assignment("creep.gains:=[0.1, 0.2]") == ("creep.gains", [0.1, 0.2])
+    assert parse_assignment("gain_set:=''") == ("gain_set", "")
+    for bad in ("kp", ":=1", "kp:="):
+        with pytest.raises(ValueError):
+            parse_assignment(bad)
+
+
+def test_dropped_sample_rows_are_counted_from_the_time_column():
+    t = np.arange(1000) * 1e-4
+    assert dropped_sample_rows(t) == 0
+    assert dropped_sample_rows(np.delete(t, np.r_[100:150, 700])) == 51
+
+
+def test_tools_refuse_bad_arguments_before_touching_ros(tmp_path):
+    for args, says in [(("sine", "--amplitude", "1e-5", "--frequency", "500", "--duration", "1"), "frequency"),
+                       (("set", "controller", "kp"), "expected NAME:=VALUE"),
+                       (("file", str(tmp_path / "missing.csv")), "No such file")]:
+        proc = tool("valve_command", *args)
+        assert proc.returncode == 2 and says in proc.stderr, proc.stderr
+    (tmp_path / "exists").mkdir()
+    proc = tool("valve_record", str(tmp_path / "exists"))
+    assert proc.returncode == 2 and "exists already" in proc.stderr
+    proc = tool("valve_record", "--duration", "1", "--namespace", "/nobody_here", str(tmp_path / "empty"))
+    assert proc.returncode == 0 and "0 messages (" in proc.stdout and "samples rows 0" in proc.stdout, proc
+    for name in ("valve_record", "valve_command"):
+        proc = tool(name, "--help")
+        assert proc.returncode == 0 and "usage:" in proc.stdout
+
+
+# ---------------------------------------------------------------------------- through a running rig
+def test_record_command_and_identify_a_running_rig(tmp_path):
+    """A real-time rig in its own namespace; valve_record records while valve_command sends a step and a
+    sine and changes parameters; the bag holds what was sent and what the valve did, and valve_identify
+    reads it."""
+    ns = f"/tools{os.getpid()}"
+    bag = tmp_path / "run1"
+    with ProcessGroup() as procs:
+        rig_log = open(tmp_path / "rig.log", "w")
+        procs.start("rig", [os.path.join(BIN, "valve_rig"), "--demo", "none", "--clock", "realtime",
+                            "--control-period-s", "0.001", "--namespace", ns],
+                    env=ros_env(), stdout=rig_log, stderr=subprocess.STDOUT)
+        wait_for_text(tmp_path / "rig.log", "running; Ctrl-C", timeout_s=60)
+        rec_log = open(tmp_path / "record.log", "w")
+        recorder = procs.start("record", [os.path.join(BIN, "valve_record"), "--namespace", ns, str(bag)],
+                               env=ros_env(), stdout=rec_log, stderr=subprocess.STDOUT)
+        wait_for_text(tmp_path / "record.log", "recording", timeout_s=60)
+        time.sleep(1.0)
+        step = tool("valve_command", "--namespace", ns, "--wait-readers", "2", "step", "20e-6")
+        assert step.returncode == 0 and "1 reference(s)" in step.stdout and "acknowledged by 2 reader" in step.stdout, step
+        time.sleep(1.5)
+        sine = tool("valve_command", "--namespace", ns, "--wait-readers", "2", "sine", "--amplitude", "30e-6",
+                    "--frequency", "2", "--duration", "3", "--offset", "-10e-6")
+        assert sine.returncode == 0 and "601 reference(s)" in sine.stdout, sine
+        refused = tool("valve_command", "--namespace", ns, "set", "controller", "kp:=-1.0", "reference_ramp_s:=0.01")
+        assert refused.returncode == 1
+        lines = refused.stdout.splitlines()
+        assert "kp := -1.0 refused: " in lines[0] and "gain_set" in lines[0], refused.stdout
+        got = tool("valve_command", "--namespace", ns, "get", "controller", "strategy", "gain_set")
+        assert got.returncode == 0 and "strategy: 'pid_hc'" in got.stdout, got
+        accepted = tool("valve_command", "--namespace", ns, "set", "hardware", "command_timeout_s:=0.3")
+        assert accepted.returncode == 0 and "command_timeout_s := 0.3 accepted" in accepted.stdout, accepted
+        absent = tool("valve_command", "--namespace", ns + "_nobody", "--timeout", "2", "step", "1e-6")
+        assert absent.returncode == 1 and "nobody subscribes" in absent.stderr, absent
+        time.sleep(0.5)
+        recorder.send_signal(signal.SIGINT)  # Ctrl-C: a clean stop with its summary line
+        assert recorder.wait(60) == 0
+    summary = open(tmp_path / "record.log").read().strip().splitlines()[-1]
+    assert summary.startswith(f"valve_record: {bag}: ") and "dropped 0" in summary, summary
+
+    rows, topic = read_samples(bag)
+    assert topic == f"{ns}/samples" and rows.shape[0] > 50_000  # 10 kHz for more than 5 s
+    from rosbags.rosbag2 import Reader
+    with Reader(bag) as reader:
+        conns = [c for c in reader.connections if c.topic == f"{ns}/position_reference"]
+        refs = np.array([TYPESTORE.deserialize_cdr(raw, FLOAT64_TYPE).data
+                         for _, _, raw in reader.messages(connections=conns)])
+        topics = {c.topic for c in reader.connections}
+    assert {f"{ns}/voltage_command", f"{ns}/spool_position", f"{ns}/samples"} <= topics
+    assert refs[0] == pytest.approx(20e-6) and refs.size == 602
+    assert refs[1:].max() == pytest.approx(20e-6, abs=0.1e-6) and refs[1:].min() == pytest.approx(-40e-6, abs=0.1e-6)
+    # the valve followed: held near 20 um after the step, then swept the sine's range
+    pos_um = rows[:, 2] * 1e6
+    assert np.any(np.abs(pos_um - 20.0) < 1.0) and pos_um.min() < -35.0
+
+    report = tmp_path / "report.json"
+    proc = tool("valve_identify", str(bag), "--report", str(report), timeout_s=600)
+    assert proc.returncode == 0 and report.exists(), proc.stdout + proc.stderr
