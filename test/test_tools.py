@@ -137,3 +137,18 @@ def test_record_command_and_identify_a_running_rig(tmp_path):
     report = tmp_path / "report.json"
     proc = tool("valve_identify", str(bag), "--report", str(report), timeout_s=600)
     assert proc.returncode == 0 and report.exists(), proc.stdout + proc.stderr
+
+
+def test_valve_rig_asks_for_priority_and_cpus_only_on_the_real_time_clock():
+    from piezo_valve_ros.nodes.rig import parse_args, rig_parameters
+    from piezo_valve_ros.realtime import available_cpus
+    cpus = sorted(available_cpus())
+    hw, ctl = rig_parameters(parse_args(["--demo", "none", "--clock", "realtime", "--control-period-s", "0.0005"]))
+    assert hw["realtime.busy_poll_s"] == 0.0005 and hw["realtime.priority"] == 0 and "realtime.cpus" not in hw
+    hw, ctl = rig_parameters(parse_args(["--demo", "none", "--clock", "realtime", "--priority", "50", "--pin"]))
+    assert hw["realtime.busy_poll_s"] == 0.0 and hw["realtime.priority"] == ctl["realtime.priority"] == 50
+    assert hw["realtime.cpus"] == [cpus[0]] and ctl["realtime.cpus"] == [cpus[-1]]
+    hw, ctl = rig_parameters(parse_args(["--demo", "none", "--clock", "realtime", "--composed", "--pin"]))
+    assert hw["realtime.cpus"] == ctl["realtime.cpus"] == [cpus[-1]]
+    proc = tool("valve_rig", "--priority", "50")  # lockstep
+    assert proc.returncode == 2 and "apply to --clock realtime" in proc.stderr

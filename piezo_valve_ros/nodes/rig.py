@@ -58,6 +58,11 @@ def parse_args(argv=None):
     ap.add_argument("--busy-poll-s", type=float,
                     help="realtime: the hardware polls instead of sleeping this long before each tick [s] "
                          "(default: all the time, which costs a core; 0 = sleep)")
+    ap.add_argument("--priority", type=int, default=0, metavar="N",
+                    help="realtime: run hardware and controller at SCHED_FIFO priority N (1..98; needs the "
+                         "permission, see README); the hardware then sleeps between ticks")
+    ap.add_argument("--pin", action="store_true",
+                    help="realtime: hardware on the first CPU, controller on the last (realtime.cpus)")
     ap.add_argument("--demo", choices=("steps", "none"), default="steps")
     ap.add_argument("--hold-s", type=float, default=0.1, help="hold before and after each step [s]")
     ap.add_argument("--sim-seed", type=int, default=0)
@@ -70,11 +75,21 @@ def parse_args(argv=None):
 
 
 def rig_parameters(args) -> tuple[dict, dict]:
-    busy_poll = args.control_period_s if args.busy_poll_s is None else args.busy_poll_s
+    """The hardware's and the controller's parameters for these command-line options."""
+    default_poll = 0.0 if args.priority else args.control_period_s  # a real-time priority thread must not poll
+    busy_poll = default_poll if args.busy_poll_s is None else args.busy_poll_s
     hw = {"clock": args.clock, "control_period_s": args.control_period_s, "sim.seed": args.sim_seed,
           "realtime.busy_poll_s": busy_poll if args.clock == "realtime" else 0.0,
           "lockstep.step_budget": 0 if (args.clock == "lockstep" and args.demo == "steps") else -1}
     ctl = {"control_period_s": args.control_period_s, "reference_ramp_s": 0.002}
+    if args.clock == "realtime":
+        hw["realtime.priority"] = ctl["realtime.priority"] = args.priority
+        if args.pin:
+            from ..realtime import available_cpus
+            cpus = sorted(available_cpus())
+            # separate processes: one CPU each; composed: one process, one CPU (the last, away from CPU 0's chores)
+            hw["realtime.cpus"] = [cpus[-1]] if args.composed else [cpus[0]]
+            ctl["realtime.cpus"] = [cpus[-1]]
     if args.strategy:
         ctl.update({"strategy": args.strategy, "gain_set": ""})
     else:
@@ -90,6 +105,9 @@ def main(argv=None) -> int:
     if args.demo == "steps" and args.clock != "lockstep":
         print("valve_rig: the step demo needs --clock lockstep (use --demo none for a real-time rig)",
               file=sys.stderr)
+        return 2
+    if (args.priority or args.pin) and args.clock != "realtime":
+        print("valve_rig: --priority and --pin apply to --clock realtime", file=sys.stderr)
         return 2
     hw_params, ctl_params = rig_parameters(args)
     rclpy.init()
