@@ -32,6 +32,7 @@ setup(
             "valve_identify = piezo_valve_ros.identify_cli:main",
             "valve_record = piezo_valve_ros.nodes.record:main",
             "valve_command = piezo_valve_ros.nodes.command:main",
+            "valve_plot = piezo_valve_ros.plot_cli:main",
         ],
     },
 )

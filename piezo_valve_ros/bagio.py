@@ -349,3 +349,39 @@ def read_samples(path, topic: Optional[str] = None,
         return _time_ordered(parts), name
     finally:
         reader.close()
+
+
+def read_run(path, topic: Optional[str] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """A recorded run for plotting: the ``samples`` rows (see :func:`read_samples`), and the references sent
+    on the ``position_reference`` topic of the same namespace as (times [s] on the samples' time axis,
+    positions [m]); its samples topic's name.
+
+    References carry only their receive time; they are put on the samples' axis by the median offset
+    between each ``samples`` message's receive time and its last row's time (within a few milliseconds:
+    the batching latency).  No reference topic or no messages: empty arrays.
+    """
+    rows, name = read_samples(path, topic)
+    namespace = name.rsplit("/", 1)[0]
+    ref_topic = f"{namespace}/position_reference"
+    offsets, stamps, values = [], [], []
+    try:
+        with Reader(Path(path)) as reader:
+            samples = [c for c in reader.connections if c.topic == name]
+            refs = [c for c in reader.connections if c.topic == ref_topic and c.msgtype == FLOAT64_TYPE]
+            decode = _SamplesDecoder(name)
+            for conn, stamp, raw in reader.messages(connections=samples + refs):
+                if conn.topic == name:
+                    block = decode(raw, conn.msgtype)
+                    if block.size:
+                        offsets.append(stamp * 1e-9 - block[-1, 0])
+                else:
+                    stamps.append(stamp * 1e-9)
+                    values.append(TYPESTORE.deserialize_cdr(raw, FLOAT64_TYPE).data)
+    except BagError:
+        raise
+    except Exception as exc:
+        raise BagError(f"cannot read the references in {path}: {_first_line(exc)}") from None
+    if not values or not offsets:
+        return rows, np.zeros(0), np.zeros(0), name
+    order = np.argsort(stamps, kind="stable")
+    return rows, np.asarray(stamps)[order] - float(np.median(offsets)), np.asarray(values, float)[order], name

@@ -11,9 +11,10 @@ import numpy as np
 
 from .core.residual import Analysis
 
-__all__ = ["require", "write_all", "MIN_HOLD_SAMPLES"]
+__all__ = ["require", "write_all", "write_run", "MIN_HOLD_SAMPLES", "MAX_PLOT_POINTS"]
 
 MIN_HOLD_SAMPLES = 20   # a step-and-hold figure needs a constant-input stretch at least this long
+MAX_PLOT_POINTS = 200_000   # longer series are thinned (every k-th sample) before plotting
 
 
 def require():
@@ -23,7 +24,7 @@ def require():
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise RuntimeError("--plots needs matplotlib (pip install matplotlib, or the package's [plots] extra)") from None
+        raise RuntimeError("plots need matplotlib (pip install matplotlib, or the package's [plots] extra)") from None
     return plt
 
 
@@ -115,4 +116,48 @@ def write_all(analysis: Analysis, directory, log: Callable[[str], None] = lambda
     ax.set_ylabel("spool position [um]")
     ax.set_title("Step and hold, held-out data")
     save(fig, "step_hold.png")
+    return written
+
+
+def write_run(time_s: np.ndarray, voltage_v: np.ndarray, position_m: np.ndarray, reference_m: np.ndarray,
+              directory, title: str = "") -> list[str]:
+    """Figures of a recorded closed-loop run: position and reference, command, tracking error (where a
+    reference is known) in time, and the hysteresis loop (command vs position).  Positions are plotted in
+    um.  Returns the paths written."""
+    plt = require()
+    out_dir = Path(directory)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    k = max(time_s.size // MAX_PLOT_POINTS, 1)
+    t, v, y, r = time_s[::k] - time_s[0], voltage_v[::k], position_m[::k] * 1e6, reference_m[::k] * 1e6
+    has_ref = bool(np.isfinite(r).any())
+    written = []
+
+    def save(fig, name):
+        path = out_dir / name
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(str(path))
+
+    fig, axes = plt.subplots(3 if has_ref else 2, 1, figsize=(10, 8 if has_ref else 6), sharex=True)
+    axes[0].plot(t, y, lw=0.7, label="spool position")
+    if has_ref:
+        axes[0].plot(t, r, lw=0.9, ls="--", label="reference")
+    axes[0].set_ylabel("position [um]")
+    axes[0].legend(loc="upper right")
+    axes[0].set_title(title or "Recorded run")
+    axes[1].plot(t, v, lw=0.7, color="C2")
+    axes[1].set_ylabel("command [V]")
+    if has_ref:
+        axes[2].plot(t, y - r, lw=0.7, color="C3")
+        axes[2].set_ylabel("tracking error [um]")
+    axes[-1].set_xlabel("time [s]")
+    save(fig, "run_time.png")
+
+    fig, ax = plt.subplots(figsize=(7, 5))
+    ax.plot(v, y, lw=0.6)
+    ax.set_xlabel("command [V]")
+    ax.set_ylabel("spool position [um]")
+    ax.set_title("Hysteresis loop (command vs position)")
+    save(fig, "hysteresis_loop.png")
     return written

@@ -1,4 +1,4 @@
-"""The everyday tools around a running rig: valve_record, valve_command (issue 12)."""
+"""The everyday tools around a running rig: valve_record, valve_command, valve_plot (issue 12)."""
 import os
 import signal
 import subprocess
@@ -45,6 +45,22 @@ def test_reference_profiles_and_their_refusals(tmp_path):
             load_profile(good)
 
 
+def test_steps_are_found_in_a_recorded_reference_and_measured():
+    from piezo_valve_ros.core.runs import find_steps, reference_on_samples
+    t = np.arange(10000) * 1e-4                                  # 1 s at 10 kHz
+    ref_t = np.r_[0.1, 0.3, 0.6 + np.arange(40) * 5e-3]           # 0, a step to 20 um, then a sine in small moves
+    ref_m = np.r_[0.0, 20e-6, 20e-6 + 2e-6 * np.sin(np.arange(1, 41) * 0.5)]
+    ref = reference_on_samples(t, ref_t, ref_m)
+    assert np.isnan(ref[t < 0.1]).all() and ref[(t >= 0.1) & (t < 0.3)].max() == 0.0
+    tau = 0.01                                                   # a first-order valve: 5 % band after 3 tau
+    y = np.where(t < 0.3, 0.0, 20e-6 * (1 - np.exp(-(t - 0.3) / tau)))
+    steps = find_steps(t, y, ref)
+    assert len(steps) == 1
+    s = steps[0]
+    assert (s.start_um, s.end_um) == (0.0, 20.0) and s.time_s == pytest.approx(0.3, abs=2e-4)
+    assert s.settling_time_s == pytest.approx(3 * tau, abs=2e-4) and s.overshoot_pct == 0.0
+
+
 def test_parameter_assignments_read_as_yaml():
     assert parse_assignment("kp:=1.5") == ("kp", 1.5)
     assert parse_assignment("samples_batch:=10") == ("samples_batch", 10)
@@ -74,7 +90,9 @@ def test_tools_refuse_bad_arguments_before_touching_ros(tmp_path):
     assert proc.returncode == 2 and "exists already" in proc.stderr
     proc = tool("valve_record", "--duration", "1", "--namespace", "/nobody_here", str(tmp_path / "empty"))
     assert proc.returncode == 0 and "0 messages (" in proc.stdout and "samples rows 0" in proc.stdout, proc
-    for name in ("valve_record", "valve_command"):
+    proc = tool("valve_plot", str(tmp_path / "no_such_bag"))
+    assert proc.returncode == 2 and "no bag at" in proc.stderr
+    for name in ("valve_record", "valve_command", "valve_plot"):
         proc = tool(name, "--help")
         assert proc.returncode == 0 and "usage:" in proc.stdout
 
@@ -111,6 +129,8 @@ def test_record_command_and_identify_a_running_rig(tmp_path):
         assert got.returncode == 0 and "strategy: 'pid_hc'" in got.stdout, got
         accepted = tool("valve_command", "--namespace", ns, "set", "hardware", "command_timeout_s:=0.3")
         assert accepted.returncode == 0 and "command_timeout_s := 0.3 accepted" in accepted.stdout, accepted
+        step2 = tool("valve_command", "--namespace", ns, "--wait-readers", "2", "step", "5e-6")
+        assert step2.returncode == 0, step2
         absent = tool("valve_command", "--namespace", ns + "_nobody", "--timeout", "2", "step", "1e-6")
         assert absent.returncode == 1 and "nobody subscribes" in absent.stderr, absent
         time.sleep(0.5)
@@ -128,11 +148,23 @@ def test_record_command_and_identify_a_running_rig(tmp_path):
                          for _, _, raw in reader.messages(connections=conns)])
         topics = {c.topic for c in reader.connections}
     assert {f"{ns}/voltage_command", f"{ns}/spool_position", f"{ns}/samples"} <= topics
-    assert refs[0] == pytest.approx(20e-6) and refs.size == 602
-    assert refs[1:].max() == pytest.approx(20e-6, abs=0.1e-6) and refs[1:].min() == pytest.approx(-40e-6, abs=0.1e-6)
+    assert refs[0] == pytest.approx(20e-6) and refs[-1] == pytest.approx(5e-6) and refs.size == 603
+    assert refs[1:-1].max() == pytest.approx(20e-6, abs=0.1e-6) and refs[1:-1].min() == pytest.approx(-40e-6, abs=0.1e-6)
     # the valve followed: held near 20 um after the step, then swept the sine's range
     pos_um = rows[:, 2] * 1e6
     assert np.any(np.abs(pos_um - 20.0) < 1.0) and pos_um.min() < -35.0
+
+    plot = tool("valve_plot", str(bag), "--out", str(tmp_path / "plots"), timeout_s=300)
+    assert plot.returncode == 0, plot.stdout + plot.stderr
+    assert f"{ns}/samples: " in plot.stdout and "tracking error over" in plot.stdout
+    step_rows = [line for line in plot.stdout.splitlines() if "-10.00 ->    5.00" in line]
+    assert len(step_rows) == 1, plot.stdout  # the last step, found in the recorded reference
+    assert sorted(os.listdir(tmp_path / "plots")) == ["hysteresis_loop.png", "run_time.png"]
+    no_mpl = subprocess.run([sys.executable, "-c", "import sys; sys.modules['matplotlib'] = None; "
+                             "from piezo_valve_ros.plot_cli import main; sys.exit(main(sys.argv[1:]))",
+                             str(bag), "--out", str(tmp_path / "none")], capture_output=True, text=True, timeout=300)
+    assert no_mpl.returncode == 1 and "no figures: plots need matplotlib" in no_mpl.stderr
+    assert "tracking error over" in no_mpl.stdout and not (tmp_path / "none").exists()
 
     report = tmp_path / "report.json"
     proc = tool("valve_identify", str(bag), "--report", str(report), timeout_s=600)

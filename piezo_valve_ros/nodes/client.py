@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import rclpy
@@ -20,6 +21,19 @@ from .common import REFERENCE_QOS, SAMPLES_QOS, claim_pacing, make_executor, sam
 
 
 RIG_NODES = ("hardware", "controller", "identification")
+
+
+@dataclass(frozen=True)
+class PlayResult:
+    """What :meth:`RigClient.play_reference` did: references sent, seconds sending, seconds until every
+    reader acknowledged them, number of readers."""
+
+    sent: int
+    sending_s: float
+    acknowledged_after_s: float
+    readers: int
+
+
 DISCOVERY_SETTLE_S = 0.5      # a new publisher sends once its number of matched readers held this long
 
 
@@ -165,10 +179,10 @@ class RigClient(Node):
 
     def play_reference(self, times_s: np.ndarray, values_m: np.ndarray, timeout_s: float = 10.0,
                        progress=None, progress_every_s: float = 2.0, keep_going=lambda: True,
-                       min_readers: int = 1) -> tuple[int, float, int]:
+                       min_readers: int = 1) -> "PlayResult":
         """Publish ``values_m[k]`` at ``times_s[k]`` on the wall clock, once the readers are found (see
-        :meth:`wait_for_reference_readers`), then wait until every reader has them; returns (references sent,
-        seconds it took, readers).  ``progress(sent, total, elapsed_s)`` is called every
+        :meth:`wait_for_reference_readers`), then wait until every reader has them (DDS acknowledges on its
+        next heartbeat: up to a few seconds).  ``progress(sent, total, elapsed_s)`` is called every
         ``progress_every_s``; the profile stops early once ``keep_going()`` is False."""
         readers = self.wait_for_reference_readers(min_readers, timeout_s)
         start = time.monotonic()
@@ -185,9 +199,10 @@ class RigClient(Node):
             if progress is not None and now - last_report >= progress_every_s:
                 last_report = now
                 progress(k + 1, len(times_s), now - start)
+        sent_s = time.monotonic() - start
         if not self.reference_pub.wait_for_all_acked(Duration(seconds=timeout_s)):
             raise TimeoutError(f"{self.reference_pub.topic_name} not acknowledged within {timeout_s} s")
-        return sent, time.monotonic() - start, readers
+        return PlayResult(sent, sent_s, time.monotonic() - start - sent_s, readers)
 
     def set_reference(self, reference_m: float, timeout_s: float = 10.0) -> None:
         """Publish a reference and return once every matched controller has received it (reliable ack).

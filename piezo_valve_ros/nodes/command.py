@@ -125,16 +125,16 @@ def run(args, client: RigClient, out=sys.stdout) -> int:
     def progress(sent, total, elapsed):
         print(f"valve_command: {sent}/{total} references sent, {elapsed:.1f} of {times[-1]:.1f} s", file=out,
               flush=True)
-    sent, took, readers = client.play_reference(times, values, args.timeout, progress=progress,
-                                                keep_going=lambda: not stop_requested(),
-                                                min_readers=args.wait_readers)
-    if sent < len(values):
-        print(f"valve_command: {args.command}: stopped after {sent} of {len(values)} references ({took:.2f} s); "
-              "the controller holds the last one", file=out)
+    played = client.play_reference(times, values, args.timeout, progress=progress,
+                                   keep_going=lambda: not stop_requested(), min_readers=args.wait_readers)
+    if played.sent < len(values):
+        print(f"valve_command: {args.command}: stopped after {played.sent} of {len(values)} references "
+              f"({played.sending_s:.2f} s); the controller holds the last one", file=out)
         return 130
-    print(f"valve_command: {args.command}: {sent} reference(s) from {values.min() * 1e6:.2f} to "
-          f"{values.max() * 1e6:.2f} um sent in {took:.2f} s on {client.reference_pub.topic_name}, "
-          f"acknowledged by {readers} reader(s)", file=out)
+    span = (f"{values[0] * 1e6:.2f} um" if len(values) == 1 else
+            f"{values.min() * 1e6:.2f} .. {values.max() * 1e6:.2f} um over {played.sending_s:.2f} s")
+    print(f"valve_command: {args.command}: {played.sent} reference(s), {span}, on {client.reference_pub.topic_name}; "
+          f"acknowledged by {played.readers} reader(s) {played.acknowledged_after_s:.2f} s later", file=out)
     return 0
 
 

@@ -5,7 +5,7 @@
     valve_record --namespace /rig2 run1        # a rig started with valve_rig --namespace /rig2
 
 Records ``samples``, ``voltage_command``, ``spool_position``, ``position_reference`` (and ``/clock``, which
-only a lockstep rig publishes) with their offered QoS into a crash-safe bag (one storage file a second;
+only a lockstep rig publishes) with their offered QoS and the time DDS received them into a crash-safe bag (one storage file a second;
 ``valve_identify``, ``valve_plot`` and ``ros2 bag info`` read it) and ends with one line: duration,
 messages per topic, size on disk, and the rows of ``samples`` missing between the first and the last one
 (dropped).
@@ -19,9 +19,10 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
+from rclpy.executors import SingleThreadedExecutor
 
 from ..bagio import STORAGES, BagError, read_samples
-from .common import init_ros, make_executor, spin_loop, stop_requested
+from .common import init_ros, spin_loop, stop_requested
 from .recording import RigRecorder
 
 NO_RIG_WARNING_S = 5.0   # warn when nothing publishes the rig's topics this long after start
@@ -81,9 +82,9 @@ def main(argv=None) -> int:
         return 2
     init_ros(["valve_record"] + ros_args)
     node = rclpy.create_node("valve_record", namespace=args.namespace or None)
-    executor = make_executor()
+    executor = SingleThreadedExecutor()  # passes message info: each message keeps DDS's receive time
     executor.add_node(node)
-    recorder = RigRecorder(node, args.storage, with_clock=True)
+    recorder = RigRecorder(node, args.storage, with_clock=True, dds_receive_time=True)
     started = time.monotonic()
     try:
         recorder.start(out)

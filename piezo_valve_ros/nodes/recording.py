@@ -34,8 +34,13 @@ class RigRecorder:
     """Subscribes ``node`` to the rig's topics (and ``/clock`` when ``with_clock``); :meth:`start` opens a
     bag, :meth:`stop` closes it.  Messages arriving while no bag is open are not kept."""
 
-    def __init__(self, node: Node, storage: str = "mcap", with_clock: bool = False, roll_period_s: float = 0.2):
+    def __init__(self, node: Node, storage: str = "mcap", with_clock: bool = False, roll_period_s: float = 0.2,
+                 dds_receive_time: bool = False):
+        """``dds_receive_time``: stamp each message with the time DDS received it (what rosbag2 stores),
+        not the time the callback ran, which lags whenever the executor is busy; needs an executor that
+        passes message info (rclpy's SingleThreadedExecutor does, the EventsExecutor does not)."""
         self.node = node
+        self.dds_receive_time = dds_receive_time
         self.storage = storage
         self._lock = threading.Lock()
         self._recorder: Optional[BagRecorder] = None
@@ -59,7 +64,13 @@ class RigRecorder:
             with self._lock:
                 if self._recorder is not None:
                     self._recorder.write(topic, time.time_ns(), data)
-        return on_message
+
+        def on_message_with_info(data: bytes, info: dict) -> None:
+            stamp = info.get("received_timestamp") or time.time_ns()
+            with self._lock:
+                if self._recorder is not None:
+                    self._recorder.write(topic, stamp, data)
+        return on_message_with_info if self.dds_receive_time else on_message
 
     def _roll(self) -> None:
         with self._lock:

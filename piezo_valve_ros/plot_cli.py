@@ -1,0 +1,80 @@
+"""``valve_plot``: look at a recorded run (any bag with a ``samples`` topic, e.g. from ``valve_record``).
+
+    valve_plot run1                  # figures into run1_plots/
+    valve_plot run1 --out figs --topic /valve1/samples
+
+Writes ``run_time.png`` (position and reference, command, tracking error) and ``hysteresis_loop.png``
+(command vs position), prints the run's extent and the tracking error, and for every step found in the
+reference (a change of at least 1 um held at least 50 ms) its settling time (5 % band) and overshoot.
+Needs matplotlib for the figures (the numbers are printed without it, with a one-line note).  No ROS
+import; a thin face over ``bagio.read_run``, ``core.runs`` and ``plots.write_run``.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .bagio import BagError, read_run
+from .core.runs import STEP_MIN_HOLD_S, STEP_MIN_JUMP_M, find_steps, reference_on_samples
+
+__all__ = ["main"]
+
+
+def summary_lines(rows: np.ndarray, reference_m: np.ndarray, topic: str) -> list[str]:
+    """The run's extent and, where a reference is known, its tracking error."""
+    t, v, y = rows[:, 0], rows[:, 1], rows[:, 2]
+    rate = 1.0 / float(np.median(np.diff(t))) if t.size > 1 else float("nan")
+    out = [f"{topic}: {t.size} samples at {rate:.0f} Hz over {t[-1] - t[0]:.2f} s; command {v.min():.2f} .. "
+           f"{v.max():.2f} V, position {y.min() * 1e6:.2f} .. {y.max() * 1e6:.2f} um"]
+    known = np.isfinite(reference_m)
+    if known.any():
+        e = (y[known] - reference_m[known]) * 1e6
+        out.append(f"tracking error over {known.mean() * 100:.0f} % of the run (where a reference was in force): "
+                   f"RMS {np.sqrt(np.mean(e ** 2)):.3f} um, peak {np.abs(e).max():.3f} um")
+    else:
+        out.append("no position_reference in the bag: no tracking error, no steps")
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="valve_plot", description=__doc__.split("\n\n")[0])
+    ap.add_argument("bag", help="bag directory (valve_record, valve_identification, ros2 bag record)")
+    ap.add_argument("--out", help="directory for the PNGs (default: BAG_plots next to the bag)")
+    ap.add_argument("--topic", help="samples topic (default: the one named .../samples)")
+    args = ap.parse_args(argv)
+    try:
+        rows, ref_t, ref_m, topic = read_run(args.bag, args.topic)
+    except BagError as exc:
+        print(f"valve_plot: {exc}", file=sys.stderr)
+        return 2
+    reference = reference_on_samples(rows[:, 0], ref_t, ref_m)
+    for line in summary_lines(rows, reference, topic):
+        print(line)
+    steps = find_steps(rows[:, 0], rows[:, 2], reference)
+    if steps:
+        print(f"steps (a change >= {STEP_MIN_JUMP_M * 1e6:g} um held >= {STEP_MIN_HOLD_S * 1e3:g} ms; "
+              "settling in the 5 % band, from the moment the reference changed):")
+        print(f"{'at [s]':>8} {'step [um]':>18} {'settling [ms]':>14} {'overshoot [%]':>14}")
+        for s in steps:
+            settled = s.settling_time_s < s.hold_s - 1e-9
+            settling = f"{s.settling_time_s * 1e3:14.1f}" if settled else f"{'> ' + format(s.hold_s * 1e3, '.0f'):>14}"
+            print(f"{s.time_s - rows[0, 0]:8.2f} {s.start_um:7.2f} -> {s.end_um:7.2f} {settling} {s.overshoot_pct:14.2f}")
+    elif np.isfinite(reference).any():
+        print("no steps in the reference")
+    out = Path(args.out) if args.out else Path(str(Path(args.bag).resolve()) + "_plots")
+    try:
+        from .plots import write_run
+        written = write_run(rows[:, 0], rows[:, 1], rows[:, 2], reference, out, title=f"{Path(args.bag).name} ({topic})")
+    except RuntimeError as exc:  # no matplotlib
+        print(f"valve_plot: no figures: {exc}", file=sys.stderr)
+        return 1
+    for path in written:
+        print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
