@@ -34,5 +34,8 @@ setup(
             "valve_command = piezo_valve_ros.nodes.command:main",
             "valve_plot = piezo_valve_ros.plot_cli:main",
         ],
+        "piezo_valve_ros.backends": [
+            "sim = piezo_valve_ros.backends:SimBackend",
+        ],
     },
 )

@@ -1,46 +1,101 @@
 """Hardware backends of the ``valve_hardware`` node (ROS-free).
 
-A backend owns the valve: it applies voltage commands and samples the spool position.
-To add real DAQ hardware, subclass :class:`ValveBackend`, implement the four methods and
-register it::
+A backend owns the valve: it applies voltage commands and samples the spool position.  Backends are
+found by name: the ``sim`` backend here, and any class another installed package lists under the entry-point
+group ``piezo_valve_ros.backends`` (so a DAQ needs no change to this package)::
 
-    @register_backend("my_daq")
+    # my_daq/backend.py
+    from piezo_valve_ros.backends import BackendParameter, ValveBackend
+
     class MyDaqBackend(ValveBackend):
+        PARAMETERS = (BackendParameter("device", "/dev/daq0", "DAQ device"),)   # -> my_daq.device
+
+        @classmethod
+        def from_parameters(cls, values, safe_voltage_v):   # validated values by name; ValueError if bad
+            return cls(values["device"])
+
         def open(self): ...                  # connect, start acquisition
         def write_voltage(self, v): ...      # applied from the next sample on [V]
         def read_samples(self): ...          # new rows (time [s], command [V], position [m]) since last call
         def close(self): ...                 # stop acquisition (the node has applied safe_voltage before)
 
-then run ``valve_hardware --ros-args -p backend:=my_daq``.  ``read_position`` has a default
-built on ``read_samples``.  Backends that can advance time on demand (simulators) also
-implement ``advance(n)``, which is what the node's ``lockstep`` clock uses.
+    # its setup.py:  entry_points={"piezo_valve_ros.backends": ["my_daq = my_daq.backend:MyDaqBackend"]}
+
+then ``valve_hardware --ros-args -p backend:=my_daq -p my_daq.device:=/dev/daq1``.  The node declares each
+backend parameter as ``<backend>.<name>`` (read-only, refused with the backend's reason when invalid).
+Backends that can advance time on demand (simulators) also implement ``advance(n)``, which is what the
+node's ``lockstep`` clock uses.
 """
 from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
-from typing import Callable, Dict, Type
+from dataclasses import dataclass, replace
+from typing import Any, Callable, Dict, Type
 
 import numpy as np
 
-from .core.simulator import SimulatedValve, ValveSimConfig
+from .core.simulator import (AmplifierParams, CreepParams, DriftParams, RateDependenceParams, SaturationParams,
+                             SensorParams, SimulatedValve, ValveSimConfig)
+from .validation import as_bool, as_float, as_int
 
-__all__ = ["ValveBackend", "SimBackend", "register_backend", "make_backend", "BACKENDS"]
+__all__ = ["ValveBackend", "SimBackend", "BackendParameter", "register_backend", "backend_class", "make_backend",
+           "available_backends", "sim_config_from_parameters", "ENTRY_POINT_GROUP"]
 
-BACKENDS: Dict[str, Type["ValveBackend"]] = {}
+ENTRY_POINT_GROUP = "piezo_valve_ros.backends"
+MAX_SENSOR_DELAY_S = 0.1
+_REGISTERED: Dict[str, Type["ValveBackend"]] = {}
+
+
+@dataclass(frozen=True)
+class BackendParameter:
+    """One parameter of a backend: declared by the node as ``<backend>.<name>``, read-only."""
+
+    name: str
+    default: Any
+    description: str
 
 
 def register_backend(name: str) -> Callable[[Type["ValveBackend"]], Type["ValveBackend"]]:
+    """Register a backend class in this process (for backends defined in a test or a notebook; installed
+    packages use the entry-point group instead)."""
     def deco(cls):
-        BACKENDS[name] = cls
+        _REGISTERED[name] = cls
         return cls
     return deco
 
 
+def _entry_points():
+    from importlib.metadata import entry_points
+    return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}
+
+
+def available_backends() -> list[str]:
+    """Names of every backend this process can make."""
+    return sorted(set(_REGISTERED) | set(_entry_points()))
+
+
+def backend_class(name: str) -> Type["ValveBackend"]:
+    """The backend class called ``name``; ValueError with the names available otherwise."""
+    if name in _REGISTERED:
+        return _REGISTERED[name]
+    ep = _entry_points().get(name)
+    if ep is None:
+        raise ValueError(f"unknown backend {name!r}; available: {', '.join(available_backends())}")
+    try:
+        cls = ep.load()
+    except Exception as exc:
+        raise ValueError(f"backend {name!r} ({ep.value}) cannot be loaded: {type(exc).__name__}: {exc}") from None
+    if not (isinstance(cls, type) and issubclass(cls, ValveBackend)):
+        raise ValueError(f"backend {name!r} ({ep.value}) is not a ValveBackend subclass")
+    _REGISTERED[name] = cls
+    return cls
+
+
 def make_backend(name: str, **options) -> "ValveBackend":
-    if name not in BACKENDS:
-        raise ValueError(f"unknown backend {name!r}; registered: {', '.join(sorted(BACKENDS))}")
-    return BACKENDS[name](**options)
+    """A backend by name, built from Python arguments (programs and tests; the node uses
+    ``from_parameters``)."""
+    return backend_class(name)(**options)
 
 
 class ValveBackend(ABC):
@@ -48,6 +103,13 @@ class ValveBackend(ABC):
 
     sample_period_s: float = 1e-4
     supports_lockstep: bool = False
+    PARAMETERS: tuple = ()   # BackendParameter, ...: declared by the node as "<backend name>.<name>"
+
+    @classmethod
+    def from_parameters(cls, values: dict, safe_voltage_v: float) -> "ValveBackend":
+        """A backend from its parameters' values (by name, without the prefix) and the node's safe voltage
+        [V] (applied at start-up); ValueError with the reason for a bad value."""
+        return cls()
 
     @abstractmethod
     def open(self) -> None:
@@ -67,13 +129,6 @@ class ValveBackend(ABC):
 
     _last_position_m: float = float("nan")
 
-    def read_position(self) -> float:
-        """Latest measured position [m]."""
-        rows = self.read_samples()
-        if rows.shape[0]:
-            self._last_position_m = float(rows[-1, 2])
-        return self._last_position_m
-
     def read_position_cached(self) -> float:
         """Latest position [m] already read, without sampling again."""
         return self._last_position_m
@@ -82,10 +137,69 @@ class ValveBackend(ABC):
         raise NotImplementedError(f"{type(self).__name__} cannot advance time on demand (no lockstep)")
 
 
+def _sensor_delay_samples(delay_s: float, dt: float) -> int:
+    k = round(delay_s / dt)
+    if not 0.0 <= delay_s <= MAX_SENSOR_DELAY_S or abs(k * dt - delay_s) > 1e-9 + 1e-6 * delay_s:
+        raise ValueError(f"sim.sensor_delay_s must be a whole number of sample periods ({dt} s) in "
+                         f"[0, {MAX_SENSOR_DELAY_S}] s, got {delay_s}")
+    return int(k)
+
+
+_GPIM_KEYS = ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")
+
+
+def sim_config_from_parameters(values: dict, initial_voltage_v: float = 5.0) -> ValveSimConfig:
+    """The simulated valve from the ``sim`` backend's parameter values (names without ``sim.``; missing ones
+    take their defaults; effects switchable one by one); ValueError with the reason."""
+    v = {prm.name: prm.default for prm in SimBackend.PARAMETERS}
+    v.update(values)
+    base = ValveSimConfig()
+    gpim = replace(base.gpim, **{k: (as_int if k == "n" else as_float)(f"sim.gpim.{k}", v[f"gpim.{k}"])
+                                 for k in _GPIM_KEYS})
+    gpim.model()  # raises ValueError with the reason
+    dt = as_float("sim.sample_period_s", v["sample_period_s"])
+    if not dt > 0:
+        raise ValueError(f"sim.sample_period_s must be > 0, got {dt}")
+    switch = {name: as_bool(f"sim.{name}", v[name]) for name in
+              ("slew_limit", "creep", "saturation", "noise", "dynamics", "rate_dependence", "drift", "asymmetry")}
+    return replace(
+        base,
+        gpim=gpim,
+        dt=dt,
+        seed=as_int("sim.seed", v["seed"]),
+        amplifier=replace(AmplifierParams(), enabled=switch["slew_limit"]),
+        creep=replace(CreepParams(), enabled=switch["creep"]),
+        saturation=replace(SaturationParams(), enabled=switch["saturation"]),
+        rate=replace(RateDependenceParams(), enabled=switch["rate_dependence"]),
+        drift=replace(DriftParams(), enabled=switch["drift"]),
+        sensor=replace(SensorParams(), noise_enabled=switch["noise"],
+                       delay_samples=_sensor_delay_samples(as_float("sim.sensor_delay_s", v["sensor_delay_s"]), dt)),
+        dynamics_enabled=switch["dynamics"],
+        descending_envelope=(0.95, 0.2) if switch["asymmetry"] else None,
+        initial_voltage_v=float(initial_voltage_v),
+    )
+
+
+def _sim_parameters() -> tuple:
+    from .core.hysteresis import PAPER_GPIM
+    switches = [("slew_limit", True, "amplifier current limit"), ("creep", True, "creep"),
+                ("saturation", True, "loop-end flattening"), ("noise", True, "LVDT noise"),
+                ("dynamics", True, "G_v(s)"), ("rate_dependence", False, "rate dependence"),
+                ("drift", False, "thermal drift"), ("asymmetry", False, "asymmetry")]
+    return (BackendParameter("seed", 0, "noise seed"),
+            BackendParameter("sample_period_s", ValveSimConfig().dt, "sampling period [s]"),
+            *(BackendParameter(n, d, t) for n, d, t in switches),
+            BackendParameter("sensor_delay_s", 0.0, "LVDT transport delay [s] (whole samples; e.g. a "
+                                                    "conditioning filter)"),
+            *(BackendParameter(f"gpim.{k}", getattr(PAPER_GPIM, k), "the valve's own GPIM (paper units)")
+              for k in _GPIM_KEYS))
+
+
 @register_backend("sim")
 class SimBackend(ValveBackend):
     """The simulated valve (``core.simulator``).  In real time it samples on the wall clock."""
 
+    PARAMETERS = _sim_parameters()
     supports_lockstep = True
     per_sample_below = 14  # advance() steps sample by sample up to this many (batch path: ~70 us fixed cost)
 
@@ -100,6 +214,10 @@ class SimBackend(ValveBackend):
         self._done = 0
         self._phased = False
         self.is_open = False
+
+    @classmethod
+    def from_parameters(cls, values: dict, safe_voltage_v: float) -> "SimBackend":
+        return cls(sim_config_from_parameters(values, safe_voltage_v))
 
     def open(self) -> None:
         self.valve.reset()

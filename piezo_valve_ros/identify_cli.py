@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     ap.add_argument("--params-out", metavar="FILE", help="write a valve_controller parameters file here")
     ap.add_argument("--plots", metavar="DIR", help="write PNG figures here (needs matplotlib)")
     ap.add_argument("--topic", help="samples topic to read (default: the one topic named .../samples)")
-    ap.add_argument("--quiet", action="store_true", help="no progress lines")
+    ap.add_argument("--quiet", action="store_true", help="no progress lines (the summary is printed)")
     args = ap.parse_args(argv)
     log = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
     try:
@@ -74,10 +74,9 @@ def main(argv=None) -> int:
     except Exception as exc:  # one clear line, never a traceback
         print(f"valve_identify: error: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 1
-    if not args.quiet:
-        print(_summary(report))
-        for path in written:
-            print(f"wrote {path}")
+    print(_summary(report))
+    for path in written:
+        print(f"wrote {path}")
     return 0
 
 

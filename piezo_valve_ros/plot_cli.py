@@ -61,7 +61,8 @@ def main(argv=None) -> int:
         for s in steps:
             settled = s.settling_time_s < s.hold_s - 1e-9
             settling = f"{s.settling_time_s * 1e3:14.1f}" if settled else f"{'> ' + format(s.hold_s * 1e3, '.0f'):>14}"
-            print(f"{s.time_s - rows[0, 0]:8.2f} {s.start_um:7.2f} -> {s.end_um:7.2f} {settling} {s.overshoot_pct:14.2f}")
+            print(f"{s.time_s - rows[0, 0]:8.2f} {round(s.start_um, 2) + 0.0:7.2f} -> {round(s.end_um, 2) + 0.0:7.2f} {settling} "
+                  f"{s.overshoot_pct:14.2f}")
     elif np.isfinite(reference).any():
         print("no steps in the reference")
     out = Path(args.out) if args.out else Path(str(Path(args.bag).resolve()) + "_plots")

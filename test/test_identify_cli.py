@@ -81,6 +81,7 @@ def test_foreign_rig_sqlite3_plus_minus_150_v_1khz_held_out(tmp_path):
     write_samples_bag(tmp_path / "bag", rows, topic="/valve7/samples", storage="sqlite3")
     out = run_cli(tmp_path / "bag", "--report", tmp_path / "r.json", "--quiet")
     assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith("range ") and "wrote " in out.stdout  # quiet: the summary, no progress
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["validation"] == "held-out last 30 % of the training record"
     assert "creep" in report["effects_added"]

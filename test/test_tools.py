@@ -184,3 +184,50 @@ def test_valve_rig_asks_for_priority_and_cpus_only_on_the_real_time_clock():
     assert hw["realtime.cpus"] == ctl["realtime.cpus"] == [cpus[-1]]
     proc = tool("valve_rig", "--priority", "50")  # lockstep
     assert proc.returncode == 2 and "apply to --clock realtime" in proc.stderr
+
+
+# ---------------------------------------------------------------------------- an out-of-tree backend
+PLUGIN_DIR = os.path.join(os.path.dirname(__file__), "data", "loopback_daq")  # a "vendor" package, dist-info and all
+
+
+def plugin_env() -> dict:
+    env = ros_env()
+    env["PYTHONPATH"] = PLUGIN_DIR + os.pathsep + env["PYTHONPATH"]
+    return env
+
+
+def test_an_out_of_tree_backend_runs_the_rig(tmp_path):
+    """A backend installed by another package (found through the entry-point group piezo_valve_ros.backends)
+    runs the rig with no change to this package: its parameters are declared under its name and checked by
+    it; the controller closes the loop through it."""
+    hw_exe = os.path.join(BIN, "valve_hardware")
+    bad = subprocess.run([hw_exe, "--ros-args", "-p", "backend:=loopback", "-p", "loopback.gain_m_per_v:=-1.0"],
+                         env=plugin_env(), capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2
+    assert bad.stderr.strip().splitlines() == ["valve_hardware: loopback.gain_m_per_v must be a number > 0, got -1.0"]
+    unknown = subprocess.run([hw_exe, "--ros-args", "-p", "backend:=nope"], env=plugin_env(), capture_output=True,
+                             text=True, timeout=60)
+    assert unknown.returncode == 2 and "unknown backend 'nope'; available: loopback, sim" in unknown.stderr
+
+    ns = f"/daq{os.getpid()}"
+    bag = tmp_path / "loop"
+    with ProcessGroup() as procs:
+        hw_log = open(tmp_path / "hw.log", "w")
+        procs.start("hw", [hw_exe, "--ros-args", "-r", f"__ns:={ns}", "-p", "backend:=loopback",
+                           "-p", "loopback.gain_m_per_v:=12e-6", "-p", "clock:=realtime"],
+                    env=plugin_env(), stdout=hw_log, stderr=subprocess.STDOUT)
+        procs.start("ctl", [os.path.join(BIN, "valve_controller"), "--ros-args", "-r", f"__ns:={ns}",
+                            "-p", "gain_set:=pid_1"], env=plugin_env(), stdout=subprocess.DEVNULL,
+                    stderr=subprocess.STDOUT)
+        wait_for_text(tmp_path / "hw.log", "valve_hardware up: backend=loopback", timeout_s=60)
+        got = tool("valve_command", "--namespace", ns, "get", "hardware", "backend", "loopback.gain_m_per_v")
+        assert got.returncode == 0 and "backend: 'loopback'" in got.stdout and "loopback.gain_m_per_v: 1.2e-05" in got.stdout
+        rec = procs.start("rec", [os.path.join(BIN, "valve_record"), "--namespace", ns, "--duration", "6", str(bag)],
+                          env=ros_env(), stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+        step = tool("valve_command", "--namespace", ns, "--wait-readers", "2", "step", "20e-6")
+        assert step.returncode == 0, step
+        assert rec.wait(60) == 0
+    rows, _ = read_samples(bag)
+    late = rows[rows[:, 0] > rows[-1, 0] - 0.5]  # the last half second: settled on the step
+    assert np.abs(late[:, 2] - 20e-6).max() < 0.5e-6
+    assert np.allclose(late[:, 2], 12e-6 * (late[:, 1] - 5.0), atol=0.3e-6)  # the loopback's own law

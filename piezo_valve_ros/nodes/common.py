@@ -18,6 +18,8 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy, DurabilityPolicy, qos_profile_sensor_data
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
+from ..validation import as_float, as_float_list, as_int  # noqa: F401  (the nodes' validators)
+
 SENSOR_QOS = qos_profile_sensor_data  # spool_position: best effort, keep last
 LATEST_SENSOR_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST,
                                durability=DurabilityPolicy.VOLATILE)  # a reader that wants only the newest sample
@@ -78,28 +80,6 @@ def refuse(node: Node, reason: str) -> SetParametersResult:
     """One log line and the refusal a parameter client sees."""
     node.get_logger().warning(f"rejected parameter update: {reason}")
     return SetParametersResult(successful=False, reason=reason)
-
-
-def as_float(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"{name} must be a number, got {value!r}")
-    value = float(value)
-    if not math.isfinite(value):
-        raise ValueError(f"{name} must be finite, got {value}")
-    return value
-
-
-def as_int(name: str, value: Any) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or float(value) != int(value):
-        raise ValueError(f"{name} must be an integer, got {value!r}")
-    return int(value)
-
-
-def as_float_list(name: str, value: Any) -> list[float]:
-    try:
-        return [as_float(name, x) for x in list(value)]
-    except TypeError:
-        raise ValueError(f"{name} must be a list of numbers, got {value!r}") from None
 
 
 def samples_message(rows: np.ndarray, label: str = SAMPLES_LABEL) -> Float64MultiArray:

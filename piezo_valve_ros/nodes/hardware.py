@@ -13,7 +13,6 @@ from __future__ import annotations
 import math
 import sys
 import time
-from dataclasses import replace
 from typing import Callable, Optional
 
 import numpy as np
@@ -23,10 +22,8 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64, Float64MultiArray
 
-from ..backends import ValveBackend, make_backend
+from ..backends import ValveBackend, available_backends, backend_class
 from ..loop_timing import LoopTiming
-from ..core.simulator import (AmplifierParams, CreepParams, DriftParams, RateDependenceParams, SaturationParams,
-                              SensorParams, ValveSimConfig)
 from .common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, as_float, as_int, declare,
                      declare_realtime, parameter_values, realtime_settings, refuse, run_node, samples_message, tighten_timer_slack)
 
@@ -35,42 +32,6 @@ MAX_CONTROL_PERIOD_S = 0.1      # slower than 10 Hz is no control loop for this 
 MAX_COMMAND_TIMEOUT_S = 10.0    # the watchdog may not be stretched beyond this
 MIN_TIMEOUT_PERIODS = 2         # ... nor shortened below this many control periods (it would fire between commands)
 PERIOD_TOLERANCE = 1e-3         # control_period_s must be a whole number of sample periods to this relative error
-
-
-def _delay_samples(p: dict, default_dt: float) -> int:
-    delay = as_float("sim.sensor_delay_s", p.get("sim.sensor_delay_s", 0.0))
-    dt = as_float("sim.sample_period_s", p.get("sim.sample_period_s", default_dt))
-    k = round(delay / dt)
-    if not 0.0 <= delay <= MAX_CONTROL_PERIOD_S or abs(k * dt - delay) > 1e-9 + 1e-6 * delay:
-        raise ValueError(f"sim.sensor_delay_s must be a whole number of sample periods ({dt} s) in "
-                         f"[0, {MAX_CONTROL_PERIOD_S}] s, got {delay}")
-    return int(k)
-
-
-def sim_config_from_parameters(p: dict) -> ValveSimConfig:
-    """The simulated valve from ``sim.*`` parameters (effects switchable one by one)."""
-    base = ValveSimConfig()
-    asym = p.get("sim.asymmetry", False)
-    g = base.gpim
-    gpim = replace(g, **{k: (as_int if k == "n" else as_float)(f"sim.gpim.{k}", p.get(f"sim.gpim.{k}", getattr(g, k)))
-                         for k in ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")})
-    gpim.model()  # raises ValueError with the reason
-    return replace(
-        base,
-        gpim=gpim,
-        dt=as_float("sim.sample_period_s", p.get("sim.sample_period_s", base.dt)),
-        seed=as_int("sim.seed", p.get("sim.seed", 0)),
-        amplifier=replace(AmplifierParams(), enabled=bool(p.get("sim.slew_limit", True))),
-        creep=replace(CreepParams(), enabled=bool(p.get("sim.creep", True))),
-        saturation=replace(SaturationParams(), enabled=bool(p.get("sim.saturation", True))),
-        rate=replace(RateDependenceParams(), enabled=bool(p.get("sim.rate_dependence", False))),
-        drift=replace(DriftParams(), enabled=bool(p.get("sim.drift", False))),
-        sensor=replace(SensorParams(), noise_enabled=bool(p.get("sim.noise", True)),
-                       delay_samples=_delay_samples(p, base.dt)),
-        dynamics_enabled=bool(p.get("sim.dynamics", True)),
-        descending_envelope=(0.95, 0.2) if asym else None,
-        initial_voltage_v=as_float("safe_voltage", p.get("safe_voltage", 5.0)),
-    )
 
 
 def samples_per_period(control_period_s: float, sample_period_s: float) -> int:
@@ -87,7 +48,8 @@ def samples_per_period(control_period_s: float, sample_period_s: float) -> int:
 class ValveHardwareNode(Node):
     def __init__(self, backend: Optional[ValveBackend] = None, **kwargs):
         super().__init__("valve_hardware", **kwargs)
-        declare(self, "backend", "sim", "valve backend: sim (default) or a registered DAQ backend", read_only=True)
+        declare(self, "backend", "sim", "valve backend: sim (default) or one installed under the entry-point group "
+                f"piezo_valve_ros.backends (here: {', '.join(available_backends())})", read_only=True)
         declare(self, "clock", "realtime", "realtime (wall clock) or lockstep (one period per command)", read_only=True)
         declare(self, "control_period_s", 1e-3, "period of spool_position [s] (a multiple of the sample period)",
                 read_only=True, low=0.0, high=MAX_CONTROL_PERIOD_S)
@@ -107,18 +69,10 @@ class ValveHardwareNode(Node):
         declare(self, "loop_stats_period_s", 0.0,
                 "log the loop timing (rate, commands in time, latency) this often [s]; 0: only at shutdown",
                 read_only=True)
-        for name, default, text in [("sim.seed", 0, "noise seed"), ("sim.sample_period_s", 1e-4, "[s]"),
-                                    ("sim.slew_limit", True, "amplifier current limit"),
-                                    ("sim.creep", True, "creep"), ("sim.saturation", True, "loop-end flattening"),
-                                    ("sim.noise", True, "LVDT noise"), ("sim.dynamics", True, "G_v(s)"),
-                                    ("sim.rate_dependence", False, "rate dependence"),
-                                    ("sim.drift", False, "thermal drift"), ("sim.asymmetry", False, "asymmetry"),
-                                    ("sim.sensor_delay_s", 0.0, "LVDT transport delay [s] (whole samples; "
-                                                                "e.g. a conditioning filter)")]:
-            declare(self, name, default, f"sim backend: {text}", read_only=True)
-        from ..core.hysteresis import PAPER_GPIM
-        for k in ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um"):  # a valve unlike the paper's, for tests
-            declare(self, f"sim.gpim.{k}", getattr(PAPER_GPIM, k), "sim backend: the valve's own GPIM (paper units)",
+        backend_name = str(self.get_parameter("backend").value)
+        backend_type = type(backend) if backend is not None else backend_class(backend_name)
+        for prm in backend_type.PARAMETERS:  # each backend's own parameters, under its name
+            declare(self, f"{backend_name}.{prm.name}", prm.default, f"{backend_name} backend: {prm.description}",
                     read_only=True)
         p = parameter_values(self)
         self.clock_mode = str(p["clock"])
@@ -143,8 +97,8 @@ class ValveHardwareNode(Node):
         if self.busy_poll_s < 0:
             raise ValueError("realtime.busy_poll_s must be >= 0")
         if backend is None:
-            options = {"config": sim_config_from_parameters(p)} if p["backend"] == "sim" else {}
-            backend = make_backend(str(p["backend"]), **options)
+            values = {prm.name: p[f"{backend_name}.{prm.name}"] for prm in backend_type.PARAMETERS}
+            backend = backend_type.from_parameters(values, self.safe_voltage)
         if self.clock_mode == "lockstep" and not backend.supports_lockstep:
             raise ValueError(f"backend {p['backend']!r} cannot run in lockstep")
         self.samples_per_period = samples_per_period(as_float("control_period_s", p["control_period_s"]),
