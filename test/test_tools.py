@@ -231,3 +231,12 @@ def test_an_out_of_tree_backend_runs_the_rig(tmp_path):
     late = rows[rows[:, 0] > rows[-1, 0] - 0.5]  # the last half second: settled on the step
     assert np.abs(late[:, 2] - 20e-6).max() < 0.5e-6
     assert np.allclose(late[:, 2], 12e-6 * (late[:, 1] - 5.0), atol=0.3e-6)  # the loopback's own law
+
+
+def test_valve_rig_stops_when_its_identification_plan_ends(tmp_path):
+    """valve_rig --identify ends with the plan; a plan that fails ends the rig with exit 1 and says so."""
+    proc = tool("valve_rig", "--demo", "none", "--namespace", f"/ident{os.getpid()}", "--identify", "refit",
+                "--bag-dir", str(tmp_path / "bags"), timeout_s=120)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "valve_identification: plan: " in proc.stderr, proc.stderr  # the node's own one-line reason
+    assert "identification plan failed (exit 2); stopping the rig" in proc.stderr, proc.stderr

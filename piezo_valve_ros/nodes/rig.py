@@ -67,8 +67,8 @@ def parse_args(argv=None):
     ap.add_argument("--hold-s", type=float, default=0.1, help="hold before and after each step [s]")
     ap.add_argument("--sim-seed", type=int, default=0)
     ap.add_argument("--identify", metavar="PLAN",
-                    help="also start valve_identification with this plan (e.g. validate,train,refit,validate); "
-                         "needs --demo none")
+                    help="also start valve_identification with this plan (e.g. validate,train,refit,validate) "
+                         "and stop the rig when it is done (exit 1 if it failed); needs --demo none")
     ap.add_argument("--bag-dir", default="identification_runs", help="where --identify writes its bags")
     ap.add_argument("--namespace", default="", help="put the rig's nodes and topics in this namespace (e.g. /valve1)")
     return ap.parse_args(argv)
@@ -114,7 +114,7 @@ def main(argv=None) -> int:
     procs = ProcessGroup()
     nodes: list[Node] = []
     stop = thread = executor = None
-    hardware = None
+    hardware = identification = None
     code = 0
     try:
         if args.composed:
@@ -127,8 +127,10 @@ def main(argv=None) -> int:
             procs.start("valve_hardware", node_command("valve_hardware", hw_params, args.namespace))
             procs.start("valve_controller", node_command("valve_controller", ctl_params, args.namespace))
         if args.identify:
-            procs.start("valve_identification", node_command("valve_identification", namespace=args.namespace, params={
-                "plan": args.identify, "control_period_s": args.control_period_s, "bag_dir": args.bag_dir}))
+            identification = procs.start("valve_identification", node_command(
+                "valve_identification", namespace=args.namespace, params={
+                    "plan": args.identify, "control_period_s": args.control_period_s, "bag_dir": args.bag_dir,
+                    "exit_when_done": True}))
         samples_per_period = max(int(round(args.control_period_s / ValveSimConfig().dt)), 1)
         client = RigClient(namespace=args.namespace, samples_per_period=samples_per_period)
         nodes.append(client)
@@ -150,9 +152,19 @@ def main(argv=None) -> int:
             print(f"\n{periods_run} control periods in {wall:.1f} s wall time "
                   f"({periods_run / wall:.0f} periods/s including pauses)")
         else:
-            print("running; Ctrl-C or SIGTERM to stop", flush=True)
+            if args.identify:
+                print(f"running the identification plan {args.identify}; the rig stops when it is done "
+                      f"(bags and summary.json in {args.bag_dir}); Ctrl-C or SIGTERM to stop earlier", flush=True)
+            else:
+                print("running; Ctrl-C or SIGTERM to stop", flush=True)
             while rclpy.ok():
                 time.sleep(0.2)
+                if identification is not None and identification.poll() is not None:
+                    code = identification.returncode
+                    print(f"valve_rig: identification plan {'done' if code == 0 else f'failed (exit {code})'}; "
+                          f"stopping the rig", file=sys.stderr if code else sys.stdout, flush=True)
+                    code = 0 if code == 0 else 1
+                    break
                 if any(p.poll() is not None for _, p in procs.procs):
                     print("valve_rig: a node exited; stopping the rig", file=sys.stderr)
                     code = 1
