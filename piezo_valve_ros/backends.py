@@ -38,6 +38,7 @@ import numpy as np
 from .core.simulator import (AmplifierParams, CreepParams, DriftParams, RateDependenceParams, SaturationParams,
                              SensorParams, SimulatedValve, ValveSimConfig)
 from .validation import as_bool, as_float, as_int
+from .core.drive import CENTRE_VOLTAGE_V
 
 __all__ = ["ValveBackend", "SimBackend", "BackendParameter", "register_backend", "backend_class", "make_backend",
            "available_backends", "sim_config_from_parameters", "ENTRY_POINT_GROUP"]
@@ -148,7 +149,7 @@ def _sensor_delay_samples(delay_s: float, dt: float) -> int:
 _GPIM_KEYS = ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")
 
 
-def sim_config_from_parameters(values: dict, initial_voltage_v: float = 5.0) -> ValveSimConfig:
+def sim_config_from_parameters(values: dict, initial_voltage_v: float = CENTRE_VOLTAGE_V) -> ValveSimConfig:
     """The simulated valve from the ``sim`` backend's parameter values (names without ``sim.``; missing ones
     take their defaults; effects switchable one by one); ValueError with the reason."""
     v = {prm.name: prm.default for prm in SimBackend.PARAMETERS}

@@ -23,6 +23,8 @@ from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.rosbag2.metadata import dump_qos_v9
 from rosbags.typesys import Stores, get_typestore
 
+from .samples import SAMPLES_COLUMNS, SAMPLES_LABEL, SamplesLayoutError, decode_samples
+
 __all__ = ["BagError", "BagRecorder", "qos_profile", "read_samples", "write_samples_bag", "SAMPLES_TYPE",
            "FLOAT64_TYPE", "CLOCK_TYPE", "TYPESTORE", "serialize_samples", "serialize_float64", "SAMPLES_COLUMNS"]
 
@@ -31,7 +33,6 @@ STORAGES = {"mcap": (StoragePlugin.MCAP, ".mcap"), "sqlite3": (StoragePlugin.SQL
 SAMPLES_TYPE = "std_msgs/msg/Float64MultiArray"
 FLOAT64_TYPE = "std_msgs/msg/Float64"
 CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
-SAMPLES_COLUMNS = ("time", "voltage_command", "spool_position")
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
 
@@ -47,7 +48,7 @@ def qos_profile(reliable: bool, depth: int, transient_local: bool = False) -> Qo
                QosLiveliness.AUTOMATIC, zero, False)
 
 
-def serialize_samples(rows: np.ndarray, label: str = ",".join(SAMPLES_COLUMNS)) -> bytes:
+def serialize_samples(rows: np.ndarray, label: str = SAMPLES_LABEL) -> bytes:
     """CDR bytes of a contract ``samples`` message (rows: N x k)."""
     rows = np.ascontiguousarray(rows, dtype=np.float64)
     n, k = rows.shape
@@ -192,7 +193,7 @@ class BagRecorder:
 
 def write_samples_bag(path, rows: np.ndarray, topic: str = "/samples", storage: str = "mcap",
                       batch: int = 1000, start_ns: int = 1_700_000_000_000_000_000,
-                      label: str = ",".join(SAMPLES_COLUMNS)) -> None:
+                      label: str = SAMPLES_LABEL) -> None:
     """A bag holding ``rows`` on a ``samples`` topic (offline use and tests)."""
     rows = np.asarray(rows, float)
     clock_state = [0.0]
@@ -211,28 +212,17 @@ def _is_samples_topic(conn, topic: Optional[str]) -> bool:
 
 
 class _SamplesDecoder:
-    """CDR ``samples`` messages -> (N, 3) blocks of time, voltage, position; checks the layout as it goes."""
+    """CDR ``samples`` messages -> (N, 3) blocks of time, voltage, position (``samples.decode_samples``)."""
 
     def __init__(self, name: str):
         self.name = name
-        self.columns: Optional[list[int]] = None
 
     def __call__(self, raw: bytes, msgtype: str) -> np.ndarray:
         msg = TYPESTORE.deserialize_cdr(raw, msgtype)
-        dims = msg.layout.dim
-        if len(dims) != 2:
-            raise BagError(f"{self.name}: a message has {len(dims)} layout dimensions, expected 2")
-        if self.columns is None:
-            labels = dims[1].label.split(",")
-            missing = [c for c in SAMPLES_COLUMNS if c not in labels]
-            if missing:
-                raise BagError(f"{self.name}: columns {dims[1].label!r} lack {', '.join(missing)}")
-            self.columns = [labels.index(c) for c in SAMPLES_COLUMNS]
-        n, k = dims[0].size, dims[1].size
-        data = np.asarray(msg.data, dtype=float)
-        if data.size != n * k:
-            raise BagError(f"{self.name}: a message holds {data.size} values, its layout says {n}x{k}")
-        return data.reshape(n, k)[:, self.columns]
+        try:
+            return decode_samples(msg.layout.dim, msg.data, self.name)
+        except SamplesLayoutError as exc:
+            raise BagError(str(exc)) from None
 
 
 def _first_line(exc: BaseException) -> str:

@@ -3,3 +3,8 @@ import sys
 
 # the package is installed editable (scripts/setup_venv.sh); the tests' own helpers live beside them
 sys.path.insert(0, os.path.dirname(__file__))
+
+from ros_helpers import ros_env  # noqa: E402  (found through the path set just above)
+
+# nodes created in the test process join the suite's private DDS domain, on this machine only
+os.environ.update({k: ros_env()[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})

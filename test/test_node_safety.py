@@ -14,16 +14,14 @@ import pytest
 
 from ros_helpers import ros_env
 
-os.environ.update({k: ros_env()[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
+import rclpy
+from rclpy.parameter import Parameter
+from std_msgs.msg import Float64, Float64MultiArray
 
-import rclpy  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from std_msgs.msg import Float64, Float64MultiArray  # noqa: E402
-
-from piezo_valve_ros.core.strategies import ControllerConfig, ValveController, gain_set  # noqa: E402
-from piezo_valve_ros.nodes.common import COMMAND_QOS, SAMPLES_QOS, make_executor, samples_message  # noqa: E402
-from piezo_valve_ros.nodes.controller import ValveControllerNode  # noqa: E402
-from piezo_valve_ros.nodes.hardware import ValveHardwareNode  # noqa: E402
+from piezo_valve_ros.core.strategies import ControllerConfig, ValveController, gain_set
+from piezo_valve_ros.nodes.common import COMMAND_QOS, SAMPLES_QOS, make_executor, samples_message
+from piezo_valve_ros.nodes.controller import ValveControllerNode
+from piezo_valve_ros.nodes.hardware import ValveHardwareNode
 
 _ids = iter(range(1000))
 

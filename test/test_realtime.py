@@ -10,18 +10,16 @@ import pytest
 
 from ros_helpers import ros_env, start, wait_for_text
 
-os.environ.update({k: ros_env()[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
+import rclpy
+from rclpy.parameter import Parameter
+from std_msgs.msg import Float64, Float64MultiArray
 
-import rclpy  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from std_msgs.msg import Float64, Float64MultiArray  # noqa: E402
-
-from piezo_valve_ros.backends import SimBackend  # noqa: E402
-from piezo_valve_ros.core.simulator import ValveSimConfig  # noqa: E402
-from piezo_valve_ros.loop_timing import LoopTiming  # noqa: E402
-from piezo_valve_ros.nodes.common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, claim_pacing,  # noqa: E402
+from piezo_valve_ros.backends import SimBackend
+from piezo_valve_ros.core.simulator import ValveSimConfig
+from piezo_valve_ros.loop_timing import LoopTiming
+from piezo_valve_ros.nodes.common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, claim_pacing,
                                           make_executor, samples_from_message, spin_loop)
-from piezo_valve_ros.processes import ProcessGroup, node_command  # noqa: E402
+from piezo_valve_ros.processes import ProcessGroup, node_command
 
 
 # ---------------------------------------------------------------------------- ROS-free pieces
@@ -188,7 +186,7 @@ def test_composed_realtime_loop_tracks_a_reference_by_direct_link(ros_context):
     observer.create_subscription(Float64, "spool_position", lambda m: seen.__setitem__(
         "positions", seen["positions"] + 1), SENSOR_QOS)
     observer.create_subscription(Float64MultiArray, "samples",
-                                 lambda m: seen["rows"].append(samples_from_message(m)[0]), SAMPLES_QOS)
+                                 lambda m: seen["rows"].append(samples_from_message(m)), SAMPLES_QOS)
     ref_pub = observer.create_publisher(Float64, "position_reference", 10)
     nodes = [hw, ctl, observer]
     executor = make_executor()
@@ -242,7 +240,7 @@ def test_realtime_hardware_process_watchdog_and_sigterm(ros_context, tmp_path):
     ns, timeout, period = f"/rtp{os.getpid()}", 0.2, 1e-4
     rows = []
     with client("commander", ns) as (node, executor), ProcessGroup() as procs:
-        node.create_subscription(Float64MultiArray, "samples", lambda m: rows.append(samples_from_message(m)[0]),
+        node.create_subscription(Float64MultiArray, "samples", lambda m: rows.append(samples_from_message(m)),
                                  SAMPLES_QOS)
         pub = node.create_publisher(Float64, "voltage_command", COMMAND_QOS)
         hw = start(procs, "hardware", node_command("valve_hardware", {
@@ -277,7 +275,7 @@ def test_valve_composed_process_runs_10khz_on_the_wall_clock_and_stops_on_sigter
     ns = f"/cp{os.getpid()}"
     rows = []
     with client("client", ns) as (node, executor), ProcessGroup() as procs:
-        node.create_subscription(Float64MultiArray, "samples", lambda m: rows.append(samples_from_message(m)[0]),
+        node.create_subscription(Float64MultiArray, "samples", lambda m: rows.append(samples_from_message(m)),
                                  SAMPLES_QOS)
         ref = node.create_publisher(Float64, "position_reference", 10)
         proc = start(procs, "composed", node_command("valve_composed", {

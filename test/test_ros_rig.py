@@ -10,19 +10,17 @@ import pytest
 
 from ros_helpers import ros_env, start, wait_for_text
 
-os.environ.update({k: ros_env()[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
+import rclpy
+from std_msgs.msg import Float64
 
-import rclpy  # noqa: E402
-from std_msgs.msg import Float64  # noqa: E402
-
-from piezo_valve_ros.core.experiments import run_closed_loop  # noqa: E402
-from piezo_valve_ros.core.metrics import step_metrics  # noqa: E402
-from piezo_valve_ros.core.signals import step_reference_m  # noqa: E402
-from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig  # noqa: E402
-from piezo_valve_ros.core.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set  # noqa: E402
-from piezo_valve_ros.nodes.common import COMMAND_QOS  # noqa: E402
-from piezo_valve_ros.nodes.client import RigClient, run_in_background  # noqa: E402
-from piezo_valve_ros.processes import ProcessGroup, node_command  # noqa: E402
+from piezo_valve_ros.core.experiments import run_closed_loop
+from piezo_valve_ros.core.metrics import step_metrics
+from piezo_valve_ros.core.signals import step_reference_m
+from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set
+from piezo_valve_ros.nodes.common import COMMAND_QOS
+from piezo_valve_ros.nodes.client import RigClient, run_in_background
+from piezo_valve_ros.processes import ProcessGroup, node_command
 
 DT = 1e-4
 GAINS = {"pid": "pid_1", "pid_hc": "pid_hc_5", "ff_pid": "ff_pid_1", "ff_pid_g": "ff_pid_g_2"}

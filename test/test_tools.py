@@ -240,3 +240,18 @@ def test_valve_rig_stops_when_its_identification_plan_ends(tmp_path):
     assert proc.returncode == 1, proc.stdout + proc.stderr
     assert "valve_identification: plan: " in proc.stderr, proc.stderr  # the node's own one-line reason
     assert "identification plan failed (exit 2); stopping the rig" in proc.stderr, proc.stderr
+
+
+def test_one_samples_decoder_for_bags_and_messages():
+    from types import SimpleNamespace as NS
+    from piezo_valve_ros.samples import SamplesLayoutError, decode_samples
+    data = [1.0, 5.0, 2e-6, 9.0, 1.1, 6.0, 3e-6, 9.0]  # columns in another order, and an extra one
+    dims = [NS(size=2, label="sample"), NS(size=4, label="time,voltage_command,spool_position,extra")]
+    np.testing.assert_array_equal(decode_samples(dims, data), [[1.0, 5.0, 2e-6], [1.1, 6.0, 3e-6]])
+    dims[1] = NS(size=4, label="spool_position,time,extra,voltage_command")
+    np.testing.assert_array_equal(decode_samples(dims, data)[0], [5.0, 9.0, 1.0])
+    for bad_dims, bad_data, says in [(dims[:1], data, "1 layout dimensions"),
+                                     ([dims[0], NS(size=2, label="time,position")], data[:4], "lack voltage_command"),
+                                     (dims, data[:7], "7 values, its layout says 2x4")]:
+        with pytest.raises(SamplesLayoutError, match=says):
+            decode_samples(bad_dims, bad_data)

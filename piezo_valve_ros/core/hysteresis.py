@@ -20,6 +20,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from .drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
+
 __all__ = [
     "PlayOperatorBank",
     "play_batch",
@@ -334,7 +336,7 @@ class GPIM:
             return self.b0 * v + self.b1 + self.b2 * v * v
         return self.b0 * v + self.b1
 
-    def virgin_state(self, v0: float = 5.0) -> np.ndarray:
+    def virgin_state(self, v0: float = CENTRE_VOLTAGE_V) -> np.ndarray:
         """Operator states consistent with input ``v0`` and no history (initial-loading state)."""
         x0 = 0.5 * (self.ascending_envelope(v0) + self.descending_envelope(v0))
         return np.clip(np.full(self.n, x0), self.ascending_envelope(v0) - self.thresholds,
@@ -362,13 +364,13 @@ class GPIM:
     def run(self, v: np.ndarray, state: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
         """Batch evaluation over input voltages ``v`` [V]; returns (y_um, final_state)."""
         v = np.asarray(v, dtype=float)
-        z0 = self.virgin_state(float(v[0]) if v.size else 5.0) if state is None else np.asarray(state, float)
+        z0 = self.virgin_state(float(v[0]) if v.size else CENTRE_VOLTAGE_V) if state is None else np.asarray(state, float)
         lower = self.ascending_envelope(v)
         upper = lower if self.symmetric else self.descending_envelope(v)
         y, final = play_batch(lower, upper, self.thresholds, z0, self.weights)
         return y + self.offset_um, final
 
-    def stream(self, state: Optional[np.ndarray] = None, v0: float = 5.0) -> "GPIMStream":
+    def stream(self, state: Optional[np.ndarray] = None, v0: float = CENTRE_VOLTAGE_V) -> "GPIMStream":
         return GPIMStream(self, self.virgin_state(v0) if state is None else state)
 
     def retarget_state(self, state: np.ndarray, other: "GPIM", v_now: float) -> np.ndarray:
@@ -382,7 +384,7 @@ class GPIM:
         hi = np.maximum(other.descending_envelope(v_now) + other.thresholds, lo)
         return np.minimum(np.maximum(z_new, lo), hi)
 
-    def major_loop(self, v_min: float = 0.0, v_max: float = 10.0, points: int = 2001):
+    def major_loop(self, v_min: float = COMMAND_MIN_V, v_max: float = COMMAND_MAX_V, points: int = 2001):
         """Ascending then descending branch after a full cycle; returns (v, y_up, y_down)."""
         v_up = np.linspace(v_min, v_max, points)
         cycle = np.concatenate((v_up[::-1], v_up[1:], v_up[::-1][1:]))  # max->min->max->min
@@ -479,7 +481,7 @@ class InverseGPIM:
     (``zh_j = P_j z_j + sum_{i>j} p_i z_i``), so forward(inverse(y)) == y.
     """
 
-    def __init__(self, model: GPIM, forward_state: Optional[np.ndarray] = None, v0: float = 5.0):
+    def __init__(self, model: GPIM, forward_state: Optional[np.ndarray] = None, v0: float = CENTRE_VOLTAGE_V):
         problems = inverse_problems(model)
         if problems:
             raise NotInvertibleError("; ".join(problems))
@@ -518,7 +520,7 @@ class InverseGPIM:
     def set_forward_state(self, z: np.ndarray) -> None:
         self.bank.state[:] = self.state_from_forward(np.asarray(z, float))
 
-    def reset(self, v0: float = 5.0) -> None:
+    def reset(self, v0: float = CENTRE_VOLTAGE_V) -> None:
         """Virgin state at input ``v0`` (the paper's synchronised start)."""
         self.set_forward_state(self.model.virgin_state(v0))
 

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .drive import CENTRE_VOLTAGE_V, HALF_SPAN_V
+
 __all__ = ["time_base", "synchronising_sine", "training_voltage", "validation_shape", "validation_reference_m",
            "PAPER_STEPS_UM", "step_reference_m", "stepped_sine_reference_m", "step_and_hold_voltage",
            "multisine_voltage", "identification_voltage", "validation_voltage", "joined", "ReferenceRamp",
@@ -19,7 +21,7 @@ def time_base(duration_s: float, dt: float) -> np.ndarray:
 
 
 def synchronising_sine(dt: float, duration_s: float = 2.0, frequency_hz: float = 2.0,
-                       centre_v: float = 5.0, amplitude_v: float = 5.0) -> np.ndarray:
+                       centre_v: float = CENTRE_VOLTAGE_V, amplitude_v: float = HALF_SPAN_V) -> np.ndarray:
     """Damped sine that ends at ``centre_v``: puts the actuator in a known (near-virgin) state."""
     t = time_base(duration_s, dt)
     return centre_v + amplitude_v * (1.0 - t / duration_s) * np.sin(2 * np.pi * frequency_hz * t)
@@ -87,7 +89,7 @@ def step_and_hold_voltage(dt: float, levels_v=(7.5, 2.5, 8.5, 5.0, 1.5, 6.0), ho
                           ramp_s: float = 2e-3) -> np.ndarray:
     """Voltage steps (2 ms ramps) with long holds: exposes creep and drift."""
     parts = []
-    prev = 5.0
+    prev = CENTRE_VOLTAGE_V
     n_ramp = max(int(round(ramp_s / dt)), 1)
     n_hold = int(round(hold_s / dt))
     for level in levels_v:
@@ -105,7 +107,7 @@ def multisine_voltage(dt: float, duration_s: float = 8.0, frequencies_hz=(0.5, 2
     for f in frequencies_hz:
         t = time_base(seg, dt)
         ramp_in = np.minimum(t / min(0.25, seg / 4), 1.0)
-        parts.append(5.0 + amplitude_v * ramp_in * np.sin(2 * np.pi * f * t))
+        parts.append(CENTRE_VOLTAGE_V + amplitude_v * ramp_in * np.sin(2 * np.pi * f * t))
     return np.concatenate(parts)
 
 
@@ -147,9 +149,10 @@ def validation_voltage(dt: float, duration_s: float = 30.0, amplitude_v: float =
     """A validation experiment unlike the training one: synchronisation, eq. 12 as a voltage about 5 V,
     step-and-hold at other levels, multisine at other frequencies."""
     f = validation_shape(time_base(duration_s, dt) + 8.0)
-    return joined(dt, synchronising_sine(dt), 5.0 + amplitude_v * f / np.max(np.abs(f)),
+    return joined(dt, synchronising_sine(dt), CENTRE_VOLTAGE_V + amplitude_v * f / np.max(np.abs(f)),
                   step_and_hold_voltage(dt, levels_v=(8.0, 3.0, 6.5, 2.0, 5.5), hold_s=1.5),
-                  multisine_voltage(dt, 4.0, (1.0, 5.0, 12.0, 25.0), 3.5), np.full(int(round(0.5 / dt)), 5.0))
+                  multisine_voltage(dt, 4.0, (1.0, 5.0, 12.0, 25.0), 3.5),
+                  np.full(int(round(0.5 / dt)), CENTRE_VOLTAGE_V))
 
 
 class ReferenceRamp:

@@ -25,6 +25,7 @@ import numpy as np
 
 from .dynamics import PAPER_VALVE_MODEL, ContinuousTF, first_order_lag
 from .hysteresis import GPIM, GPIMParams, PAPER_GPIM
+from .drive import CENTRE_VOLTAGE_V
 
 __all__ = [
     "AmplifierParams",
@@ -127,7 +128,7 @@ class ValveSimConfig:
     saturation: SaturationParams = SaturationParams()
     drift: DriftParams = DriftParams()
     sensor: SensorParams = SensorParams()
-    initial_voltage_v: float = 5.0
+    initial_voltage_v: float = CENTRE_VOLTAGE_V
 
     def ideal(self) -> "ValveSimConfig":
         """Only hysteresis (and G_v if enabled): no creep, flattening, noise, slew, drift."""

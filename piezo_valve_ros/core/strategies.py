@@ -35,6 +35,7 @@ from typing import Optional
 
 from .dynamics import PAPER_VALVE_MODEL, ContinuousTF
 from .hysteresis import GPIM, InverseGPIM, NotInvertibleError, PAPER_GPIM, inverse_problems
+from .drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 __all__ = ["STRATEGIES", "PIDGains", "ControllerConfig", "ValveController", "TABLE1_GAINS", "gain_set",
            "nominal_static_gain", "CreepModel", "CreepCompensator"]
@@ -148,7 +149,7 @@ def gain_set(name: str) -> tuple[str, PIDGains]:
     return TABLE1_GAINS[key]
 
 
-def nominal_static_gain(model: GPIM, v_min: float = 0.0, v_max: float = 10.0) -> float:
+def nominal_static_gain(model: GPIM, v_min: float = COMMAND_MIN_V, v_max: float = COMMAND_MAX_V) -> float:
     """Span of the major loop per volt [um/V] (about 13.5 um/V for the paper's model)."""
     _, up, down = model.major_loop(v_min, v_max, 401)
     return float((max(up.max(), down.max()) - min(up.min(), down.min())) / (v_max - v_min))
@@ -161,9 +162,9 @@ class ControllerConfig:
     strategy: str = "pid_hc"
     gains: PIDGains = PIDGains(1.6879, 748.6437, 0.0)
     dt: float = 1e-4
-    command_min_v: float = 0.0
-    command_max_v: float = 10.0
-    centre_voltage_v: float = 5.0
+    command_min_v: float = COMMAND_MIN_V
+    command_max_v: float = COMMAND_MAX_V
+    centre_voltage_v: float = CENTRE_VOLTAGE_V
     static_gain_um_per_v: Optional[float] = None  # None: derived from the GPIM's major loop
     derivative_filter_s: float = 5e-4
     bump_time_constant_s: float = 0.01

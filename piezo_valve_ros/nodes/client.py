@@ -93,9 +93,9 @@ class RigClient(Node):
         return client
 
     def _on_samples(self, msg: Float64MultiArray) -> None:
-        rows, _ = samples_from_message(msg)
+        rows = samples_from_message(msg)
         with self._new_rows:
-            self.rows.append(rows[:, :3])
+            self.rows.append(rows)
             self._rows_count += rows.shape[0]
             self._new_rows.notify_all()
 

@@ -18,6 +18,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy, DurabilityPolicy, qos_profile_sensor_data
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
+from ..samples import SAMPLES_LABEL, decode_samples
 from ..validation import as_float, as_float_list, as_int  # noqa: F401  (the nodes' validators)
 
 SENSOR_QOS = qos_profile_sensor_data  # spool_position: best effort, keep last
@@ -27,7 +28,6 @@ COMMAND_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, histor
 REFERENCE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 SAMPLES_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
                          durability=DurabilityPolicy.VOLATILE)
-SAMPLES_LABEL = "time,voltage_command,spool_position"
 
 
 def declare(node: Node, name: str, default: Any, description: str, *, read_only: bool = False,
@@ -94,16 +94,10 @@ def samples_message(rows: np.ndarray, label: str = SAMPLES_LABEL) -> Float64Mult
     return msg
 
 
-def samples_from_message(msg: Float64MultiArray) -> tuple[np.ndarray, list[str]]:
-    """Inverse of :func:`samples_message`: (rows, column names)."""
-    dims = msg.layout.dim
-    if len(dims) != 2:
-        raise ValueError("samples message must have two layout dimensions")
-    n, k = dims[0].size, dims[1].size
-    data = np.asarray(msg.data, dtype=float)
-    if data.size != n * k:
-        raise ValueError(f"samples message holds {data.size} values, layout says {n}x{k}")
-    return data.reshape(n, k), dims[1].label.split(",")
+def samples_from_message(msg: Float64MultiArray) -> np.ndarray:
+    """Inverse of :func:`samples_message`: (N, 3) rows time [s], voltage [V], position [m]
+    (``samples.decode_samples``; SamplesLayoutError, a ValueError, when the layout is not the contract's)."""
+    return decode_samples(msg.layout.dim, msg.data)
 
 
 def tighten_timer_slack(slack_ns: int = 1000) -> bool:

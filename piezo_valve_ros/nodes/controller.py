@@ -32,6 +32,7 @@ from ..core.strategies import (GUARD_WINDOW_S, STRATEGIES, ControllerConfig, Cre
                                gain_set)
 from .common import (COMMAND_QOS, LATEST_SENSOR_QOS, SAMPLES_QOS, as_float, as_float_list, as_int,
                      declare, declare_realtime, parameter_values, realtime_settings, refuse, run_node, samples_from_message)
+from ..core.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 GPIM_KEYS = ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")
 GAIN_SET_KEYS = ("strategy", "kp", "ki", "kd")   # what an active gain_set decides
@@ -101,7 +102,8 @@ class ValveControllerNode(Node):
             ("gain_set", "", "Table 1 gain set name: sets strategy/kp/ki/kd (which read back its values); '' = none"),
             ("kp", g.kp, "proportional gain (normalised, um/um)"), ("ki", g.ki, "integral gain [1/s]"),
             ("kd", g.kd, "derivative gain [s] (the paper uses 0)"),
-            ("command_min_v", 0.0, "[V]"), ("command_max_v", 10.0, "[V]"), ("centre_voltage_v", 5.0, "[V]"),
+            ("command_min_v", COMMAND_MIN_V, "[V]"), ("command_max_v", COMMAND_MAX_V, "[V]"),
+            ("centre_voltage_v", CENTRE_VOLTAGE_V, "[V]"),
             ("reference_ramp_s", 0.0, "reference changes become ramps of this duration [s] (paper: 0.002)"),
             ("initial_reference_m", 0.0, "reference until the first position_reference [m]"),
             ("gpim.a0", pg.a0, "envelope slope [1]"), ("gpim.a1", pg.a1, "envelope offset [V]"),
@@ -236,11 +238,11 @@ class ValveControllerNode(Node):
         """While disabled: the hardware's own account of the applied voltage (e.g. its safe voltage after its
         watchdog fired)."""
         try:
-            rows, labels = samples_from_message(msg)
+            rows = samples_from_message(msg)
         except ValueError:
             return
-        if rows.shape[0] and "voltage_command" in labels:
-            v = float(rows[-1, labels.index("voltage_command")])
+        if rows.shape[0]:
+            v = float(rows[-1, 1])
             if math.isfinite(v):
                 self._applied_v = v
 

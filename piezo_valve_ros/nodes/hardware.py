@@ -26,6 +26,7 @@ from ..backends import ValveBackend, available_backends, backend_class
 from ..loop_timing import LoopTiming
 from .common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, as_float, as_int, declare,
                      declare_realtime, parameter_values, realtime_settings, refuse, run_node, samples_message, tighten_timer_slack)
+from ..core.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 
 MAX_CONTROL_PERIOD_S = 0.1      # slower than 10 Hz is no control loop for this valve
@@ -57,9 +58,10 @@ class ValveHardwareNode(Node):
         declare(self, "command_timeout_s", 0.5, "no valid command for this long -> safe_voltage [s] "
                 f"(> 0, at least {MIN_TIMEOUT_PERIODS} control periods, at most {MAX_COMMAND_TIMEOUT_S} s)",
                 low=0.0, high=MAX_COMMAND_TIMEOUT_S)
-        declare(self, "safe_voltage", 5.0, "voltage applied on timeout and shutdown [V] (5 V = centre)", read_only=True)
-        declare(self, "command_min_v", 0.0, "commands below are clamped [V]", read_only=True)
-        declare(self, "command_max_v", 10.0, "commands above are clamped [V]", read_only=True)
+        declare(self, "safe_voltage", CENTRE_VOLTAGE_V, "voltage applied on timeout and shutdown [V] (default: the "
+                "drive's centre)", read_only=True)
+        declare(self, "command_min_v", COMMAND_MIN_V, "commands below are clamped [V]", read_only=True)
+        declare(self, "command_max_v", COMMAND_MAX_V, "commands above are clamped [V]", read_only=True)
         declare(self, "lockstep.step_budget", -1, "lockstep only: periods to run before pausing (-1 = no pause); "
                 "refused on the real-time clock (a paused watchdog would hold the last command)")
         declare(self, "realtime.busy_poll_s", 0.0,

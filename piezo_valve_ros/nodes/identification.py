@@ -44,6 +44,7 @@ from ..identify import (compensation, controller_parameters, controller_paramete
 from .client import wait_future
 from .recording import RigRecorder
 from .common import COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, as_float, declare, parameter_values, run_node
+from ..core.drive import CENTRE_VOLTAGE_V
 
 STEPS = ("train", "refit", "validate")
 
@@ -53,7 +54,7 @@ def training_experiment(period_s: float, training_s: float = 30.0, time_scale: f
     that leaves the valve synchronised at 5 V; ``time_scale`` < 1 compresses the signals in time."""
     dt = period_s / time_scale  # the signals' own time axis
     return joined(dt, identification_voltage(dt, training_s), synchronising_sine(dt),
-                  np.full(max(int(0.3 / period_s), 1), 5.0))
+                  np.full(max(int(0.3 / period_s), 1), CENTRE_VOLTAGE_V))
 
 
 class _Player:
@@ -199,7 +200,7 @@ class ValveIdentificationNode(Node):
             ok, reason = self._set_controller({"enabled": True})
             if not ok:
                 self.get_logger().error(f"could not re-enable the controller: {reason}")
-            self.command_pub.publish(Float64(data=5.0))  # hand over: the controller answers the next position
+            self.command_pub.publish(Float64(data=CENTRE_VOLTAGE_V))  # hand over: the controller answers the next position
         self.last_train_bag = bag
         self.get_logger().info(f"train: done, {counts} messages recorded")
         return {"step": "train", "bag": str(bag), "periods": int(values.size), "messages": counts}
