@@ -3,6 +3,18 @@ from glob import glob
 from setuptools import find_packages, setup
 
 package_name = "piezo_valve_ros"
+script_dir = "$base/lib/" + package_name  # where `ros2 run` looks for the executables (as setup.cfg's [install])
+
+
+def _develop_takes_script_dir() -> bool:
+    """colcon --symlink-install runs `setup.py develop`, which must put the scripts in lib/<package>; newer
+    setuptools dropped develop's script_dir (and a setup.cfg naming it breaks `pip install -e .` there)."""
+    try:
+        from setuptools.command.develop import develop
+    except ImportError:
+        return False
+    return any(opt[0].rstrip("=") == "script-dir" for opt in getattr(develop, "user_options", []))
+
 
 setup(
     name=package_name,
@@ -17,6 +29,8 @@ setup(
     install_requires=["setuptools", "numpy", "scipy", "rosbags>=0.11,<0.12", "threadpoolctl"],
     extras_require={"plots": ["matplotlib"], "test": ["pytest"]},
     zip_safe=True,
+    # install_scripts is in setup.cfg (the ROS convention); develop's script_dir only where setuptools has it
+    options={"develop": {"script_dir": script_dir}} if _develop_takes_script_dir() else {},
     maintainer="piezo_valve_ros developers",
     maintainer_email="dev@piezo-valve.local",
     description="Piezo ring-bender valve: GPIM hysteresis model, inverse compensation, six controllers, ROS 2 nodes.",

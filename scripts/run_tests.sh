@@ -4,4 +4,4 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_venv.sh
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
-exec "${PIEZO_VENV:-.venv}/bin/python" -m pytest -q test "$@"
+exec "${PIEZO_VENV:-.venv}/bin/python" -m pytest -q --durations=12 test "$@"

@@ -55,6 +55,7 @@ def test_identification_refits_pushes_and_cuts_the_ol_hc_error(tmp_path):
     assert report["effects_added"] == refit["effects_added"]
     assert f"refit: added: {', '.join(refit['effects_added']) or 'nothing'}; held-out RMS" in log
     assert "tracking error RMS" in log
+    assert "s elapsed, about " in log and " s left" in log  # the long experiments say how far they are
 
 
 def test_refit_without_data_fails_cleanly_and_keeps_the_parameters_file(tmp_path):

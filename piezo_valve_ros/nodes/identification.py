@@ -47,6 +47,7 @@ from .common import COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, as_float, declare, p
 from ..core.drive import CENTRE_VOLTAGE_V
 
 STEPS = ("train", "refit", "validate")
+PROGRESS_PERIOD_S = 5.0   # a running experiment logs its progress this often
 
 
 def training_experiment(period_s: float, training_s: float = 30.0, time_scale: float = 1.0) -> np.ndarray:
@@ -156,17 +157,21 @@ class ValveIdentificationNode(Node):
         expected_s = player.values.size * self.period_s
         self._player = player
         player.next()  # the first value goes out at once (in lockstep it also advances the rig)
-        deadline = time.monotonic() + 60.0 + 20.0 * expected_s
-        last_log = time.monotonic()
+        started = last_log = time.monotonic()
+        deadline = started + 60.0 + 20.0 * expected_s
         while not player.done.wait(0.5):
             if not rclpy.ok():
                 raise RuntimeError("shut down during an experiment")
             if time.monotonic() > deadline:
                 raise TimeoutError(f"{what}: rig stopped answering ({player.index}/{player.values.size} periods)")
-            if time.monotonic() - last_log > 5.0:
-                last_log = time.monotonic()
-                self.get_logger().info(f"{what}: {100 * player.index / player.values.size:.0f} % "
-                                       f"({player.index}/{player.values.size} periods)")
+            now = time.monotonic()
+            if now - last_log > PROGRESS_PERIOD_S:
+                last_log = now
+                done = player.index / player.values.size
+                elapsed = now - started
+                left = f", about {elapsed * (1 - done) / done:.0f} s left" if done > 0 else ""
+                self.get_logger().info(f"{what}: {100 * done:.0f} % ({player.index}/{player.values.size} periods), "
+                                       f"{elapsed:.0f} s elapsed{left}")
         self._player = None
 
     def _set_controller(self, values: dict, atomically: bool = False, timeout_s: float = 10.0) -> tuple[bool, str]:
