@@ -13,7 +13,8 @@ from .drive import CENTRE_VOLTAGE_V, HALF_SPAN_V
 __all__ = ["time_base", "synchronising_sine", "training_voltage", "validation_shape", "validation_reference_m",
            "PAPER_STEPS_UM", "step_reference_m", "stepped_sine_reference_m", "step_and_hold_voltage",
            "multisine_voltage", "identification_voltage", "validation_voltage", "joined", "ReferenceRamp",
-           "IDENTIFICATION_STEPS_V", "IDENTIFICATION_MULTISINE_HZ", "ramp_profile", "sine_profile", "load_profile"]
+           "IDENTIFICATION_STEPS_V", "IDENTIFICATION_MULTISINE_HZ", "ramp_profile", "sine_profile", "load_profile",
+           "rig_training_voltage"]
 
 
 def time_base(duration_s: float, dt: float) -> np.ndarray:
@@ -143,6 +144,15 @@ def joined(dt: float, *segments: np.ndarray, ramp_s: float = 2e-3) -> np.ndarray
             parts.append(a + (b - a) * np.arange(1, n_ramp) / n_ramp)
         parts.append(seg)
     return np.concatenate(parts)
+
+
+def rig_training_voltage(period_s: float, training_s: float = 30.0, time_scale: float = 1.0) -> np.ndarray:
+    """The identification node's training experiment, one voltage [V] per control period ``period_s`` [s]:
+    :func:`identification_voltage`, then a damped sine that leaves the valve synchronised at the centre and a
+    0.3 s hold there; ``time_scale`` < 1 compresses the signals in time (faster tests)."""
+    dt = period_s / time_scale  # the signals' own time axis
+    return joined(dt, identification_voltage(dt, training_s), synchronising_sine(dt),
+                  np.full(max(int(0.3 / period_s), 1), CENTRE_VOLTAGE_V))
 
 
 def validation_voltage(dt: float, duration_s: float = 30.0, amplitude_v: float = 4.5) -> np.ndarray:

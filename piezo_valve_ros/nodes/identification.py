@@ -3,11 +3,11 @@
 The ``plan`` (comma-separated, run in order once the rig answers) is made of:
 
 ``train``     the controller is disabled and this node drives ``voltage_command`` one value per
-              ``spool_position`` (so it works in lockstep and in real time): the identification
-              experiment of ``core.signals.identification_voltage`` (synchronising sine, step-and-hold and
-              multisine segments before and after the paper's training signal) and a closing
-              synchronising sine that leaves the valve in a known state at 5 V; then the controller is
-              re-enabled and resumes from there.
+              ``spool_position`` (so it works in lockstep and in real time): the experiment of
+              ``core.signals.rig_training_voltage`` (synchronising sine, step-and-hold and multisine
+              segments before and after the paper's training signal, and a closing synchronising sine
+              that leaves the valve in a known state at the centre); then the controller is re-enabled
+              and resumes from there.
 ``refit``     ``valve_identify``'s analysis of the last training bag (last 30 % held out), the model
               pushed to the controller with one atomic parameter request (all or nothing), then the
               parameters file written atomically.  A failed refit or a rejected push leaves the last
@@ -38,7 +38,7 @@ from std_msgs.msg import Float64
 
 from ..bagio import BagError
 from ..core.records import IdentificationError
-from ..core.signals import identification_voltage, joined, synchronising_sine, validation_reference_m
+from ..core.signals import rig_training_voltage, validation_reference_m
 from ..identify import (compensation, controller_parameters, controller_parameters_yaml, identify_bags, report_json,
                         write_atomically)
 from .client import wait_future
@@ -48,14 +48,6 @@ from ..core.drive import CENTRE_VOLTAGE_V
 
 STEPS = ("train", "refit", "validate")
 PROGRESS_PERIOD_S = 5.0   # a running experiment logs its progress this often
-
-
-def training_experiment(period_s: float, training_s: float = 30.0, time_scale: float = 1.0) -> np.ndarray:
-    """Voltages [V], one per control period: ``core.signals.identification_voltage`` followed by a damped sine
-    that leaves the valve synchronised at 5 V; ``time_scale`` < 1 compresses the signals in time."""
-    dt = period_s / time_scale  # the signals' own time axis
-    return joined(dt, identification_voltage(dt, training_s), synchronising_sine(dt),
-                  np.full(max(int(0.3 / period_s), 1), CENTRE_VOLTAGE_V))
 
 
 class _Player:
@@ -191,7 +183,7 @@ class ValveIdentificationNode(Node):
 
     # ------------------------------------------------------------------ steps
     def _step_train(self) -> dict:
-        values = training_experiment(self.period_s, self.training_s, self.time_scale)
+        values = rig_training_voltage(self.period_s, self.training_s, self.time_scale)
         ok, reason = self._set_controller({"enabled": False})
         if not ok:
             raise RuntimeError(f"cannot disable the controller: {reason}")
