@@ -39,9 +39,6 @@ class ContinuousTF:
                 out.append(f"unstable or marginal poles {poles}")
         return out
 
-    def dc_gain(self) -> float:
-        return float(self.num[-1] / self.den[-1])
-
     def discretise(self, dt: float) -> "DiscreteFilter":
         """Exact zero-order-hold discretisation for sample time ``dt`` [s]."""
         problems = self.problems()
@@ -141,9 +138,6 @@ class DiscreteFilter:
         self._a = [float(x) for x in a]
         self.order = order - 1
         self.state = [0.0] * self.order
-
-    def dc_gain(self) -> float:
-        return float(np.sum(self.b) / np.sum(self.a))
 
     def reset(self, steady_input: float = 0.0) -> None:
         """State of a filter that has seen ``steady_input`` forever."""
