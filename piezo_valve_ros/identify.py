@@ -68,8 +68,9 @@ class Compensation:
 
 
 def compensation(analysis: Analysis) -> Compensation:
-    """The final model reduced to what the controller compensates: the symmetric GPIM, G_v (its first pole
-    pair) and the effects whose ``compensation`` the controller takes (creep); the others are listed
+    """The final model reduced to what the controller compensates: the GPIM (asymmetric when its envelopes
+    allow the exact inverse), G_v (its first pole pair) and the effects whose ``compensation`` the controller
+    takes (creep, asymmetry); the others are listed
     with their reasons.  When anything is left out the model is refitted without it, so the GPIM the
     controller inverts is the best one without that structure."""
     final = analysis.final
@@ -94,6 +95,8 @@ def controller_parameters(comp: Compensation) -> dict:
     gv = unity_dc_poles([m.sections[0]])
     values = {"gpim.thresholds": [float(x) for x in g.thresholds], "gpim.weights": [float(x) for x in g.weights],
               "gpim.a0": float(g.a0), "gpim.a1": float(g.a1), "gpim.offset_um": float(g.offset_um),
+              # symmetric unless the asymmetry effect says otherwise (written out, so a push replaces an older one)
+              "gpim.descending_envelope": [float(g.a0), float(g.a1), 0.0],
               "valve_model.num": [float(x) for x in gv.num], "valve_model.den": [float(x) for x in gv.den],
               "creep.time_constants_s": [1.0], "creep.gains": [0.0]}
     for e, c in zip(m.effects, m.coefs):

@@ -277,3 +277,18 @@ def test_the_report_does_not_depend_on_the_number_of_threads():
     assert reports[0] == reports[1]
     with pytest.raises(ValueError, match="threads must be >= 1"):
         analyse(train, validate, threads=0)
+
+
+def test_asymmetry_is_compensated_only_where_the_controller_can_invert_it():
+    from types import SimpleNamespace
+    from piezo_valve_ros.core.effects import NotCompensable
+    from piezo_valve_ros.core.effects.asymmetry import Asymmetry
+    from piezo_valve_ros.core.hysteresis import GPIM, PAPER_GPIM
+    m = PAPER_GPIM.model()
+    effect = Asymmetry()
+    above = GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, m.a0 * 1.03, m.a1 + 0.08, 0.0)
+    assert effect.compensation(SimpleNamespace(gpim=above), None) == {
+        "gpim.descending_envelope": [above.b0, above.b1, 0.0]}
+    crossing = GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, 0.95, 0.2)
+    with pytest.raises(NotCompensable, match="asymmetry: descending envelope below the ascending one"):
+        effect.compensation(SimpleNamespace(gpim=crossing), None)

@@ -451,13 +451,27 @@ PAPER_GPIM = GPIMParams()
 
 
 # --------------------------------------------------------------------------- inverse
-def inverse_problems(model: GPIM) -> list[str]:
-    """Reasons the analytic inverse does not exist for ``model`` (empty when invertible)."""
+ENVELOPE_CHECK_POINTS = 401   # where an asymmetric model's envelopes are compared over the drive range
+
+
+def inverse_problems(model: GPIM, v_min: float = COMMAND_MIN_V, v_max: float = COMMAND_MAX_V) -> list[str]:
+    """Reasons the analytic inverse does not exist for ``model`` on inputs ``v_min..v_max`` [V] (empty when
+    invertible).  An asymmetric model needs a rising descending envelope that never falls below the
+    ascending one on that range (see :class:`InverseGPIM`)."""
     out = list(model.problems())
     if out:
         return out
     if not model.symmetric:
-        out.append("separate ascending/descending envelopes have no analytic inverse")
+        v = np.linspace(v_min, v_max, ENVELOPE_CHECK_POINTS)
+        slope = model.b0 + 2.0 * model.b2 * v
+        if np.any(slope <= 0):
+            out.append(f"descending envelope not rising at {v[np.argmax(slope <= 0)]:.3g} V")
+        gap = model.descending_envelope(v) - model.ascending_envelope(v)
+        if np.any(gap < 0):
+            where = v[gap < 0]
+            out.append(f"descending envelope below the ascending one from {where[0]:.3g} to {where[-1]:.3g} V "
+                       f"(by up to {-gap.min():.3g}): no exact inverse (it needs the loop's dead band, "
+                       "descending >= ascending)")
     r, p = model.thresholds, model.weights
     if r[0] != 0:
         out.append(f"first threshold must be 0 (got {r[0]})")
@@ -471,11 +485,16 @@ def inverse_problems(model: GPIM) -> list[str]:
 
 
 class InverseGPIM:
-    """Exact inverse of a symmetric GPIM (Krejci-Kuhnen form), streaming and batch.
+    """Exact inverse of a GPIM (Krejci-Kuhnen form), streaming and batch.
 
-    ``v = gamma^{-1}( sum_j ph_j * F_{rh_j}[y - offset] )`` with
-    ``rh_j = sum_{i<=j} p_i (r_j - r_i)``, ``ph_0 = 1/p_0``,
-    ``ph_j = -p_j / (P_j P_{j-1})``, ``P_j = p_0 + ... + p_j``.
+    ``x = sum_j ph_j * F_{rh_j}[y - offset]`` with ``rh_j = sum_{i<=j} p_i (r_j - r_i)``, ``ph_0 = 1/p_0``,
+    ``ph_j = -p_j / (P_j P_{j-1})``, ``P_j = p_0 + ... + p_j``; symmetric: ``v = gamma^{-1}(x)``.
+
+    Asymmetric envelopes (ascending L, descending U >= L on the drive range): the bank of two-drive play
+    operators with r_0 = 0 is the symmetric PI driven by ``x = z_0``, which follows the dead-band operator
+    ``x <- min(max(x, L(v)), U(v))``.  So ``x`` comes from the same inverse PI, and ``v = L^{-1}(x)`` while
+    ``x`` rises, ``U^{-1}(x)`` while it falls, the last ``v`` while it holds (Al Janaideh, Rakheja and Su's
+    inverse of the generalized PI model with invertible envelopes).
 
     The operator states are kept consistent with the forward model's states
     (``zh_j = P_j z_j + sum_{i>j} p_i z_i``), so forward(inverse(y)) == y.
@@ -498,6 +517,38 @@ class InverseGPIM:
         self.bank = PlayOperatorBank(self.thresholds, self.state_from_forward(z))
         self._a0, self._a1 = model.a0, model.a1
         self._offset = model.offset_um
+        self._asymmetric = not model.symmetric
+        self._x_last, self._v_last = float(z[0]), float(v0)  # the dead band's memory (asymmetric models)
+        self._settle_in_band()
+
+    # -- the dead band of an asymmetric model
+    def _descending_inverse(self, x):
+        """U^{-1}(x) [V] on the rising branch of U = b0 v + b1 + b2 v^2 (scalar or array)."""
+        m = self.model
+        d = np.asarray(x, float) - m.b1
+        if not m.b2:
+            return d / m.b0
+        root = np.sqrt(np.maximum(m.b0 * m.b0 + 4.0 * m.b2 * d, 0.0))
+        return 2.0 * d / (m.b0 + root)
+
+    def _settle_in_band(self) -> None:
+        """Keep the remembered input inside the band of inputs that hold ``x`` (after a state change)."""
+        if self._asymmetric:
+            lo = float(self._descending_inverse(self._x_last))
+            hi = (self._x_last - self._a1) / self._a0
+            self._v_last = min(max(self._v_last, lo), hi)
+
+    def _input_for(self, x: float) -> float:
+        if not self._asymmetric:
+            return (x - self._a1) / self._a0
+        if x > self._x_last:
+            v = (x - self._a1) / self._a0
+        elif x < self._x_last:
+            v = float(self._descending_inverse(x))
+        else:
+            v = self._v_last
+        self._x_last, self._v_last = x, v
+        return v
 
     # -- state mapping
     def state_from_forward(self, z: np.ndarray) -> np.ndarray:
@@ -517,23 +568,29 @@ class InverseGPIM:
             tail += p[j] * z[j]
         return z
 
-    def set_forward_state(self, z: np.ndarray) -> None:
-        self.bank.state[:] = self.state_from_forward(np.asarray(z, float))
+    def set_forward_state(self, z: np.ndarray, v_now: Optional[float] = None) -> None:
+        """Take over forward-model operator states ``z`` (and the input ``v_now`` [V] they were reached at)."""
+        z = np.asarray(z, float)
+        self.bank.state[:] = self.state_from_forward(z)
+        self._x_last = float(z[0])
+        if v_now is not None:
+            self._v_last = float(v_now)
+        self._settle_in_band()
 
     def reset(self, v0: float = CENTRE_VOLTAGE_V) -> None:
         """Virgin state at input ``v0`` (the paper's synchronised start)."""
-        self.set_forward_state(self.model.virgin_state(v0))
+        self.set_forward_state(self.model.virgin_state(v0), v0)
 
     def with_model(self, model: GPIM, v_now: float) -> "InverseGPIM":
         """A new inverse for ``model``, with the loop memory carried over (raises if not invertible)."""
         z = self.model.retarget_state(self.forward_state(), model, v_now)
-        return InverseGPIM(model, z)
+        return InverseGPIM(model, z, v_now)
 
     # -- evaluation
     def step(self, y_um: float) -> float:
         """Voltage [V] that makes the forward model output ``y_um``; advances the state."""
         zh = self.bank.step(y_um - self._offset, y_um - self._offset)
-        return (float(self.weights @ zh) - self._a1) / self._a0
+        return self._input_for(float(self.weights @ zh))
 
     def peek(self, y_um: float) -> float:
         """What :meth:`step` would return for ``y_um`` [um], without advancing the state (allocates: for
@@ -545,14 +602,26 @@ class InverseGPIM:
             self.bank.state[:] = saved
 
     def run(self, y_um: np.ndarray) -> np.ndarray:
+        """Batch form of :meth:`step` over outputs ``y_um`` [um]; voltages [V]."""
         y = np.asarray(y_um, float) - self._offset
         x = self.bank.run(y, y, self.weights)
-        return (x - self._a1) / self._a0
+        if not self._asymmetric:
+            return (x - self._a1) / self._a0
+        if x.size == 0:
+            return x
+        dx = np.diff(np.concatenate(([self._x_last], x)))
+        v = np.where(dx > 0, (x - self._a1) / self._a0, self._descending_inverse(x))
+        held = dx == 0
+        if held.any():  # a held x keeps the last input: carry it forward from the last change
+            last = np.maximum.accumulate(np.where(held, -1, np.arange(x.size)))
+            v = np.where(last >= 0, v[np.maximum(last, 0)], self._v_last)
+        self._x_last, self._v_last = float(x[-1]), float(v[-1])
+        return v
 
     def peek_forward(self, v: float) -> float:
         """Forward-model output [um] for input ``v`` from the present state, without advancing it."""
         z = self.forward_state()
         m = self.model
-        x = m.a0 * v + m.a1
-        z = np.minimum(np.maximum(z, x - m.thresholds), x + m.thresholds)
+        lower, upper = m.ascending_envelope(v), m.descending_envelope(v)
+        z = np.minimum(np.maximum(z, lower - m.thresholds), upper + m.thresholds)
         return m.output_from_state(z)

@@ -352,7 +352,7 @@ class ValveController:
         self._last_error = e
         if s == "pid_hc" and old_strategy != "pid_hc":
             # the in-loop inverse takes over the valve's state as the demand history describes it
-            self.loop_inverse.set_forward_state(self.ff_inverse.forward_state())
+            self.loop_inverse.set_forward_state(self.ff_inverse.forward_state(), self.last_command_v)
         if s in ("pid", "ff_pid", "ff_pid_g"):
             base = c.centre_voltage_v if s == "pid" else self._last_ff_v
             self.integrator_um = (v_last - base) * self._k - c.gains.kp * e - self._d_state

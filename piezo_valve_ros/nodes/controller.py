@@ -70,15 +70,20 @@ def settings_from_parameters(p: dict[str, Any]) -> tuple[ControllerConfig, GPIM,
     weights = as_float_list("gpim.weights", p.get("gpim.weights", []))
     a0, a1 = as_float("gpim.a0", p["gpim.a0"]), as_float("gpim.a1", p["gpim.a1"])
     offset = as_float("gpim.offset_um", p["gpim.offset_um"])
+    descending = as_float_list("gpim.descending_envelope", p.get("gpim.descending_envelope", []))
     model = None
     try:
+        if len(descending) not in (0, 2, 3):
+            raise ValueError(f"gpim.descending_envelope must be [] or [b0, b1] or [b0, b1, b2], got {descending}")
         if thresholds or weights:  # free form (e.g. from the identification's linear fit)
             model = GPIM(thresholds, weights, a0, a1, offset)
         else:
             model = GPIMParams(a0=a0, a1=a1, alpha=as_float("gpim.alpha", p["gpim.alpha"]),
                                rho=as_float("gpim.rho", p["gpim.rho"]), tau=as_float("gpim.tau", p["gpim.tau"]),
                                n=as_int("gpim.n", p["gpim.n"]), offset_um=offset).model()
-        problems += inverse_problems(model)
+        if descending:  # an asymmetric model: its own descending envelope
+            model = GPIM(model.thresholds, model.weights, a0, a1, offset, *descending)
+        problems += inverse_problems(model, config.command_min_v, config.command_max_v)
     except ValueError as exc:
         problems.append(str(exc))
     valve_model = ContinuousTF(tuple(as_float_list("valve_model.num", p["valve_model.num"])),
@@ -112,6 +117,9 @@ class ValveControllerNode(Node):
             ("gpim.offset_um", pg.offset_um, "output offset [um]"),
             ("gpim.thresholds", [], "free-form thresholds [V] (empty: 5-parameter form)"),
             ("gpim.weights", [], "free-form weights [um/V] (empty: 5-parameter form)"),
+            ("gpim.descending_envelope", [], "asymmetric GPIM: descending envelope [b0, b1] or [b0, b1, b2] "
+                                             "(b0 v + b1 + b2 v^2, at or above the ascending one on the command "
+                                             "range; empty: the ascending one)"),
             ("valve_model.num", list(PAPER_VALVE_MODEL.num), "G_v(s) numerator"),
             ("valve_model.den", list(PAPER_VALVE_MODEL.den), "G_v(s) denominator"),
             ("creep.time_constants_s", [], "creep compensation (feedforward path): lag time constants [s]"),
@@ -325,7 +333,7 @@ class ValveControllerNode(Node):
         if "initial_reference_m" in changed:
             return refuse(self, "initial_reference_m applies at start-up only (send position_reference instead)")
         old = ctl.config
-        if changed & {f"gpim.{k}" for k in GPIM_KEYS + ("thresholds", "weights")} \
+        if changed & {f"gpim.{k}" for k in GPIM_KEYS + ("thresholds", "weights", "descending_envelope")} \
                 or changed & {"valve_model.num", "valve_model.den", "creep.time_constants_s", "creep.gains"}:
             ctl.set_model(model, valve_model, creep)
             self.get_logger().info("new model parameters in use")

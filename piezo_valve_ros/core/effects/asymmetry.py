@@ -14,9 +14,9 @@ from typing import Optional
 
 import numpy as np
 
-from ..hysteresis import GPIM
+from ..hysteresis import GPIM, inverse_problems
 from ..records import Record
-from .base import Effect
+from .base import Effect, NotCompensable
 
 __all__ = ["Asymmetry", "MAX_SLOPE_CHANGE", "MAX_SHIFT_SHARE"]
 
@@ -80,6 +80,17 @@ class Asymmetry(Effect):
         b0_, b1_, b2_ = self.betas(g)
         return {"descending_shift_v": b0_, "descending_slope_change": b1_, "descending_curvature": b2_,
                 "b0": g.b0, "b1": g.b1, "b2": g.b2, "centre_v": self.centre_v, "half_span_v": self.half_span_v}
+
+    def compensation(self, model, coefs) -> dict:
+        """The controller inverts the asymmetric GPIM exactly when its descending envelope rises and stays at or
+        above the ascending one over the drive range (``InverseGPIM``); otherwise NotCompensable with where not."""
+        g = model.gpim
+        if g.b0 is None:
+            return {}
+        envelope_problems = [x for x in inverse_problems(g) if "envelope" in x]
+        if envelope_problems:
+            raise NotCompensable(f"asymmetry: {'; '.join(envelope_problems)}")
+        return {"gpim.descending_envelope": [float(g.b0), float(g.b1), float(g.b2)]}
 
     def plot_axis(self, ctx):
         return ctx.v, "voltage [V]", False
