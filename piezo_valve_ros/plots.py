@@ -28,13 +28,29 @@ def require():
     return plt
 
 
+class _FigureWriter:
+    """Saves figures as PNGs into one directory (created if needed) and keeps the paths written."""
+
+    def __init__(self, directory):
+        self.plt = require()
+        self.out_dir = Path(directory)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.written: list[str] = []
+
+    def save(self, fig, name: str) -> None:
+        path = self.out_dir / name
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        self.plt.close(fig)
+        self.written.append(str(path))
+
+
 def write_all(analysis: Analysis, directory, log: Callable[[str], None] = lambda s: None) -> list[str]:
     """Hysteresis loop, residual in time, one residual diagnostic per added effect (before: the final model
     refitted without it) and a step-and-hold stretch (when the input holds still somewhere), all on held-out
     data at the analysis rate.  Returns the paths written."""
-    plt = require()
-    out_dir = Path(directory)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    figures = _FigureWriter(directory)
+    plt, save, written = figures.plt, figures.save, figures.written
     split = analysis.split
     rec, start = split.score, split.start
     t, v, y = rec.time_s[start:], rec.voltage_v[start:], rec.position_um[start:]
@@ -45,14 +61,6 @@ def write_all(analysis: Analysis, directory, log: Callable[[str], None] = lambda
     y_base, y_final = predict(analysis.baseline), predict(analysis.final)
     report = analysis.report
     label_b, label_f = f"baseline {analysis.baseline.name}", analysis.final.name
-    written = []
-
-    def save(fig, name):
-        path = out_dir / name
-        fig.tight_layout()
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        written.append(str(path))
 
     fig, ax = plt.subplots(figsize=(7, 5))
     ax.plot(v, y, color="0.6", lw=0.8, label="measured")
@@ -124,20 +132,11 @@ def write_run(time_s: np.ndarray, voltage_v: np.ndarray, position_m: np.ndarray,
     """Figures of a recorded closed-loop run: position and reference, command, tracking error (where a
     reference is known) in time, and the hysteresis loop (command vs position).  Positions are plotted in
     um.  Returns the paths written."""
-    plt = require()
-    out_dir = Path(directory)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    figures = _FigureWriter(directory)
+    plt, save = figures.plt, figures.save
     k = max(time_s.size // MAX_PLOT_POINTS, 1)
     t, v, y, r = time_s[::k] - time_s[0], voltage_v[::k], position_m[::k] * 1e6, reference_m[::k] * 1e6
     has_ref = bool(np.isfinite(r).any())
-    written = []
-
-    def save(fig, name):
-        path = out_dir / name
-        fig.tight_layout()
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        written.append(str(path))
 
     fig, axes = plt.subplots(3 if has_ref else 2, 1, figsize=(10, 8 if has_ref else 6), sharex=True)
     axes[0].plot(t, y, lw=0.7, label="spool position")
@@ -160,4 +159,4 @@ def write_run(time_s: np.ndarray, voltage_v: np.ndarray, position_m: np.ndarray,
     ax.set_ylabel("spool position [um]")
     ax.set_title("Hysteresis loop (command vs position)")
     save(fig, "hysteresis_loop.png")
-    return written
+    return figures.written
