@@ -13,6 +13,8 @@ import sys
 from dataclasses import dataclass
 from typing import Any, Sequence
 
+from .validation import as_float, as_int
+
 DEFAULT_SWITCH_INTERVAL_S = 5e-5           # CPython's GIL switch interval in real-time processes (its default: 5 ms)
 SWITCH_INTERVAL_RANGE_S = (1e-6, 0.005)
 PRIORITY_RANGE = (0, 98)                   # SCHED_FIFO priority; 0 = the normal scheduler; 99 is left to the kernel
@@ -38,26 +40,21 @@ class RealtimeSettings:
     @staticmethod
     def from_values(switch_interval_s: Any, priority: Any, cpus: Any) -> "RealtimeSettings":
         """Validated settings from parameter values; :class:`RealtimeError` with the reason."""
-        def number(name, value, integer=False):
-            ok = not isinstance(value, bool) and isinstance(value, (int, float))
-            if ok and integer:
-                ok = float(value) == int(value)
-            if not ok or value != value or value in (float("inf"), float("-inf")):
-                raise RealtimeError(f"{name} must be {'an integer' if integer else 'a finite number'}, got {value!r}")
-            return int(value) if integer else float(value)
-
-        interval = number("realtime.switch_interval_s", switch_interval_s)
+        try:
+            interval = as_float("realtime.switch_interval_s", switch_interval_s)
+            prio = as_int("realtime.priority", priority)
+            try:
+                cpu_list = tuple(as_int("realtime.cpus", c) for c in list(cpus or ()))
+            except TypeError:
+                raise ValueError(f"realtime.cpus must be a list of CPU numbers, got {cpus!r}") from None
+        except ValueError as exc:
+            raise RealtimeError(str(exc)) from None
         lo, hi = SWITCH_INTERVAL_RANGE_S
         if not lo <= interval <= hi:
             raise RealtimeError(f"realtime.switch_interval_s must lie in [{lo:g}, {hi:g}] s, got {interval}")
-        prio = number("realtime.priority", priority, integer=True)
         if not PRIORITY_RANGE[0] <= prio <= PRIORITY_RANGE[1]:
             raise RealtimeError(f"realtime.priority must lie in {PRIORITY_RANGE[0]}..{PRIORITY_RANGE[1]} "
                                 f"(0 = normal scheduler), got {prio}")
-        try:
-            cpu_list = tuple(number("realtime.cpus", c, integer=True) for c in list(cpus or ()))
-        except TypeError:
-            raise RealtimeError(f"realtime.cpus must be a list of CPU numbers, got {cpus!r}") from None
         if cpu_list:
             available = available_cpus()
             missing = sorted(set(cpu_list) - available)

@@ -20,7 +20,8 @@ def as_float(name: str, value: Any) -> float:
 
 def as_int(name: str, value: Any) -> int:
     """An integer (a float with no fraction accepted, bools refused)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or float(value) != int(value):
+    if (isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value)
+            or float(value) != int(value)):
         raise ValueError(f"{name} must be an integer, got {value!r}")
     return int(value)
 

@@ -94,6 +94,11 @@ def controller(ros_context):
     ({"realtime__switch_interval_s": 1}, "switch_interval_s must lie in"),
     ({"realtime__priority": 99}, "realtime.priority must lie in 0..98"),
     ({"realtime__priority": 1.5}, "realtime.priority must be an integer"),
+    ({"realtime__priority": float("nan")}, "realtime.priority must be an integer"),
+    ({"realtime__priority": float("inf")}, "realtime.priority must be an integer"),
+    ({"realtime__priority": -1}, "realtime.priority must lie in 0..98"),
+    ({"realtime__priority": "high"}, "realtime.priority must be an integer"),
+    ({"realtime__cpus": ["a"]}, "realtime.cpus must be an integer"),
     ({"realtime__cpus": [4096]}, "no CPU 4096 on this machine"),
     ({"realtime__priority": 10, "realtime__busy_poll_s": 0.001}, "starves every other thread"),
 ])
