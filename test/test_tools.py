@@ -82,12 +82,22 @@ def test_dropped_sample_rows_are_counted_from_the_time_column():
 def test_tools_refuse_bad_arguments_before_touching_ros(tmp_path):
     for args, says in [(("sine", "--amplitude", "1e-5", "--frequency", "500", "--duration", "1"), "frequency"),
                        (("set", "controller", "kp"), "expected NAME:=VALUE"),
-                       (("file", str(tmp_path / "missing.csv")), "No such file")]:
+                       (("file", str(tmp_path / "missing.csv")), "No such file"),
+                       (("ramp", "nan", "1e-5", "--duration", "1"), "positions must be finite"),
+                       (("sine", "--amplitude", "1e-5", "--frequency", "1", "--duration", "1", "--offset", "nan"),
+                        "positions must be finite"),
+                       (("--timeout", "nan", "step", "1e-6"), "--timeout must be > 0"),
+                       (("--timeout", "-1", "get", "controller"), "--timeout must be > 0"),
+                       (("--wait-readers", "0", "step", "1e-6"), "--wait-readers must be >= 1")]:
         proc = tool("valve_command", *args)
         assert proc.returncode == 2 and says in proc.stderr, proc.stderr
     (tmp_path / "exists").mkdir()
     proc = tool("valve_record", str(tmp_path / "exists"))
     assert proc.returncode == 2 and "exists already" in proc.stderr
+    for duration in ("0", "-1", "nan"):
+        proc = tool("valve_record", "--duration", duration, str(tmp_path / "never"))
+        assert proc.returncode == 2 and "--duration must be > 0" in proc.stderr, proc.stderr
+    assert not (tmp_path / "never").exists()
     proc = tool("valve_record", "--duration", "1", "--namespace", "/nobody_here", str(tmp_path / "empty"))
     assert proc.returncode == 0 and "0 messages (" in proc.stdout and "samples rows 0" in proc.stdout, proc
     proc = tool("valve_plot", str(tmp_path / "no_such_bag"))

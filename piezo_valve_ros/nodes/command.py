@@ -92,25 +92,42 @@ def parse_assignment(text: str) -> tuple[str, object]:
 def profile(args) -> tuple[np.ndarray, np.ndarray]:
     """(times [s], positions [m]) for a reference command; ValueError with the reason."""
     if args.command == "step":
-        if not np.isfinite(args.position_m):
-            raise ValueError(f"position must be finite, got {args.position_m}")
-        return np.zeros(1), np.array([args.position_m])
-    if args.command == "ramp":
-        return ramp_profile(args.start_m, args.end_m, args.duration, args.rate)
-    if args.command == "sine":
-        return sine_profile(args.amplitude, args.frequency, args.duration, args.offset, args.rate)
-    return load_profile(args.path)
+        times, values = np.zeros(1), np.array([args.position_m])
+    elif args.command == "ramp":
+        times, values = ramp_profile(args.start_m, args.end_m, args.duration, args.rate)
+    elif args.command == "sine":
+        times, values = sine_profile(args.amplitude, args.frequency, args.duration, args.offset, args.rate)
+    else:
+        times, values = load_profile(args.path)
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f"{args.command}: positions must be finite")
+    return times, values
 
 
-def run(args, client: RigClient, out=sys.stdout) -> int:
-    """Carry out one parsed command against a rig reachable through ``client`` (spun elsewhere)."""
+def checked_request(args):
+    """What a parsed command will send, checked before ROS starts: the assignments of ``set``, the
+    (times, positions) of a reference command, None for ``get``; ValueError (or OSError) with the reason."""
+    if not (np.isfinite(args.timeout) and args.timeout > 0):
+        raise ValueError(f"--timeout must be > 0 s, got {args.timeout}")
+    if args.command == "get":
+        return None
+    if args.command == "set":
+        return dict(parse_assignment(a) for a in args.assignments)
+    if args.wait_readers < 1:
+        raise ValueError(f"--wait-readers must be >= 1, got {args.wait_readers}")
+    return profile(args)
+
+
+def run(args, client: RigClient, request, out=sys.stdout) -> int:
+    """Carry out one parsed command (``request`` from :func:`checked_request`) against a rig reachable
+    through ``client`` (spun elsewhere)."""
     if args.command == "get":
         values = client.get_params(client.wait_for_node(args.node, args.timeout), args.names, args.timeout)
         for name, value in values.items():
             print(f"{name}: {value!r}" if value is not None else f"{name}: (not set)", file=out)
         return 0 if all(v is not None for v in values.values()) else 1
     if args.command == "set":
-        values = dict(parse_assignment(a) for a in args.assignments)
+        values = request
         results = client.set_params(client.wait_for_node(args.node, args.timeout), values, args.timeout)
         refused = 0
         for (name, value), result in zip(values.items(), results):
@@ -120,7 +137,7 @@ def run(args, client: RigClient, out=sys.stdout) -> int:
                 refused += 1
                 print(f"{client.node_name(args.node)}: {name} := {value!r} refused: {result.reason}", file=out)
         return 1 if refused else 0
-    times, values = profile(args)
+    times, values = request
 
     def progress(sent, total, elapsed):
         print(f"valve_command: {sent}/{total} references sent, {elapsed:.1f} of {times[-1]:.1f} s", file=out,
@@ -143,11 +160,7 @@ def main(argv=None) -> int:
     ros_args = argv[argv.index("--ros-args"):] if "--ros-args" in argv else []
     args = parse_args(argv[:len(argv) - len(ros_args)])
     try:  # bad input is refused before touching ROS
-        if args.command == "set":
-            for a in args.assignments:
-                parse_assignment(a)
-        elif args.command not in ("get",):
-            profile(args)
+        request = checked_request(args)
     except (ValueError, OSError) as exc:
         print(f"valve_command: {exc}", file=sys.stderr)
         return 2
@@ -155,7 +168,7 @@ def main(argv=None) -> int:
     client = RigClient(args.namespace, with_samples=False, name="valve_command", reference_history=PROFILE_HISTORY)
     thread, stop, executor = run_in_background([client])
     try:
-        return run(args, client)
+        return run(args, client, request)
     except (TimeoutError, ValueError) as exc:
         print(f"valve_command: {exc}", file=sys.stderr)
         return 1
