@@ -40,7 +40,7 @@ from .core.simulator import (AmplifierParams, CreepParams, DriftParams, RateDepe
 from .validation import as_bool, as_float, as_int
 from .core.drive import CENTRE_VOLTAGE_V
 
-__all__ = ["ValveBackend", "SimBackend", "BackendParameter", "register_backend", "backend_class", "make_backend",
+__all__ = ["ValveBackend", "SimBackend", "BackendParameter", "register_backend", "backend_class",
            "available_backends", "sim_config_from_parameters", "ENTRY_POINT_GROUP"]
 
 ENTRY_POINT_GROUP = "piezo_valve_ros.backends"
@@ -91,12 +91,6 @@ def backend_class(name: str) -> Type["ValveBackend"]:
         raise ValueError(f"backend {name!r} ({ep.value}) is not a ValveBackend subclass")
     _REGISTERED[name] = cls
     return cls
-
-
-def make_backend(name: str, **options) -> "ValveBackend":
-    """A backend by name, built from Python arguments (programs and tests; the node uses
-    ``from_parameters``)."""
-    return backend_class(name)(**options)
 
 
 class ValveBackend(ABC):

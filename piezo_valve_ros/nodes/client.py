@@ -119,15 +119,10 @@ class RigClient(Node):
         return True
 
     def wait_ready(self, timeout_s: float = 30.0) -> None:
-        """Both nodes' parameter services answer and the controller is subscribed to samples' source."""
-        for client, name in ((self.hardware, "valve_hardware"), (self.controller, "valve_controller")):
-            if not client.wait_for_services(timeout_sec=timeout_s):
-                raise TimeoutError(f"{name} did not come up within {timeout_s} s")
-        deadline = time.monotonic() + timeout_s
-        while self.reference_pub.get_subscription_count() == 0:
-            if time.monotonic() > deadline:
-                raise TimeoutError("nobody subscribes to position_reference")
-            time.sleep(0.05)
+        """Both nodes' parameter services answer and somebody (the controller) reads position_reference."""
+        for which in ("hardware", "controller"):
+            self.wait_for_node(which, timeout_s)
+        self.wait_for_reference_readers(1, timeout_s, settle_s=0.0)
 
     def set_params(self, client: AsyncParameterClient, values: dict, timeout_s: float = 10.0):
         """Set ``values`` on the node behind ``client``; one SetParametersResult per value."""

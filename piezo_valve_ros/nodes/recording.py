@@ -45,7 +45,7 @@ class RigRecorder:
         self._lock = threading.Lock()
         self._recorder: Optional[BagRecorder] = None
         self.topics: dict[str, tuple[str, object]] = {}
-        subscriptions = {topic: (msgtype, qos, reliable) for topic, (msgtype, qos, reliable) in RIG_TOPICS.items()}
+        subscriptions = dict(RIG_TOPICS)
         if with_clock:
             subscriptions["/clock"] = (CLOCK_TYPE, CLOCK_QOS_DEPTH, True)
         for topic, (msgtype, qos, reliable) in subscriptions.items():
