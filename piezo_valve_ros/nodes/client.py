@@ -35,6 +35,7 @@ class PlayResult:
 
 
 DISCOVERY_SETTLE_S = 0.5      # a new publisher sends once its number of matched readers held this long
+PROBE_TIMEOUT_S = 1.0         # a parameter request unanswered this long after discovery is sent again
 
 
 def wait_future(future, timeout_s: float, what: str):
@@ -85,12 +86,22 @@ class RigClient(Node):
         return self._parameter_clients[name]
 
     def wait_for_node(self, which: str, timeout_s: float = 10.0) -> AsyncParameterClient:
-        """The parameter client of a node whose services answer; TimeoutError naming it otherwise."""
+        """The parameter client of a node that answers a request; TimeoutError naming it otherwise.
+
+        The services being discovered is not enough: a server may not yet know the client's response reader,
+        and a request sent then goes unanswered.  So a harmless read (``use_sim_time``) is repeated until one
+        comes back, and only then may a request that must not be repeated (a step budget) be sent."""
         client = self.parameter_client(which)
-        if not client.wait_for_services(timeout_sec=timeout_s):
-            raise TimeoutError(f"{self.node_name(which)} does not answer (is it running, in this namespace and "
-                               f"ROS domain?)")
-        return client
+        deadline = time.monotonic() + timeout_s
+        if client.wait_for_services(timeout_sec=timeout_s):
+            while time.monotonic() < deadline and rclpy.ok():
+                try:
+                    wait_future(client.get_parameters(["use_sim_time"]), min(PROBE_TIMEOUT_S, timeout_s), "probe")
+                    return client
+                except TimeoutError:
+                    continue
+        raise TimeoutError(f"{self.node_name(which)} does not answer (is it running, in this namespace and "
+                           f"ROS domain?)")
 
     def _on_samples(self, msg: Float64MultiArray) -> None:
         rows = samples_from_message(msg)
