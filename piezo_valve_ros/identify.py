@@ -14,14 +14,16 @@ from pathlib import Path
 from typing import Callable, Optional
 
 from .bagio import read_samples
+from .core.compensation import CompensationModel
 from .core.effects import NotCompensable
+from .core.hysteresis import GPIM
 from .core.fitting import fit_model
 from .core.records import Record, read_csv
 from .core.residual import Analysis, analyse
 from .core.valve_model import ValveModel, unity_dc_poles
 
-__all__ = ["identify_bags", "read_record", "Compensation", "compensation", "controller_parameters", "controller_parameters_yaml",
-           "report_json", "write_atomically", "write_outputs"]
+__all__ = ["identify_bags", "read_record", "Compensation", "compensation", "baseline_compensation", "base_parameters",
+           "controller_parameters", "controller_parameters_yaml", "report_json", "write_atomically", "write_outputs"]
 
 
 def read_record(path, topic: Optional[str] = None, log: Callable[[str], None] = print,
@@ -61,51 +63,74 @@ def identify_bags(train_bag, validate_bag=None, topic: Optional[str] = None,
 
 @dataclass(frozen=True)
 class Compensation:
-    """What the controller gets from an identification: a model it can invert, and what it had to leave."""
+    """What the controller gets from an identification: the identified model reduced to what it can invert,
+    that model as the controller's :class:`CompensationModel`, and what it had to leave (effect -> why)."""
 
     model: ValveModel
-    refused: dict[str, str]   # effect name -> why the controller cannot use it
+    controller_model: CompensationModel
+    refused: dict[str, str]
 
 
-def compensation(analysis: Analysis) -> Compensation:
-    """The final model reduced to what the controller compensates: the GPIM (asymmetric when its envelopes
-    allow the exact inverse), G_v (its first pole pair) and the effects whose ``compensation`` the controller
-    takes (creep, asymmetry); the others are listed
-    with their reasons.  When anything is left out the model is refitted without it, so the GPIM the
-    controller inverts is the best one without that structure."""
+def base_parameters(model: ValveModel, dynamic_feedforward: bool) -> dict:
+    """The controller parameters of a model's GPIM and G (all its sections) with no effect compensated; every
+    model parameter written (``CompensationModel.to_parameters``), so a push replaces a whole older model."""
+    g = model.gpim
+    symmetric = GPIM(g.thresholds, g.weights, g.a0, g.a1, g.offset_um)  # the asymmetry effect adds the envelope
+    return CompensationModel(symmetric, unity_dc_poles(list(model.sections)),
+                             dynamic_feedforward=dynamic_feedforward).to_parameters()
+
+
+def compensation(analysis: Analysis, dynamic_feedforward: bool = True) -> Compensation:
+    """The final model reduced to what the controller compensates.
+
+    Each effect's ``compensation`` gives its controller parameters or the reason it has none; an effect is
+    taken only if the model with it still passes ``CompensationModel.from_parameters`` as a whole (e.g. a
+    saturation map that stays invertible together with the creep).  When anything is left out the model is
+    refitted without it, so the GPIM the controller inverts is the best one without that structure.  With
+    ``dynamic_feedforward`` the feedforward also inverts the fitted G (``compensation.DynamicFeedforward``).
+    """
     final = analysis.final
+    params = base_parameters(final, dynamic_feedforward)
     usable, refused = [], {}
     for e, c in zip(final.effects, final.coefs):
         try:
-            e.compensation(final, c)
-            usable.append(e)
+            trial = {**params, **e.compensation(final, c)}
+            CompensationModel.from_parameters(trial)
         except NotCompensable as exc:
             refused[e.name] = str(exc)
+            continue
+        except ValueError as exc:
+            refused[e.name] = f"{e.name}: with the rest of the model: {exc}"
+            continue
+        usable.append(e)
+        params = trial
     if not refused:
-        return Compensation(final, refused)
+        return Compensation(final, CompensationModel.from_parameters(params), refused)
+    model = fit_model(analysis.split.fit, analysis.baseline, usable, try_forms=False) if usable else analysis.baseline
+    params = base_parameters(model, dynamic_feedforward)
+    for e, c in zip(model.effects, model.coefs):
+        params.update(e.compensation(model, c))
+    return Compensation(model, CompensationModel.from_parameters(params), refused)
+
+
+def baseline_compensation(analysis: Analysis) -> Compensation:
+    """The paper's compensation of the paper's model: the baseline GPIM (G_v for ff_pid_g), no effect, no
+    dynamic feedforward."""
     base = analysis.baseline
-    model = fit_model(analysis.split.fit, base, usable, try_forms=False) if usable else base
-    return Compensation(model, refused)
+    return Compensation(base, CompensationModel.from_parameters(base_parameters(base, False)), {})
 
 
 def controller_parameters(comp: Compensation) -> dict:
-    """``valve_controller`` parameters (name -> value) for a compensation model."""
-    m = comp.model
-    g = m.gpim
-    gv = unity_dc_poles([m.sections[0]])
-    values = {"gpim.thresholds": [float(x) for x in g.thresholds], "gpim.weights": [float(x) for x in g.weights],
-              "gpim.a0": float(g.a0), "gpim.a1": float(g.a1), "gpim.offset_um": float(g.offset_um),
-              # symmetric unless the asymmetry effect says otherwise (written out, so a push replaces an older one)
-              "gpim.descending_envelope": [float(g.a0), float(g.a1), 0.0],
-              "valve_model.num": [float(x) for x in gv.num], "valve_model.den": [float(x) for x in gv.den],
-              "creep.time_constants_s": [1.0], "creep.gains": [0.0]}
-    for e, c in zip(m.effects, m.coefs):
-        values.update(e.compensation(m, c))
-    return values
+    """``valve_controller`` parameters (name -> value) for a compensation."""
+    return comp.controller_model.to_parameters()
 
 
-def _floats(values) -> str:
-    return "[" + ", ".join(repr(float(x)) for x in values) + "]"
+def _yaml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, list):
+        return "[" + ", ".join(repr(float(x)) for x in value) + "]"
+    return repr(float(value))
 
 
 def controller_parameters_yaml(comp: Compensation, source: str, report: dict) -> str:
@@ -119,7 +144,7 @@ def controller_parameters_yaml(comp: Compensation, source: str, report: dict) ->
         lines.append(f"# not compensated: {why}")
     lines += ["/**/valve_controller:", "  ros__parameters:"]
     for key, value in controller_parameters(comp).items():
-        lines.append(f"    {key}: {_floats(value) if isinstance(value, list) else repr(float(value))}")
+        lines.append(f"    {key}: {_yaml_value(value)}")
     return "\n".join(lines) + "\n"
 
 

@@ -57,7 +57,7 @@ def test_asymmetric_envelopes_batch_equals_streaming():
     s = m.stream(v0=v[0])
     ys = np.array([s.step(x) for x in v])
     np.testing.assert_allclose(ys, m.run(v)[0], atol=1e-10)
-    with pytest.raises(NotInvertibleError, match="no exact inverse"):
+    with pytest.raises(NotInvertibleError, match="no closed-form inverse"):
         InverseGPIM(m)
 
 
@@ -263,13 +263,44 @@ def test_asymmetric_inverse_is_exact_streaming_and_batch(model):
     assert ahead == pytest.approx(probe.step(v_next), abs=1e-12)
 
 
-def test_asymmetric_models_whose_envelopes_cross_are_refused_with_where():
-    crossing = asymmetric(0.95 / 0.9647, 0.2 - 0.1014)      # the simulated valve's asymmetry: U < L above 6.7 V
-    problems = inverse_problems(crossing)
-    assert len(problems) == 1 and "descending envelope below the ascending one from 6.7" in problems[0]
-    with pytest.raises(NotInvertibleError, match="no exact inverse"):
+def test_envelopes_that_cross_are_inverted_exactly_step_by_step():
+    """Issue 11.2: a descending envelope below the ascending one on part of the range has no closed-form
+    inverse (InverseGPIM refuses it, saying where), but the per-step solve inverts it to rounding over long
+    random admissible demands, linear and curved, after a reset, a state take-over and a model update."""
+    from piezo_valve_ros.core.hysteresis import MonotoneInverseGPIM, dead_band_problems, inverse_gpim
+    crossing = asymmetric(0.95 / 0.9647, 0.2 - 0.1014)      # U < L above 6.7 V
+    assert "below the ascending one from 6.7" in dead_band_problems(crossing)[0]
+    assert not inverse_problems(crossing)
+    with pytest.raises(NotInvertibleError, match="no closed-form inverse"):
         InverseGPIM(crossing)
     assert "not rising" in inverse_problems(asymmetric(1.0, 0.5, -0.06))[0]
+    rng = np.random.default_rng(4)
+    curved = asymmetric(1.06, -0.35, -0.0005)                # below for low voltages, curved
+    for model in (crossing, curved):
+        inv = inverse_gpim(model, v0=5.0)
+        assert isinstance(inv, MonotoneInverseGPIM)
+        walk = np.cumsum(rng.normal(0.0, 0.3, 6000))
+        v = 5.0 + 4.9 * np.tanh((walk - walk.mean()) / (3.0 * walk.std()))
+        z0 = model.virgin_state(5.0)
+        y, _ = model.run(v, z0)
+        v_inv = np.concatenate((inv.run(y[:3000]), [inv.step(x) for x in y[3000:]]))
+        assert np.max(np.abs(model.run(v_inv, z0)[0] - y)) <= 1e-9
+        # after a reset
+        inv.reset(2.0)
+        y2, _ = model.run(v[::-1], model.virgin_state(2.0))
+        assert np.max(np.abs(model.run(inv.run(y2), model.virgin_state(2.0))[0] - y2)) <= 1e-9
+        # after a model update (its state carried over): the new model reproduces its demands
+        other = asymmetric(model.b0 / model.a0 * 1.01, model.b1 - model.a1 + 0.02)
+        swapped = inv.with_model(other, float(v[0]))
+        z = swapped.forward_state()
+        y3 = other.run(v[:2000], z)[0]
+        assert np.max(np.abs(other.run(swapped.run(y3), z)[0] - y3)) <= 1e-9
+        # peek does not advance, peek_forward agrees with a forward step
+        before = swapped.forward_state()
+        swapped.peek(float(y3[-1]) + 3.0)
+        np.testing.assert_array_equal(swapped.forward_state(), before)
+        probe = other.stream(before.copy())
+        assert swapped.peek_forward(6.3) == pytest.approx(probe.step(6.3), abs=1e-12)
 
 
 def test_ol_hc_with_the_asymmetric_inverse_tracks_an_asymmetric_valve_exactly():
@@ -279,6 +310,7 @@ def test_ol_hc_with_the_asymmetric_inverse_tracks_an_asymmetric_valve_exactly():
     from piezo_valve_ros.core.experiments import run_closed_loop
     from piezo_valve_ros.core.signals import validation_reference_m
     from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig
+    from piezo_valve_ros.core.compensation import CompensationModel
     from piezo_valve_ros.core.strategies import ControllerConfig, ValveController
     model = asymmetric()
     sim_config = replace(ValveSimConfig().ideal(), dynamics_enabled=False,
@@ -286,7 +318,7 @@ def test_ol_hc_with_the_asymmetric_inverse_tracks_an_asymmetric_valve_exactly():
     ref = validation_reference_m(1e-4, 8.0, 40.0)
     errors = {}
     for label, m in (("asymmetric", model), ("symmetric", PAPER_GPIM.model())):
-        ctl = ValveController(ControllerConfig(strategy="ol_hc", dt=1e-4), m)
+        ctl = ValveController(ControllerConfig(strategy="ol_hc", dt=1e-4), CompensationModel(m))
         rec = run_closed_loop(SimulatedValve(sim_config), ctl, ref)
         errors[label] = np.abs(rec.position_m[1:] - ref[:-1]).max() * 1e6
     assert errors["asymmetric"] < 1e-6 and errors["symmetric"] > 1.0, errors

@@ -16,7 +16,8 @@ from piezo_valve_ros.core.records import HELD_OUT_FRACTION, IdentificationError,
 from piezo_valve_ros.core.residual import (GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE,
                                            UNEXPLAINED_NOISE_RATIO, analyse)
 from piezo_valve_ros.core.simulator import CreepParams, SensorParams, SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.strategies import ControllerConfig, CreepModel, PIDGains, ValveController
+from piezo_valve_ros.core.compensation import CompensationModel, CreepModel
+from piezo_valve_ros.core.strategies import ControllerConfig, PIDGains, ValveController
 
 DT = 5e-4
 TRAIN_V, VALID_V = training_voltage(DT), validation_voltage_(DT)
@@ -221,16 +222,15 @@ def test_identified_creep_compensation_cuts_the_step_and_hold_error():
     validate = Record.from_rows(simulate_rows(validation_voltage(dt), replace(config, seed=2)))
     a = analyse(train, validate)
     assert a.report["effects_added"] == ["creep"]
-    from piezo_valve_ros.identify import compensation, controller_parameters
-    params = controller_parameters(compensation(a))
-    creep = CreepModel(tuple(params["creep.time_constants_s"]), tuple(params["creep.gains"]))
-    model = compensation(a).model.gpim
+    from piezo_valve_ros.identify import compensation
+    with_creep = compensation(a, dynamic_feedforward=False).controller_model
+    assert with_creep.creep.active
     levels_um = (30.0, -40.0, 45.0, -10.0)
     ref = np.concatenate([np.full(int(2.0 / dt), x) for x in levels_um]) * 1e-6
     errors = {}
-    for name, c in (("without", CreepModel()), ("with", creep)):
+    for name, c in (("without", replace(with_creep, creep=CreepModel())), ("with", with_creep)):
         valve = SimulatedValve(replace(config, seed=5))
-        ctl = ValveController(ControllerConfig(strategy="ol_hc", gains=PIDGains(0, 0), dt=dt), model, creep=c)
+        ctl = ValveController(ControllerConfig(strategy="ol_hc", gains=PIDGains(0, 0), dt=dt), c)
         ctl.reset(5.0)
         rec = run_closed_loop(valve, ctl, ref)
         y = np.append(rec.position_m[1:], np.nan)[:-1] * 1e6
@@ -246,7 +246,7 @@ def test_creep_model_rejects_bad_values():
     assert CreepModel((-1.0,), (0.1,)).problems()
     assert CreepModel((1.0,), (float("nan"),)).problems()
     with pytest.raises(ValueError):
-        ValveController(creep=CreepModel((1.0,), (0.95,)))
+        ValveController(compensation=CompensationModel(creep=CreepModel((1.0,), (0.95,))))
 
 
 REAL_RECORD = Path(__file__).parent / "data" / "smart_hysteresis" / "hysteresis_v_150_1hz_1khz.csv"
@@ -289,6 +289,8 @@ def test_asymmetry_is_compensated_only_where_the_controller_can_invert_it():
     above = GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, m.a0 * 1.03, m.a1 + 0.08, 0.0)
     assert effect.compensation(SimpleNamespace(gpim=above), None) == {
         "gpim.descending_envelope": [above.b0, above.b1, 0.0]}
-    crossing = GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, 0.95, 0.2)
-    with pytest.raises(NotCompensable, match="asymmetry: descending envelope below the ascending one"):
-        effect.compensation(SimpleNamespace(gpim=crossing), None)
+    crossing = GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, 0.95, 0.2)   # inverted step by step
+    assert effect.compensation(SimpleNamespace(gpim=crossing), None) == {"gpim.descending_envelope": [0.95, 0.2, 0.0]}
+    falling = GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, 1.0, 0.5, -0.06)
+    with pytest.raises(NotCompensable, match="asymmetry: descending envelope not rising"):
+        effect.compensation(SimpleNamespace(gpim=falling), None)

@@ -306,18 +306,21 @@ def test_hardware_applies_its_real_time_priority_and_cpus(tmp_path):
 
 def test_controller_takes_an_asymmetric_model_only_when_it_can_invert_it(controller):
     """Issue 11.2/3: gpim.descending_envelope makes the controller's GPIM asymmetric (inverted exactly);
-    envelopes that cross on the command range, or a malformed list, are refused with the reason."""
+    one that is not rising on the command range, or a malformed list, is refused with the reason."""
     from piezo_valve_ros.core.hysteresis import PAPER_GPIM
     g = PAPER_GPIM
     good = [g.a0 * 1.03, g.a1 + 0.08, 0.0]
     ctl = controller(gain_set="", strategy="ol_hc", gpim__descending_envelope=good)
     assert not ctl.controller.model.symmetric and ctl.controller.model.b0 == pytest.approx(good[0])
-    crossing = [0.95, 0.2]  # the simulated valve's asymmetry: below the ascending envelope above 6.7 V
-    with pytest.raises(Exception, match="descending envelope below the ascending one from 6.7"):
-        controller(gain_set="", gpim__descending_envelope=crossing)
-    result = set_one(ctl, "gpim.descending_envelope", crossing)
-    assert not result.successful and "no exact inverse" in result.reason
+    falling = [1.0, 0.5, -0.06]  # the descending envelope turns down above 8.3 V
+    with pytest.raises(Exception, match="descending envelope not rising at 8.3"):
+        controller(gain_set="", gpim__descending_envelope=falling)
+    result = set_one(ctl, "gpim.descending_envelope", falling)
+    assert not result.successful and "not rising" in result.reason
     assert ctl.controller.model.b0 == pytest.approx(good[0])  # untouched
+    crossing = [0.95, 0.2]  # below the ascending envelope above 6.7 V: inverted step by step
+    assert set_one(ctl, "gpim.descending_envelope", crossing).successful
+    assert ctl.controller.model.b0 == pytest.approx(0.95)
     result = set_one(ctl, "gpim.descending_envelope", [1.0])
     assert not result.successful and "[b0, b1] or [b0, b1, b2]" in result.reason
     assert set_one(ctl, "gpim.descending_envelope", [g.a0, g.a1, 0.0]).successful  # back to symmetric

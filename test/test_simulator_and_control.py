@@ -4,6 +4,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from piezo_valve_ros.core.compensation import CompensationModel
 from piezo_valve_ros.core.dynamics import PAPER_VALVE_MODEL, ContinuousTF
 from piezo_valve_ros.core.experiments import paper_step_tests, run_closed_loop
 from piezo_valve_ros.core.hysteresis import PAPER_GPIM, GPIM
@@ -145,12 +146,13 @@ def test_bad_configuration_and_model_updates_are_rejected():
     with pytest.raises(ValueError, match="finite"):
         ctl.set_gains(PIDGains(float("nan"), 1.0))
     r = np.array([0.0, 0.5])
-    before = ctl.model
+    before = ctl.compensation
     with pytest.raises(ValueError, match="first weight"):
-        ctl.set_model(GPIM(r, [-1.0, 1.0]))
-    assert ctl.model is before
+        ctl.set_model(replace(before, gpim=GPIM(r, [-1.0, 1.0])))
+    assert ctl.compensation is before
     with pytest.raises(ValueError, match="unstable"):
-        ctl.set_model(before, ContinuousTF((1.0,), (1.0, -1.0)))
+        ctl.set_model(replace(before, valve_model=ContinuousTF((1.0,), (1.0, -1.0))))
+    assert ctl.compensation is before
 
 
 def test_table1_has_all_24_gain_sets_by_name():
@@ -301,7 +303,7 @@ def test_a_model_swap_mid_run_keeps_the_valves_memory(strategy, gains):
         for k in range(n):
             if k == swap and new_model is not None:
                 before = ctl.ff_inverse.peek_forward(feedforward[-1])
-                ctl.set_model(new_model)
+                ctl.set_model(CompensationModel(new_model))
                 predicted = (before, ctl.ff_inverse.peek_forward(feedforward[-1]), np.array(feedforward))
             v[k] = ctl.step(ref[k], y)
             feedforward.append(ctl._last_ff_v)

@@ -14,6 +14,11 @@ ff_pid      v = inverse(y_ref) + PID(y_ref - y) / k
 ff_pid_g    v = inverse(y_ref) + PID(G_v(y_ref) - y) / k
 ==========  ==========================================================
 
+``inverse`` is the whole compensation model (``compensation.CompensationModel``): on the feedforward
+path the dynamic inverse W = F/G_v when ``dynamic_feedforward`` is on (ff_pid_g then shapes with F
+instead of G_v), the creep and saturation inverse, the inverse GPIM; in pid_hc's loop the saturation
+inverse and the inverse GPIM (creep and dynamics are the feedback's there).
+
 The output is clamped to the command range with conditional-integration anti-windup.
 Switching strategy (or gains) is bumpless: the integrator absorbs the difference where the
 new law has one, and any rest decays with ``bump_time_constant_s``.
@@ -33,12 +38,12 @@ from dataclasses import dataclass, replace
 from typing import Optional
 
 
-from .dynamics import PAPER_VALVE_MODEL, ContinuousTF
-from .hysteresis import GPIM, InverseGPIM, NotInvertibleError, PAPER_GPIM, inverse_problems
+from .compensation import CompensationModel, DynamicFeedforward, StaticInverse
+from .hysteresis import GPIM, NotInvertibleError, inverse_gpim
 from .drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 __all__ = ["STRATEGIES", "PIDGains", "ControllerConfig", "ValveController", "TABLE1_GAINS", "gain_set",
-           "nominal_static_gain", "CreepModel", "CreepCompensator"]
+           "nominal_static_gain"]
 
 STRATEGIES = ("ol", "ol_hc", "pid", "pid_hc", "ff_pid", "ff_pid_g")
 FALLBACK_LAW = {"pid": "ol", "pid_hc": "ol_hc", "ff_pid": "ol_hc", "ff_pid_g": "ol_hc"}  # feedback -> feedforward
@@ -65,63 +70,6 @@ class PIDGains:
         if min(vals) < 0:
             return ["gains must be >= 0"]
         return []
-
-
-@dataclass(frozen=True)
-class CreepModel:
-    """Creep as identified: ``y = H + sum_i g_i (lag_{tau_i}[H] - H)`` (H: hysteresis output [um])."""
-
-    time_constants_s: tuple[float, ...] = ()
-    gains: tuple[float, ...] = ()
-
-    def problems(self) -> list[str]:
-        taus, gains = self.time_constants_s, self.gains
-        if len(taus) != len(gains):
-            return [f"creep: {len(taus)} time constants but {len(gains)} gains"]
-        if not all(math.isfinite(x) for x in tuple(taus) + tuple(gains)):
-            return ["creep: non-finite value"]
-        out = []
-        if any(t <= 0 for t in taus):
-            out.append("creep: time constants must be > 0")
-        if sum(gains) >= 0.9:
-            out.append(f"creep: gains sum to {sum(gains):.3g}; compensation needs a sum < 0.9")
-        return out
-
-    @property
-    def active(self) -> bool:
-        return any(g != 0.0 for g in self.gains)
-
-
-class CreepCompensator:
-    """Exact streaming inverse of :class:`CreepModel`: demanded position -> hysteresis demand [um].
-
-    The ZOH lags depend only on past hysteresis outputs (l_k = a l_{k-1} + (1 - a) H_{k-1}), so
-    ``H_k = (y_k - sum g_i l_i,k) / (1 - sum g_i)`` meets the demand exactly when the model holds.
-    """
-
-    def __init__(self, creep: CreepModel, dt: float, h0: float = 0.0):
-        problems = creep.problems()
-        if problems:
-            raise ValueError("; ".join(problems))
-        self.creep = creep
-        self._a = [math.exp(-dt / tau) for tau in creep.time_constants_s]
-        self._g = [float(g) for g in creep.gains]
-        self._den = 1.0 - sum(self._g)
-        self.reset(h0)
-
-    def reset(self, h0: float) -> None:
-        self._lags = [float(h0)] * len(self._a)
-        self._last_h = float(h0)
-
-    def step(self, demand_um: float) -> float:
-        lags, a, g = self._lags, self._a, self._g
-        acc = 0.0
-        for i in range(len(a)):
-            lags[i] = a[i] * lags[i] + (1.0 - a[i]) * self._last_h
-            acc += g[i] * lags[i]
-        h = (demand_um - acc) / self._den
-        self._last_h = h
-        return h
 
 
 # Table 1 of the paper: (kp, ki); kd = 0 throughout.
@@ -192,40 +140,63 @@ class ControllerConfig:
 class ValveController:
     """Streaming controller: ``step(reference_m, measured_m) -> voltage [V]`` once per period."""
 
-    def __init__(self, config: ControllerConfig = ControllerConfig(), model: GPIM = PAPER_GPIM.model(),
-                 valve_model: ContinuousTF = PAPER_VALVE_MODEL, creep: CreepModel = CreepModel()):
-        problems = config.problems() + inverse_problems(model) + valve_model.problems() + creep.problems()
+    def __init__(self, config: ControllerConfig = ControllerConfig(),
+                 compensation: CompensationModel = CompensationModel()):
+        problems = config.problems() + compensation.problems(config.command_min_v, config.command_max_v, config.dt)
         if problems:
             raise ValueError("; ".join(problems))
         self.config = config
-        self.model = model
-        self.valve_model = valve_model
-        self.creep = creep
-        self._setup_model(model)
-        self._gv = valve_model.discretise(config.dt)
+        self.compensation = compensation
+        self._setup_model()
+        self._gv, self._dyn = self._dynamic_filters(compensation)
         self.reset()
 
+    @property
+    def model(self) -> GPIM:
+        """The GPIM the controller inverts."""
+        return self.compensation.gpim
+
     # ------------------------------------------------------------------ configuration
-    def _setup_model(self, model: GPIM) -> None:
-        c = self.config
-        self._k = c.static_gain_um_per_v or nominal_static_gain(model, c.command_min_v, c.command_max_v)
-        _, up, down = model.major_loop(c.command_min_v, c.command_max_v, 401)
-        self._demand_min_um = float(min(up.min(), down.min()))
-        self._demand_max_um = float(max(up.max(), down.max()))
+    def _setup_model(self) -> None:
+        c, comp = self.config, self.compensation
+        self._k = c.static_gain_um_per_v or nominal_static_gain(comp.gpim, c.command_min_v, c.command_max_v)
+        self._demand_min_um, self._demand_max_um = comp.output_range_um(c.command_min_v, c.command_max_v)
+        out_map = comp.output_map
+        self._map = out_map if out_map.active else None
+        # pid_hc's demand range: the GPIM's output range through the saturation map
+        self._loop_min_um = out_map.value(self._demand_min_um)
+        self._loop_max_um = out_map.value(self._demand_max_um)
+
+    def _dynamic_filters(self, comp: CompensationModel):
+        """(shaping filter of ff_pid_g's reference, dynamic inverse W or None): (G_v, None) or (F, W)."""
+        if not comp.dynamic_feedforward:
+            return comp.valve_model.discretise(self.config.dt), None
+        w, f = DynamicFeedforward(comp.valve_model, self.config.dt).filters()
+        return f, w
+
+    def _static_inverse(self, h0: float) -> Optional[StaticInverse]:
+        comp = self.compensation
+        if not (comp.creep.active or comp.output_map.active):
+            return None
+        return StaticInverse(comp.creep, comp.output_map, self.config.dt, h0)
 
     def reset(self, voltage_v: Optional[float] = None, reference_m: Optional[float] = None) -> None:
         """Start afresh: inverses in the virgin state at ``voltage_v`` (default centre), integrator 0."""
         c = self.config
         v0 = c.centre_voltage_v if voltage_v is None else float(voltage_v)
         # feedforward inverse, driven by the demand every period whatever the strategy
-        self.ff_inverse = InverseGPIM(self.model, v0=v0)
+        self.ff_inverse = inverse_gpim(self.model, v0=v0, v_min=c.command_min_v, v_max=c.command_max_v)
         # in-loop inverse of pid_hc, driven by the PID output
-        self.loop_inverse = InverseGPIM(self.model, v0=v0)
+        self.loop_inverse = inverse_gpim(self.model, v0=v0, v_min=c.command_min_v, v_max=c.command_max_v)
         y0 = self.model.output_from_state(self.model.virgin_state(v0))
-        # creep compensation of the feedforward path (None when no creep is modelled)
-        self._creep = CreepCompensator(self.creep, c.dt, y0) if self.creep.active else None
-        self._last_ref_um = y0 if reference_m is None else reference_m * 1e6
+        # creep and saturation inverse of the feedforward path (None when neither is modelled)
+        self._static = self._static_inverse(y0)
+        s0 = self._static.forward(y0) if self._static is not None else y0
+        self._loop_h = y0                   # pid_hc's last hysteresis demand (where the map's inverse starts)
+        self._last_ref_um = s0 if reference_m is None else reference_m * 1e6
         self._gv.reset(self._last_ref_um)
+        if self._dyn is not None:
+            self._dyn.reset(self._last_ref_um)
         self._last_gv_out = self._last_ref_um
         self._last_ff_v, self._last_ff_demand_um = v0, None
         self._last_measured_um = self._last_ref_um
@@ -309,36 +280,39 @@ class ValveController:
         if problems:
             raise ValueError("; ".join(problems))
         self.config = new
-        self._setup_model(self.model)
+        self._setup_model()
         self.last_command_v = min(max(self.last_command_v, command_min_v), command_max_v)
         self._transfer(self.config.strategy)
 
     def set_gains(self, gains: PIDGains) -> None:
         self.set_strategy(self.config.strategy, gains)
 
-    def set_model(self, model: GPIM, valve_model: Optional[ContinuousTF] = None,
-                  creep: Optional[CreepModel] = None) -> None:
-        """Replace the GPIM (and G_v, creep): validated first, all or nothing; loop memory carried over."""
-        problems = (inverse_problems(model) + (valve_model.problems() if valve_model else [])
-                    + (creep.problems() if creep is not None else []))
+    def set_model(self, compensation: CompensationModel) -> None:
+        """Replace the whole compensation model: validated first, all or nothing; loop memory carried over
+        (operator states, the creep lags' present output, the filters' present outputs)."""
+        c = self.config
+        problems = compensation.problems(c.command_min_v, c.command_max_v, c.dt)
         if problems:
             raise NotInvertibleError("; ".join(problems))
-        ff = self.ff_inverse.with_model(model, self._last_ff_v)
-        loop = self.loop_inverse.with_model(model, self.last_command_v)
-        new_gv = valve_model.discretise(self.config.dt) if valve_model else None
-        if creep is not None and creep != self.creep:
-            self.creep = creep
-            h_now = ff.peek_forward(self._last_ff_v)
-            self._creep = CreepCompensator(creep, self.config.dt, h_now) if creep.active else None
-        self.model, self.ff_inverse, self.loop_inverse = model, ff, loop
-        self._setup_model(model)
+        old = self.compensation
+        ff = self.ff_inverse.with_model(compensation.gpim, self._last_ff_v)
+        loop = self.loop_inverse.with_model(compensation.gpim, self.last_command_v)
+        dynamics_changed = (compensation.valve_model, compensation.dynamic_feedforward) != \
+            (old.valve_model, old.dynamic_feedforward)
+        filters = self._dynamic_filters(compensation) if dynamics_changed else None
+        self.compensation, self.ff_inverse, self.loop_inverse = compensation, ff, loop
+        if (compensation.creep, compensation.output_map) != (old.creep, old.output_map):
+            self._static = self._static_inverse(ff.peek_forward(self._last_ff_v))
+        self._setup_model()
         if self._last_ff_demand_um is not None:
             # the voltage the new model asks for the last demand: the transfer below makes the command
             # continuous from there (the integrator or the decaying bump takes the difference)
             self._last_ff_v = ff.peek(self._last_ff_demand_um)
-        if new_gv is not None:
-            new_gv.reset(self._last_gv_out)
-            self._gv, self.valve_model = new_gv, valve_model
+        if filters is not None:
+            self._gv, self._dyn = filters
+            self._gv.reset(self._last_gv_out)
+            if self._dyn is not None:
+                self._dyn.reset(self._last_ref_um)
         self._transfer(self.config.strategy)
 
     # ------------------------------------------------------------------ bumpless transfer
@@ -358,7 +332,9 @@ class ValveController:
             self.integrator_um = (v_last - base) * self._k - c.gains.kp * e - self._d_state
             self._bump_v = 0.0
         elif s == "pid_hc":
-            u_target = self.loop_inverse.peek_forward(v_last)
+            h_target = self.loop_inverse.peek_forward(v_last)
+            self._loop_h = h_target
+            u_target = self._map.value(h_target) if self._map is not None else h_target
             self.integrator_um = u_target - c.gains.kp * e - self._d_state
             self._bump_v = 0.0
         else:  # ol, ol_hc have no state that could absorb the difference: let it decay
@@ -381,7 +357,8 @@ class ValveController:
                 self._transfer(FALLBACK_LAW[s])
         y_ref = reference_m * 1e6
         self._last_ref_um = y_ref
-        h_ref = self._creep.step(y_ref) if self._creep is not None else y_ref
+        s_ref = self._dyn.step(y_ref) if self._dyn is not None else y_ref
+        h_ref = self._static.step(s_ref) if self._static is not None else s_ref
         ff_demand = min(max(h_ref, self._demand_min_um), self._demand_max_um)
         ff_v = self.ff_inverse.step(ff_demand)
         self._last_ff_v, self._last_ff_demand_um = ff_v, ff_demand
@@ -401,8 +378,12 @@ class ValveController:
         di = g.ki * e * c.dt
         u = g.kp * e + self.integrator_um + di + self._d_state
         if s == "pid_hc":
-            u_c = min(max(u, self._demand_min_um), self._demand_max_um)
-            v = self._finish(self.loop_inverse.step(u_c), e, di, int(u > u_c) - int(u < u_c))
+            u_c = min(max(u, self._loop_min_um), self._loop_max_um)
+            if self._map is not None:
+                h_c = self._loop_h = self._map.solve(u_c, self._loop_h)
+            else:
+                h_c = u_c
+            v = self._finish(self.loop_inverse.step(h_c), e, di, int(u > u_c) - int(u < u_c))
         else:
             base = c.centre_voltage_v if s == "pid" else ff_v
             v = self._finish(base + u / self._k, e, di)

@@ -25,16 +25,13 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64, Float64MultiArray
 
-from ..core.dynamics import PAPER_VALVE_MODEL, ContinuousTF
-from ..core.hysteresis import GPIM, PAPER_GPIM, GPIMParams, inverse_problems
+from ..core.compensation import MODEL_PARAMETERS, CompensationModel
 from ..core.signals import ReferenceRamp
-from ..core.strategies import (GUARD_WINDOW_S, STRATEGIES, ControllerConfig, CreepModel, PIDGains, ValveController,
-                               gain_set)
-from .common import (COMMAND_QOS, LATEST_SENSOR_QOS, SAMPLES_QOS, as_float, as_float_list, as_int,
+from ..core.strategies import GUARD_WINDOW_S, STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set
+from .common import (COMMAND_QOS, LATEST_SENSOR_QOS, SAMPLES_QOS, as_float,
                      declare, declare_realtime, parameter_values, realtime_settings, refuse, run_node, samples_from_message)
 from ..core.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
-GPIM_KEYS = ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")
 GAIN_SET_KEYS = ("strategy", "kp", "ki", "kd")   # what an active gain_set decides
 HANDBACK_TIMEOUT_RANGE_S = (0.05, 10.0)          # handback_timeout_s may not be shorter or longer than this
 HANDBACK_CHECK_S = 0.02                          # how often the hand-back condition is checked [s]
@@ -49,8 +46,9 @@ def gain_set_values(name: str) -> dict[str, Any]:
     return {"strategy": strategy, "kp": gains.kp, "ki": gains.ki, "kd": gains.kd}
 
 
-def settings_from_parameters(p: dict[str, Any]) -> tuple[ControllerConfig, GPIM, ContinuousTF, CreepModel]:
-    """Controller settings from a flat parameter dict; raises ValueError with every problem found."""
+def settings_from_parameters(p: dict[str, Any]) -> tuple[ControllerConfig, CompensationModel]:
+    """Controller settings and the compensation model from a flat parameter dict; raises ValueError with every
+    problem found."""
     strategy = str(p["strategy"])
     gains = PIDGains(as_float("kp", p["kp"]), as_float("ki", p["ki"]), as_float("kd", p["kd"]))
     name = str(p.get("gain_set", "") or "")
@@ -66,42 +64,20 @@ def settings_from_parameters(p: dict[str, Any]) -> tuple[ControllerConfig, GPIM,
         command_max_v=as_float("command_max_v", p["command_max_v"]),
         centre_voltage_v=as_float("centre_voltage_v", p["centre_voltage_v"]))
     problems = config.problems()
-    thresholds = as_float_list("gpim.thresholds", p.get("gpim.thresholds", []))
-    weights = as_float_list("gpim.weights", p.get("gpim.weights", []))
-    a0, a1 = as_float("gpim.a0", p["gpim.a0"]), as_float("gpim.a1", p["gpim.a1"])
-    offset = as_float("gpim.offset_um", p["gpim.offset_um"])
-    descending = as_float_list("gpim.descending_envelope", p.get("gpim.descending_envelope", []))
     model = None
     try:
-        if len(descending) not in (0, 2, 3):
-            raise ValueError(f"gpim.descending_envelope must be [] or [b0, b1] or [b0, b1, b2], got {descending}")
-        if thresholds or weights:  # free form (e.g. from the identification's linear fit)
-            model = GPIM(thresholds, weights, a0, a1, offset)
-        else:
-            model = GPIMParams(a0=a0, a1=a1, alpha=as_float("gpim.alpha", p["gpim.alpha"]),
-                               rho=as_float("gpim.rho", p["gpim.rho"]), tau=as_float("gpim.tau", p["gpim.tau"]),
-                               n=as_int("gpim.n", p["gpim.n"]), offset_um=offset).model()
-        if descending:  # an asymmetric model: its own descending envelope
-            model = GPIM(model.thresholds, model.weights, a0, a1, offset, *descending)
-        problems += inverse_problems(model, config.command_min_v, config.command_max_v)
+        model = CompensationModel.from_parameters(p, config.command_min_v, config.command_max_v, config.dt)
     except ValueError as exc:
         problems.append(str(exc))
-    valve_model = ContinuousTF(tuple(as_float_list("valve_model.num", p["valve_model.num"])),
-                               tuple(as_float_list("valve_model.den", p["valve_model.den"])))
-    problems += valve_model.problems()
-    creep = CreepModel(tuple(as_float_list("creep.time_constants_s", p.get("creep.time_constants_s", []))),
-                       tuple(as_float_list("creep.gains", p.get("creep.gains", []))))
-    problems += creep.problems()
     if problems:
         raise ValueError("; ".join(problems))
-    return config, model, valve_model, creep
+    return config, model
 
 
 class ValveControllerNode(Node):
     def __init__(self, **kwargs):
         super().__init__("valve_controller", **kwargs)
         g = ControllerConfig().gains
-        pg = PAPER_GPIM
         for name, default, text in [
             ("strategy", "pid_hc", f"one of {', '.join(STRATEGIES)}"),
             ("gain_set", "", "Table 1 gain set name: sets strategy/kp/ki/kd (which read back its values); '' = none"),
@@ -111,22 +87,9 @@ class ValveControllerNode(Node):
             ("centre_voltage_v", CENTRE_VOLTAGE_V, "[V]"),
             ("reference_ramp_s", 0.0, "reference changes become ramps of this duration [s] (paper: 0.002)"),
             ("initial_reference_m", 0.0, "reference until the first position_reference [m]"),
-            ("gpim.a0", pg.a0, "envelope slope [1]"), ("gpim.a1", pg.a1, "envelope offset [V]"),
-            ("gpim.alpha", pg.alpha, "threshold spacing [V]"), ("gpim.rho", pg.rho, "weight scale [um/V]"),
-            ("gpim.tau", pg.tau, "weight decay [1/V]"), ("gpim.n", pg.n, "number of operators"),
-            ("gpim.offset_um", pg.offset_um, "output offset [um]"),
-            ("gpim.thresholds", [], "free-form thresholds [V] (empty: 5-parameter form)"),
-            ("gpim.weights", [], "free-form weights [um/V] (empty: 5-parameter form)"),
-            ("gpim.descending_envelope", [], "asymmetric GPIM: descending envelope [b0, b1] or [b0, b1, b2] "
-                                             "(b0 v + b1 + b2 v^2, at or above the ascending one on the command "
-                                             "range; empty: the ascending one)"),
-            ("valve_model.num", list(PAPER_VALVE_MODEL.num), "G_v(s) numerator"),
-            ("valve_model.den", list(PAPER_VALVE_MODEL.den), "G_v(s) denominator"),
-            ("creep.time_constants_s", [], "creep compensation (feedforward path): lag time constants [s]"),
-            ("creep.gains", [], "creep compensation: gains [-] (empty or all 0: none)"),
             ("enabled", True, "false: publish no commands (another node drives voltage_command, e.g. identification); "
                               "true again resumes from the applied voltage"),
-        ]:
+        ] + [(name, default, text) for name, (default, text) in MODEL_PARAMETERS.items()]:
             declare(self, name, default, text)
         declare(self, "control_period_s", 1e-3, "control period [s]; must match the hardware's (same default)",
                 read_only=True)
@@ -138,12 +101,12 @@ class ValveControllerNode(Node):
         if name:  # the set's values are what runs: the parameters say so
             self.set_parameters([Parameter(k, value=v) for k, v in gain_set_values(name).items()])
         p = parameter_values(self)
-        config, model, valve_model, creep = settings_from_parameters(p)
+        config, model = settings_from_parameters(p)
         self.handback_timeout_s = self._handback_timeout(p["handback_timeout_s"])
         from ..realtime import apply
         self.realtime = realtime_settings(p)
         apply(self.realtime)
-        self.controller = ValveController(config, model, valve_model, creep)
+        self.controller = ValveController(config, model)
         self.ramp = ReferenceRamp(as_float("initial_reference_m", p["initial_reference_m"]),
                                   self._ramp_s(p["reference_ramp_s"]), config.dt)
         self.enabled = bool(p["enabled"])
@@ -322,7 +285,7 @@ class ValveControllerNode(Node):
         for prm in params:
             p[prm.name] = prm.value
         try:
-            config, model, valve_model, creep = settings_from_parameters(p)
+            config, model = settings_from_parameters(p)
             ramp_s = self._ramp_s(p["reference_ramp_s"])
             handback = self._handback_timeout(p["handback_timeout_s"])
             as_float("initial_reference_m", p["initial_reference_m"])
@@ -333,9 +296,8 @@ class ValveControllerNode(Node):
         if "initial_reference_m" in changed:
             return refuse(self, "initial_reference_m applies at start-up only (send position_reference instead)")
         old = ctl.config
-        if changed & {f"gpim.{k}" for k in GPIM_KEYS + ("thresholds", "weights", "descending_envelope")} \
-                or changed & {"valve_model.num", "valve_model.den", "creep.time_constants_s", "creep.gains"}:
-            ctl.set_model(model, valve_model, creep)
+        if changed & MODEL_PARAMETERS.keys():
+            ctl.set_model(model)
             self.get_logger().info("new model parameters in use")
         if (config.command_min_v, config.command_max_v, config.centre_voltage_v) != \
                 (old.command_min_v, old.command_max_v, old.centre_voltage_v):

@@ -87,5 +87,10 @@ class Dynamics(Effect):
         return np.gradient(ctx.H, ctx.record.time_s), "model output rate [um/s]", False
 
     def compensation(self, model, coefs) -> dict:
-        raise NotCompensable("dynamics: the controller has no inverse of extra poles or rate-dependent thresholds; "
-                             "ff_pid_g uses the fitted second-order G_v")
+        """Extra poles: G_v becomes the fitted higher-order G (the identification writes all of G's sections),
+        which the dynamic feedforward inverts and ff_pid_g shapes with.  Rate-dependent thresholds: the
+        controller has no inverse (NotCompensable)."""
+        if any(c != 0.0 for c in model.rate_widening_v):
+            raise NotCompensable("dynamics: the controller has no inverse of rate-dependent thresholds (the loop "
+                                 "widening with the input rate is left to the feedback)")
+        return {}

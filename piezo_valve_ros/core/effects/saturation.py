@@ -7,20 +7,138 @@ end or both, soft or sharp stops).  All of it is flat at the centre of the range
 the GPIM owns): a dead zone there is not saturation.
 A GPIM with nonnegative weights cannot flatten its own loop ends (its branches steepen away from a
 reversal), so this is structure the baseline cannot take.
+
+Compensation: the map ``S = H + terms(H) @ c`` is static, so the controller inverts it exactly where it
+rises (:class:`OutputMap`, checked over the drive's output range with a margin) and composes that with the
+inverse GPIM.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 
 from ..records import Record
-from .base import Effect, normalised
+from .base import Effect, NotCompensable, normalised
 
-__all__ = ["Saturation", "KNOTS"]
+__all__ = ["Saturation", "OutputMap", "KNOTS", "TERM_COUNT", "MIN_MAP_SLOPE", "MAP_CHECK_MARGIN"]
 
 KNOTS = (0.4, 0.6, 0.8)
+TERM_COUNT = 2 + 2 * len(KNOTS)
+MIN_MAP_SLOPE = 0.1       # the compensated map must rise at least this steeply [um/um] to be inverted ...
+MAP_CHECK_MARGIN = 0.1    # ... over the drive's output range widened by this share on each side
+MAP_CHECK_POINTS = 801
+INVERSE_TOL_UM = 1e-12    # Newton's method stops at steps this small (relative to 1 + |H|) ...
+INVERSE_ITERATIONS = 50   # ... or after this many
+
+
+def terms(h: np.ndarray) -> np.ndarray:
+    """(N, TERM_COUNT) terms of the normalised output ``h``: h^2, h^3, then max(+-h - k, 0)^2 per knot."""
+    h = np.asarray(h, float)
+    return np.column_stack([h ** 2, h ** 3] + [np.maximum(s * h - k, 0.0) ** 2 for s in (1.0, -1.0) for k in KNOTS])
+
+
+@dataclass(frozen=True)
+class OutputMap:
+    """The saturation compensator: the static map ``S = H + sum_i c_i f_i(h)``, ``h = (H - centre) / half``,
+    of the hysteresis output H [um] (f_i: :func:`terms`).  No coefficients: the identity.
+
+    ``value`` and ``slope`` are scalar and allocation-free (the controller calls them every period)."""
+
+    centre_um: float = 0.0
+    half_range_um: float = 1.0
+    coefficients_um: tuple[float, ...] = ()
+
+    @property
+    def active(self) -> bool:
+        return any(c != 0.0 for c in self.coefficients_um)
+
+    def problems(self, lo_um: Optional[float] = None, hi_um: Optional[float] = None, floor: float = 0.0) -> list[str]:
+        """Reasons the map cannot be used; with an output range [lo_um, hi_um] also where ``slope - floor``
+        falls below MIN_MAP_SLOPE on it (widened by MAP_CHECK_MARGIN): there it has no inverse."""
+        c = self.coefficients_um
+        if len(c) not in (0, TERM_COUNT):
+            return [f"saturation.coefficients_um needs {TERM_COUNT} values (or none), got {len(c)}"]
+        if not all(math.isfinite(x) for x in (self.centre_um, self.half_range_um) + tuple(c)):
+            return ["saturation: non-finite value"]
+        if self.half_range_um <= 0:
+            return [f"saturation.half_range_um must be > 0, got {self.half_range_um}"]
+        if not self.active or lo_um is None or hi_um is None:
+            return []
+        pad = MAP_CHECK_MARGIN * (hi_um - lo_um)
+        H = np.linspace(lo_um - pad, hi_um + pad, MAP_CHECK_POINTS)
+        slope = self.slopes(H) - floor
+        if np.any(slope < MIN_MAP_SLOPE):
+            bad = H[slope < MIN_MAP_SLOPE]
+            return [f"saturation: the output map flattens (slope {slope.min() + floor:.3g} um/um) between "
+                    f"{bad[0]:.4g} and {bad[-1]:.4g} um: no inverse there"]
+        return []
+
+    def values(self, H: np.ndarray) -> np.ndarray:
+        """S for an array of H [um]."""
+        H = np.asarray(H, float)
+        if not self.active:
+            return H.copy()
+        return H + terms((H - self.centre_um) / self.half_range_um) @ np.asarray(self.coefficients_um)
+
+    def slopes(self, H: np.ndarray) -> np.ndarray:
+        """dS/dH for an array of H [um]."""
+        H = np.asarray(H, float)
+        if not self.active:
+            return np.ones_like(H)
+        h = (H - self.centre_um) / self.half_range_um
+        c = np.asarray(self.coefficients_um)
+        d = 2.0 * c[0] * h + 3.0 * c[1] * h * h
+        for i, k in enumerate(KNOTS):
+            d = d + 2.0 * c[2 + i] * np.maximum(h - k, 0.0) - 2.0 * c[2 + len(KNOTS) + i] * np.maximum(-h - k, 0.0)
+        return 1.0 + d / self.half_range_um
+
+    def value(self, H: float) -> float:
+        """S [um] for one H [um]."""
+        c = self.coefficients_um
+        if not c:
+            return H
+        h = (H - self.centre_um) / self.half_range_um
+        s = H + c[0] * h * h + c[1] * h * h * h
+        n = len(KNOTS)
+        for i, k in enumerate(KNOTS):
+            up, down = h - k, -h - k
+            if up > 0.0:
+                s += c[2 + i] * up * up
+            if down > 0.0:
+                s += c[2 + n + i] * down * down
+        return s
+
+    def solve(self, rhs: float, h_start: float, g: float = 0.0) -> float:
+        """The H [um] with ``value(H) - g H = rhs`` (Newton's method from ``h_start``; exact to
+        INVERSE_TOL_UM where the map minus g H rises, as ``problems`` checks)."""
+        h = h_start
+        for _ in range(INVERSE_ITERATIONS):
+            f = self.value(h) - g * h - rhs
+            d = self.slope(h) - g
+            step = f / d if d > MIN_MAP_SLOPE else f / MIN_MAP_SLOPE
+            h -= step
+            if abs(step) <= INVERSE_TOL_UM * (1.0 + abs(h)):
+                break
+        return h
+
+    def slope(self, H: float) -> float:
+        """dS/dH [um/um] at one H [um]."""
+        c = self.coefficients_um
+        if not c:
+            return 1.0
+        h = (H - self.centre_um) / self.half_range_um
+        d = 2.0 * c[0] * h + 3.0 * c[1] * h * h
+        n = len(KNOTS)
+        for i, k in enumerate(KNOTS):
+            up, down = h - k, -h - k
+            if up > 0.0:
+                d += 2.0 * c[2 + i] * up
+            if down > 0.0:
+                d -= 2.0 * c[2 + n + i] * down
+        return 1.0 + d / self.half_range_um
 
 
 @dataclass(frozen=True)
@@ -37,10 +155,24 @@ class Saturation(Effect):
         return cls(0.5 * (lo + hi), max(0.5 * (hi - lo), 1e-9))
 
     def columns(self, ctx) -> np.ndarray:
-        h = normalised(ctx.H, self.centre_um, self.half_range_um)
-        return np.column_stack([h ** 2, h ** 3] + [np.maximum(s * h - k, 0.0) ** 2 for s in (1.0, -1.0) for k in KNOTS])
+        return terms(normalised(ctx.H, self.centre_um, self.half_range_um))
 
     def describe(self, model, coefs) -> dict:
         return {"terms": ["h^2", "h^3"] + [f"max({s}h-{k},0)^2" for s in ("+", "-") for k in KNOTS],
                 "coefficients_um": [float(c) for c in coefs], "centre_um": self.centre_um,
                 "half_range_um": self.half_range_um}
+
+    def output_map(self, coefs) -> OutputMap:
+        return OutputMap(self.centre_um, self.half_range_um, tuple(float(c) for c in coefs))
+
+    def compensation(self, model, coefs) -> dict:
+        """The controller inverts the static map where it rises over the model's output range
+        (:class:`OutputMap`); NotCompensable says where it does not."""
+        _, up, down = model.gpim.major_loop()
+        lo, hi = float(min(up.min(), down.min())), float(max(up.max(), down.max()))
+        out_map = self.output_map(coefs)
+        problems = out_map.problems(lo, hi)
+        if problems:
+            raise NotCompensable("; ".join(problems))
+        return {"saturation.centre_um": out_map.centre_um, "saturation.half_range_um": out_map.half_range_um,
+                "saturation.coefficients_um": list(out_map.coefficients_um)}

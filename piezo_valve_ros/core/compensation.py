@@ -1,0 +1,302 @@
+"""What the controller compensates, as one model with one parameter schema.
+
+The identified valve model (``valve_model.ValveModel``) is ``y = G(s)[S]`` with the static part
+``S = M(H) + sum_i g_i (lag_i[H] - H)`` (H: the GPIM's output, M: the saturation map, the sum: creep).
+The controller inverts it along the feedforward path::
+
+    y_ref --W(s) = F(s)/G(s)--> S_ref --creep and M inverse--> H_ref --inverse GPIM--> v
+
+* ``W`` (``feedforward.dynamics``): G's poles cancelled and replaced by the critically damped F
+  (:class:`DynamicFeedforward`); off, W = 1 (the paper's OL HC).  FF PID G then shapes the
+  feedback's reference with F instead of G (the response the feedforward aims at);
+* the creep and saturation inverse (:class:`StaticInverse`) is exact: the creep lags depend on past H
+  only, so each period solves the monotone scalar equation ``M(H) - sum g_i H = S_ref - sum g_i l_i``;
+* the inverse GPIM (``hysteresis.InverseGPIM``): symmetric or asymmetric with a dead band.
+
+``CompensationModel`` holds all of it; ``to_parameters``/``from_parameters`` are the one place its
+``valve_controller`` parameters are written and read, ``problems`` validates it as a whole.  What it
+cannot represent (drift, rate-dependent thresholds) the identification refuses with a reason
+(``identify.compensation``).  No ROS import.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+import numpy as np
+
+from .drive import COMMAND_MAX_V, COMMAND_MIN_V
+from .dynamics import PAPER_VALVE_MODEL, ContinuousTF, DiscreteFilter
+from .effects.saturation import TERM_COUNT, OutputMap
+from .hysteresis import GPIM, PAPER_GPIM, GPIMParams, inverse_problems
+from ..validation import as_bool, as_float, as_float_list, as_int
+
+__all__ = ["CreepModel", "OutputMap", "DynamicFeedforward", "CompensationModel", "StaticInverse",
+           "MODEL_PARAMETERS", "GPIM_FORM_KEYS", "FF_BANDWIDTH_RATIO", "FF_NYQUIST_SHARE", "MAX_CREEP_GAIN_SUM"]
+
+MAX_CREEP_GAIN_SUM = 0.9     # creep gains must sum below this (the inverse divides by 1 - sum)
+FF_BANDWIDTH_RATIO = 3.0     # F's poles this factor above each of G's sections ...
+FF_NYQUIST_SHARE = 0.5       # ... and at most this share of the Nyquist frequency pi/dt
+GPIM_FORM_KEYS = ("alpha", "rho", "tau", "n")   # the paper's 5-parameter form (with a0, a1, offset_um)
+
+
+@dataclass(frozen=True)
+class CreepModel:
+    """Creep as identified: ``S = H + sum_i g_i (lag_{tau_i}[H] - H)`` (H: hysteresis output [um])."""
+
+    time_constants_s: tuple[float, ...] = ()
+    gains: tuple[float, ...] = ()
+
+    def problems(self) -> list[str]:
+        taus, gains = self.time_constants_s, self.gains
+        if len(taus) != len(gains):
+            return [f"creep: {len(taus)} time constants but {len(gains)} gains"]
+        if not all(math.isfinite(x) for x in tuple(taus) + tuple(gains)):
+            return ["creep: non-finite value"]
+        out = []
+        if any(t <= 0 for t in taus):
+            out.append("creep: time constants must be > 0")
+        if sum(gains) >= MAX_CREEP_GAIN_SUM:
+            out.append(f"creep: gains sum to {sum(gains):.3g}; compensation needs a sum < {MAX_CREEP_GAIN_SUM}")
+        return out
+
+    @property
+    def active(self) -> bool:
+        return any(g != 0.0 for g in self.gains)
+
+    @property
+    def gain_sum(self) -> float:
+        return float(sum(self.gains))
+
+
+class StaticInverse:
+    """Exact streaming inverse of creep and the saturation map: demand S [um] -> hysteresis demand H [um].
+
+    The ZOH lags depend only on past outputs (``l_k = a l_{k-1} + (1 - a) H_{k-1}``), so ``H_k`` solves
+    ``M(H) - g H = S_k - sum_i g_i l_i,k`` (g = sum g_i), which rises in H wherever ``CompensationModel``
+    checked it (``OutputMap.solve`` from the last H).
+    """
+
+    def __init__(self, creep: CreepModel, output_map: OutputMap, dt: float, h0: float = 0.0):
+        problems = creep.problems() + output_map.problems()
+        if problems:
+            raise ValueError("; ".join(problems))
+        self._a = [math.exp(-dt / tau) for tau in creep.time_constants_s]
+        self._g = [float(g) for g in creep.gains]
+        self._gsum = float(sum(self._g))
+        self._map = output_map
+        self._plain = not output_map.active
+        self.reset(h0)
+
+    def reset(self, h0: float) -> None:
+        self._lags = [float(h0)] * len(self._a)
+        self._last_h = float(h0)
+
+    @property
+    def last_h(self) -> float:
+        return self._last_h
+
+    def forward(self, h: float) -> float:
+        """S for hysteresis output ``h`` now, without advancing (the lags as they are)."""
+        acc = 0.0
+        for a, g, lag in zip(self._a, self._g, self._lags):
+            acc += g * (a * lag + (1.0 - a) * self._last_h)
+        return self._map.value(h) - self._gsum * h + acc
+
+    def step(self, demand_um: float) -> float:
+        lags, a, g = self._lags, self._a, self._g
+        acc = 0.0
+        for i in range(len(a)):
+            lags[i] = a[i] * lags[i] + (1.0 - a[i]) * self._last_h
+            acc += g[i] * lags[i]
+        h = (demand_um - acc) / (1.0 - self._gsum) if self._plain else self._map.solve(demand_um - acc, self._last_h,
+                                                                                         self._gsum)
+        self._last_h = h
+        return h
+
+
+@dataclass(frozen=True)
+class DynamicFeedforward:
+    """``W(s) = F(s) / G(s)``: G's poles cancelled and replaced by critically damped pairs, one per second-order
+    section (omega_i, zeta_i) of G, at ``omega_f = min(FF_BANDWIDTH_RATIO * omega_i, FF_NYQUIST_SHARE * pi/dt)``.
+
+    Why this F: critically damped poles give a response without overshoot to steps in the demand; the
+    ratio 3 cuts G's lag (2 zeta / omega per section) to 2 / (3 omega), with the high-frequency gain of W at
+    most 9 per section (a demand's fast changes reach the command at most 9-fold, then the command range
+    clamps); the Nyquist share keeps F's poles where the sampled W still behaves like the continuous one.
+    Needs an all-pole G (unity DC gain, no zeros), as identification fits it.
+    """
+
+    valve_model: ContinuousTF
+    dt: float
+
+    def problems(self) -> list[str]:
+        out = self.valve_model.problems()
+        if out:
+            return out
+        if len(np.trim_zeros(np.asarray(self.valve_model.num, float), "f")) != 1:
+            out.append("feedforward.dynamics needs a G_v without zeros (numerator a constant)")
+        elif not math.isclose(self.valve_model.num[-1], self.valve_model.den[-1], rel_tol=1e-6):
+            out.append("feedforward.dynamics needs a G_v of unity DC gain")
+        return out
+
+    def filter_poles(self) -> list[float]:
+        """F's double poles omega_f [rad/s], one per section of G."""
+        from .valve_model import sections  # valve_model imports records and effects: keep this module light
+        cap = FF_NYQUIST_SHARE * math.pi / self.dt
+        return [min(FF_BANDWIDTH_RATIO * w, cap) for w, _ in sections(self.valve_model)]
+
+    def target(self) -> ContinuousTF:
+        """F(s): the response the feedforward aims at (unity DC gain)."""
+        num, den = np.array([1.0]), np.array([1.0])
+        for wf in self.filter_poles():
+            num, den = np.polymul(num, [wf * wf]), np.polymul(den, [1.0, 2.0 * wf, wf * wf])
+        return ContinuousTF(tuple(float(x) for x in num), tuple(float(x) for x in den))
+
+    def inverse(self) -> ContinuousTF:
+        """W(s) = F(s) / G(s), biproper."""
+        f, g = self.target(), self.valve_model
+        num = np.polymul(f.num, g.den) / g.num[-1]
+        return ContinuousTF(tuple(float(x) for x in num), tuple(float(x) for x in f.den))
+
+    def filters(self) -> tuple[DiscreteFilter, DiscreteFilter]:
+        """(W, F) sampled every ``dt`` (zero-order hold)."""
+        return self.inverse().discretise(self.dt), self.target().discretise(self.dt)
+
+
+def _asymmetric(descending: Optional[list[float]], a0: float, a1: float) -> bool:
+    """A descending envelope that differs from the ascending one ([] and [a0, a1(, 0)] do not)."""
+    if not descending:
+        return False
+    return descending[:2] != [a0, a1] or (len(descending) == 3 and descending[2] != 0.0)
+
+
+def _floats(values) -> list[float]:
+    return [float(x) for x in values]
+
+
+@dataclass(frozen=True)
+class CompensationModel:
+    """Everything ``valve_controller`` inverts: GPIM (both envelopes), G_v, creep, the saturation map and
+    whether the feedforward inverts G_v too.  Units: V, um, s."""
+
+    gpim: GPIM = field(default_factory=PAPER_GPIM.model)
+    valve_model: ContinuousTF = PAPER_VALVE_MODEL
+    creep: CreepModel = CreepModel()
+    output_map: OutputMap = OutputMap()
+    dynamic_feedforward: bool = False
+
+    def output_range_um(self, v_min: float = COMMAND_MIN_V, v_max: float = COMMAND_MAX_V) -> tuple[float, float]:
+        """The GPIM's major-loop output range [um] over the command range."""
+        _, up, down = self.gpim.major_loop(v_min, v_max, 401)
+        return float(min(up.min(), down.min())), float(max(up.max(), down.max()))
+
+    def problems(self, v_min: float = COMMAND_MIN_V, v_max: float = COMMAND_MAX_V, dt: Optional[float] = None
+                 ) -> list[str]:
+        """Every reason the controller cannot invert this model on commands ``v_min..v_max`` [V] (empty: fine);
+        with ``dt`` also the dynamic feedforward's."""
+        out = inverse_problems(self.gpim, v_min, v_max) + self.valve_model.problems() + self.creep.problems()
+        map_problems = self.output_map.problems()
+        if not out and not map_problems:
+            lo, hi = self.output_range_um(v_min, v_max)
+            map_problems = self.output_map.problems(lo, hi, floor=self.creep.gain_sum if self.creep.active else 0.0)
+        out += map_problems
+        if self.dynamic_feedforward and not self.valve_model.problems():
+            out += DynamicFeedforward(self.valve_model, 1e-3 if dt is None else dt).problems()
+        return out
+
+    # ------------------------------------------------------------------ the parameter schema
+    def to_parameters(self) -> dict[str, Any]:
+        """``valve_controller`` parameters (name -> value); every model parameter is written, so applying them
+        replaces a whole older model."""
+        g = self.gpim
+        b = [float(g.a0), float(g.a1), 0.0] if g.symmetric else [float(g.b0), float(g.b1), float(g.b2)]
+        return {"gpim.thresholds": _floats(g.thresholds), "gpim.weights": _floats(g.weights),
+                "gpim.a0": float(g.a0), "gpim.a1": float(g.a1), "gpim.offset_um": float(g.offset_um),
+                "gpim.descending_envelope": b,
+                "valve_model.num": _floats(self.valve_model.num), "valve_model.den": _floats(self.valve_model.den),
+                "creep.time_constants_s": _floats(self.creep.time_constants_s) or [1.0],
+                "creep.gains": _floats(self.creep.gains) or [0.0],
+                "saturation.centre_um": float(self.output_map.centre_um),
+                "saturation.half_range_um": float(self.output_map.half_range_um),
+                # zeros rather than []: an empty list has no element type for a ROS parameter
+                "saturation.coefficients_um": _floats(self.output_map.coefficients_um) or [0.0] * TERM_COUNT,
+                "feedforward.dynamics": bool(self.dynamic_feedforward)}
+
+    @classmethod
+    def from_parameters(cls, p: dict[str, Any], v_min: float = COMMAND_MIN_V, v_max: float = COMMAND_MAX_V,
+                        dt: Optional[float] = None) -> "CompensationModel":
+        """The model from ``valve_controller`` parameters (names as in MODEL_PARAMETERS; the GPIM in free form
+        when ``gpim.thresholds``/``gpim.weights`` are set, else the paper's 5-parameter form); raises
+        ValueError with every problem found, the whole model checked (see ``problems``)."""
+        problems: list[str] = []
+
+        def get(name, conv):
+            try:
+                return conv(name, p[name] if name in p else MODEL_DEFAULTS[name])
+            except ValueError as exc:
+                problems.append(str(exc))
+                return None
+
+        thresholds, weights = get("gpim.thresholds", as_float_list), get("gpim.weights", as_float_list)
+        a0, a1, offset = get("gpim.a0", as_float), get("gpim.a1", as_float), get("gpim.offset_um", as_float)
+        descending = get("gpim.descending_envelope", as_float_list)
+        gpim = None
+        if not problems:
+            try:
+                if descending is not None and len(descending) not in (0, 2, 3):
+                    raise ValueError(f"gpim.descending_envelope must be [] or [b0, b1] or [b0, b1, b2], "
+                                     f"got {descending}")
+                if thresholds or weights:  # free form (e.g. from the identification's linear fit)
+                    gpim = GPIM(thresholds, weights, a0, a1, offset)
+                else:
+                    form = {k: get(f"gpim.{k}", as_int if k == "n" else as_float) for k in GPIM_FORM_KEYS}
+                    if not problems:
+                        gpim = GPIMParams(a0=a0, a1=a1, offset_um=offset, **form).model()
+                if gpim is not None and _asymmetric(descending, a0, a1):
+                    gpim = GPIM(gpim.thresholds, gpim.weights, a0, a1, offset, *descending)
+            except ValueError as exc:
+                problems.append(str(exc))
+        num, den = get("valve_model.num", as_float_list), get("valve_model.den", as_float_list)
+        taus, gains = get("creep.time_constants_s", as_float_list), get("creep.gains", as_float_list)
+        centre, half = get("saturation.centre_um", as_float), get("saturation.half_range_um", as_float)
+        coefs = get("saturation.coefficients_um", as_float_list)
+        dynamic = get("feedforward.dynamics", as_bool)
+        if problems:
+            raise ValueError("; ".join(problems))
+        model = cls(gpim, ContinuousTF(tuple(num), tuple(den)), CreepModel(tuple(taus), tuple(gains)),
+                    OutputMap(centre, half, tuple(coefs)), dynamic)
+        problems = model.problems(v_min, v_max, dt)
+        if problems:
+            raise ValueError("; ".join(problems))
+        return model
+
+
+_PAPER = PAPER_GPIM
+# name -> (default, description): the controller declares these; from_parameters reads them
+MODEL_PARAMETERS: dict[str, tuple[Any, str]] = {
+    "gpim.a0": (_PAPER.a0, "envelope slope [1]"),
+    "gpim.a1": (_PAPER.a1, "envelope offset [V]"),
+    "gpim.alpha": (_PAPER.alpha, "threshold spacing [V]"),
+    "gpim.rho": (_PAPER.rho, "weight scale [um/V]"),
+    "gpim.tau": (_PAPER.tau, "weight decay [1/V]"),
+    "gpim.n": (_PAPER.n, "number of operators"),
+    "gpim.offset_um": (_PAPER.offset_um, "output offset [um]"),
+    "gpim.thresholds": ([], "free-form thresholds [V] (empty: 5-parameter form)"),
+    "gpim.weights": ([], "free-form weights [um/V] (empty: 5-parameter form)"),
+    "gpim.descending_envelope": ([], "asymmetric GPIM: descending envelope [b0, b1] or [b0, b1, b2] (b0 v + b1 + "
+                                     "b2 v^2, at or above the ascending one on the command range; empty or equal "
+                                     "to [a0, a1]: the ascending one)"),
+    "valve_model.num": (list(PAPER_VALVE_MODEL.num), "G_v(s) numerator"),
+    "valve_model.den": (list(PAPER_VALVE_MODEL.den), "G_v(s) denominator"),
+    "creep.time_constants_s": ([], "creep compensation (feedforward path): lag time constants [s]"),
+    "creep.gains": ([], "creep compensation: gains [-] (empty or all 0: none)"),
+    "saturation.centre_um": (0.0, "saturation map: centre of the normalised output [um]"),
+    "saturation.half_range_um": (1.0, "saturation map: half range of the normalised output [um]"),
+    "saturation.coefficients_um": ([], f"saturation map: {TERM_COUNT} coefficients [um] of h^2, h^3 and the end "
+                                       "hinges (empty or all 0: none)"),
+    "feedforward.dynamics": (False, "the feedforward also inverts G_v (W = F/G_v, F critically damped 3x faster); "
+                                    "ff_pid_g then shapes its reference with F"),
+}
+MODEL_DEFAULTS = {name: default for name, (default, _) in MODEL_PARAMETERS.items()}
