@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 
+from piezo_valve_ros.core.compensation import CompensationModel
 from piezo_valve_ros.core.experiments import DEFAULT_SWEEP_HZ, frequency_response, paper_step_tests
 from piezo_valve_ros.core.strategies import TABLE1_GAINS, ControllerConfig, PIDGains
 
@@ -103,7 +104,33 @@ def table2(lines, quick):
     return res
 
 
-def ranking(t1, t2, lines):
+def beyond(f_hz, freqs):
+    """A crossing frequency, or '> f_max' when the sweep never reached it."""
+    return f"> {freqs[-1]:.0f}" if np.isnan(f_hz) else f"{f_hz:.1f}"
+
+
+def table2_dynamic(lines, quick):
+    """Issue 11: the feedforward that also inverts G_v (W = F/G_v) against the paper's, Table 2's columns."""
+    freqs = DEFAULT_SWEEP_HZ[::2] if quick else DEFAULT_SWEEP_HZ
+    dynamic = CompensationModel(dynamic_feedforward=True)
+    rows, res = [], {}
+    hdr = "| | -3 dB Hz, 35 um | -3 dB Hz, 49 um | -90 deg Hz, 35 um | -90 deg Hz, 49 um | peak dB, 35 um | peak dB, 49 um |"
+    for name in ("ol_hc", "ff_pid_g_2"):
+        for tag, kwargs in (("", {}), (" + G_v inverse", {"compensation": dynamic})):
+            m = [frequency_response(config_for(name), amp, freqs_hz=freqs, **kwargs)[2] for amp in (35.0, 49.0)]
+            res[name + tag] = m
+            f = [beyond(x, freqs) for x in (m[0].f_3db_hz, m[1].f_3db_hz, m[0].f_90deg_hz, m[1].f_90deg_hz)]
+            rows.append(f"| {label(name)}{tag} | " + " | ".join(f) +
+                        f" | {m[0].resonant_peak_db:.2f} | {m[1].resonant_peak_db:.2f} |")
+    print("\nDynamic feedforward (W = F/G_v) - stepped-sine response")
+    print(hdr)
+    for r in rows:
+        print(r)
+    lines += ["", "### Dynamic feedforward (W = F/G_v): stepped-sine response", "", hdr, "|" + "---|" * 7] + rows
+    return res
+
+
+def ranking(t1, t2, lines, t2d=None):
     checks = [
         ("FF PID overshoots far more than PID (avg os, FF PID 1 vs PID 1)", t1["ff_pid_1"][1] > 3 * t1["pid_1"][1]),
         ("FF PID G cuts FF PID's overshoot (same gains, set 1)", t1["ff_pid_g_1"][1] < t1["ff_pid_1"][1] / 3),
@@ -116,6 +143,9 @@ def ranking(t1, t2, lines):
         ("FF PID G has less resonant peak than PID 3 (35 um)",
          t2[("ff_pid_g_2", 35.0)].resonant_peak_db <= t2[("pid_3", 35.0)].resonant_peak_db),
     ]
+    if t2d is not None:
+        checks.append(("The dynamic feedforward raises OL HC's -3 dB frequency (35 um) by half or more",
+                       t2d["ol_hc + G_v inverse"][0].f_3db_hz > 1.5 * t2d["ol_hc"][0].f_3db_hz))
     print("\nRanking checks")
     lines += ["", "### Ranking checks", ""]
     for text, ok in checks:
@@ -134,7 +164,8 @@ if __name__ == "__main__":
     lines = []
     t1 = table1(lines)
     t2 = table2(lines, args.quick)
-    ok = ranking(t1, t2, lines)
+    t2d = table2_dynamic(lines, args.quick)
+    ok = ranking(t1, t2, lines, t2d)
     print(f"\n{time.perf_counter() - t0:.0f} s")
     if args.markdown:
         with open(args.markdown, "w") as f:

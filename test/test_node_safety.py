@@ -325,3 +325,21 @@ def test_controller_takes_an_asymmetric_model_only_when_it_can_invert_it(control
     assert not result.successful and "[b0, b1] or [b0, b1, b2]" in result.reason
     assert set_one(ctl, "gpim.descending_envelope", [g.a0, g.a1, 0.0]).successful  # back to symmetric
     assert ctl.controller.model.symmetric
+
+
+def test_controller_takes_a_whole_extended_model_in_one_update_or_refuses_it_whole(controller):
+    """Issue 11.3: the model the identification pushes (creep, saturation map, dynamic feedforward) is applied
+    in one atomic update; a malformed part refuses all of it, with the reason, and changes nothing."""
+    from piezo_valve_ros.core.compensation import CompensationModel, CreepModel
+    from piezo_valve_ros.core.effects.saturation import OutputMap
+    ctl = controller(gain_set="", strategy="ol_hc")
+    extended = CompensationModel(creep=CreepModel((0.5, 5.0), (0.02, 0.02)),
+                                 output_map=OutputMap(0.0, 70.0, (0.0, -3.0, 0.0, 0.0, -1.0, 0.0, 0.0, 1.0)),
+                                 dynamic_feedforward=True)
+    update = [Parameter(k, value=v) for k, v in extended.to_parameters().items()]
+    assert ctl.set_parameters_atomically(update).successful
+    assert ctl.controller.compensation.to_parameters() == extended.to_parameters()
+    bad = [Parameter("feedforward.dynamics", value=False), Parameter("saturation.coefficients_um", value=[1.0, 2.0])]
+    result = ctl.set_parameters_atomically(bad)
+    assert not result.successful and "needs 8 values" in result.reason
+    assert ctl.controller.compensation.dynamic_feedforward  # untouched

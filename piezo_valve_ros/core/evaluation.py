@@ -1,0 +1,93 @@
+"""Identify a simulated valve, compensate it, and measure the tracking error on held-out data.
+
+The loop of issue 11 in one place (no ROS): a training record and a separate validation record of the
+simulated valve -> the residual loop (``residual.analyse``) -> the compensation the controller would be
+pushed (``identify.compensation``; the paper's model as the baseline) -> the paper's validation
+reference (eq. 12) tracked by the controller on a fresh valve, under any strategy.  ``bench/
+compensation_table.py`` prints the README's table from it; a test runs one case.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Callable
+
+import numpy as np
+
+from .compensation import CompensationModel
+from .experiments import run_closed_loop, simulate_rows
+from .metrics import TrackingError, tracking_error
+from .records import Record
+from .signals import rig_training_voltage, validation_reference_m, validation_voltage
+from .simulator import CreepParams, RateDependenceParams, SaturationParams, SimulatedValve, ValveSimConfig
+from .strategies import ControllerConfig, ValveController
+from .valve_model import PAPER_SECTION, unity_dc_poles
+
+__all__ = ["SIMULATED_EFFECTS", "SETTLE_S", "simulated_analysis", "tracking_test", "CompensationResult",
+           "compare_compensations"]
+
+SETTLE_S = 2.0   # the first seconds of a tracking run are left out of its error (the start from the centre)
+VALIDATION_SEED, TRACKING_SEED = 1, 2   # noise seeds of the validation record and of the tracking run
+
+
+def _with_default(**changes) -> Callable[[ValveSimConfig], ValveSimConfig]:
+    return lambda base: replace(base, **changes)
+
+
+# The simulated valves of the README's table: the default valve (creep, mild end flattening, amplifier slew,
+# LVDT noise) and, on top of it, one effect each switched on or made stronger.
+SIMULATED_EFFECTS: dict[str, Callable[[ValveSimConfig], ValveSimConfig]] = {
+    "default": _with_default(),
+    "creep": _with_default(creep=CreepParams(gains=(0.03, 0.03, 0.03, 0.03))),
+    "asymmetry": _with_default(descending_envelope=(1.02, 0.35)),
+    "saturation": _with_default(saturation=SaturationParams(scale_um=150.0)),
+    "rate dependence": _with_default(rate=RateDependenceParams(enabled=True)),
+    "slow dynamics": _with_default(valve_model=unity_dc_poles([(2 * np.pi * 60.0, 0.6), PAPER_SECTION])),
+}
+
+
+def simulated_analysis(sim_config: ValveSimConfig, training_s: float = 30.0, log: Callable[[str], None] = print):
+    """The residual loop on a training record (the identification node's experiment) and a validation record
+    (``signals.validation_voltage``, another noise seed) of the simulated valve; returns the Analysis."""
+    from .residual import analyse  # the residual loop is heavy to import; the rest of this module is not
+    dt = sim_config.dt
+    train = Record.from_rows(simulate_rows(rig_training_voltage(dt, training_s), sim_config))
+    validate = Record.from_rows(simulate_rows(validation_voltage(dt), replace(sim_config, seed=VALIDATION_SEED)))
+    return analyse(train, validate, log=log)
+
+
+def tracking_test(ctl_config: ControllerConfig, compensation: CompensationModel, sim_config: ValveSimConfig,
+                  reference_m: np.ndarray, settle_s: float = SETTLE_S) -> TrackingError:
+    """Track ``reference_m`` (one value per period ``sim_config.dt``) on a fresh simulated valve (seed
+    TRACKING_SEED); the error of each position against the demand it answers (the command of period k shows
+    at k + 1), after ``settle_s``, its peak as % of the demand's range."""
+    valve = SimulatedValve(replace(sim_config, seed=TRACKING_SEED))
+    controller = ValveController(replace(ctl_config, dt=sim_config.dt), compensation)
+    controller.reset(sim_config.initial_voltage_v, float(reference_m[0]))
+    rec = run_closed_loop(valve, controller, reference_m)
+    y = np.append(rec.position_m[1:], valve.step(rec.command_v[-1]))
+    k = int(round(settle_s / sim_config.dt))
+    span_um = float(np.ptp(reference_m)) * 1e6
+    return tracking_error(y[k:] * 1e6, reference_m[k:] * 1e6, span_um)
+
+
+@dataclass(frozen=True)
+class CompensationResult:
+    effects_added: list[str]
+    refused: dict[str, str]
+    errors: dict[tuple[str, str], TrackingError]   # (model "baseline"/"extended", strategy label) -> error
+
+
+def compare_compensations(sim_config: ValveSimConfig, strategies: dict[str, ControllerConfig],
+                          validation_s: float = 53.0, amplitude_um: float = 60.0,
+                          log: Callable[[str], None] = print) -> CompensationResult:
+    """Identify the simulated valve, then track the paper's validation reference under each strategy with the
+    baseline compensation (the paper's: GPIM, G_v for ff_pid_g) and the extended one (every effect the
+    controller can invert, dynamic feedforward on)."""
+    from ..identify import baseline_compensation, compensation
+    analysis = simulated_analysis(sim_config, log=log)
+    extended = compensation(analysis)
+    models = {"baseline": baseline_compensation(analysis).controller_model, "extended": extended.controller_model}
+    reference = validation_reference_m(sim_config.dt, validation_s, amplitude_um)
+    errors = {(name, label): tracking_test(config, model, sim_config, reference)
+              for name, model in models.items() for label, config in strategies.items()}
+    return CompensationResult(list(analysis.report["effects_added"]), dict(extended.refused), errors)
