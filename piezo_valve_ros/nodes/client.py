@@ -38,6 +38,22 @@ DISCOVERY_SETTLE_S = 0.5      # a new publisher sends once its number of matched
 PROBE_TIMEOUT_S = 1.0         # a parameter request unanswered this long after discovery is sent again
 
 
+def wait_until_answering(client: AsyncParameterClient, timeout_s: float = 10.0) -> bool:
+    """True once the node behind ``client`` answers a harmless read (``use_sim_time``), repeated until one comes
+    back; False after ``timeout_s`` [s].  Discovered services are not enough: a server that does not yet know
+    the client's response reader drops the answer, so a request that must not be lost goes after this."""
+    deadline = time.monotonic() + timeout_s
+    if not client.wait_for_services(timeout_sec=timeout_s):
+        return False
+    while time.monotonic() < deadline and rclpy.ok():
+        try:
+            wait_future(client.get_parameters(["use_sim_time"]), min(PROBE_TIMEOUT_S, timeout_s), "probe")
+            return True
+        except TimeoutError:
+            continue
+    return False
+
+
 def wait_future(future, timeout_s: float, what: str):
     """The result of an rclpy future answered by another thread's executor; TimeoutError naming ``what``."""
     deadline = time.monotonic() + timeout_s
@@ -92,14 +108,8 @@ class RigClient(Node):
         and a request sent then goes unanswered.  So a harmless read (``use_sim_time``) is repeated until one
         comes back, and only then may a request that must not be repeated (a step budget) be sent."""
         client = self.parameter_client(which)
-        deadline = time.monotonic() + timeout_s
-        if client.wait_for_services(timeout_sec=timeout_s):
-            while time.monotonic() < deadline and rclpy.ok():
-                try:
-                    wait_future(client.get_parameters(["use_sim_time"]), min(PROBE_TIMEOUT_S, timeout_s), "probe")
-                    return client
-                except TimeoutError:
-                    continue
+        if wait_until_answering(client, timeout_s):
+            return client
         raise TimeoutError(f"{self.node_name(which)} does not answer (is it running, in this namespace and "
                            f"ROS domain?)")
 

@@ -41,7 +41,7 @@ from ..core.records import IdentificationError
 from ..core.signals import rig_training_voltage, validation_reference_m
 from ..identify import (compensation, controller_parameters, controller_parameters_yaml, identify_bags, report_json,
                         write_atomically)
-from .client import wait_future
+from .client import wait_future, wait_until_answering
 from .recording import RigRecorder
 from .common import COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, as_float, declare, parameter_values, run_node
 from ..core.drive import CENTRE_VOLTAGE_V
@@ -167,8 +167,8 @@ class ValveIdentificationNode(Node):
         self._player = None
 
     def _set_controller(self, values: dict, atomically: bool = False, timeout_s: float = 10.0) -> tuple[bool, str]:
-        if not self.controller.wait_for_services(timeout_sec=timeout_s):
-            return False, "controller parameter services not available"
+        if not wait_until_answering(self.controller, timeout_s):  # not just discovered: answering
+            return False, "the controller's parameter services do not answer"
         params = [Parameter(k, value=v) for k, v in values.items()]
         future = (self.controller.set_parameters_atomically(params) if atomically
                   else self.controller.set_parameters(params))
