@@ -1,4 +1,4 @@
-"""Per-sample controller cost (each strategy, inverse included) and batch GPIM speed.
+"""Per-sample controller cost (each strategy, inverse included), inverse GPIM step cost and batch GPIM speed.
 
 Prints figures; compare as ratios within one run (the machine is shared).
     python bench/core_speed.py
@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from piezo_valve_ros.core.hysteresis import PAPER_GPIM
+from piezo_valve_ros.core.hysteresis import GPIM, PAPER_GPIM, inverse_gpim
 from piezo_valve_ros.core.signals import training_voltage
 from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig
 from piezo_valve_ros.core.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController
@@ -37,6 +37,29 @@ def controller_cost(n=50_000):
         print(f"  {s:9s} {sec / n * 1e6:6.2f} us/sample  (target < 20 us; max rate {n / sec / 1e3:5.1f} kHz)")
 
 
+def inverse_cost(n=20_000):
+    """One inverse step: symmetric (closed form), asymmetric with a dead band (closed form) and with envelopes
+    that cross (solved each step), in the same run."""
+    m = PAPER_GPIM.model()
+    models = {"symmetric": m,
+              "dead band": GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, m.a0 * 1.03, m.a1 + 0.08),
+              "crossing": GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, 0.95, 0.2)}
+    walk = np.cumsum(np.random.default_rng(1).normal(0.0, 0.05, n))
+    v = 5.0 + 4.5 * np.tanh((walk - walk.mean()) / (3.0 * walk.std()))
+    print(f"inverse GPIM step (n=15), {n} samples, best of 3:")
+    base = None
+    for name, model in models.items():
+        y = model.run(v, model.virgin_state(5.0))[0].tolist()
+
+        def loop():
+            step = inverse_gpim(model, v0=5.0).step
+            for x in y:
+                step(x)
+        sec = best_of(loop) / n
+        base = base or sec
+        print(f"  {name:10s} {type(inverse_gpim(model)).__name__:20s} {sec * 1e6:7.2f} us/step  x{sec / base:.0f}")
+
+
 def gpim_batch():
     v = training_voltage(1e-4, 60.0, synchronise=False)  # 600,000 samples
     m = PAPER_GPIM.model()
@@ -61,4 +84,5 @@ def gpim_batch():
 
 if __name__ == "__main__":
     controller_cost()
+    inverse_cost()
     gpim_batch()

@@ -38,6 +38,10 @@ def test_the_schema_round_trips_and_covers_every_declared_parameter():
 @pytest.mark.parametrize("change, says", [
     ({"saturation.coefficients_um": [1.0, 2.0]}, "needs 8 values"),
     ({"saturation.half_range_um": 0.0}, "half_range_um must be > 0"),
+    ({"saturation.half_range_um": -5.0}, "half_range_um must be > 0"),
+    ({"saturation.half_range_um": float("nan")}, "saturation.half_range_um must be finite"),
+    ({"saturation.centre_um": "abc"}, "saturation.centre_um must be a number"),
+    ({"saturation.coefficients_um": [float("nan")] * 8}, "saturation.coefficients_um must be finite"),
     ({"saturation.coefficients_um": [0.0, -40.0] + [0.0] * 6}, "flattens"),
     ({"feedforward.dynamics": "yes"}, "feedforward.dynamics must be true or false"),
     ({"feedforward.dynamics": True, "valve_model.num": [1.0, 1.2e6]}, "without zeros"),
@@ -53,7 +57,7 @@ def test_a_model_is_refused_as_a_whole_with_every_reason(change, says):
 def test_a_map_that_inverts_alone_can_be_refused_with_the_creep():
     """The static inverse solves M(H) - sum g H = ..., so the creep's gains count against the map's slope."""
     steep = replace(FLATTENING, coefficients_um=tuple(2.0 * c for c in FLATTENING.coefficients_um))  # slope >= 0.25
-    lo, hi = CompensationModel().output_range_um()
+    lo, hi = CompensationModel().gpim.output_range()
     assert not steep.problems(lo, hi)
     with pytest.raises(ValueError, match="flattens"):
         CompensationModel.from_parameters({**CompensationModel(creep=CreepModel((1.0,), (0.2,)),

@@ -181,13 +181,18 @@ def test_an_active_gain_set_decides_strategy_and_gains_and_says_so(controller):
                                          ("kp", "abc"), ("ki", -1.0), ("enabled", "false"), ("enabled", 0),
                                          ("reference_ramp_s", -1.0), ("handback_timeout_s", 0.0),
                                          ("control_period_s", 2e-3), ("initial_reference_m", 1e-5),
-                                         ("command_min_v", 11.0)])
+                                         ("command_min_v", 11.0),
+                                         ("saturation.half_range_um", 0.0), ("saturation.half_range_um", -5.0),
+                                         ("saturation.half_range_um", float("nan")), ("saturation.half_range_um", "abc"),
+                                         ("saturation.coefficients_um", [float("nan")] * 8),
+                                         ("saturation.coefficients_um", [0.0] * 7), ("feedforward.dynamics", "true"),
+                                         ("feedforward.dynamics", 0)])
 def test_controller_refuses_what_it_would_not_apply(controller, name, value):
     ctl = controller(gain_set="")
-    before = (ctl.controller.config, ctl.enabled, ctl.get_parameter(name).value)
+    before = (ctl.controller.config, ctl.controller.compensation, ctl.enabled, ctl.get_parameter(name).value)
     result = set_one(ctl, name, value)
     assert not result.successful and result.reason
-    assert (ctl.controller.config, ctl.enabled, ctl.get_parameter(name).value) == before
+    assert (ctl.controller.config, ctl.controller.compensation, ctl.enabled, ctl.get_parameter(name).value) == before
 
 
 def test_enabled_is_a_boolean_and_false_disables(controller):

@@ -187,11 +187,6 @@ class CompensationModel:
     output_map: OutputMap = OutputMap()
     dynamic_feedforward: bool = False
 
-    def output_range_um(self, v_min: float = COMMAND_MIN_V, v_max: float = COMMAND_MAX_V) -> tuple[float, float]:
-        """The GPIM's major-loop output range [um] over the command range."""
-        _, up, down = self.gpim.major_loop(v_min, v_max, 401)
-        return float(min(up.min(), down.min())), float(max(up.max(), down.max()))
-
     def problems(self, v_min: float = COMMAND_MIN_V, v_max: float = COMMAND_MAX_V, dt: Optional[float] = None
                  ) -> list[str]:
         """Every reason the controller cannot invert this model on commands ``v_min..v_max`` [V] (empty: fine);
@@ -199,7 +194,7 @@ class CompensationModel:
         out = inverse_problems(self.gpim, v_min, v_max) + self.valve_model.problems() + self.creep.problems()
         map_problems = self.output_map.problems()
         if not out and not map_problems:
-            lo, hi = self.output_range_um(v_min, v_max)
+            lo, hi = self.gpim.output_range(v_min, v_max)
             map_problems = self.output_map.problems(lo, hi, floor=self.creep.gain_sum if self.creep.active else 0.0)
         out += map_problems
         if self.dynamic_feedforward and not self.valve_model.problems():

@@ -14,7 +14,7 @@ from typing import Callable
 import numpy as np
 
 from .compensation import CompensationModel
-from .experiments import run_closed_loop, simulate_rows
+from .experiments import responses, run_closed_loop, simulate_rows
 from .metrics import TrackingError, tracking_error
 from .records import Record
 from .signals import rig_training_voltage, validation_reference_m, validation_voltage
@@ -64,7 +64,7 @@ def tracking_test(ctl_config: ControllerConfig, compensation: CompensationModel,
     controller = ValveController(replace(ctl_config, dt=sim_config.dt), compensation)
     controller.reset(sim_config.initial_voltage_v, float(reference_m[0]))
     rec = run_closed_loop(valve, controller, reference_m)
-    y = np.append(rec.position_m[1:], valve.step(rec.command_v[-1]))
+    y = responses(valve, rec)
     k = int(round(settle_s / sim_config.dt))
     span_um = float(np.ptp(reference_m)) * 1e6
     return tracking_error(y[k:] * 1e6, reference_m[k:] * 1e6, span_um)

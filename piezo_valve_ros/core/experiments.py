@@ -16,7 +16,7 @@ from .signals import PAPER_STEPS_UM, step_reference_m, stepped_sine_reference_m
 from .simulator import SimulatedValve, ValveSimConfig
 from .strategies import ControllerConfig, ValveController
 
-__all__ = ["ClosedLoopRecord", "run_closed_loop", "step_test", "paper_step_tests", "frequency_response",
+__all__ = ["ClosedLoopRecord", "run_closed_loop", "responses", "step_test", "paper_step_tests", "frequency_response",
            "DEFAULT_SWEEP_HZ", "simulate_rows"]
 
 DEFAULT_SWEEP_HZ = np.geomspace(2.0, 250.0, 22)
@@ -45,6 +45,12 @@ def run_closed_loop(valve: SimulatedValve, controller: ValveController, referenc
         commands[k] = v
         y = valve_step(v)
     return ClosedLoopRecord(ref, commands, positions)
+
+
+def responses(valve: SimulatedValve, record: ClosedLoopRecord) -> np.ndarray:
+    """Position [m] answering each command of ``record``: the response to command k appears at k + 1, so the
+    last one is measured by applying the last command for one more sample."""
+    return np.append(record.position_m[1:], valve.step(record.command_v[-1]))
 
 
 def run_delayed_loop(valve: SimulatedValve, controller: ValveController, reference_m: np.ndarray,
@@ -89,8 +95,7 @@ def step_test(ctl_config: ControllerConfig, start_um: float, end_um: float,
     valve, controller = _fresh(sim_config, ctl_config, controller_kwargs)
     ref, start = step_reference_m(sim_config.dt, start_um, end_um, hold_before_s, hold_after_s)
     rec = run_closed_loop(valve, controller, ref)
-    # the response to command k appears in position k+1
-    y = np.append(rec.position_m[1:], valve.step(rec.command_v[-1]))
+    y = responses(valve, rec)
     return step_metrics(y, start, start_um, end_um, sim_config.dt), rec, start
 
 
@@ -109,7 +114,7 @@ def frequency_response(ctl_config: ControllerConfig, amplitude_um: float,
         valve, controller = _fresh(sim_config, ctl_config, controller_kwargs)
         ref, k0 = stepped_sine_reference_m(dt, f, amplitude_um, periods=periods)
         rec = run_closed_loop(valve, controller, ref)
-        y = np.append(rec.position_m[1:], valve.step(rec.command_v[-1]))
+        y = responses(valve, rec)
         h[i] = fundamental(y[k0:], f, dt) / fundamental(ref[k0:], f, dt)
     return np.asarray(freqs_hz, float), h, bandwidth_metrics(freqs_hz, h)
 

@@ -39,6 +39,9 @@ __all__ = [
 ]
 
 
+OUTPUT_RANGE_POINTS = 401     # major-loop points behind GPIM.output_range
+
+
 class NotInvertibleError(ValueError):
     """A parameter set that has no analytic inverse (the reason is the message)."""
 
@@ -398,6 +401,21 @@ class GPIM:
         y_down = y[2 * points - 2:][::-1]
         return v_up, y_up, y_down
 
+    def output_range(self, v_min: float = COMMAND_MIN_V, v_max: float = COMMAND_MAX_V,
+                     points: int = OUTPUT_RANGE_POINTS) -> tuple[float, float]:
+        """(lowest, highest) output [um] of the major loop over inputs ``v_min..v_max`` [V]."""
+        _, up, down = self.major_loop(v_min, v_max, points)
+        return float(min(up.min(), down.min())), float(max(up.max(), down.max()))
+
+    def descending_inverse(self, x):
+        """The input [V] at which the descending envelope b0 v + b1 + b2 v^2 reaches ``x`` (its rising branch;
+        scalar or array)."""
+        d = np.asarray(x, float) - self.b1
+        if not self.b2:
+            return d / self.b0
+        root = np.sqrt(np.maximum(self.b0 * self.b0 + 4.0 * self.b2 * d, 0.0))
+        return 2.0 * d / (self.b0 + root)
+
 
 class GPIMStream:
     """Per-sample GPIM evaluation with state (allocation-free ``step``)."""
@@ -551,19 +569,10 @@ class InverseGPIM:
         self._settle_in_band()
 
     # -- the dead band of an asymmetric model
-    def _descending_inverse(self, x):
-        """U^{-1}(x) [V] on the rising branch of U = b0 v + b1 + b2 v^2 (scalar or array)."""
-        m = self.model
-        d = np.asarray(x, float) - m.b1
-        if not m.b2:
-            return d / m.b0
-        root = np.sqrt(np.maximum(m.b0 * m.b0 + 4.0 * m.b2 * d, 0.0))
-        return 2.0 * d / (m.b0 + root)
-
     def _settle_in_band(self) -> None:
         """Keep the remembered input inside the band of inputs that hold ``x`` (after a state change)."""
         if self._asymmetric:
-            lo = float(self._descending_inverse(self._x_last))
+            lo = float(self.model.descending_inverse(self._x_last))
             hi = (self._x_last - self._a1) / self._a0
             self._v_last = min(max(self._v_last, lo), hi)
 
@@ -573,7 +582,7 @@ class InverseGPIM:
         if x > self._x_last:
             v = (x - self._a1) / self._a0
         elif x < self._x_last:
-            v = float(self._descending_inverse(x))
+            v = float(self.model.descending_inverse(x))
         else:
             v = self._v_last
         self._x_last, self._v_last = x, v
@@ -639,7 +648,7 @@ class InverseGPIM:
         if x.size == 0:
             return x
         dx = np.diff(np.concatenate(([self._x_last], x)))
-        v = np.where(dx > 0, (x - self._a1) / self._a0, self._descending_inverse(x))
+        v = np.where(dx > 0, (x - self._a1) / self._a0, self.model.descending_inverse(x))
         held = dx == 0
         if held.any():  # a held x keeps the last input: carry it forward from the last change
             last = np.maximum.accumulate(np.where(held, -1, np.arange(x.size)))
@@ -710,16 +719,9 @@ class MonotoneInverseGPIM:
     def peek_forward(self, v: float) -> float:
         return float(self._outputs(np.array([float(v)]))[0])
 
-    def _descending_inverse(self, x: np.ndarray) -> np.ndarray:
-        d = np.asarray(x, float) - self._b1
-        if not self._b2:
-            return d / self._b0
-        root = np.sqrt(np.maximum(self._b0 * self._b0 + 4.0 * self._b2 * d, 0.0))
-        return 2.0 * d / (self._b0 + root)
-
     def _breakpoints(self) -> np.ndarray:
         m, z, r = self.model, self._z, self._r
-        points = [(z + r - m.a1) / m.a0, self._descending_inverse(z - r)]
+        points = [(z + r - m.a1) / m.a0, m.descending_inverse(z - r)]
         # L(v) - U(v) = 2 r:  -b2 v^2 + (a0 - b0) v + (a1 - b1 - 2 r) = 0
         q1, q0 = m.a0 - self._b0, m.a1 - self._b1 - 2.0 * r
         if self._b2:

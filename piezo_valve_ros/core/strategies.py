@@ -99,8 +99,8 @@ def gain_set(name: str) -> tuple[str, PIDGains]:
 
 def nominal_static_gain(model: GPIM, v_min: float = COMMAND_MIN_V, v_max: float = COMMAND_MAX_V) -> float:
     """Span of the major loop per volt [um/V] (about 13.5 um/V for the paper's model)."""
-    _, up, down = model.major_loop(v_min, v_max, 401)
-    return float((max(up.max(), down.max()) - min(up.min(), down.min())) / (v_max - v_min))
+    lo, hi = model.output_range(v_min, v_max)
+    return (hi - lo) / (v_max - v_min)
 
 
 @dataclass(frozen=True)
@@ -159,8 +159,10 @@ class ValveController:
     # ------------------------------------------------------------------ configuration
     def _setup_model(self) -> None:
         c, comp = self.config, self.compensation
-        self._k = c.static_gain_um_per_v or nominal_static_gain(comp.gpim, c.command_min_v, c.command_max_v)
-        self._demand_min_um, self._demand_max_um = comp.output_range_um(c.command_min_v, c.command_max_v)
+        lo, hi = comp.gpim.output_range(c.command_min_v, c.command_max_v)
+        self._demand_min_um, self._demand_max_um = lo, hi
+        # nominal_static_gain, from the same major loop
+        self._k = c.static_gain_um_per_v or (hi - lo) / (c.command_max_v - c.command_min_v)
         out_map = comp.output_map
         self._map = out_map if out_map.active else None
         # pid_hc's demand range: the GPIM's output range through the saturation map

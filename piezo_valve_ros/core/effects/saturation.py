@@ -168,8 +168,7 @@ class Saturation(Effect):
     def compensation(self, model, coefs) -> dict:
         """The controller inverts the static map where it rises over the model's output range
         (:class:`OutputMap`); NotCompensable says where it does not."""
-        _, up, down = model.gpim.major_loop()
-        lo, hi = float(min(up.min(), down.min())), float(max(up.max(), down.max()))
+        lo, hi = model.gpim.output_range()
         out_map = self.output_map(coefs)
         problems = out_map.problems(lo, hi)
         if problems:
