@@ -26,7 +26,7 @@ setup(
         ("share/" + package_name + "/config", glob("config/*.yaml")),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=["setuptools", "numpy", "scipy", "rosbags>=0.11,<0.12", "threadpoolctl"],
+    install_requires=["setuptools", "numpy", "scipy", "rosbags>=0.11,<0.12", "threadpoolctl", "PyYAML"],
     extras_require={"plots": ["matplotlib"], "test": ["pytest"]},
     zip_safe=True,
     # install_scripts is in setup.cfg (the ROS convention); develop's script_dir only where setuptools has it
@@ -44,6 +44,7 @@ setup(
             "valve_composed = piezo_valve_ros.nodes.composed:main",
             "valve_identification = piezo_valve_ros.nodes.identification:main",
             "valve_identify = piezo_valve_ros.identify_cli:main",
+            "valve_tune = piezo_valve_ros.tune_cli:main",
             "valve_record = piezo_valve_ros.nodes.record:main",
             "valve_command = piezo_valve_ros.nodes.command:main",
             "valve_plot = piezo_valve_ros.plot_cli:main",

@@ -23,7 +23,14 @@ from .core.residual import Analysis, analyse
 from .core.valve_model import ValveModel, unity_dc_poles
 
 __all__ = ["identify_bags", "read_record", "Compensation", "compensation", "baseline_compensation", "base_parameters",
-           "controller_parameters", "controller_parameters_yaml", "report_json", "write_atomically", "write_outputs"]
+           "controller_parameters", "controller_parameters_yaml", "parameters_yaml", "read_parameters_file",
+           "ParametersFileError", "report_json", "write_atomically", "write_outputs"]
+
+CONTROLLER_NODE = "valve_controller"   # the node whose section a parameters file carries
+
+
+class ParametersFileError(ValueError):
+    """A parameters file that cannot be read or has no usable ``valve_controller`` section."""
 
 
 def read_record(path, topic: Optional[str] = None, log: Callable[[str], None] = print,
@@ -126,26 +133,60 @@ def controller_parameters(comp: Compensation) -> dict:
 
 
 def _yaml_value(value) -> str:
+    """One parameter value as YAML, keeping its ROS type (bool, integer, double, string, double array)."""
     if isinstance(value, bool):
         return "true" if value else "false"
-    if isinstance(value, list):
+    if isinstance(value, (list, tuple)):
         return "[" + ", ".join(repr(float(x)) for x in value) + "]"
+    if isinstance(value, str):
+        return json.dumps(value)  # a double-quoted YAML scalar
+    if isinstance(value, int):
+        return str(value)
     return repr(float(value))
 
 
-def controller_parameters_yaml(comp: Compensation, source: str, report: dict) -> str:
-    """A ROS parameters file for ``valve_controller`` with the compensation model, and comments that say what
-    it is and what was left out."""
-    lines = [f"# Fitted by valve_identify from {source}",
-             f"# final model {report['final']['model']}; held-out RMS {report['baseline']['validate']['rms_um']:.4f} um "
-             f"(baseline {report['baseline']['model']}) -> {report['final']['validate']['rms_um']:.4f} um",
-             f"# compensation model: {comp.model.name}"]
-    for name, why in comp.refused.items():
-        lines.append(f"# not compensated: {why}")
-    lines += ["/**/valve_controller:", "  ros__parameters:"]
-    for key, value in controller_parameters(comp).items():
+def parameters_yaml(values: dict, comments: list[str]) -> str:
+    """A ROS parameters file for ``valve_controller``: ``comments`` (one line each) then ``values``."""
+    lines = [f"# {c}" for c in comments] + [f"/**/{CONTROLLER_NODE}:", "  ros__parameters:"]
+    for key, value in values.items():
         lines.append(f"    {key}: {_yaml_value(value)}")
     return "\n".join(lines) + "\n"
+
+
+def controller_parameters_yaml(comp: Compensation, source: str, report: dict, extra: Optional[dict] = None,
+                               extra_comments: Optional[list[str]] = None) -> str:
+    """A ROS parameters file for ``valve_controller`` with the compensation model (and ``extra`` parameters,
+    e.g. tuned gains), and comments that say what it is and what was left out."""
+    comments = [f"Fitted by valve_identify from {source}",
+                f"final model {report['final']['model']}; held-out RMS {report['baseline']['validate']['rms_um']:.4f} "
+                f"um (baseline {report['baseline']['model']}) -> {report['final']['validate']['rms_um']:.4f} um",
+                f"compensation model: {comp.model.name}"]
+    comments += [f"not compensated: {why}" for why in comp.refused.values()] + list(extra_comments or [])
+    return parameters_yaml({**controller_parameters(comp), **(extra or {})}, comments)
+
+
+def read_parameters_file(path: str | os.PathLike) -> dict:
+    """The ``valve_controller`` parameters of a ROS parameters file (as ``valve_identify --params-out`` writes:
+    a ``ros__parameters`` mapping under ``valve_controller``, ``/**/valve_controller`` or a namespaced name
+    ending in it).  Raises ParametersFileError with the reason."""
+    import yaml  # python3-yaml: a dependency of rclpy and of this package, imported where it is needed
+    try:
+        with open(path) as f:
+            doc = yaml.safe_load(f)
+    except OSError as exc:
+        raise ParametersFileError(f"cannot read {path}: {exc.strerror or exc}") from None
+    except yaml.YAMLError as exc:
+        raise ParametersFileError(f"{path} is not YAML: {str(exc).splitlines()[0]}") from None
+    if not isinstance(doc, dict):
+        raise ParametersFileError(f"{path}: expected a mapping of node names, got {type(doc).__name__}")
+    sections = [v for k, v in doc.items() if str(k).rstrip("/").split("/")[-1] == CONTROLLER_NODE]
+    if not sections:
+        raise ParametersFileError(f"{path}: no {CONTROLLER_NODE} section (nodes in the file: "
+                                  f"{', '.join(map(str, doc)) or 'none'})")
+    params = sections[0].get("ros__parameters") if isinstance(sections[0], dict) else None
+    if not isinstance(params, dict):
+        raise ParametersFileError(f"{path}: the {CONTROLLER_NODE} section has no ros__parameters mapping")
+    return params
 
 
 def write_atomically(path: str | os.PathLike, text: str) -> None:

@@ -1,0 +1,468 @@
+"""PID gains for a strategy, chosen on the identified model (the paper's came from a proprietary tuner).
+
+The tuner only knows what identification found (a :class:`~.compensation.CompensationModel`: GPIM, G_v,
+creep, saturation map).  It
+
+1. screens a grid of PID gains on the *linearised* loop: the controller's exact discrete PID (integrator,
+   filtered derivative) times the plant the PID sees, ``z^-1 G_v(z)`` (ZOH) with the creep lags: the
+   command of period k is answered at k + 1, one period of computation delay, the lockstep rig's timing.
+   For ``pid``, ``ff_pid`` and ``ff_pid_g`` the PID acts through the nominal static gain k, so the plant's
+   gain is the local slope of the hysteresis (and the saturation map) over k: from one operator's weight
+   just after a reversal to all of them on a long sweep; the margins must hold over that whole range.
+   ``pid_hc`` acts through the inverse, so its plant gain is 1.  A candidate passes when the loop is stable
+   (closed-loop poles), its gain margin >= ``min_gain_margin_db``, phase margin >= ``min_phase_margin_deg``
+   and its noise gain (the PID's gain at the Nyquist frequency, um of command per um of measurement noise)
+   <= ``max_noise_gain``;
+2. runs the paper's three steps (2 ms ramps) with the real controller (``strategies.ValveController``) on the
+   identified model as a valve (:class:`ModelValve`) for the candidates that pass, and keeps the one with
+   the shortest average settling time whose overshoot stays <= ``max_overshoot_pct`` on every step, on the
+   model and on the model with its dynamics ``DYNAMICS_SCALES`` times faster and slower (an identified G_v
+   is not the valve's: a PI zero placed on the fitted pole overshoots on the real one) (the
+   commands clamped to the command limits with the controller's anti-windup, as on the rig; the time they
+   spend on a limit is reported and breaks ties);
+3. refines it by a pattern search (halving steps in log kp, log ki, log kd) under the same constraints.
+
+Nothing here imports ROS: ``valve_tune`` and the identification node's ``tune`` step are faces over
+:func:`tune`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Callable, Optional
+
+import numpy as np
+
+from .compensation import CompensationModel
+from .dynamics import first_order_lag
+from .experiments import responses, run_closed_loop
+from .metrics import StepMetrics, step_metrics
+from .signals import PAPER_STEPS_UM, step_reference_m
+from .strategies import ControllerConfig, PIDGains, ValveController, nominal_static_gain
+
+__all__ = ["TUNABLE_STRATEGIES", "TuningLimits", "LoopMargins", "StepScore", "TuningResult", "TuningError",
+           "ModelValve", "plant_gain_range", "loop_margins", "step_score", "tune"]
+
+TUNABLE_STRATEGIES = ("pid", "pid_hc", "ff_pid", "ff_pid_g")
+OVERSHOOT_LIMIT_PCT = 2.0      # default: no step may overshoot by more than this [% of the step]
+MIN_GAIN_MARGIN_DB = 6.0       # default: the loop gain may double before the loop goes unstable ...
+MIN_PHASE_MARGIN_DEG = 45.0    # ... and this much extra phase lag is tolerated
+MAX_NOISE_GAIN = 3.0           # default: |PID| at the Nyquist frequency [um/um]; the most aggressive Table 1
+#                                set (PID 2) has 2.4 at 10 kHz, 2.9 at 1 kHz
+GAIN_POINTS = 5                # plant gains checked across the slope range (pid, ff_pid, ff_pid_g)
+FREQUENCY_POINTS = 600         # frequencies of the margin computation, log-spaced up to Nyquist
+KP_GRID = np.geomspace(0.005, 20.0, 25)    # proportional gains screened [-]
+ZERO_GRID_RATIO = np.geomspace(0.05, 4.0, 10)  # PI zero ki/kp as a share of the plant's slowest pole [-]
+DERIVATIVE_GRID_S = (0.0, 1e-4, 3e-4)      # kd/kp screened [s] (0: PI, as all of Table 1)
+WALK_PAST_FEASIBLE = 1         # per (zero, kd) pair the kp grid is walked down to the first feasible value and
+#                                this many feasible ones after it
+REFINE_ROUNDS = 4              # pattern-search rounds (the step halves each round)
+REFINE_START_STEP = 0.4        # first pattern step in natural-log units (x1.5)
+DYNAMICS_SCALES = (0.9, 1.1)   # the overshoot limit must also hold with G_v this much slower and faster
+RAIL_MARGIN_V = 1e-9           # a command this close to a limit is on it
+MIN_DERIVATIVE_S = 1e-6        # kd/kp below this [s] is no derivative action: the search sets kd = 0
+
+
+class TuningError(ValueError):
+    """The tuner cannot tune this strategy on this model (with the reason)."""
+
+
+@dataclass(frozen=True)
+class TuningLimits:
+    """The tuner's constraints (defaults: the module's named constants)."""
+
+    max_overshoot_pct: float = OVERSHOOT_LIMIT_PCT
+    min_gain_margin_db: float = MIN_GAIN_MARGIN_DB
+    min_phase_margin_deg: float = MIN_PHASE_MARGIN_DEG
+    max_noise_gain: float = MAX_NOISE_GAIN
+
+    def problems(self) -> list[str]:
+        out = []
+        for name in ("max_overshoot_pct", "min_gain_margin_db", "min_phase_margin_deg", "max_noise_gain"):
+            x = getattr(self, name)
+            if not (isinstance(x, (int, float)) and math.isfinite(x) and x >= 0):
+                out.append(f"{name} must be a finite number >= 0, got {x!r}")
+        if not out and self.min_phase_margin_deg >= 90:
+            out.append("min_phase_margin_deg must be < 90")
+        if not out and self.max_noise_gain == 0:
+            out.append("max_noise_gain must be > 0")
+        return out
+
+
+@dataclass(frozen=True)
+class LoopMargins:
+    """Worst case over the plant-gain range: gain margin [dB] (inf: the phase never reaches -180 deg), phase
+    margin [deg], gain crossover [Hz] (the lowest of the range), noise gain [um/um], stable or not."""
+
+    stable: bool
+    gain_margin_db: float
+    phase_margin_deg: float
+    crossover_hz: float
+    noise_gain: float
+
+    def meets(self, limits: TuningLimits) -> bool:
+        return (self.stable and self.gain_margin_db >= limits.min_gain_margin_db
+                and self.phase_margin_deg >= limits.min_phase_margin_deg and self.noise_gain <= limits.max_noise_gain)
+
+    def text(self) -> str:
+        if not self.stable:
+            return f"unstable (noise gain {self.noise_gain:.2f})"
+        gm = "inf" if math.isinf(self.gain_margin_db) else f"{self.gain_margin_db:.1f}"
+        return (f"gain margin {gm} dB, phase margin {self.phase_margin_deg:.1f} deg, crossover "
+                f"{self.crossover_hz:.0f} Hz, noise gain {self.noise_gain:.2f}")
+
+
+@dataclass(frozen=True)
+class StepScore:
+    """The paper's three steps on one valve: each step's metrics and the time the command spent on a command
+    limit from the ramps on [s, all steps together]."""
+
+    steps: tuple[StepMetrics, ...]
+    rail_time_s: float
+
+    @property
+    def settling_time_s(self) -> float:
+        """Average settling time [s]."""
+        return float(np.mean([m.settling_time_s for m in self.steps]))
+
+    @property
+    def overshoot_pct(self) -> float:
+        """Average overshoot [%] (the paper's Table 1 column)."""
+        return float(np.mean([m.overshoot_pct for m in self.steps]))
+
+    @property
+    def worst_overshoot_pct(self) -> float:
+        return float(max(m.overshoot_pct for m in self.steps))
+
+
+@dataclass(frozen=True)
+class TuningResult:
+    strategy: str
+    gains: PIDGains
+    margins: LoopMargins
+    score: StepScore            # on the identified model (what the tuner optimised)
+    limits: TuningLimits
+    screened: int               # candidates whose margins were computed
+    simulated: int              # candidates run through the steps
+
+    def parameters(self) -> dict:
+        """``valve_controller`` parameters selecting these gains (a Table 1 gain set cleared)."""
+        return {"strategy": self.strategy, "kp": float(self.gains.kp), "ki": float(self.gains.ki),
+                "kd": float(self.gains.kd), "gain_set": ""}
+
+    def summary(self) -> str:
+        s = self.score
+        return (f"{self.strategy}: kp {self.gains.kp:.4g}, ki {self.gains.ki:.4g} 1/s, kd {self.gains.kd:.3g} s; "
+                f"on the model: settling {1e3 * s.settling_time_s:.2f} ms, overshoot {s.overshoot_pct:.2f} % "
+                f"(worst {s.worst_overshoot_pct:.2f} %), {1e3 * s.rail_time_s:.1f} ms on a command limit; "
+                f"{self.margins.text()}")
+
+
+# ---------------------------------------------------------------------- the identified model as a valve
+class ModelValve:
+    """The identified model run forwards, ``step(v) -> position [m]`` once per ``dt`` (the same timing as
+    ``simulator.SimulatedValve``): GPIM -> creep -> saturation map -> G_v.  No noise, no amplifier."""
+
+    def __init__(self, model: CompensationModel, dt: float, initial_voltage_v: float):
+        self.model, self.dt, self.initial_voltage_v = model, float(dt), float(initial_voltage_v)
+        self.reset()
+
+    def reset(self) -> None:
+        m = self.model
+        self._gpim = m.gpim.stream(v0=self.initial_voltage_v)
+        y0 = m.gpim.output_from_state(self._gpim.state)
+        self._creep = [(g, first_order_lag(tau, self.dt)) for tau, g in zip(m.creep.time_constants_s, m.creep.gains)
+                       if g]
+        for _, lag in self._creep:
+            lag.reset(y0)
+        self._map = m.output_map
+        self._gv = m.valve_model.discretise(self.dt)
+        self._gv.reset(self._map.value(y0))
+
+    def step(self, voltage_v: float) -> float:
+        h = self._gpim.step(voltage_v)
+        y = h
+        for g, lag in self._creep:
+            y += g * (lag.step(h) - h)
+        return self._gv.step(self._map.value(y)) * 1e-6
+
+
+# ---------------------------------------------------------------------- the linearised loop
+def _poly_mul(*polys: np.ndarray) -> np.ndarray:
+    out = np.ones(1)
+    for p in polys:
+        out = np.convolve(out, p)
+    return out
+
+
+def _poly_add(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    n = max(p.size, q.size)
+    return np.pad(p, (0, n - p.size)) + np.pad(q, (0, n - q.size))
+
+
+def _pid_polynomials(gains: PIDGains, dt: float, derivative_filter_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The controller's discrete PID (``ValveController.step``) as (num, den) in powers of z^-1:
+    kp + ki dt / (1 - z^-1) + (alpha kd / dt) (1 - z^-1) / (1 - (1 - alpha) z^-1), alpha = dt / (T_f + dt)."""
+    alpha = dt / (derivative_filter_s + dt)
+    integ = np.array([1.0, -1.0])
+    filt = np.array([1.0, -(1.0 - alpha)])
+    den = _poly_mul(integ, filt)
+    num = gains.kp * den
+    num = _poly_add(num, gains.ki * dt * filt)
+    num = _poly_add(num, (alpha * gains.kd / dt) * _poly_mul(integ, integ))
+    return num, den
+
+
+def _plant_polynomials(model: CompensationModel, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """z^-1 G_v(z) at unit gain, (num, den) in powers of z^-1."""
+    g = model.valve_model.discretise(dt)
+    return np.concatenate(([0.0], g.b)), g.a.copy()     # one period of delay
+
+
+def _creep_response(model: CompensationModel, dt: float, zinv: np.ndarray) -> np.ndarray:
+    """The creep's frequency response (1 - sum c) + sum c_i lag_i(z), each lag evaluated on its own (one
+    rational function of all of them loses its precision near z = 1)."""
+    out = np.full(zinv.shape, 1.0 - model.creep.gain_sum, complex)
+    for tau, c in zip(model.creep.time_constants_s, model.creep.gains):
+        if c:
+            lag = first_order_lag(tau, dt)
+            out += c * np.polyval(lag.b[::-1], zinv) / np.polyval(lag.a[::-1], zinv)
+    return out
+
+
+def plant_gain_range(strategy: str, model: CompensationModel, command_min_v: float, command_max_v: float
+                     ) -> tuple[float, float]:
+    """(lowest, highest) gain of the plant the PID sees [um/um]: 1 for ``pid_hc`` (it acts through the
+    inverse); for the others the local slope of map(GPIM) over the nominal static gain k: one operator's
+    weight on the flattest envelope just after a reversal, all weights on the steepest on a long sweep."""
+    if strategy == "pid_hc":
+        return 1.0, 1.0
+    g = model.gpim
+    v = np.linspace(command_min_v, command_max_v, 201)
+    env_slopes = [np.full_like(v, g.a0)]
+    if not g.symmetric:
+        env_slopes.append(g.b0 + 2.0 * g.b2 * v)
+    env_lo = float(min(s.min() for s in env_slopes))
+    env_hi = float(max(s.max() for s in env_slopes))
+    first = float(g.weights[0]) if g.thresholds[0] == 0 else 0.0
+    lo_um, hi_um = g.output_range(command_min_v, command_max_v)
+    map_slopes = model.output_map.slopes(np.linspace(lo_um, hi_um, 201))
+    k = nominal_static_gain(g, command_min_v, command_max_v)
+    low = max(first, 0.0) * env_lo * float(map_slopes.min()) / k
+    high = float(np.sum(g.weights)) * env_hi * float(map_slopes.max()) / k
+    return max(low, 1e-3 * high), high
+
+
+def _margins_one(L: np.ndarray, w: np.ndarray) -> tuple[float, float, float]:
+    """(gain margin dB, phase margin deg, lowest crossover rad/s) of a loop response L(w), w ascending."""
+    mag = np.abs(L)
+    phase = np.unwrap(np.angle(L))
+    phase -= 2 * np.pi * np.round((phase[0] + np.pi / 2) / (2 * np.pi))  # the integrator: about -90 deg at w[0]
+    logmag = np.log(mag)
+    cross = np.flatnonzero((logmag[:-1] >= 0) & (logmag[1:] < 0) | (logmag[:-1] < 0) & (logmag[1:] >= 0))
+    pm, wc = math.inf, math.nan
+    for i in cross:
+        f = logmag[i] / (logmag[i] - logmag[i + 1])
+        ph = phase[i] + f * (phase[i + 1] - phase[i])
+        pm = min(pm, math.degrees(ph) + 180.0)
+        wi = w[i] * (w[i + 1] / w[i]) ** f
+        wc = wi if math.isnan(wc) else min(wc, wi)
+    gm = math.inf
+    # phase crossings of -180 deg (and -540, ...)
+    shifted = (phase + np.pi) / (2 * np.pi)
+    k = np.floor(shifted)
+    pcross = np.flatnonzero(np.diff(k) != 0)
+    for i in pcross:
+        level = 2 * np.pi * max(k[i], k[i + 1]) - np.pi
+        f = (phase[i] - level) / (phase[i] - phase[i + 1])
+        lm = logmag[i] + f * (logmag[i + 1] - logmag[i])
+        gm = min(gm, -20.0 * lm / math.log(10.0))
+    return gm, pm, wc
+
+
+def loop_margins(strategy: str, gains: PIDGains, model: CompensationModel, dt: float,
+                 command_min_v: float = ControllerConfig.command_min_v,
+                 command_max_v: float = ControllerConfig.command_max_v,
+                 derivative_filter_s: float = ControllerConfig.derivative_filter_s,
+                 gain_range: Optional[tuple[float, float]] = None) -> LoopMargins:
+    """Margins of ``strategy`` with ``gains`` on ``model`` sampled every ``dt`` [s], worst case over the plant
+    gain range (see :func:`plant_gain_range`)."""
+    if strategy not in TUNABLE_STRATEGIES:
+        raise TuningError(f"{strategy} has no feedback loop; tunable: {', '.join(TUNABLE_STRATEGIES)}")
+    lo, hi = gain_range or plant_gain_range(strategy, model, command_min_v, command_max_v)
+    cnum, cden = _pid_polynomials(gains, dt, derivative_filter_s)
+    pnum, pden = _plant_polynomials(model, dt)
+    w = np.geomspace(1e-3 * _slowest_pole(model), math.pi / dt, FREQUENCY_POINTS)
+    zinv = np.exp(-1j * w * dt)
+    c_resp = np.polyval(cnum[::-1], zinv) / np.polyval(cden[::-1], zinv)
+    p_resp = np.polyval(pnum[::-1], zinv) / np.polyval(pden[::-1], zinv) * _creep_response(model, dt, zinv)
+    noise = float(abs(np.polyval(cnum[::-1], -1.0) / np.polyval(cden[::-1], -1.0)))
+    stable, gm, pm, wc = True, math.inf, math.inf, math.nan
+    for g in np.geomspace(lo, hi, GAIN_POINTS) if hi > lo else [hi]:
+        # closed-loop poles of the loop without the creep lags (slow, a few % of the gain: in the margins)
+        char = _poly_add(_poly_mul(cden, pden), g * _poly_mul(cnum, pnum))
+        char = np.trim_zeros(char, "b")
+        if np.any(np.abs(np.roots(char)) >= 1.0):
+            stable = False
+            break
+        gm_g, pm_g, wc_g = _margins_one(g * c_resp * p_resp, w)
+        gm, pm = min(gm, gm_g), min(pm, pm_g)
+        wc = wc_g if math.isnan(wc) else min(wc, wc_g)
+    if not stable:
+        return LoopMargins(False, -math.inf, -math.inf, math.nan, noise)
+    return LoopMargins(True, gm, pm, wc / (2 * math.pi), noise)
+
+
+def _slowest_pole(model: CompensationModel) -> float:
+    """The slowest pole of G_v [rad/s]."""
+    poles = np.roots(model.valve_model.den)
+    return float(np.min(np.abs(poles)))
+
+
+def _gains(kp: float, zero_rad_s: float, derivative_s: float) -> PIDGains:
+    """PID gains from kp, the PI zero ki/kp [rad/s] and kd/kp [s]."""
+    return PIDGains(float(kp), float(kp * zero_rad_s), float(kp * derivative_s))
+
+
+def time_scaled(model: CompensationModel, factor: float) -> CompensationModel:
+    """``model`` with G_v ``factor`` times faster: G(s / factor) (poles and zeros times ``factor``, same DC)."""
+    def scaled(coefs):
+        n = len(coefs) - 1
+        return tuple(float(c) * factor ** -(n - i) for i, c in enumerate(coefs))
+    num, den = scaled(model.valve_model.num), scaled(model.valve_model.den)
+    return replace(model, valve_model=type(model.valve_model)(num, tuple(d / den[0] for d in den)))
+
+
+# ---------------------------------------------------------------------- the steps
+def step_score(config: ControllerConfig, model: CompensationModel, valve_factory: Callable[[], object],
+               initial_voltage_v: float, steps=PAPER_STEPS_UM) -> StepScore:
+    """The paper's step tests (2 ms ramps, fresh valve each) with ``config`` on valves from ``valve_factory``
+    (anything with ``step(v) -> m``)."""
+    metrics, rail_periods = [], 0
+    for start_um, end_um in steps:
+        valve = valve_factory()
+        controller = ValveController(config, model)
+        controller.reset(initial_voltage_v)
+        ref, k0 = step_reference_m(config.dt, start_um, end_um)
+        rec = run_closed_loop(valve, controller, ref, first_position_m=valve.step(initial_voltage_v))
+        y = responses(valve, rec)
+        metrics.append(step_metrics(y, k0, start_um, end_um, config.dt))
+        v = rec.command_v[k0:]
+        rail_periods += int(np.count_nonzero((v <= config.command_min_v + RAIL_MARGIN_V)
+                                             | (v >= config.command_max_v - RAIL_MARGIN_V)))
+    return StepScore(tuple(metrics), rail_periods * config.dt)
+
+
+def _key(score: StepScore) -> tuple[float, float, float]:
+    return score.settling_time_s, score.rail_time_s, score.worst_overshoot_pct
+
+
+def tune(strategy: str, model: CompensationModel, dt: float, limits: TuningLimits = TuningLimits(),
+         config: Optional[ControllerConfig] = None, plant: Optional[CompensationModel] = None,
+         log: Callable[[str], None] = lambda s: None) -> TuningResult:
+    """PID gains for ``strategy`` with the controller running on ``model`` at control period ``dt`` [s] (see
+    the module docstring).  The valve is ``plant`` (what identification found; default ``model`` itself, the
+    controller inverting all of it); ``config`` gives the command range and derivative filter (default
+    ControllerConfig's).  Raises TuningError when the strategy has no loop, the inputs are bad or no
+    candidate meets ``limits``."""
+    if strategy not in TUNABLE_STRATEGIES:
+        raise TuningError(f"{strategy!r} has no feedback loop to tune; tunable: {', '.join(TUNABLE_STRATEGIES)}")
+    problems = limits.problems()
+    if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+        problems.append(f"dt must be > 0, got {dt!r}")
+    base = replace(config or ControllerConfig(), strategy=strategy, dt=float(dt) if not problems else 1e-3)
+    plant = model if plant is None else plant
+    problems += base.problems() + model.problems(base.command_min_v, base.command_max_v, base.dt)
+    problems += [f"plant: {p}" for p in plant.problems(base.command_min_v, base.command_max_v)] if plant is not model else []
+    if problems:
+        raise TuningError("; ".join(problems))
+    v0 = base.centre_voltage_v
+    gain_range = plant_gain_range(strategy, plant, base.command_min_v, base.command_max_v)
+    log(f"tune {strategy}: plant gain {gain_range[0]:.3g}..{gain_range[1]:.3g}, period {1e3 * dt:.3g} ms; "
+        f"limits: overshoot <= {limits.max_overshoot_pct:g} %, gain margin >= {limits.min_gain_margin_db:g} dB, "
+        f"phase margin >= {limits.min_phase_margin_deg:g} deg, noise gain <= {limits.max_noise_gain:g}")
+
+    margins_cache: dict[PIDGains, LoopMargins] = {}
+
+    def margins(g: PIDGains) -> LoopMargins:
+        if g not in margins_cache:
+            margins_cache[g] = loop_margins(strategy, g, plant, dt, base.command_min_v, base.command_max_v,
+                                            base.derivative_filter_s, gain_range)
+        return margins_cache[g]
+
+    scores: dict[PIDGains, StepScore] = {}
+
+    def score(g: PIDGains) -> StepScore:
+        if g not in scores:
+            scores[g] = step_score(replace(base, gains=g), model, lambda: ModelValve(plant, dt, v0), v0)
+        return scores[g]
+
+    variants = [time_scaled(plant, f) for f in DYNAMICS_SCALES]
+    robust: dict[PIDGains, bool] = {}
+
+    def feasible(g: PIDGains) -> bool:
+        if not margins(g).meets(limits) or score(g).worst_overshoot_pct > limits.max_overshoot_pct:
+            return False
+        if g not in robust:
+            robust[g] = all(step_score(replace(base, gains=g), model, lambda: ModelValve(p, dt, v0), v0)
+                            .worst_overshoot_pct <= limits.max_overshoot_pct for p in variants)
+        return robust[g]
+
+    def better(g: PIDGains, than: Optional[PIDGains]) -> bool:
+        """Feasible and better than ``than``: the costly robustness check only for a candidate that would win."""
+        if not margins(g).meets(limits) or (than is not None and _key(score(g)) >= _key(score(than))):
+            return False
+        return feasible(g)
+
+    # 1. screen the grid on the margins; 2. per (zero, kd) walk down from the largest kp that passes them to
+    # the first that also keeps the overshoot (and the next one down: it may settle sooner)
+    pole = _slowest_pole(plant)
+    pairs = [(ratio * pole, td) for ratio in ZERO_GRID_RATIO for td in DERIVATIVE_GRID_S]
+    passing = {pair: [kp for kp in KP_GRID if margins(_gains(kp, *pair)).meets(limits)] for pair in pairs}
+    log(f"tune {strategy}: {len(margins_cache)} gain sets screened, "
+        f"{sum(len(v) for v in passing.values())} meet the margins; running the paper's steps on the identified model")
+    best: Optional[PIDGains] = None
+    for i, pair in enumerate(pairs):
+        found = 0
+        for kp in passing[pair][::-1]:
+            g = _gains(kp, *pair)
+            if not feasible(g):
+                continue
+            if best is None or _key(score(g)) < _key(score(best)):
+                best = g
+            found += 1
+            if found == WALK_PAST_FEASIBLE + 1:
+                break
+        if (i + 1) % 10 == 0:
+            log(f"tune {strategy}: {i + 1}/{len(pairs)} zero/derivative pairs run ({len(scores)} step runs)")
+    if best is None:
+        if not any(passing.values()):
+            raise TuningError(f"no PID gains for {strategy} meet the margins on this model ({limits})")
+        raise TuningError(f"no PID gains for {strategy} that meet the margins keep the overshoot <= "
+                          f"{limits.max_overshoot_pct:g} % on this model")
+    log(f"tune {strategy}: best of the grid kp {best.kp:.4g}, ki {best.ki:.4g}, kd {best.kd:.3g}: settling "
+        f"{1e3 * score(best).settling_time_s:.2f} ms; refining")
+    # 3. pattern search in log gains
+    step = REFINE_START_STEP
+    for _ in range(REFINE_ROUNDS):
+        improved = True
+        while improved:
+            improved = False
+            for axis in ("kp", "ki", "kd"):
+                for sign in (1.0, -1.0):
+                    value = getattr(best, axis)
+                    if value == 0.0:
+                        if axis != "kd" or sign < 0:
+                            continue
+                        trial = replace(best, kd=best.kp * DERIVATIVE_GRID_S[1] * 0.5)
+                    else:
+                        trial = replace(best, **{axis: value * math.exp(sign * step)})
+                        if axis == "kd" and trial.kd < MIN_DERIVATIVE_S * trial.kp:
+                            trial = replace(trial, kd=0.0)
+                    if better(trial, best):
+                        best, improved = trial, True
+        step /= 2
+    result = TuningResult(strategy, best, margins(best), score(best), limits, len(margins_cache),
+                          len(scores) + len(variants) * len(robust))
+    log(f"tune {strategy}: {result.summary()}")
+    return result

@@ -1,0 +1,114 @@
+"""``valve_tune``: PID gains for a strategy, chosen on an identified model (a ``valve_identify --params-out`` file).
+
+    valve_tune fitted.yaml [--strategy pid_hc] [--control-period-s 0.001] [--max-overshoot-pct 2]
+               [--min-gain-margin-db 6] [--min-phase-margin-deg 45] [--max-noise-gain 3]
+               [--compare] [--params-out tuned.yaml]
+
+Prints the gains with their margins and the paper's three steps on the model; ``--compare`` also shows the
+paper's Table 1 sets for the strategy on the same model.  ``--params-out`` writes the file's parameters with
+the tuned strategy and gains (atomically; nothing is written when tuning fails), ready for
+``ros2 run piezo_valve_ros valve_controller --ros-args --params-file tuned.yaml``.  The identification
+node's ``tune`` step does the same on the rig and pushes the gains to the running controller.
+A thin face over ``piezo_valve_ros.core.tuning``; no ROS import.  Exit codes: 0 done, 2 bad input or no
+gains meet the limits, 1 anything else.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .core.compensation import CompensationModel
+from .core.drive import COMMAND_MAX_V, COMMAND_MIN_V
+from .core.strategies import TABLE1_GAINS, ControllerConfig
+from .core.tuning import (MAX_NOISE_GAIN, MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG, OVERSHOOT_LIMIT_PCT,
+                          TUNABLE_STRATEGIES, ModelValve, TuningError, TuningLimits, loop_margins, step_score, tune)
+from .core.signals import PAPER_STEPS_UM
+from .identify import ParametersFileError, parameters_yaml, read_parameters_file, write_outputs
+from .validation import as_float
+
+__all__ = ["main"]
+
+DEFAULT_PERIOD_S = 1e-3   # the controller's default control period
+
+
+def _steps_text(score) -> list[str]:
+    rows = []
+    for (a, b), m in zip(PAPER_STEPS_UM, score.steps):
+        rows.append(f"    {a:6.1f} -> {b:5.1f} um: settling {1e3 * m.settling_time_s:6.2f} ms, "
+                    f"overshoot {m.overshoot_pct:5.2f} %")
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="valve_tune", description=__doc__.split("\n\n")[0])
+    ap.add_argument("params_file", help="valve_controller parameters file with the identified model "
+                                        "(valve_identify --params-out)")
+    ap.add_argument("--strategy", default="pid_hc", choices=TUNABLE_STRATEGIES)
+    ap.add_argument("--control-period-s", type=float, help=f"control period [s] (default: the file's "
+                                                           f"control_period_s, else {DEFAULT_PERIOD_S:g})")
+    ap.add_argument("--max-overshoot-pct", type=float, default=OVERSHOOT_LIMIT_PCT)
+    ap.add_argument("--min-gain-margin-db", type=float, default=MIN_GAIN_MARGIN_DB)
+    ap.add_argument("--min-phase-margin-deg", type=float, default=MIN_PHASE_MARGIN_DEG)
+    ap.add_argument("--max-noise-gain", type=float, default=MAX_NOISE_GAIN,
+                    help="PID gain at the Nyquist frequency [um of command per um of measurement]")
+    ap.add_argument("--compare", action="store_true", help="also show Table 1's sets for the strategy on the model")
+    ap.add_argument("--params-out", metavar="FILE", help="write the parameters with the tuned gains here")
+    ap.add_argument("--quiet", action="store_true", help="no progress lines")
+    args = ap.parse_args(argv)
+    log = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
+    try:
+        params = read_parameters_file(args.params_file)
+        dt = args.control_period_s if args.control_period_s is not None else \
+            as_float("control_period_s", params.get("control_period_s", DEFAULT_PERIOD_S))
+        v_min = as_float("command_min_v", params.get("command_min_v", COMMAND_MIN_V))
+        v_max = as_float("command_max_v", params.get("command_max_v", COMMAND_MAX_V))
+        config = ControllerConfig(strategy=args.strategy, dt=dt, command_min_v=v_min, command_max_v=v_max,
+                                  centre_voltage_v=as_float("centre_voltage_v", params.get("centre_voltage_v",
+                                                                                           ControllerConfig.centre_voltage_v)))
+        problems = config.problems()
+        if problems:
+            raise TuningError("; ".join(problems))
+        try:
+            model = CompensationModel.from_parameters(params, v_min, v_max, dt)
+        except ValueError as exc:
+            raise ParametersFileError(f"{args.params_file}: {exc}") from None
+        limits = TuningLimits(args.max_overshoot_pct, args.min_gain_margin_db, args.min_phase_margin_deg,
+                              args.max_noise_gain)
+        result = tune(args.strategy, model, dt, limits, config, log=log)
+        lines = [f"tuned {result.summary()}", "  on the model:"] + _steps_text(result.score)
+        if args.compare:
+            lines.append(f"  Table 1's {args.strategy} sets on the same model:")
+            v0 = config.centre_voltage_v
+            for name, (strategy, gains) in TABLE1_GAINS.items():
+                if strategy != args.strategy:
+                    continue
+                s = step_score(ControllerConfig(strategy, gains, dt, v_min, v_max, v0), model,
+                               lambda: ModelValve(model, dt, v0), v0)
+                lines.append(f"    {name}: settling {1e3 * s.settling_time_s:.2f} ms, overshoot {s.overshoot_pct:.2f} % "
+                             f"(worst {s.worst_overshoot_pct:.2f} %); "
+                             f"{loop_margins(strategy, gains, model, dt, v_min, v_max).text()}")
+        written = []
+        if args.params_out:
+            values = {**params, "control_period_s": float(dt), **result.parameters()}
+            comments = [f"Tuned by valve_tune from {args.params_file}: {result.summary()}"]
+            written = write_outputs({args.params_out: parameters_yaml(values, comments)})
+    except (ParametersFileError, TuningError, ValueError) as exc:
+        print(f"valve_tune: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"valve_tune: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("valve_tune: interrupted; nothing written", file=sys.stderr)
+        return 130
+    except Exception as exc:  # one clear line, never a traceback
+        print(f"valve_tune: error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
+    print("\n".join(lines))
+    for path in written:
+        print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
