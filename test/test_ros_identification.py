@@ -24,7 +24,7 @@ def test_identification_refits_pushes_and_cuts_the_ol_hc_error(tmp_path):
         start(group, "controller", node_command("valve_controller", {"control_period_s": PERIOD, "strategy": "ol_hc",
                                                                      "gain_set": ""}, ns), str(tmp_path))
         bags = tmp_path / "runs"
-        ident = {"plan": "validate,train,refit,validate", "time_scale": 0.25, "validation_s": 20.0,
+        ident = {"plan": "validate,train,refit,tune,validate", "time_scale": 0.25, "validation_s": 20.0,
                  "control_period_s": PERIOD, "bag_dir": str(bags), "exit_when_done": True}
         proc = start(group, "identification", node_command("valve_identification", ident, ns), str(tmp_path))
         assert proc.wait(240) == 0, open(tmp_path / "identification.log").read()
@@ -32,8 +32,8 @@ def test_identification_refits_pushes_and_cuts_the_ol_hc_error(tmp_path):
         group.stop()
     log = open(tmp_path / "identification.log").read()
     summary = json.loads((bags / "summary.json").read_text())
-    assert [s["step"] for s in summary] == ["validate", "train", "refit", "validate"]
-    before, after = summary[0], summary[3]
+    assert [s["step"] for s in summary] == ["validate", "train", "refit", "tune", "validate"]
+    before, after = summary[0], summary[4]
     assert after["rms_um"] < 0.25 * before["rms_um"], (before, after)
     assert after["peak_um"] < 0.5 * before["peak_um"]
     refit = summary[2]
@@ -46,6 +46,14 @@ def test_identification_refits_pushes_and_cuts_the_ol_hc_error(tmp_path):
     # the parameters file is a valid controller parameters file, with what was pushed
     params = yaml.safe_load(open(refit["params_out"]).read())["/**/valve_controller"]["ros__parameters"]
     assert len(params["gpim.weights"]) >= 10
+    # tune: gains for pid_hc on the refitted model, within the margins, pushed and in the parameters file
+    tuned = summary[3]
+    assert tuned["ok"] and tuned["pushed"] and tuned["strategy"] == "pid_hc", tuned
+    assert tuned["gain_margin_db"] is None or tuned["gain_margin_db"] >= 6.0
+    assert tuned["phase_margin_deg"] >= 45.0 and tuned["model_overshoot_pct"] <= 2.0
+    assert (params["strategy"], params["kp"], params["ki"], params["kd"]) == \
+        ("pid_hc", tuned["kp"], tuned["ki"], tuned["kd"]) and params["gain_set"] == ""
+    assert f"strategy=pid_hc kp={tuned['kp']} ki={tuned['ki']}" in open(tmp_path / "controller.log").read()
     # the training bag holds the full-rate samples of the whole experiment, and its report
     rows, topic = read_samples(summary[1]["bag"])
     assert topic == f"{ns}/samples"
@@ -76,3 +84,7 @@ def test_bad_plan_is_rejected_with_one_line(tmp_path):
                          env=ros_env(), capture_output=True, text=True, timeout=60)
     assert out.returncode == 2
     assert "unknown step(s) dance" in out.stderr
+    out = subprocess.run(node_command("valve_identification", {"plan": "train,tune,refit"}, f"/bad{os.getpid()}"),
+                         env=ros_env(), capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2
+    assert "tune needs a refit step before it" in out.stderr

@@ -330,7 +330,8 @@ def time_scaled(model: CompensationModel, factor: float) -> CompensationModel:
         n = len(coefs) - 1
         return tuple(float(c) * factor ** -(n - i) for i, c in enumerate(coefs))
     num, den = scaled(model.valve_model.num), scaled(model.valve_model.den)
-    return replace(model, valve_model=type(model.valve_model)(num, tuple(d / den[0] for d in den)))
+    return replace(model, valve_model=type(model.valve_model)(tuple(n / den[0] for n in num),
+                                                              tuple(d / den[0] for d in den)))
 
 
 # ---------------------------------------------------------------------- the steps

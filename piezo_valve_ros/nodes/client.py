@@ -54,6 +54,16 @@ def wait_until_answering(client: AsyncParameterClient, timeout_s: float = 10.0) 
     return False
 
 
+def get_parameter_values(client: AsyncParameterClient, names: list[str], timeout_s: float = 10.0) -> dict:
+    """Values of ``names`` on the node behind ``client`` (all of its parameters when empty); TimeoutError when
+    it does not answer."""
+    if not names:
+        listed = wait_future(client.list_parameters(), timeout_s, "listing parameters")
+        names = sorted(listed.result.names)
+    values = wait_future(client.get_parameters(names), timeout_s, f"getting {', '.join(names)}").values
+    return {n: parameter_value_to_python(v) for n, v in zip(names, values)}
+
+
 def wait_future(future, timeout_s: float, what: str):
     """The result of an rclpy future answered by another thread's executor; TimeoutError naming ``what``."""
     deadline = time.monotonic() + timeout_s
@@ -152,11 +162,7 @@ class RigClient(Node):
 
     def get_params(self, client: AsyncParameterClient, names: list[str], timeout_s: float = 10.0) -> dict:
         """Values of ``names`` on the node behind ``client`` (all of its parameters when empty)."""
-        if not names:
-            listed = wait_future(client.list_parameters(), timeout_s, "listing parameters")
-            names = sorted(listed.result.names)
-        values = wait_future(client.get_parameters(names), timeout_s, f"getting {', '.join(names)}").values
-        return {n: parameter_value_to_python(v) for n, v in zip(names, values)}
+        return get_parameter_values(client, names, timeout_s)
 
     def run_periods(self, periods: int, timeout_s: float = 60.0) -> np.ndarray:
         """Grant ``periods`` control periods to a paused lockstep rig; returns one row per period (its last

@@ -12,6 +12,11 @@ The ``plan`` (comma-separated, run in order once the rig answers) is made of:
               pushed to the controller with one atomic parameter request (all or nothing), then the
               parameters file written atomically.  A failed refit or a rejected push leaves the last
               good parameters (file and controller) untouched.
+``tune``      PID gains for ``tune_strategy`` chosen on the last refit's model (``core.tuning``: margins of the
+              linearised loop with one period of delay, the paper's steps on the model with at most
+              ``tune_max_overshoot_pct`` overshoot), pushed to the controller with one atomic request
+              (strategy, kp, ki, kd; a Table 1 gain set cleared) and added to the parameters file.  Gains that
+              cannot meet the limits are reported and nothing is pushed.
 ``validate``  the controller (switched to ``validation_strategy``, default ``ol_hc``) tracks the paper's
               validation demand (eq. 12) sent on ``position_reference``; the tracking error is logged.
 
@@ -22,6 +27,7 @@ each step did and measured.
 from __future__ import annotations
 
 import json
+import math
 import sys
 import threading
 import time
@@ -39,14 +45,16 @@ from std_msgs.msg import Float64
 from ..bagio import BagError
 from ..core.records import IdentificationError
 from ..core.signals import rig_training_voltage, validation_reference_m
+from ..core.strategies import ControllerConfig
+from ..core.tuning import OVERSHOOT_LIMIT_PCT, TUNABLE_STRATEGIES, TuningError, TuningLimits, tune
 from ..identify import (compensation, controller_parameters, controller_parameters_yaml, identify_bags, report_json,
                         write_atomically)
-from .client import wait_future, wait_until_answering
+from .client import get_parameter_values, wait_future, wait_until_answering
 from .recording import RigRecorder
 from .common import COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, as_float, declare, parameter_values, run_node
 from ..core.drive import CENTRE_VOLTAGE_V
 
-STEPS = ("train", "refit", "validate")
+STEPS = ("train", "refit", "tune", "validate")
 PROGRESS_PERIOD_S = 5.0   # a running experiment logs its progress this often
 
 
@@ -82,6 +90,8 @@ class ValveIdentificationNode(Node):
             ("validation_s", 30.0, "length of the validation demand (eq. 12) [s]"),
             ("validation_amplitude_m", 50e-6, "peak of the validation demand [m]"),
             ("validation_strategy", "ol_hc", "controller strategy during validate"),
+            ("tune_strategy", "pid_hc", f"strategy the tune step chooses gains for: {', '.join(TUNABLE_STRATEGIES)}"),
+            ("tune_max_overshoot_pct", OVERSHOOT_LIMIT_PCT, "tune: largest overshoot of any paper step [%]"),
             ("time_scale", 1.0, "< 1 compresses the experiments in time (quick runs); 1 = the paper's signals"),
             ("bag_dir", "identification_runs", "one bag per experiment is written below this directory"),
             ("storage", "mcap", "bag storage: mcap or sqlite3"),
@@ -98,6 +108,16 @@ class ValveIdentificationNode(Node):
             raise ValueError(f"plan: unknown step(s) {', '.join(unknown)}; steps are {', '.join(STEPS)}")
         if "refit" in self.plan and ("train" not in self.plan or self.plan.index("train") > self.plan.index("refit")):
             raise ValueError("plan: refit needs a train step before it (it refits on that run's bag)")
+        if "tune" in self.plan and ("refit" not in self.plan or self.plan.index("refit") > self.plan.index("tune")):
+            raise ValueError("plan: tune needs a refit step before it (it tunes on that model)")
+        self.tune_strategy = str(p["tune_strategy"])
+        if self.tune_strategy not in TUNABLE_STRATEGIES:
+            raise ValueError(f"tune_strategy must be one of {', '.join(TUNABLE_STRATEGIES)}, got {self.tune_strategy!r}")
+        self.tune_limits = TuningLimits(max_overshoot_pct=as_float("tune_max_overshoot_pct",
+                                                                   p["tune_max_overshoot_pct"]))
+        problems = self.tune_limits.problems()
+        if problems:
+            raise ValueError("; ".join(problems))
         self.period_s = as_float("control_period_s", p["control_period_s"])
         self.training_s = as_float("training_s", p["training_s"])
         self.validation_s = as_float("validation_s", p["validation_s"])
@@ -224,6 +244,7 @@ class ValveIdentificationNode(Node):
                           else (False, "push disabled"))
         if pushed or not self.push:
             write_atomically(self.params_out, controller_parameters_yaml(comp, str(bag), report))
+            self.last_refit = (comp, str(bag), report)  # what a tune step tunes on
         if pushed:
             self.get_logger().info(f"refit: model {comp.model.name} pushed to the controller; parameters in "
                                    f"{self.params_out}")
@@ -232,6 +253,50 @@ class ValveIdentificationNode(Node):
         return {"step": "refit", "ok": True, "model": comp.model.name, "effects_added": report["effects_added"],
                 "baseline_validate": report["baseline"]["validate"], "final_validate": report["final"]["validate"],
                 "params_out": str(self.params_out), "pushed": pushed, "reason": reason}
+
+    def _controller_values(self, names: list[str], timeout_s: float = 10.0) -> dict:
+        """The running controller's values of ``names`` (RuntimeError when it does not answer)."""
+        if not wait_until_answering(self.controller, timeout_s):
+            raise RuntimeError("the controller's parameter services do not answer")
+        return get_parameter_values(self.controller, names, timeout_s)
+
+    def _step_tune(self) -> dict:
+        """Gains for ``tune_strategy`` on the last refit's model, at the controller's period and command range;
+        pushed atomically, then the parameters file rewritten with them.  No gains meeting the limits, or a
+        refused push: reported, the controller and the file left as they were."""
+        last = getattr(self, "last_refit", None)
+        if last is None:
+            self.get_logger().error("tune: no refitted model to tune on (the refit failed or was not pushed)")
+            return {"step": "tune", "ok": False, "reason": "no refitted model"}
+        comp, bag, report = last
+        names = ["control_period_s", "command_min_v", "command_max_v", "centre_voltage_v"]
+        values = self._controller_values(names)
+        config = ControllerConfig(strategy=self.tune_strategy, dt=float(values["control_period_s"]),
+                                  command_min_v=float(values["command_min_v"]),
+                                  command_max_v=float(values["command_max_v"]),
+                                  centre_voltage_v=float(values["centre_voltage_v"]))
+        try:
+            result = tune(self.tune_strategy, comp.controller_model, config.dt, self.tune_limits, config,
+                          log=lambda s: self.get_logger().info(s))
+        except TuningError as exc:
+            self.get_logger().error(f"tune: {exc}; the controller's gains are unchanged")
+            return {"step": "tune", "ok": False, "reason": str(exc)}
+        gains = result.parameters()
+        pushed, reason = self._set_controller(gains, atomically=True) if self.push else (False, "push disabled")
+        if pushed or not self.push:
+            write_atomically(self.params_out, controller_parameters_yaml(
+                comp, bag, report, extra=gains, extra_comments=[f"tuned: {result.summary()}"]))
+        if pushed:
+            self.get_logger().info(f"tune: gains pushed to the controller; parameters in {self.params_out}")
+        elif self.push:
+            self.get_logger().warning(f"tune: gains not pushed ({reason}); parameters file unchanged")
+        m, s = result.margins, result.score
+        finite = lambda x: float(x) if math.isfinite(x) else None  # noqa: E731  (JSON has no infinity)
+        return {"step": "tune", "ok": True, "strategy": result.strategy, "kp": result.gains.kp, "ki": result.gains.ki,
+                "kd": result.gains.kd, "gain_margin_db": finite(m.gain_margin_db),
+                "phase_margin_deg": finite(m.phase_margin_deg),
+                "noise_gain": m.noise_gain, "model_settling_ms": 1e3 * s.settling_time_s,
+                "model_overshoot_pct": s.worst_overshoot_pct, "pushed": pushed, "reason": reason}
 
     def _step_validate(self) -> dict:
         ok, reason = self._set_controller({"enabled": True, "strategy": self.validation_strategy, "gain_set": ""})
