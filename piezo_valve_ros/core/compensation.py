@@ -75,10 +75,12 @@ class StaticInverse:
 
     The ZOH lags depend only on past outputs (``l_k = a l_{k-1} + (1 - a) H_{k-1}``), so ``H_k`` solves
     ``M(H) - g H = S_k - sum_i g_i l_i,k`` (g = sum g_i), which rises in H wherever ``CompensationModel``
-    checked it (``OutputMap.solve`` from the last H).
+    checked it (``OutputMap.solve`` from the last H).  H stays within ``bounds`` [um] (the GPIM's output
+    range: what the valve can deliver, and what the creep lags then follow).
     """
 
-    def __init__(self, creep: CreepModel, output_map: OutputMap, dt: float, h0: float = 0.0):
+    def __init__(self, creep: CreepModel, output_map: OutputMap, dt: float, h0: float = 0.0,
+                 bounds: tuple[float, float] = (-math.inf, math.inf)):
         problems = creep.problems() + output_map.problems()
         if problems:
             raise ValueError("; ".join(problems))
@@ -87,6 +89,7 @@ class StaticInverse:
         self._gsum = float(sum(self._g))
         self._map = output_map
         self._plain = not output_map.active
+        self.bounds = bounds
         self.reset(h0)
 
     def reset(self, h0: float) -> None:
@@ -110,8 +113,11 @@ class StaticInverse:
         for i in range(len(a)):
             lags[i] = a[i] * lags[i] + (1.0 - a[i]) * self._last_h
             acc += g[i] * lags[i]
-        h = (demand_um - acc) / (1.0 - self._gsum) if self._plain else self._map.solve(demand_um - acc, self._last_h,
-                                                                                         self._gsum)
+        lo, hi = self.bounds
+        if self._plain:
+            h = min(max((demand_um - acc) / (1.0 - self._gsum), lo), hi)
+        else:
+            h = self._map.solve(demand_um - acc, self._last_h, self._gsum, lo, hi)
         self._last_h = h
         return h
 

@@ -168,6 +168,8 @@ class ValveController:
         # pid_hc's demand range: the GPIM's output range through the saturation map
         self._loop_min_um = out_map.value(self._demand_min_um)
         self._loop_max_um = out_map.value(self._demand_max_um)
+        if getattr(self, "_static", None) is not None:
+            self._static.bounds = (lo, hi)
 
     def _dynamic_filters(self, comp: CompensationModel):
         """(shaping filter of ff_pid_g's reference, dynamic inverse W or None): (G_v, None) or (F, W)."""
@@ -180,7 +182,8 @@ class ValveController:
         comp = self.compensation
         if not (comp.creep.active or comp.output_map.active):
             return None
-        return StaticInverse(comp.creep, comp.output_map, self.config.dt, h0)
+        return StaticInverse(comp.creep, comp.output_map, self.config.dt, h0,
+                             (self._demand_min_um, self._demand_max_um))
 
     def reset(self, voltage_v: Optional[float] = None, reference_m: Optional[float] = None) -> None:
         """Start afresh: inverses in the virgin state at ``voltage_v`` (default centre), integrator 0."""
@@ -382,7 +385,8 @@ class ValveController:
         if s == "pid_hc":
             u_c = min(max(u, self._loop_min_um), self._loop_max_um)
             if self._map is not None:
-                h_c = self._loop_h = self._map.solve(u_c, self._loop_h)
+                h_c = self._loop_h = self._map.solve(u_c, self._loop_h, 0.0, self._demand_min_um,
+                                                     self._demand_max_um)
             else:
                 h_c = u_c
             v = self._finish(self.loop_inverse.step(h_c), e, di, int(u > u_c) - int(u < u_c))

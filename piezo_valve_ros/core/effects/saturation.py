@@ -111,16 +111,31 @@ class OutputMap:
                 s += c[2 + n + i] * down * down
         return s
 
-    def solve(self, rhs: float, h_start: float, g: float = 0.0) -> float:
-        """The H [um] with ``value(H) - g H = rhs`` (Newton's method from ``h_start``; exact to
-        INVERSE_TOL_UM where the map minus g H rises, as ``problems`` checks)."""
-        h = h_start
+    def solve(self, rhs: float, h_start: float, g: float = 0.0, lo: float = -math.inf, hi: float = math.inf
+              ) -> float:
+        """The H [um] in [lo, hi] with ``value(H) - g H = rhs``, exact to INVERSE_TOL_UM where the map minus
+        g H rises on [lo, hi] (as ``problems`` checks on the output range); ``lo``/``hi`` when the solution lies
+        beyond them.  Newton's method from ``h_start``, kept inside the bracket by bisection: a demand far
+        outside the range (a dynamic feedforward's peak, say) cannot send it where the cubic terms run away."""
+        if lo > -math.inf and self.value(lo) - g * lo - rhs >= 0.0:
+            return lo
+        if hi < math.inf and self.value(hi) - g * hi - rhs <= 0.0:
+            return hi
+        a, b = lo, hi                       # f(a) < 0 < f(b): the root is between
+        h = min(max(h_start, lo), hi)
         for _ in range(INVERSE_ITERATIONS):
             f = self.value(h) - g * h - rhs
+            if f > 0.0:
+                b = h
+            else:
+                a = h
             d = self.slope(h) - g
-            step = f / d if d > MIN_MAP_SLOPE else f / MIN_MAP_SLOPE
-            h -= step
-            if abs(step) <= INVERSE_TOL_UM * (1.0 + abs(h)):
+            new = h - (f / d if d > MIN_MAP_SLOPE else f / MIN_MAP_SLOPE)
+            if not a <= new <= b:           # Newton left the bracket: bisect (both ends finite by then)
+                new = 0.5 * (a + b) if a > -math.inf and b < math.inf else min(max(new, a), b)
+            done = abs(new - h) <= INVERSE_TOL_UM * (1.0 + abs(new))
+            h = new
+            if done:
                 break
         return h
 
