@@ -13,6 +13,7 @@ import numpy as np
 from piezo_valve_ros.core.compensation import CompensationModel
 from piezo_valve_ros.core.experiments import DEFAULT_SWEEP_HZ, frequency_response, paper_step_tests
 from piezo_valve_ros.core.strategies import TABLE1_GAINS, ControllerConfig, PIDGains
+from piezo_valve_ros.core.tuning import OVERSHOOT_LIMIT_PCT, TUNABLE_STRATEGIES, tune
 
 # paper Table 1: name -> (ts 17.5, 52.5, 87.5, avg [ms]; os 17.5, 52.5, 87.5, avg [%])
 PAPER_T1 = {
@@ -77,6 +78,37 @@ def table1(lines):
         print(row)
         lines.append(row)
     return results
+
+
+def table1_tuned(lines, t1):
+    """Issue 11: a "tuned" row per strategy beside the paper's: gains from core.tuning on the paper's model (the
+    one the controller runs on in Table 1) at 10 kHz, the same step tests on the same valve, margins printed."""
+    model = CompensationModel()
+    hdr = ("| controller | kp | ki [1/s] | kd [s] | ts 17.5 | ts 52.5 | ts 87.5 | ts avg | os 17.5 | os 52.5 | os 87.5 "
+           "| os avg | margins (model) | best Table 1 set within 2 % overshoot |")
+    lines += ["", "### Table 1, tuned rows (core.tuning on the paper's model, 10 kHz)", "", hdr, "|" + "---|" * 14]
+    print("\nTable 1 - tuned rows")
+    print(hdr)
+    for strategy in TUNABLE_STRATEGIES:
+        t = time.perf_counter()
+        result = tune(strategy, model, 1e-4)
+        ms = paper_step_tests(ControllerConfig(strategy=strategy, gains=result.gains))
+        ts = [m.settling_time_s * 1e3 for m in ms]
+        os_ = [m.overshoot_pct for m in ms]
+        sets = [n for n in PAPER_T1 if TABLE1_GAINS[n][0] == strategy and t1[n][1] <= OVERSHOOT_LIMIT_PCT]
+        if sets:
+            best = min(sets, key=lambda n: t1[n][0])
+            beats = np.mean(ts) < t1[best][0] and np.mean(os_) <= t1[best][1]
+            cmp = (f"{label(best)} {t1[best][0]:.1f} ms / {t1[best][1]:.1f} %: "
+                   f"{'beaten' if beats else 'not beaten'}")
+        else:
+            cmp = "none"
+        g = result.gains
+        row = (f"| {label(strategy)} tuned | {g.kp:.4g} | {g.ki:.4g} | {g.kd:.3g} | "
+               + " | ".join(f"{x:.1f}" for x in ts) + f" | {np.mean(ts):.1f} | "
+               + " | ".join(f"{x:.1f}" for x in os_) + f" | {np.mean(os_):.1f} | {result.margins.text()} | {cmp} |")
+        print(row + f"  ({time.perf_counter() - t:.0f} s)")
+        lines.append(row)
 
 
 def table2(lines, quick):
@@ -163,6 +195,7 @@ if __name__ == "__main__":
     t0 = time.perf_counter()
     lines = []
     t1 = table1(lines)
+    table1_tuned(lines, t1)
     t2 = table2(lines, args.quick)
     t2d = table2_dynamic(lines, args.quick)
     ok = ranking(t1, t2, lines, t2d)

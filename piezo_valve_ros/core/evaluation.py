@@ -9,7 +9,7 @@ compensation_table.py`` prints the README's table from it; a test runs one case.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Callable
+from typing import TYPE_CHECKING, Callable, Optional
 
 import numpy as np
 
@@ -22,8 +22,11 @@ from .simulator import CreepParams, RateDependenceParams, SaturationParams, Simu
 from .strategies import ControllerConfig, ValveController
 from .valve_model import PAPER_SECTION, unity_dc_poles
 
+if TYPE_CHECKING:
+    from .tuning import LoopMargins, StepScore, TuningResult
+
 __all__ = ["SIMULATED_EFFECTS", "SETTLE_S", "simulated_analysis", "tracking_test", "CompensationResult",
-           "compare_compensations"]
+           "compare_compensations", "TuningComparison", "compare_tuning"]
 
 SETTLE_S = 2.0   # the first seconds of a tracking run are left out of its error (the start from the centre)
 VALIDATION_SEED, TRACKING_SEED = 1, 2   # noise seeds of the validation record and of the tracking run
@@ -91,3 +94,48 @@ def compare_compensations(sim_config: ValveSimConfig, strategies: dict[str, Cont
     errors = {(name, label): tracking_test(config, model, sim_config, reference)
               for name, model in models.items() for label, config in strategies.items()}
     return CompensationResult(list(analysis.report["effects_added"]), dict(extended.refused), errors)
+
+
+@dataclass(frozen=True)
+class TuningComparison:
+    """The tuner's gains against the paper's Table 1 sets for one strategy on one simulated valve: the paper's
+    three steps on the valve (``tuning.StepScore``) and the loop margins on the model, per set name."""
+
+    result: "TuningResult"
+    scores: dict[str, "StepScore"]      # "tuned" and the Table 1 set names
+    margins: dict[str, "LoopMargins"]
+
+    def best_table1(self, max_overshoot_pct: float) -> Optional[str]:
+        """The Table 1 set with the shortest average settling time among those whose average overshoot on the
+        valve is <= ``max_overshoot_pct`` (None: none is)."""
+        ok = [n for n, s in self.scores.items() if n != "tuned" and s.overshoot_pct <= max_overshoot_pct]
+        return min(ok, key=lambda n: self.scores[n].settling_time_s) if ok else None
+
+    def verdict(self) -> str:
+        """How the tuned set compares with the best Table 1 set within the tuner's overshoot limit."""
+        tuned = self.scores["tuned"]
+        limit = self.result.limits.max_overshoot_pct
+        best = self.best_table1(limit)
+        if best is None:
+            return f"no Table 1 set stays within {limit:g} % overshoot on this valve"
+        b = self.scores[best]
+        if tuned.settling_time_s < b.settling_time_s and tuned.overshoot_pct <= b.overshoot_pct:
+            return f"beats {best} (faster at equal or lower overshoot)"
+        return (f"does not beat {best} ({1e3 * tuned.settling_time_s:.2f} vs {1e3 * b.settling_time_s:.2f} ms, "
+                f"{tuned.overshoot_pct:.2f} vs {b.overshoot_pct:.2f} %)")
+
+
+def compare_tuning(strategy: str, sim_config: ValveSimConfig, model: CompensationModel,
+                   log: Callable[[str], None] = print, **tune_kwargs) -> TuningComparison:
+    """Tune ``strategy`` on ``model`` (what identification found, the controller running on it) at the valve's
+    period, then run the paper's steps on the simulated valve with the tuned gains and each Table 1 set."""
+    from .strategies import TABLE1_GAINS
+    from .tuning import loop_margins, step_score, tune
+    dt, v0 = sim_config.dt, sim_config.initial_voltage_v
+    result = tune(strategy, model, dt, log=log, **tune_kwargs)
+    sets = {"tuned": result.gains, **{n: g for n, (s, g) in TABLE1_GAINS.items() if s == strategy}}
+    base = ControllerConfig(strategy=strategy, dt=dt)
+    scores = {n: step_score(replace(base, gains=g), model, lambda: SimulatedValve(sim_config), v0)
+              for n, g in sets.items()}
+    margins = {n: loop_margins(strategy, g, model, dt) for n, g in sets.items()}
+    return TuningComparison(result, scores, margins)

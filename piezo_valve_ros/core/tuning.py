@@ -20,7 +20,9 @@ creep, saturation map).  It
    is not the valve's: a PI zero placed on the fitted pole overshoots on the real one) (the
    commands clamped to the command limits with the controller's anti-windup, as on the rig; the time they
    spend on a limit is reported and breaks ties);
-3. refines it by a pattern search (halving steps in log kp, log ki, log kd) under the same constraints.
+   The paper's Table 1 sets for the strategy are candidates too (a tuner should never do worse on its own
+   model than the gains it replaces);
+3. refines the best by a pattern search (halving steps in log kp, log ki, log kd) under the same constraints.
 
 Nothing here imports ROS: ``valve_tune`` and the identification node's ``tune`` step are faces over
 :func:`tune`.
@@ -29,7 +31,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Callable, Optional
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 
@@ -38,7 +40,7 @@ from .dynamics import first_order_lag
 from .experiments import responses, run_closed_loop
 from .metrics import StepMetrics, step_metrics
 from .signals import PAPER_STEPS_UM, step_reference_m
-from .strategies import ControllerConfig, PIDGains, ValveController, nominal_static_gain
+from .strategies import TABLE1_GAINS, ControllerConfig, PIDGains, ValveController, nominal_static_gain
 
 __all__ = ["TUNABLE_STRATEGIES", "TuningLimits", "LoopMargins", "StepScore", "TuningResult", "TuningError",
            "ModelValve", "plant_gain_range", "loop_margins", "step_score", "tune"]
@@ -360,11 +362,12 @@ def _key(score: StepScore) -> tuple[float, float, float]:
 
 def tune(strategy: str, model: CompensationModel, dt: float, limits: TuningLimits = TuningLimits(),
          config: Optional[ControllerConfig] = None, plant: Optional[CompensationModel] = None,
-         log: Callable[[str], None] = lambda s: None) -> TuningResult:
+         starts: Optional[Sequence[PIDGains]] = None, log: Callable[[str], None] = lambda s: None) -> TuningResult:
     """PID gains for ``strategy`` with the controller running on ``model`` at control period ``dt`` [s] (see
     the module docstring).  The valve is ``plant`` (what identification found; default ``model`` itself, the
     controller inverting all of it); ``config`` gives the command range and derivative filter (default
-    ControllerConfig's).  Raises TuningError when the strategy has no loop, the inputs are bad or no
+    ControllerConfig's); ``starts``: gain sets tried besides the grid (default: Table 1's for the strategy).
+    Raises TuningError when the strategy has no loop, the inputs are bad or no
     candidate meets ``limits``."""
     if strategy not in TUNABLE_STRATEGIES:
         raise TuningError(f"{strategy!r} has no feedback loop to tune; tunable: {', '.join(TUNABLE_STRATEGIES)}")
@@ -436,12 +439,17 @@ def tune(strategy: str, model: CompensationModel, dt: float, limits: TuningLimit
                 break
         if (i + 1) % 10 == 0:
             log(f"tune {strategy}: {i + 1}/{len(pairs)} zero/derivative pairs run ({len(scores)} step runs)")
+    if starts is None:
+        starts = [g for s, g in TABLE1_GAINS.values() if s == strategy]
+    for g in starts:
+        if feasible(g) and (best is None or _key(score(g)) < _key(score(best))):
+            best = g
     if best is None:
-        if not any(passing.values()):
+        if not any(passing.values()) and not any(margins(g).meets(limits) for g in starts):
             raise TuningError(f"no PID gains for {strategy} meet the margins on this model ({limits})")
         raise TuningError(f"no PID gains for {strategy} that meet the margins keep the overshoot <= "
                           f"{limits.max_overshoot_pct:g} % on this model")
-    log(f"tune {strategy}: best of the grid kp {best.kp:.4g}, ki {best.ki:.4g}, kd {best.kd:.3g}: settling "
+    log(f"tune {strategy}: best of the grid and Table 1: kp {best.kp:.4g}, ki {best.ki:.4g}, kd {best.kd:.3g}: settling "
         f"{1e3 * score(best).settling_time_s:.2f} ms; refining")
     # 3. pattern search in log gains
     step = REFINE_START_STEP
