@@ -57,7 +57,7 @@ def main():
                 rows.append(f"| {label(name)} | {g.kp:.4g} | {g.ki:.4g} | {g.kd:.3g} | "
                             f"{1e3 * score.settling_time_s:.2f} | {score.overshoot_pct:.2f} | "
                             f"{score.worst_overshoot_pct:.2f} | {cmp.margins[name].text()} |")
-            verdict = f"**{label(strategy)}: tuned {cmp.verdict()}** (tuning took {time.perf_counter() - t:.0f} s)"
+            verdict = f"**{label(strategy)}: {cmp.verdict()}** (tuning took {time.perf_counter() - t:.0f} s)"
             print(f"\n### {label(strategy)}")
             print("\n".join(rows))
             print(verdict)

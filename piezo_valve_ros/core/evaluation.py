@@ -117,11 +117,11 @@ class TuningComparison:
         limit = self.result.limits.max_overshoot_pct
         best = self.best_table1(limit)
         if best is None:
-            return f"no Table 1 set stays within {limit:g} % overshoot on this valve"
+            return f"no Table 1 set stays within {limit:g} % overshoot on this valve; the tuned one does"
         b = self.scores[best]
         if tuned.settling_time_s < b.settling_time_s and tuned.overshoot_pct <= b.overshoot_pct:
-            return f"beats {best} (faster at equal or lower overshoot)"
-        return (f"does not beat {best} ({1e3 * tuned.settling_time_s:.2f} vs {1e3 * b.settling_time_s:.2f} ms, "
+            return f"tuned beats {best} (faster at equal or lower overshoot)"
+        return (f"tuned does not beat {best} ({1e3 * tuned.settling_time_s:.2f} vs {1e3 * b.settling_time_s:.2f} ms, "
                 f"{tuned.overshoot_pct:.2f} vs {b.overshoot_pct:.2f} %)")
 
 
