@@ -17,6 +17,7 @@ import sys
 
 from .bagio import BagError
 from .core.records import HELD_OUT_FRACTION, IdentificationError
+from .tool import run_tool
 from .identify import compensation, controller_parameters_yaml, identify_bags, report_json, write_outputs
 
 __all__ = ["main"]
@@ -48,7 +49,8 @@ def main(argv=None) -> int:
     ap.add_argument("--quiet", action="store_true", help="no progress lines (the summary is printed)")
     args = ap.parse_args(argv)
     log = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
-    try:
+
+    def work() -> list[str]:
         if args.plots:
             from . import plots  # fail before the work, with the reason
             plots.require()
@@ -62,23 +64,8 @@ def main(argv=None) -> int:
         written = write_outputs(outputs)
         if args.plots:
             written += plots.write_all(analysis, args.plots, log)
-    except (BagError, IdentificationError) as exc:
-        print(f"valve_identify: error: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        print(f"valve_identify: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("valve_identify: interrupted; nothing written", file=sys.stderr)
-        return 130
-    except Exception as exc:  # one clear line, never a traceback
-        print(f"valve_identify: error: {type(exc).__name__}: {exc}", file=sys.stderr)
-        return 1
-    print(_summary(report))
-    for path in written:
-        print(f"wrote {path}")
-    return 0
-
+        return [_summary(report)] + [f"wrote {path}" for path in written]
+    return run_tool("valve_identify", work, (BagError, IdentificationError))
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -24,6 +24,7 @@ from .core.tuning import (MAX_NOISE_GAIN, MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_D
                           TUNABLE_STRATEGIES, ModelValve, TuningError, TuningLimits, loop_margins, step_score, tune)
 from .core.signals import PAPER_STEPS_UM
 from .identify import ParametersFileError, parameters_yaml, read_parameters_file, write_outputs
+from .tool import run_tool
 from .validation import as_float
 
 __all__ = ["main"]
@@ -56,7 +57,8 @@ def main(argv=None) -> int:
     ap.add_argument("--quiet", action="store_true", help="no progress lines")
     args = ap.parse_args(argv)
     log = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
-    try:
+
+    def work() -> list[str]:
         params = read_parameters_file(args.params_file)
         dt = args.control_period_s if args.control_period_s is not None else \
             as_float("control_period_s", params.get("control_period_s", DEFAULT_PERIOD_S))
@@ -65,10 +67,7 @@ def main(argv=None) -> int:
         config = ControllerConfig(strategy=args.strategy, dt=dt, command_min_v=v_min, command_max_v=v_max,
                                   centre_voltage_v=as_float("centre_voltage_v", params.get("centre_voltage_v",
                                                                                            ControllerConfig.centre_voltage_v)))
-        problems = config.problems()
-        if problems:
-            raise TuningError("; ".join(problems))
-        try:
+        try:  # the command range and period are checked by tune(), with the limits
             model = CompensationModel.from_parameters(params, v_min, v_max, dt)
         except ValueError as exc:
             raise ParametersFileError(f"{args.params_file}: {exc}") from None
@@ -92,22 +91,8 @@ def main(argv=None) -> int:
             values = {**params, "control_period_s": float(dt), **result.parameters()}
             comments = [f"Tuned by valve_tune from {args.params_file}: {result.summary()}"]
             written = write_outputs({args.params_out: parameters_yaml(values, comments)})
-    except (ParametersFileError, TuningError, ValueError) as exc:
-        print(f"valve_tune: error: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        print(f"valve_tune: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("valve_tune: interrupted; nothing written", file=sys.stderr)
-        return 130
-    except Exception as exc:  # one clear line, never a traceback
-        print(f"valve_tune: error: {type(exc).__name__}: {exc}", file=sys.stderr)
-        return 1
-    print("\n".join(lines))
-    for path in written:
-        print(f"wrote {path}")
-    return 0
+        return lines + [f"wrote {path}" for path in written]
+    return run_tool("valve_tune", work, (ParametersFileError, TuningError, ValueError))
 
 
 if __name__ == "__main__":

@@ -442,7 +442,7 @@ def tune(strategy: str, model: CompensationModel, dt: float, limits: TuningLimit
     if starts is None:
         starts = [g for s, g in TABLE1_GAINS.values() if s == strategy]
     for g in starts:
-        if feasible(g) and (best is None or _key(score(g)) < _key(score(best))):
+        if better(g, best):
             best = g
     if best is None:
         if not any(passing.values()) and not any(margins(g).meets(limits) for g in starts):
