@@ -22,6 +22,7 @@ from piezo_valve_ros.core.strategies import ControllerConfig, ValveController, g
 from piezo_valve_ros.nodes.common import COMMAND_QOS, SAMPLES_QOS, make_executor, samples_message
 from piezo_valve_ros.nodes.controller import ValveControllerNode
 from piezo_valve_ros.nodes.hardware import ValveHardwareNode
+from piezo_valve_ros.nodes.identification import ValveIdentificationNode
 
 _ids = iter(range(1000))
 
@@ -348,3 +349,37 @@ def test_controller_takes_a_whole_extended_model_in_one_update_or_refuses_it_who
     result = ctl.set_parameters_atomically(bad)
     assert not result.successful and "needs 8 values" in result.reason
     assert ctl.controller.compensation.dynamic_feedforward  # untouched
+
+
+# ---------------------------------------------------------------------------- identification
+@pytest.fixture
+def identification(ros_context, tmp_path):
+    make, cleanup = _nodes(ValveIdentificationNode, lambda node: node._stop_recording())
+    yield lambda **kw: make(**{"plan": "", "bag_dir": str(tmp_path), **kw})
+    cleanup()
+
+
+@pytest.mark.parametrize("overrides, says", [
+    ({"tune_strategy": "ol_hc"}, "tune_strategy must be one of pid, pid_hc, ff_pid, ff_pid_g"),
+    ({"tune_strategy": "dance"}, "tune_strategy must be one of"),
+    ({"tune_max_overshoot_pct": -1.0}, "max_overshoot_pct must be a finite number >= 0"),
+    ({"tune_max_overshoot_pct": float("nan")}, "tune_max_overshoot_pct must be finite"),
+    ({"tune_max_overshoot_pct": "abc"}, "tune_max_overshoot_pct must be a number"),
+    ({"plan": "train,tune"}, "tune needs a refit step before it"),
+])
+def test_identification_refuses_bad_tune_settings_at_start_up(identification, overrides, says):
+    with pytest.raises(ValueError, match=says):
+        identification(**overrides)
+
+
+@pytest.mark.parametrize("name, value", [("tune_strategy", "pid"), ("tune_max_overshoot_pct", 0.0),
+                                         ("tune_max_overshoot_pct", float("nan")), ("plan", "train"),
+                                         ("control_period_s", 1e-4)])
+def test_identification_settings_are_start_up_only(identification, name, value):
+    """Read at start-up by the plan: a run-time change is refused with the reason, never stored and ignored."""
+    node = identification(tune_max_overshoot_pct=0.0)   # 0 %: a valid (strict) limit
+    before = node.get_parameter(name).value
+    result = set_one(node, name, value)
+    assert not result.successful and "read-only" in result.reason.lower()
+    assert node.get_parameter(name).value == before or (before != before and value != value)
+    assert node.tune_limits.max_overshoot_pct == 0.0 and node.tune_strategy == "pid_hc"

@@ -100,7 +100,7 @@ class ValveIdentificationNode(Node):
             ("controller", "valve_controller", "name of the controller node (relative to this namespace)"),
             ("exit_when_done", False, "shut down after the plan"),
         ]:
-            declare(self, name, default, text)
+            declare(self, name, default, text, read_only=True)  # the plan's settings: start-up only
         p = parameter_values(self)
         self.plan = [s.strip() for s in str(p["plan"]).split(",") if s.strip()]
         unknown = [s for s in self.plan if s not in STEPS]
@@ -325,6 +325,12 @@ class ValveIdentificationNode(Node):
                 "peak_um": peak, "peak_pct": 100 * peak / span}
 
     def _run_plan(self) -> None:
+        if not self.plan:
+            self.get_logger().info("empty plan: nothing to do")
+            self.finished.set()
+            if self.exit_when_done:
+                self.context.try_shutdown()
+            return
         try:
             if not self.controller.wait_for_services(timeout_sec=30.0):
                 raise RuntimeError("no controller answers (parameter services of "
