@@ -11,11 +11,12 @@ The controller inverts it along the feedforward path::
   feedback's reference with F instead of G (the response the feedforward aims at);
 * the creep and saturation inverse (:class:`StaticInverse`) is exact: the creep lags depend on past H
   only, so each period solves the monotone scalar equation ``M(H) - sum g_i H = S_ref - sum g_i l_i``;
-* the inverse GPIM (``hysteresis.InverseGPIM``): symmetric or asymmetric with a dead band.
+* the inverse GPIM (``hysteresis.inverse_gpim``): symmetric or asymmetric, with thresholds that widen with
+  the input rate when ``rate_widening_v`` is set (``rate_dependence.hysteresis_inverse``).
 
 ``CompensationModel`` holds all of it; ``to_parameters``/``from_parameters`` are the one place its
 ``valve_controller`` parameters are written and read, ``problems`` validates it as a whole.  What it
-cannot represent (drift, rate-dependent thresholds) the identification refuses with a reason
+cannot represent (drift) the identification refuses with a reason
 (``identify.compensation``).  No ROS import.
 """
 from __future__ import annotations
@@ -30,6 +31,7 @@ from .drive import COMMAND_MAX_V, COMMAND_MIN_V
 from .dynamics import PAPER_VALVE_MODEL, ContinuousTF, DiscreteFilter
 from .effects.saturation import TERM_COUNT, OutputMap
 from .hysteresis import GPIM, PAPER_GPIM, GPIMParams, inverse_problems
+from .rate_dependence import RATE_FILTERS_S, RATE_SCALES_V_S, TERM_COUNT as RATE_TERM_COUNT, widening_problems
 from ..validation import as_bool, as_float, as_float_list, as_int
 
 __all__ = ["CreepModel", "OutputMap", "DynamicFeedforward", "CompensationModel", "StaticInverse",
@@ -184,20 +186,27 @@ def _floats(values) -> list[float]:
 
 @dataclass(frozen=True)
 class CompensationModel:
-    """Everything ``valve_controller`` inverts: GPIM (both envelopes), G_v, creep, the saturation map and
-    whether the feedforward inverts G_v too.  Units: V, um, s."""
+    """Everything ``valve_controller`` inverts: GPIM (both envelopes, thresholds widening with the input rate
+    by ``rate_widening_v`` [V], see ``rate_dependence``), G_v, creep, the saturation map and whether the
+    feedforward inverts G_v too.  Units: V, um, s."""
 
     gpim: GPIM = field(default_factory=PAPER_GPIM.model)
     valve_model: ContinuousTF = PAPER_VALVE_MODEL
     creep: CreepModel = CreepModel()
     output_map: OutputMap = OutputMap()
     dynamic_feedforward: bool = False
+    rate_widening_v: tuple[float, ...] = ()
+
+    @property
+    def rate_dependent(self) -> bool:
+        return any(c != 0.0 for c in self.rate_widening_v)
 
     def problems(self, v_min: float = COMMAND_MIN_V, v_max: float = COMMAND_MAX_V, dt: Optional[float] = None
                  ) -> list[str]:
         """Every reason the controller cannot invert this model on commands ``v_min..v_max`` [V] (empty: fine);
         with ``dt`` also the dynamic feedforward's."""
-        out = inverse_problems(self.gpim, v_min, v_max) + self.valve_model.problems() + self.creep.problems()
+        out = (inverse_problems(self.gpim, v_min, v_max) + self.valve_model.problems() + self.creep.problems()
+               + widening_problems(self.rate_widening_v))
         map_problems = self.output_map.problems()
         if not out and not map_problems:
             lo, hi = self.gpim.output_range(v_min, v_max)
@@ -223,6 +232,7 @@ class CompensationModel:
                 "saturation.half_range_um": float(self.output_map.half_range_um),
                 # zeros rather than []: an empty list has no element type for a ROS parameter
                 "saturation.coefficients_um": _floats(self.output_map.coefficients_um) or [0.0] * TERM_COUNT,
+                "gpim.rate_widening_v": _floats(self.rate_widening_v) or [0.0] * RATE_TERM_COUNT,
                 "feedforward.dynamics": bool(self.dynamic_feedforward)}
 
     @classmethod
@@ -264,10 +274,12 @@ class CompensationModel:
         centre, half = get("saturation.centre_um", as_float), get("saturation.half_range_um", as_float)
         coefs = get("saturation.coefficients_um", as_float_list)
         dynamic = get("feedforward.dynamics", as_bool)
+        widening = get("gpim.rate_widening_v", as_float_list)
         if problems:
             raise ValueError("; ".join(problems))
         model = cls(gpim, ContinuousTF(tuple(num), tuple(den)), CreepModel(tuple(taus), tuple(gains)),
-                    OutputMap(centre, half, tuple(coefs)), dynamic)
+                    OutputMap(centre, half, tuple(coefs)), dynamic,
+                    tuple(widening) if any(widening) else ())
         problems = model.problems(v_min, v_max, dt)
         if problems:
             raise ValueError("; ".join(problems))
@@ -289,6 +301,10 @@ MODEL_PARAMETERS: dict[str, tuple[Any, str]] = {
     "gpim.descending_envelope": ([], "asymmetric GPIM: descending envelope [b0, b1] or [b0, b1, b2] (b0 v + b1 + "
                                      "b2 v^2, at or above the ascending one on the command range; empty or equal "
                                      "to [a0, a1]: the ascending one)"),
+    "gpim.rate_widening_v": ([], f"rate-dependent GPIM: every threshold widens by sum c rho_f / (rho_f + s_k) [V], "
+                                 f"rho_f = |dv/dt| through the lags {list(RATE_FILTERS_S)} s, s_k = "
+                                 f"{list(RATE_SCALES_V_S)} V/s; {RATE_TERM_COUNT} coefficients c [V], filter-major "
+                                 "(empty or all 0: none)"),
     "valve_model.num": (list(PAPER_VALVE_MODEL.num), "G_v(s) numerator"),
     "valve_model.den": (list(PAPER_VALVE_MODEL.den), "G_v(s) denominator"),
     "creep.time_constants_s": ([], "creep compensation (feedforward path): lag time constants [s]"),

@@ -140,6 +140,17 @@ def _turns_per_operator(drive: np.ndarray, r: np.ndarray, scale: np.ndarray, sig
     return np.unique(np.concatenate(turns))
 
 
+def _last_crossed_indices(lower_drive: np.ndarray, upper_drive: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Samples after which some operator's bounds stop crossing (lower - r > upper + r, where the lower bound
+    wins and the state is ``lower - r`` whatever came before), and the first sample after: while crossed, the
+    effective upper bound ``max(upper + r, lower - r)`` follows the lower drive, so it need not move with the
+    upper drive, and the state after is not a clip of one from before (thresholds that narrow with the
+    rate, crossing envelopes)."""
+    crossed = np.searchsorted(2.0 * r, lower_drive - upper_drive, side="left")   # operators with 2 r_j < L - U
+    last = np.flatnonzero(crossed[1:] < crossed[:-1])
+    return np.union1d(last, last + 1)   # the last crossed sample and the first after it
+
+
 def play_batch(
     lower_drive: np.ndarray,
     upper_drive: np.ndarray,
@@ -178,6 +189,8 @@ def play_batch(
         turns = _reversal_indices(lower_drive)
     else:
         turns = np.union1d(_reversal_indices(lower_drive), _reversal_indices(upper_drive))
+    if not same:
+        turns = np.union1d(turns, _last_crossed_indices(lower_drive, upper_drive, r))
     lo_t, hi_t = _clamp_bounds(lower_drive[turns], upper_drive[turns], r, same, None if scale is None else scale[turns])
     hi_t = np.maximum(hi_t, lo_t)
     A, B = _compose_clamps_scan(lo_t, hi_t)
@@ -381,15 +394,17 @@ class GPIM:
     def stream(self, state: Optional[np.ndarray] = None, v0: float = CENTRE_VOLTAGE_V) -> "GPIMStream":
         return GPIMStream(self, self.virgin_state(v0) if state is None else state)
 
-    def retarget_state(self, state: np.ndarray, other: "GPIM", v_now: float) -> np.ndarray:
+    def retarget_state(self, state: np.ndarray, other: "GPIM", v_now: float, widening_v: float = 0.0) -> np.ndarray:
         """Map operator states of this model onto ``other``'s thresholds, keeping the loop memory.
 
         The state of a play bank is a curve z(r) (1-Lipschitz in r); it is interpolated at the new
-        thresholds and clamped to be consistent with the present input ``v_now``.
+        thresholds and clamped to be consistent with the present input ``v_now`` (and the thresholds'
+        present rate widening ``widening_v`` [V], see ``rate_dependence``).
         """
         z_new = np.interp(other.thresholds, self.thresholds, np.asarray(state, float))
-        lo = other.ascending_envelope(v_now) - other.thresholds
-        hi = np.maximum(other.descending_envelope(v_now) + other.thresholds, lo)
+        r = other.thresholds + widening_v
+        lo = other.ascending_envelope(v_now) - r
+        hi = np.maximum(other.descending_envelope(v_now) + r, lo)
         return np.minimum(np.maximum(z_new, lo), hi)
 
     def major_loop(self, v_min: float = COMMAND_MIN_V, v_max: float = COMMAND_MAX_V, points: int = 2001):
@@ -670,7 +685,8 @@ class MonotoneInverseGPIM:
 
     From a given state every operator's next output ``max(min(z_j, U(v) + r_j), L(v) - r_j)`` (the lower
     bound wins where the bounds cross, as in :class:`PlayOperatorBank`) rises with
-    the input v, and so does the model's output (nonnegative weights).  Between the inputs where an operator
+    the input v, and so does the model's output (nonnegative weights; or, where the bounds do not cross,
+    positive partial sums of the weights, since the operators that move are then a prefix of the bank).  Between the inputs where an operator
     starts to follow its lower bound (L(v) = z_j + r_j), its upper bound (U(v) = z_j - r_j) or where its
     bounds cross (L(v) - U(v) = 2 r_j), each operator is held or follows one envelope, so the output is
     ``C + A L(v) + B U(v)``: linear (or quadratic, for a curved U) in v.  Each step finds the piece from
@@ -689,7 +705,10 @@ class MonotoneInverseGPIM:
         self.model = model
         self.v_min, self.v_max = float(v_min), float(v_max)
         self._r, self._p = model.thresholds, model.weights
-        self._b0, self._b1, self._b2 = float(model.b0), float(model.b1), float(model.b2)
+        symmetric = model.b0 is None
+        self._b0 = float(model.a0 if symmetric else model.b0)
+        self._b1 = float(model.a1 if symmetric else model.b1)
+        self._b2 = float(model.b2)
         self.set_forward_state(model.virgin_state(v0) if forward_state is None else forward_state, v0)
 
     # -- state
@@ -721,7 +740,12 @@ class MonotoneInverseGPIM:
 
     def _breakpoints(self) -> np.ndarray:
         m, z, r = self.model, self._z, self._r
-        points = [(z + r - m.a1) / m.a0, m.descending_inverse(z - r)]
+        d = z - r - self._b1   # U(v) = z - r: the descending envelope's rising branch
+        if self._b2:
+            down = 2.0 * d / (self._b0 + np.sqrt(np.maximum(self._b0 * self._b0 + 4.0 * self._b2 * d, 0.0)))
+        else:
+            down = d / self._b0
+        points = [(z + r - m.a1) / m.a0, down]
         # L(v) - U(v) = 2 r:  -b2 v^2 + (a0 - b0) v + (a1 - b1 - 2 r) = 0
         q1, q0 = m.a0 - self._b0, m.a1 - self._b1 - 2.0 * r
         if self._b2:

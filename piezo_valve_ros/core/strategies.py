@@ -39,7 +39,8 @@ from typing import Optional
 
 
 from .compensation import CompensationModel, DynamicFeedforward, StaticInverse
-from .hysteresis import GPIM, NotInvertibleError, inverse_gpim
+from .hysteresis import GPIM, NotInvertibleError
+from .rate_dependence import hysteresis_inverse, swap_inverse, take_over_state
 from .drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 __all__ = ["STRATEGIES", "PIDGains", "ControllerConfig", "ValveController", "TABLE1_GAINS", "gain_set",
@@ -178,6 +179,19 @@ class ValveController:
         w, f = DynamicFeedforward(comp.valve_model, self.config.dt).filters()
         return f, w
 
+    def _inverse(self, v0: float, follow=None):
+        """A fresh inverse of the model's hysteresis (rate-dependent when the model says so), virgin at v0 [V];
+        ``follow``: the inverse whose rate widening it uses (``rate_dependence.RateDependentInverseGPIM``)."""
+        c, comp = self.config, self.compensation
+        return hysteresis_inverse(comp.gpim, comp.rate_widening_v, c.dt, v0=v0, v_min=c.command_min_v,
+                                  v_max=c.command_max_v, follow=follow)
+
+    def _swap_inverse(self, old, compensation: CompensationModel, v_now: float, follow=None):
+        """``old``'s loop memory (operator states, rate history) carried into an inverse of ``compensation``."""
+        c = self.config
+        return swap_inverse(old, compensation.gpim, compensation.rate_widening_v, c.dt, v_now, c.command_min_v,
+                            c.command_max_v, follow)
+
     def _static_inverse(self, h0: float) -> Optional[StaticInverse]:
         comp = self.compensation
         if not (comp.creep.active or comp.output_map.active):
@@ -190,9 +204,9 @@ class ValveController:
         c = self.config
         v0 = c.centre_voltage_v if voltage_v is None else float(voltage_v)
         # feedforward inverse, driven by the demand every period whatever the strategy
-        self.ff_inverse = inverse_gpim(self.model, v0=v0, v_min=c.command_min_v, v_max=c.command_max_v)
-        # in-loop inverse of pid_hc, driven by the PID output
-        self.loop_inverse = inverse_gpim(self.model, v0=v0, v_min=c.command_min_v, v_max=c.command_max_v)
+        self.ff_inverse = self._inverse(v0)
+        # in-loop inverse of pid_hc, driven by the PID output (with the feedforward's rate widening)
+        self.loop_inverse = self._inverse(v0, follow=self.ff_inverse)
         y0 = self.model.output_from_state(self.model.virgin_state(v0))
         # creep and saturation inverse of the feedforward path (None when neither is modelled)
         self._static = self._static_inverse(y0)
@@ -204,6 +218,7 @@ class ValveController:
             self._dyn.reset(self._last_ref_um)
         self._last_gv_out = self._last_ref_um
         self._last_ff_v, self._last_ff_demand_um = v0, None
+        self._swap_from = None              # the feedforward inverse before a model swap, for one period
         self._last_measured_um = self._last_ref_um
         self.integrator_um = 0.0
         self._d_state = 0.0
@@ -281,11 +296,15 @@ class ValveController:
         """New command range [V]: the static gain and the demand limits follow it; bumpless."""
         new = replace(self.config, command_min_v=command_min_v, command_max_v=command_max_v,
                       centre_voltage_v=centre_voltage_v)
-        problems = new.problems()
+        problems = new.problems() or self.compensation.problems(command_min_v, command_max_v, new.dt)
         if problems:
             raise ValueError("; ".join(problems))
         self.config = new
         self._setup_model()
+        # the inverses limit their inputs to the command range: rebuilt on it, loop memory kept
+        self.ff_inverse = self._swap_inverse(self.ff_inverse, self.compensation, self._last_ff_v)
+        self.loop_inverse = self._swap_inverse(self.loop_inverse, self.compensation, self.last_command_v,
+                                               self.ff_inverse)
         self.last_command_v = min(max(self.last_command_v, command_min_v), command_max_v)
         self._transfer(self.config.strategy)
 
@@ -299,9 +318,9 @@ class ValveController:
         problems = compensation.problems(c.command_min_v, c.command_max_v, c.dt)
         if problems:
             raise NotInvertibleError("; ".join(problems))
-        old = self.compensation
-        ff = self.ff_inverse.with_model(compensation.gpim, self._last_ff_v)
-        loop = self.loop_inverse.with_model(compensation.gpim, self.last_command_v)
+        old, old_ff = self.compensation, self.ff_inverse
+        ff = self._swap_inverse(self.ff_inverse, compensation, self._last_ff_v)
+        loop = self._swap_inverse(self.loop_inverse, compensation, self.last_command_v, ff)
         dynamics_changed = (compensation.valve_model, compensation.dynamic_feedforward) != \
             (old.valve_model, old.dynamic_feedforward)
         filters = self._dynamic_filters(compensation) if dynamics_changed else None
@@ -309,10 +328,12 @@ class ValveController:
         if (compensation.creep, compensation.output_map) != (old.creep, old.output_map):
             self._static = self._static_inverse(ff.peek_forward(self._last_ff_v))
         self._setup_model()
-        if self._last_ff_demand_um is not None:
-            # the voltage the new model asks for the last demand: the transfer below makes the command
-            # continuous from there (the integrator or the decaying bump takes the difference)
-            self._last_ff_v = ff.peek(self._last_ff_demand_um)
+        # the next period's feedforward voltage is taken over from the old model (its inverse, as it stands,
+        # asked for that period's demand) and the difference handed to the integrator or the decaying bump:
+        # the command moves as the old model would have moved it, then settles onto the new one.  (The new
+        # model's voltage for the last demand is no reference: with thresholds widened by the rate it may
+        # lie across a dead band from the voltage the next demand needs.)
+        self._swap_from = old_ff if self._last_ff_demand_um is not None else None
         if filters is not None:
             self._gv, self._dyn = filters
             self._gv.reset(self._last_gv_out)
@@ -331,7 +352,7 @@ class ValveController:
         self._last_error = e
         if s == "pid_hc" and old_strategy != "pid_hc":
             # the in-loop inverse takes over the valve's state as the demand history describes it
-            self.loop_inverse.set_forward_state(self.ff_inverse.forward_state(), self.last_command_v)
+            take_over_state(self.loop_inverse, self.ff_inverse, self.last_command_v)
         if s in ("pid", "ff_pid", "ff_pid_g"):
             base = c.centre_voltage_v if s == "pid" else self._last_ff_v
             self.integrator_um = (v_last - base) * self._k - c.gains.kp * e - self._d_state
@@ -346,6 +367,15 @@ class ValveController:
             self.integrator_um = 0.0
             predicted = c.centre_voltage_v + self._last_ref_um / self._k if s == "ol" else self._last_ff_v
             self._bump_v = v_last - predicted
+
+    def _take_over_swap(self, law: str, difference_v: float) -> None:
+        """First period after a model swap: the old model's feedforward voltage minus the new one's, handed to
+        the law's state (decaying bump, integrator) so the command continues as the old model would."""
+        self._swap_from = None
+        if law == "ol_hc":
+            self._bump_v += difference_v
+        elif law in ("ff_pid", "ff_pid_g"):
+            self.integrator_um += difference_v * self._k
 
     # ------------------------------------------------------------------ the loop
     def step(self, reference_m: float, measured_m: float) -> float:
@@ -367,6 +397,8 @@ class ValveController:
         ff_demand = min(max(h_ref, self._demand_min_um), self._demand_max_um)
         ff_v = self.ff_inverse.step(ff_demand)
         self._last_ff_v, self._last_ff_demand_um = ff_v, ff_demand
+        if self._swap_from is not None:
+            self._take_over_swap(s, self._swap_from.peek(ff_demand) - ff_v)
         gv_out = self._gv.step(y_ref)
         self._last_gv_out = gv_out
         y = measured_m * 1e6

@@ -39,6 +39,7 @@ from .compensation import CompensationModel
 from .dynamics import first_order_lag
 from .experiments import responses, run_closed_loop
 from .metrics import StepMetrics, step_metrics
+from .rate_dependence import hysteresis_stream
 from .signals import PAPER_STEPS_UM, step_reference_m
 from .strategies import TABLE1_GAINS, ControllerConfig, PIDGains, ValveController, nominal_static_gain
 
@@ -163,7 +164,8 @@ class TuningResult:
 # ---------------------------------------------------------------------- the identified model as a valve
 class ModelValve:
     """The identified model run forwards, ``step(v) -> position [m]`` once per ``dt`` (the same timing as
-    ``simulator.SimulatedValve``): GPIM -> creep -> saturation map -> G_v.  No noise, no amplifier."""
+    ``simulator.SimulatedValve``): the (rate-dependent) GPIM's H, then ``S = M(H) + sum g_i (lag_i[H] - H)``
+    (saturation map and creep, as ``compensation`` inverts them), then G_v.  No noise, no amplifier."""
 
     def __init__(self, model: CompensationModel, dt: float, initial_voltage_v: float):
         self.model, self.dt, self.initial_voltage_v = model, float(dt), float(initial_voltage_v)
@@ -171,7 +173,7 @@ class ModelValve:
 
     def reset(self) -> None:
         m = self.model
-        self._gpim = m.gpim.stream(v0=self.initial_voltage_v)
+        self._gpim = hysteresis_stream(m.gpim, m.rate_widening_v, self.dt, self.initial_voltage_v)
         y0 = m.gpim.output_from_state(self._gpim.state)
         self._creep = [(g, first_order_lag(tau, self.dt)) for tau, g in zip(m.creep.time_constants_s, m.creep.gains)
                        if g]
@@ -183,10 +185,10 @@ class ModelValve:
 
     def step(self, voltage_v: float) -> float:
         h = self._gpim.step(voltage_v)
-        y = h
+        y = self._map.value(h)
         for g, lag in self._creep:
             y += g * (lag.step(h) - h)
-        return self._gv.step(self._map.value(y)) * 1e-6
+        return self._gv.step(y) * 1e-6
 
 
 # ---------------------------------------------------------------------- the linearised loop

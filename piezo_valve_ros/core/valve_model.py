@@ -18,8 +18,9 @@ from typing import TYPE_CHECKING, Optional
 import numpy as np
 from scipy import signal
 
-from .dynamics import PAPER_VALVE_MODEL, ContinuousTF, discretise, first_order_lag
+from .dynamics import PAPER_VALVE_MODEL, ContinuousTF, discretise
 from .hysteresis import GPIM, last_contact, play_batch
+from .rate_dependence import RATE_FILTERS_S, RATE_SCALES_V_S, rate_terms
 from .records import Record
 
 if TYPE_CHECKING:
@@ -30,8 +31,6 @@ __all__ = ["ValveModel", "Context", "second_order", "unity_dc_poles", "sections"
            "PAPER_SECTION", "INITIAL_STATES"]
 
 INITIAL_STATES = ("rest", "cycled")      # the operators' state before a record's first sample (ValveModel.history)
-RATE_FILTERS_S = (0.02, 0.1)             # the input rate |dv/dt| through first-order lags of these [s] (cycling rates) ...
-RATE_SCALES_V_S = (10.0, 100.0, 1000.0)  # ... widens the thresholds by sum c rho / (rho + rate_k), for each lag
 
 
 def second_order(omega_rad_s: float, zeta: float) -> ContinuousTF:
@@ -203,18 +202,9 @@ class Context:
 
     @property
     def rate_terms(self) -> np.ndarray:
-        """(N, k) functions of the input rate the thresholds grow with: rho / (rho + rate_k) for each rate
-        scale of RATE_SCALES_V_S and each rho = |dv/dt| [V/s] through a first-order lag of RATE_FILTERS_S."""
-        def compute():
-            rate = np.abs(np.gradient(self.v, self.dt))
-            cols = []
-            for tau in RATE_FILTERS_S:
-                lag = first_order_lag(tau, self.dt)
-                lag.reset(0.0)
-                rho = lag.run(rate)
-                cols += [rho / (rho + k) for k in RATE_SCALES_V_S]
-            return np.column_stack(cols)
-        return self._structural("rate_terms", compute)
+        """(N, k) functions of the input rate the thresholds grow with (``rate_dependence.rate_terms``: causal,
+        the valve at rest before the first sample)."""
+        return self._structural("rate_terms", lambda: rate_terms(self.v, self.dt))
 
     @property
     def drives(self) -> tuple[np.ndarray, np.ndarray]:

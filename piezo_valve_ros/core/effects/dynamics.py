@@ -19,15 +19,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..dynamics import lag_bank
-from ..valve_model import RATE_FILTERS_S, RATE_SCALES_V_S
-from .base import Effect, NotCompensable
+from ..rate_dependence import MAX_WIDENING_V, RATE_FILTERS_S, RATE_SCALES_V_S, TERM_COUNT
+from .base import Effect
 
 __all__ = ["Dynamics", "FAST_LAGS_S", "MAX_WIDENING_V", "EXTRA_START"]
 
 FAST_LAGS_S = (3e-4, 1e-3, 3e-3)   # first-order proxies of extra poles, for the subset search
 FORMS = ("poles", "rate", "both")
 EXTRA_START = 3.0   # the extra pole pair starts this factor above G_v's natural frequency (well damped)
-MAX_WIDENING_V = 20.0  # |c_k| at most [V] (a safety bound: rho / (rho + 1000 V/s) is still linear at 350 V/s)
 
 
 @dataclass(frozen=True)
@@ -45,7 +44,7 @@ class Dynamics(Effect):
 
     def switch_on(self, model):
         if self.form in ("rate", "both") and not model.rate_widening_v:
-            model = replace(model, rate_widening_v=(0.0,) * (len(RATE_SCALES_V_S) * len(RATE_FILTERS_S)))
+            model = replace(model, rate_widening_v=(0.0,) * TERM_COUNT)
         if self.form in ("poles", "both") and len(model.sections) == 1:
             w, _ = model.sections[0]
             model = replace(model, sections=model.sections + ((EXTRA_START * w, 1.1),))
@@ -89,8 +88,7 @@ class Dynamics(Effect):
     def compensation(self, model, coefs) -> dict:
         """Extra poles: G_v becomes the fitted higher-order G (the identification writes all of G's sections),
         which the dynamic feedforward inverts and ff_pid_g shapes with.  Rate-dependent thresholds: the
-        controller has no inverse (NotCompensable)."""
+        controller's inverse widens its thresholds the same way (``rate_dependence``)."""
         if any(c != 0.0 for c in model.rate_widening_v):
-            raise NotCompensable("dynamics: the controller has no inverse of rate-dependent thresholds (the loop "
-                                 "widening with the input rate is left to the feedback)")
+            return {"gpim.rate_widening_v": [float(c) for c in model.rate_widening_v]}
         return {}
