@@ -139,6 +139,42 @@ def test_anti_windup_recovers_quickly_after_saturation():
     assert abs(rec.position_m[-1] * 1e6) < 1.0  # no wind-up left
 
 
+@pytest.mark.parametrize("strategy, gains", [("pid_hc", "pid_hc_2"), ("ff_pid", "ff_pid_5"), ("ff_pid_g", "ff_pid_g_5")])
+def test_drift_is_absorbed_by_the_integrator_without_winding_up_at_the_rails(strategy, gains):
+    """Issue 11.2: drift is left to the feedback.  A valve whose offset drifts by 10 um (and its gain by 3 %)
+    within seconds: the integrator takes the offset (OL HC keeps it whole); half a second of an unreachable
+    demand holds the command on the rail without the integrator growing, and tracking is back at once."""
+    dt = 5e-4
+    drift = DriftParams(enabled=True, offset_um=10.0, gain_change=0.03, time_constant_s=0.5)
+    sim_config = ValveSimConfig(dt=dt, drift=drift)
+    t = np.arange(int(6.0 / dt)) * dt
+    ref = 30e-6 * np.sin(2 * np.pi * 1.0 * t)
+    rail = (t >= 3.0) & (t < 3.5)
+    ref[rail] = 200e-6        # beyond the valve's range
+
+    def run(config):
+        ctl, sim = ValveController(config), SimulatedValve(sim_config)
+        y, v, integ, err = sim.step(sim_config.initial_voltage_v), np.empty(t.size), np.empty(t.size), np.empty(t.size)
+        for k in range(t.size):
+            v[k] = ctl.step(ref[k], y)
+            integ[k] = ctl.integrator_um
+            y = sim.step(v[k])
+            err[k] = (y - ref[k]) * 1e6
+        return v, integ, err
+
+    def rms(err, a, b):
+        return float(np.sqrt(np.mean(err[(t >= a) & (t < b)] ** 2)))
+
+    _, _, open_loop = run(ControllerConfig(strategy="ol_hc", dt=dt))
+    v, integ, err = run(ControllerConfig(strategy=strategy, gains=gain_set(gains)[1], dt=dt))
+    assert rms(open_loop, 2.0, 3.0) > 5.0                       # the drift, uncompensated
+    assert rms(err, 2.0, 3.0) < 0.6, rms(err, 2.0, 3.0)          # absorbed
+    assert -15.0 < integ[t < 3.0][-1] < -5.0                    # by the integrator (the drift's offset is +10 um)
+    assert np.all(v[rail][100:] == 10.0)                          # held on the rail ...
+    assert np.ptp(integ[rail][100:]) < 1.0                        # ... with the integrator frozen, not winding up
+    assert rms(err, 3.6, 6.0) < 1.0, rms(err, 3.6, 6.0)          # tracking again at once
+
+
 def test_bad_configuration_and_model_updates_are_rejected():
     with pytest.raises(ValueError, match="unknown strategy"):
         ValveController(ControllerConfig(strategy="bang_bang"))
