@@ -7,7 +7,8 @@ import time
 
 import numpy as np
 
-from piezo_valve_ros.core.hysteresis import GPIM, PAPER_GPIM, inverse_gpim
+from piezo_valve_ros.core.hysteresis import GPIM, PAPER_GPIM
+from piezo_valve_ros.core.rate_dependence import hysteresis_inverse, hysteresis_stream
 from piezo_valve_ros.core.signals import training_voltage
 from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig
 from piezo_valve_ros.core.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController
@@ -37,27 +38,36 @@ def controller_cost(n=50_000):
         print(f"  {s:9s} {sec / n * 1e6:6.2f} us/sample  (target < 20 us; max rate {n / sec / 1e3:5.1f} kHz)")
 
 
-def inverse_cost(n=20_000):
-    """One inverse step: symmetric (closed form), asymmetric with a dead band (closed form) and with envelopes
-    that cross (solved each step), in the same run."""
+RATE_WIDENING_V = (-0.006, -0.37, 1.79, -0.028, 0.44, -1.25)   # as identified on the simulated rate valve
+
+
+def inverse_cost(n=20_000, dt=5e-4):
+    """One inverse step: symmetric (closed form), asymmetric with a dead band (closed form), with envelopes
+    that cross and with rate-dependent thresholds (solved each step, usually on one envelope in closed form),
+    in the same run; a random walk of the input at ``dt``."""
     m = PAPER_GPIM.model()
-    models = {"symmetric": m,
-              "dead band": GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, m.a0 * 1.03, m.a1 + 0.08),
-              "crossing": GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, 0.95, 0.2)}
+    crossing = GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, 0.95, 0.2)
+    cases = {"symmetric": (m, ()),
+             "dead band": (GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, m.a0 * 1.03, m.a1 + 0.08), ()),
+             "crossing": (crossing, ()),
+             "rate": (m, RATE_WIDENING_V),
+             "rate+cross": (crossing, RATE_WIDENING_V)}
     walk = np.cumsum(np.random.default_rng(1).normal(0.0, 0.05, n))
     v = 5.0 + 4.5 * np.tanh((walk - walk.mean()) / (3.0 * walk.std()))
     print(f"inverse GPIM step (n=15), {n} samples, best of 3:")
     base = None
-    for name, model in models.items():
-        y = model.run(v, model.virgin_state(5.0))[0].tolist()
+    for name, (model, widening) in cases.items():
+        forward = hysteresis_stream(model, widening, dt, 5.0)
+        y = [forward.step(x) for x in v.tolist()]
 
         def loop():
-            step = inverse_gpim(model, v0=5.0).step
+            step = hysteresis_inverse(model, widening, dt, v0=5.0).step
             for x in y:
                 step(x)
         sec = best_of(loop) / n
         base = base or sec
-        print(f"  {name:10s} {type(inverse_gpim(model)).__name__:20s} {sec * 1e6:7.2f} us/step  x{sec / base:.0f}")
+        kind = type(hysteresis_inverse(model, widening, dt)).__name__
+        print(f"  {name:10s} {kind:24s} {sec * 1e6:7.2f} us/step  x{sec / base:.1f}")
 
 
 def gpim_batch():

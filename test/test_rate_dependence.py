@@ -104,6 +104,29 @@ def test_forward_of_the_rate_dependent_inverse_is_the_demand(name, widening):
     assert np.max(np.abs(h + model.offset_um - y[:reset_at])[inside[:reset_at]]) <= 1e-9
 
 
+def test_every_step_is_exact_for_widenings_that_jump_about():
+    """Fuzz the step solver: each step under its own widening (drawn from -1..2 V, so bands that narrow, widen,
+    cross and uncross between steps, as they do when the widening comes from another inverse), random
+    demands near and far; the forward model from the state before the step gives back the demand."""
+    from types import SimpleNamespace
+    rng = np.random.default_rng(7)
+    for name, model in MODELS.items():
+        leader = SimpleNamespace(applied_widening_v=0.0)
+        inv = RateDependentInverseGPIM(model, WIDENINGS["widens"], DT, v0=5.0, follow=leader)
+        lo, hi = model.output_range()
+        y, worst = 0.5 * (lo + hi), 0.0
+        for k in range(4000):
+            leader.applied_widening_v = float(rng.uniform(-1.0, 2.0)) if rng.random() < 0.5 else \
+                leader.applied_widening_v + float(rng.normal(0.0, 0.01))
+            y = float(np.clip(y + rng.normal(0.0, 0.3 if rng.random() < 0.8 else 20.0), lo + 2.0, hi - 2.0))
+            z, r = inv.forward_state(), model.thresholds + leader.applied_widening_v
+            v = inv.step(y)
+            z = np.maximum(np.minimum(z, model.descending_envelope(v) + r), model.ascending_envelope(v) - r)
+            if 0.0 < v < 10.0:
+                worst = max(worst, abs(float(model.weights @ z) + model.offset_um - y))
+        assert worst <= 1e-9, (name, worst)
+
+
 def test_without_widening_the_closed_form_inverse_is_kept():
     assert not isinstance(hysteresis_inverse(PAPER, (0.0,) * 6, DT), RateDependentInverseGPIM)
     assert not isinstance(hysteresis_inverse(PAPER, (), DT), RateDependentInverseGPIM)

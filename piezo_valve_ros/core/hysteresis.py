@@ -40,6 +40,7 @@ __all__ = [
 
 
 OUTPUT_RANGE_POINTS = 401     # major-loop points behind GPIM.output_range
+ORDER_TOLERANCE_V = 1e-12     # breakpoints out of the operators' order by no more than rounding count as in order
 
 
 class NotInvertibleError(ValueError):
@@ -709,6 +710,11 @@ class MonotoneInverseGPIM:
         self._b0 = float(model.a0 if symmetric else model.b0)
         self._b1 = float(model.a1 if symmetric else model.b1)
         self._b2 = float(model.b2)
+        self._dead_band = not dead_band_problems(model, v_min, v_max)   # the bounds never cross (r_j >= 0)
+        self._p_list, self._base_list = self._p.tolist(), model.thresholds.tolist()
+        self._shift = 0.0              # every threshold widened by this [V] (rate_dependence sets it)
+        self._consistent = False       # the state is what the last step left at _v_last (output _y_now)
+        self._y_now = 0.0
         self.set_forward_state(model.virgin_state(v0) if forward_state is None else forward_state, v0)
 
     # -- state
@@ -719,6 +725,12 @@ class MonotoneInverseGPIM:
         self._z = np.array(z, dtype=float)
         if v_now is not None:
             self._v_last = float(v_now)
+        # the operators in order (steps keep it): z_j + r_j rises and z_j - r_j falls with j
+        r = self.model.thresholds
+        up, down = self._z + r, self._z - r
+        self._ordered = bool(np.all(up[1:] >= up[:-1] - ORDER_TOLERANCE_V)
+                             and np.all(down[1:] <= down[:-1] + ORDER_TOLERANCE_V))
+        self._consistent = False
 
     def reset(self, v0: float = CENTRE_VOLTAGE_V) -> None:
         self.set_forward_state(self.model.virgin_state(v0), v0)
@@ -755,12 +767,93 @@ class MonotoneInverseGPIM:
             points.append(-q0 / q1)
         return np.concatenate(points)
 
+    def _solve_on_one_envelope(self, y: float, rising: bool, state: np.ndarray, now: float) -> Optional[float]:
+        """The usual step, in closed form, from a state the last step left (so no operator lies outside its
+        bounds at the last input) with the operators in order (``z_j + r_j`` rising and ``z_j - r_j`` falling
+        with j, as every step keeps them): rising, each operator's next state is ``max(z_j, L(v) - r_j)``;
+        falling with bounds that cannot cross, ``min(z_j, U(v) + r_j)``.  The output is then piecewise linear
+        in L(v) (U(v)) with breakpoints ``z_j + r_j`` (``z_j - r_j``) in the operators' order; a demand a
+        step away passes a few of them, so a plain loop from the first finds the piece and solves it.  None
+        when the step is not of this kind (the general solve then takes it).  ``state``: the operators at the
+        last input under the present thresholds, ``now``: the output there [um]."""
+        if not rising and self._widest_crossing_below(self._v_last) > 2.0 * (self._base_list[0] + self._shift):
+            return None   # some operator's bounds may cross on the way down
+        z, p, base, w = state.tolist(), self._p_list, self._base_list, self._shift
+        off = self.model.offset_um
+        held = now - off                  # sum_j p_j z_j
+        following = before = 0.0          # sum p_j and sum p_j r_j over the operators that follow
+        if rising:
+            for i in range(len(z)):
+                r_i = base[i] + w
+                if off + held + following * (z[i] + r_i) - before >= y:
+                    break
+                p_i = p[i]
+                following += p_i
+                before += p_i * r_i
+                held -= p_i * z[i]
+            if following <= 0.0:
+                return None
+            m = self.model
+            v = ((y - off - held + before) / following - m.a1) / m.a0
+            return min(v, self.v_max)
+        for i in range(len(z)):
+            r_i = base[i] + w
+            if off + held + following * (z[i] - r_i) + before <= y:
+                break
+            p_i = p[i]
+            following += p_i
+            before += p_i * r_i
+            held -= p_i * z[i]
+        if following <= 0.0:
+            return None
+        d = (y - off - held - before) / following - self._b1
+        if self._b2:
+            v = 2.0 * d / (self._b0 + math.sqrt(max(self._b0 * self._b0 + 4.0 * self._b2 * d, 0.0)))
+        else:
+            v = d / self._b0
+        return max(v, self.v_min)
+
+    def _widest_crossing_below(self, v: float) -> float:
+        """max of L(u) - U(u) over u in v_min..v [V] (L - U is linear or quadratic in u)."""
+        m = self.model
+        q2, q1, q0 = -self._b2, m.a0 - self._b0, m.a1 - self._b1
+        lo = min(self.v_min, v)
+        points = [lo, v]
+        if q2 < 0.0 and lo < -q1 / (2.0 * q2) < v:
+            points.append(-q1 / (2.0 * q2))
+        return max(q2 * u * u + q1 * u + q0 for u in points)
+
+    def _narrowest_gap_above(self, v: float) -> float:
+        """min of L(u) - U(u) over u in v..v_max [V]."""
+        m = self.model
+        q2, q1, q0 = -self._b2, m.a0 - self._b0, m.a1 - self._b1
+        hi = max(self.v_max, v)
+        points = [v, hi]
+        if q2 > 0.0 and v < -q1 / (2.0 * q2) < hi:
+            points.append(-q1 / (2.0 * q2))
+        return min(q2 * u * u + q1 * u + q0 for u in points)
+
     def _solve(self, y: float) -> float:
         v_last = self._v_last
-        f_now = self.peek_forward(v_last)
+        if self._consistent:
+            state, f_now = self._z, self._y_now
+        else:  # the thresholds changed since the last step (rate dependence) or the state was set
+            m = self.model
+            lo, hi = m.ascending_envelope(v_last) - self._r, m.descending_envelope(v_last) + self._r
+            state = np.maximum(np.minimum(self._z, hi), lo)
+            f_now = float(self._p @ state) + m.offset_um
         if y == f_now:
             return v_last
         rising = y > f_now
+        # an operator pushed against the motion by the new thresholds would follow its other bound for a while:
+        # not the usual step (one pushed along the motion follows anyway, and so does one whose bounds cross
+        # all the way up: rising, it stays on its lower bound)
+        if self._ordered and (self._consistent or not (
+                np.any((self._z > np.maximum(hi, lo)) & (2.0 * self._r >= self._narrowest_gap_above(v_last)))
+                if rising else np.any(self._z < lo))):
+            v = self._solve_on_one_envelope(y, rising, state, f_now)
+            if v is not None:
+                return v
         b = self._breakpoints()
         b = b[np.isfinite(b)]
         if rising:
@@ -796,10 +889,12 @@ class MonotoneInverseGPIM:
     def step(self, y_um: float) -> float:
         """Voltage [V] that makes the forward model output ``y_um``; advances the state."""
         v = self._solve(float(y_um))
-        m = self.model
-        self._z = np.maximum(np.minimum(self._z, m.descending_envelope(v) + self._r),
-                             m.ascending_envelope(v) - self._r)
+        m, z = self.model, self._z
+        np.minimum(z, m.descending_envelope(v) + self._r, out=z)
+        np.maximum(z, m.ascending_envelope(v) - self._r, out=z)
         self._v_last = v
+        self._y_now = float(self._p @ z) + m.offset_um
+        self._consistent = True
         return v
 
     def peek(self, y_um: float) -> float:

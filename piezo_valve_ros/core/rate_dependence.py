@@ -179,15 +179,21 @@ class RateDependentInverseGPIM(MonotoneInverseGPIM):
         self.applied_widening_v = self.rate.value   # the widening the present state was reached with
         self._use_widening()
 
-    def _use_widening(self) -> None:
-        """Thresholds for the next step: r + w."""
-        np.add(self._base, self.rate.value, out=self._widened)
+    def _use_widening(self, w: Optional[float] = None) -> None:
+        """Thresholds for the next step: r + w (default: this inverse's own widening)."""
+        w = self.rate.value if w is None else w
+        np.add(self._base, w, out=self._widened)
         self._r = self._widened
+        # the state stays what the last step left only in a band at least as wide, where no bounds cross (a
+        # crossed operator sits on its lower bound, which moves with w)
+        self._consistent = (self._consistent and w >= self.applied_widening_v and self._dead_band
+                            and self._base_list[0] + self.applied_widening_v >= 0.0)
+        self._shift = w
 
     def step(self, y_um: float) -> float:
         follow = self.follow
         if follow is not None:
-            np.add(self._base, follow.applied_widening_v, out=self._widened)
+            self._use_widening(follow.applied_widening_v)
         v = super().step(y_um)
         self.applied_widening_v = follow.applied_widening_v if follow is not None else self.rate.value
         self.rate.advance(v)
