@@ -351,6 +351,28 @@ def test_controller_takes_a_whole_extended_model_in_one_update_or_refuses_it_who
     assert ctl.controller.compensation.dynamic_feedforward  # untouched
 
 
+def test_controller_takes_a_rate_dependent_model_and_says_what_its_inverse_costs(controller, capfd):
+    """Issue 11.2/3: gpim.rate_widening_v makes the controller's inverse rate-dependent (pushed with the rest
+    of the model, atomically); a malformed widening is refused whole; at a 0.1 ms period the node warns that
+    an inverse solved each step may overrun, at 1 ms it does not."""
+    from piezo_valve_ros.core.compensation import CompensationModel
+    from piezo_valve_ros.core.rate_dependence import RateDependentInverseGPIM
+    model = CompensationModel(rate_widening_v=(-0.006, -0.37, 1.79, -0.028, 0.44, -1.25))
+    ctl = controller(gain_set="", strategy="ol_hc")
+    assert ctl.set_parameters_atomically([Parameter(k, value=v) for k, v in model.to_parameters().items()]).successful
+    assert isinstance(ctl.controller.ff_inverse, RateDependentInverseGPIM)
+    assert ctl.controller.compensation.rate_widening_v == model.rate_widening_v
+    result = set_one(ctl, "gpim.rate_widening_v", [1.0, 2.0])
+    assert not result.successful and "needs 6 coefficients" in result.reason
+    assert ctl.controller.compensation.rate_widening_v == model.rate_widening_v  # untouched
+    assert "may overrun" not in capfd.readouterr().err
+    fast = controller(gain_set="", strategy="ol_hc", control_period_s=1e-4,
+                      gpim__rate_widening_v=list(model.rate_widening_v))
+    assert isinstance(fast.controller.ff_inverse, RateDependentInverseGPIM)
+    err = capfd.readouterr().err
+    assert "solved each step" in err and "may overrun" in err
+
+
 # ---------------------------------------------------------------------------- identification
 @pytest.fixture
 def identification(ros_context, tmp_path):

@@ -28,7 +28,8 @@ from .drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 from .hysteresis import GPIM, MonotoneInverseGPIM, PlayOperatorBank, inverse_gpim
 
 __all__ = ["RATE_FILTERS_S", "RATE_SCALES_V_S", "TERM_COUNT", "MAX_WIDENING_V", "rate_terms", "RateWidening",
-           "RateDependentInverseGPIM", "RateDependentGPIMStream", "hysteresis_stream", "hysteresis_inverse", "swap_inverse", "take_over_state", "widening_problems"]
+           "RateDependentInverseGPIM", "RateDependentGPIMStream", "hysteresis_stream", "hysteresis_inverse",
+           "solved_each_step", "describe_inverse", "swap_inverse", "take_over_state", "widening_problems"]
 
 RATE_FILTERS_S = (0.02, 0.1)             # the input rate |dv/dt| through first-order lags of these [s] ...
 RATE_SCALES_V_S = (10.0, 100.0, 1000.0)  # ... widens the thresholds by sum c rho / (rho + s_k), for each lag
@@ -252,3 +253,18 @@ def take_over_state(target, source, v_now: float) -> None:
     target.set_forward_state(source.forward_state(), v_now)
     if isinstance(target, RateDependentInverseGPIM) and isinstance(source, RateDependentInverseGPIM):
         target.set_rate_state(source.rate.state(), source.applied_widening_v)
+
+
+def solved_each_step(inverse) -> bool:
+    """True for an inverse that solves every step (crossing envelopes, rate dependence): tens of microseconds
+    per step where the closed form takes a few (``bench/core_speed.py``)."""
+    return isinstance(inverse, MonotoneInverseGPIM)
+
+
+def describe_inverse(inverse) -> str:
+    """One line for logs: which inverse runs."""
+    if isinstance(inverse, RateDependentInverseGPIM):
+        return "rate-dependent GPIM inverse, solved each step"
+    if isinstance(inverse, MonotoneInverseGPIM):
+        return "GPIM inverse with crossing envelopes, solved each step"
+    return "GPIM inverse in closed form"

@@ -26,6 +26,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64, Float64MultiArray
 
 from ..core.compensation import MODEL_PARAMETERS, CompensationModel
+from ..core.rate_dependence import describe_inverse, solved_each_step
 from ..core.signals import ReferenceRamp
 from ..core.strategies import GUARD_WINDOW_S, STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set
 from .common import (COMMAND_QOS, LATEST_SENSOR_QOS, SAMPLES_QOS, as_float,
@@ -74,6 +75,9 @@ def settings_from_parameters(p: dict[str, Any]) -> tuple[ControllerConfig, Compe
     return config, model
 
 
+SOLVED_INVERSE_MIN_PERIOD_S = 5e-4   # below this period an inverse solved each step is said to risk overruns
+
+
 class ValveControllerNode(Node):
     def __init__(self, **kwargs):
         super().__init__("valve_controller", **kwargs)
@@ -107,6 +111,7 @@ class ValveControllerNode(Node):
         self.realtime = realtime_settings(p)
         apply(self.realtime)
         self.controller = ValveController(config, model)
+        self._check_inverse_cost(self.controller)
         self.ramp = ReferenceRamp(as_float("initial_reference_m", p["initial_reference_m"]),
                                   self._ramp_s(p["reference_ramp_s"]), config.dt)
         self.enabled = bool(p["enabled"])
@@ -130,6 +135,14 @@ class ValveControllerNode(Node):
         self.get_logger().info(f"valve_controller up: strategy={config.strategy}{self._gains_text(config)} "
                                f"period={config.dt * 1e3:.3f} ms" + (f" (gain_set {p['gain_set']})" if p["gain_set"] else "")
                                + f"; {self.realtime.describe()}")
+
+    def _check_inverse_cost(self, ctl: ValveController) -> None:
+        """Say so when the model's inverse is solved each step at a period too short for it to be sure."""
+        if solved_each_step(ctl.ff_inverse) and ctl.config.dt < SOLVED_INVERSE_MIN_PERIOD_S:
+            self.get_logger().warning(
+                f"the model's inverse is solved each step ({describe_inverse(ctl.ff_inverse)}): tens of us per "
+                f"pass, two passes per period; at {ctl.config.dt * 1e3:g} ms the loop may overrun "
+                f"(bench/core_speed.py; periods >= {SOLVED_INVERSE_MIN_PERIOD_S * 1e3:g} ms are safe)")
 
     @staticmethod
     def _gains_text(config: ControllerConfig) -> str:
@@ -298,7 +311,8 @@ class ValveControllerNode(Node):
         old = ctl.config
         if changed & MODEL_PARAMETERS.keys():
             ctl.set_model(model)
-            self.get_logger().info("new model parameters in use")
+            self.get_logger().info(f"new model parameters in use ({describe_inverse(ctl.ff_inverse)})")
+            self._check_inverse_cost(ctl)
         if (config.command_min_v, config.command_max_v, config.centre_voltage_v) != \
                 (old.command_min_v, old.command_max_v, old.centre_voltage_v):
             ctl.set_command_range(config.command_min_v, config.command_max_v, config.centre_voltage_v)
