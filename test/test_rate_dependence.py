@@ -168,6 +168,9 @@ def test_a_rate_dependent_model_swap_keeps_the_valves_memory(strategy):
                            rate_widening_v=tuple(0.9 * x for x in WIDENINGS["mixed"])))
     # the command's step at the swap, beyond the step the demand's motion makes anyway
     assert abs((refit[swap] - refit[swap - 1]) - (plain[swap] - plain[swap - 1])) < 0.01
+    # and back to a model without rate dependence (closed-form inverse, states made consistent with it)
+    plain_model, _ = run(CompensationModel(PAPER))
+    assert abs((plain_model[swap] - plain_model[swap - 1]) - (plain[swap] - plain[swap - 1])) < 0.01
 
 
 def test_pid_hc_with_the_rate_dependent_model_is_not_misled_by_sensor_noise():

@@ -240,8 +240,9 @@ def swap_inverse(old, model: GPIM, widening_v: Sequence[float], dt: float, v_now
     """A new inverse of ``model`` (widening ``widening_v``) that keeps ``old``'s loop memory: its operator
     states mapped onto the new thresholds at the input ``v_now`` [V] (``GPIM.retarget_state``, at the
     widening they were reached with) and its rate history, if it has one (a model without one starts its
-    rates at rest)."""
-    z = old.model.retarget_state(old.forward_state(), model, v_now, _applied_widening(old))
+    rates at rest).  The states are made consistent with the new thresholds at the widening the old states
+    were reached with (so the same model swapped in changes nothing), or with none for a model without."""
+    z = old.model.retarget_state(old.forward_state(), model, v_now, _applied_widening(old) if any(widening_v) else 0.0)
     new = hysteresis_inverse(model, widening_v, dt, z, v_now, v_min, v_max, follow)
     if isinstance(new, RateDependentInverseGPIM) and isinstance(old, RateDependentInverseGPIM):
         new.set_rate_state(old.rate.state(), old.applied_widening_v)
