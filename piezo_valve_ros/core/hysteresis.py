@@ -752,12 +752,7 @@ class MonotoneInverseGPIM:
 
     def _breakpoints(self) -> np.ndarray:
         m, z, r = self.model, self._z, self._r
-        d = z - r - self._b1   # U(v) = z - r: the descending envelope's rising branch
-        if self._b2:
-            down = 2.0 * d / (self._b0 + np.sqrt(np.maximum(self._b0 * self._b0 + 4.0 * self._b2 * d, 0.0)))
-        else:
-            down = d / self._b0
-        points = [(z + r - m.a1) / m.a0, down]
+        points = [(z + r - m.a1) / m.a0, self._descending_inverse(z - r)]   # L(v) = z + r, U(v) = z - r
         # L(v) - U(v) = 2 r:  -b2 v^2 + (a0 - b0) v + (a1 - b1 - 2 r) = 0
         q1, q0 = m.a0 - self._b0, m.a1 - self._b1 - 2.0 * r
         if self._b2:
@@ -780,38 +775,30 @@ class MonotoneInverseGPIM:
             return None   # some operator's bounds may cross on the way down
         z, p, base, w = state.tolist(), self._p_list, self._base_list, self._shift
         off = self.model.offset_um
-        held = now - off                  # sum_j p_j z_j
+        sign = 1.0 if rising else -1.0    # the breakpoints are z_j + sign r_j
+        held = now - off                  # sum_j p_j z_j over the operators held
         following = before = 0.0          # sum p_j and sum p_j r_j over the operators that follow
-        if rising:
-            for i in range(len(z)):
-                r_i = base[i] + w
-                if off + held + following * (z[i] + r_i) - before >= y:
-                    break
-                p_i = p[i]
-                following += p_i
-                before += p_i * r_i
-                held -= p_i * z[i]
-            if following <= 0.0:
-                return None
-            m = self.model
-            v = ((y - off - held + before) / following - m.a1) / m.a0
-            return min(v, self.v_max)
         for i in range(len(z)):
             r_i = base[i] + w
-            if off + held + following * (z[i] - r_i) + before <= y:
-                break
+            if sign * (off + held + following * (z[i] + sign * r_i) - sign * before - y) >= 0.0:
+                break                     # the demand is reached before this operator starts to follow
             p_i = p[i]
             following += p_i
             before += p_i * r_i
             held -= p_i * z[i]
         if following <= 0.0:
             return None
-        d = (y - off - held - before) / following - self._b1
-        if self._b2:
-            v = 2.0 * d / (self._b0 + math.sqrt(max(self._b0 * self._b0 + 4.0 * self._b2 * d, 0.0)))
-        else:
-            v = d / self._b0
-        return max(v, self.v_min)
+        drive = (y - off - held + sign * before) / following     # L(v) rising, U(v) falling
+        if rising:
+            return min((drive - self.model.a1) / self.model.a0, self.v_max)
+        return max(float(self._descending_inverse(drive)), self.v_min)
+
+    def _descending_inverse(self, x):
+        """The input [V] at which the descending envelope reaches ``x`` (its rising branch; scalar or array)."""
+        d = x - self._b1
+        if not self._b2:
+            return d / self._b0
+        return 2.0 * d / (self._b0 + np.sqrt(np.maximum(self._b0 * self._b0 + 4.0 * self._b2 * d, 0.0)))
 
     def _widest_crossing_below(self, v: float) -> float:
         """max of L(u) - U(u) over u in v_min..v [V] (L - U is linear or quadratic in u)."""
