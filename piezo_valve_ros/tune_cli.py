@@ -15,6 +15,7 @@ gains meet the limits, 1 anything else.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import sys
 
 from .core.compensation import CompensationModel
@@ -66,7 +67,9 @@ def main(argv=None) -> int:
         v_max = as_float("command_max_v", params.get("command_max_v", COMMAND_MAX_V))
         config = ControllerConfig(strategy=args.strategy, dt=dt, command_min_v=v_min, command_max_v=v_max,
                                   centre_voltage_v=as_float("centre_voltage_v", params.get("centre_voltage_v",
-                                                                                           ControllerConfig.centre_voltage_v)))
+                                                                                           ControllerConfig.centre_voltage_v)),
+                                  derivative_filter_s=as_float("derivative_filter_s", params.get(
+                                      "derivative_filter_s", ControllerConfig.derivative_filter_s)))
         try:  # the command range and period are checked by tune(), with the limits
             model = CompensationModel.from_parameters(params, v_min, v_max, dt)
         except ValueError as exc:
@@ -81,11 +84,11 @@ def main(argv=None) -> int:
             for name, (strategy, gains) in TABLE1_GAINS.items():
                 if strategy != args.strategy:
                     continue
-                s = step_score(ControllerConfig(strategy, gains, dt, v_min, v_max, v0), model,
+                s = step_score(replace(config, strategy=strategy, gains=gains), model,
                                lambda: ModelValve(model, dt, v0), v0)
                 lines.append(f"    {name}: settling {1e3 * s.settling_time_s:.2f} ms, overshoot {s.overshoot_pct:.2f} % "
                              f"(worst {s.worst_overshoot_pct:.2f} %); "
-                             f"{loop_margins(strategy, gains, model, dt, v_min, v_max).text()}")
+                             f"{loop_margins(strategy, gains, model, dt, v_min, v_max, config.derivative_filter_s).text()}")
         written = []
         if args.params_out:
             values = {**params, "control_period_s": float(dt), **result.parameters()}

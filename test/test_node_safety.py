@@ -187,13 +187,24 @@ def test_an_active_gain_set_decides_strategy_and_gains_and_says_so(controller):
                                          ("saturation.half_range_um", float("nan")), ("saturation.half_range_um", "abc"),
                                          ("saturation.coefficients_um", [float("nan")] * 8),
                                          ("saturation.coefficients_um", [0.0] * 7), ("feedforward.dynamics", "true"),
-                                         ("feedforward.dynamics", 0)])
+                                         ("feedforward.dynamics", 0), ("derivative_filter_s", 0.0),
+                                         ("derivative_filter_s", 1.0), ("derivative_filter_s", float("nan")),
+                                         ("gpim.rate_widening_v", [30.0] * 6)])
 def test_controller_refuses_what_it_would_not_apply(controller, name, value):
     ctl = controller(gain_set="")
     before = (ctl.controller.config, ctl.controller.compensation, ctl.enabled, ctl.get_parameter(name).value)
     result = set_one(ctl, name, value)
     assert not result.successful and result.reason
     assert (ctl.controller.config, ctl.controller.compensation, ctl.enabled, ctl.get_parameter(name).value) == before
+
+
+def test_derivative_filter_is_applied_at_run_time(controller):
+    ctl = controller(gain_set="", strategy="pid_hc", kd=1e-4)
+    assert ctl.controller.config.derivative_filter_s == pytest.approx(5e-4)
+    assert set_one(ctl, "derivative_filter_s", 2e-3).successful
+    assert ctl.controller.config.derivative_filter_s == pytest.approx(2e-3)
+    dt = ctl.controller.config.dt
+    assert ctl.controller._d_alpha == pytest.approx(dt / (2e-3 + dt))   # the filter the D term now runs
 
 
 def test_enabled_is_a_boolean_and_false_disables(controller):

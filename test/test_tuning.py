@@ -99,7 +99,7 @@ def _model_file(path, **extra):
 
 
 def test_valve_tune_writes_a_parameters_file_the_controller_takes(tmp_path, capsys):
-    src = _model_file(tmp_path / "fitted.yaml", control_period_s=2e-3)
+    src = _model_file(tmp_path / "fitted.yaml", control_period_s=2e-3, derivative_filter_s=1e-3)
     out = tmp_path / "tuned.yaml"
     assert valve_tune([str(src), "--strategy", "pid_hc", "--params-out", str(out), "--compare", "--quiet"]) == 0
     text = capsys.readouterr().out
@@ -107,12 +107,14 @@ def test_valve_tune_writes_a_parameters_file_the_controller_takes(tmp_path, caps
     params = read_parameters_file(out)
     assert params["strategy"] == "pid_hc" and params["gain_set"] == "" and params["gpim.n"] == 15
     assert params["control_period_s"] == 2e-3 and params["kp"] > 0 and params["ki"] > 0
+    assert params["derivative_filter_s"] == 1e-3      # the D filter the gains were tuned with
     raw = yaml.safe_load(out.read_text())["/**/valve_controller"]["ros__parameters"]
     assert isinstance(raw["gpim.n"], int) and isinstance(raw["kd"], float)   # ROS types kept
     # the controller node's own parameter check takes the whole file (model + gains)
     defaults = {"command_min_v": 0.0, "command_max_v": 10.0, "centre_voltage_v": 5.0}
     config, model = settings_from_parameters({**defaults, **params})
     assert config.gains == PIDGains(params["kp"], params["ki"], params["kd"]) and config.dt == 2e-3
+    assert config.derivative_filter_s == 1e-3
     assert model.gpim.n == PAPER.gpim.n
 
 
@@ -126,7 +128,7 @@ def test_valve_tune_fails_with_one_line_and_writes_nothing(tmp_path, capsys):
     assert "no valve_controller section" in capsys.readouterr().err
     with pytest.raises(ParametersFileError, match="not YAML"):
         read_parameters_file(_write(tmp_path / "bad.yaml", "a: [1,\n"))
-    src = _model_file(tmp_path / "fitted.yaml", control_period_s=2e-3)
+    src = _model_file(tmp_path / "fitted.yaml", control_period_s=2e-3, derivative_filter_s=1e-3)
     assert valve_tune([str(src), "--quiet", "--max-noise-gain", "0.001",
                        "--params-out", str(out)]) == 2
     err = capsys.readouterr().err

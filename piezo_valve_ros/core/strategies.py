@@ -308,6 +308,15 @@ class ValveController:
         self.last_command_v = min(max(self.last_command_v, command_min_v), command_max_v)
         self._transfer(self.config.strategy)
 
+    def set_derivative_filter(self, time_constant_s: float) -> None:
+        """New time constant [s] of the D term's filter; the filter's present output carries on (bumpless)."""
+        new = replace(self.config, derivative_filter_s=time_constant_s)
+        problems = new.problems()
+        if problems:
+            raise ValueError("; ".join(problems))
+        self.config = new
+        self._d_alpha = new.dt / (new.derivative_filter_s + new.dt)
+
     def set_gains(self, gains: PIDGains) -> None:
         self.set_strategy(self.config.strategy, gains)
 

@@ -147,11 +147,13 @@ class TuningResult:
     limits: TuningLimits
     screened: int               # candidates whose margins were computed
     simulated: int              # candidates run through the steps
+    derivative_filter_s: float = ControllerConfig.derivative_filter_s   # the D filter the gains were tuned with
 
     def parameters(self) -> dict:
-        """``valve_controller`` parameters selecting these gains (a Table 1 gain set cleared)."""
+        """``valve_controller`` parameters selecting these gains (a Table 1 gain set cleared) and the D filter
+        they were tuned with."""
         return {"strategy": self.strategy, "kp": float(self.gains.kp), "ki": float(self.gains.ki),
-                "kd": float(self.gains.kd), "gain_set": ""}
+                "kd": float(self.gains.kd), "gain_set": "", "derivative_filter_s": float(self.derivative_filter_s)}
 
     def summary(self) -> str:
         s = self.score
@@ -474,6 +476,6 @@ def tune(strategy: str, model: CompensationModel, dt: float, limits: TuningLimit
                         best, improved = trial, True
         step /= 2
     result = TuningResult(strategy, best, margins(best), score(best), limits, len(margins_cache),
-                          len(scores) + len(variants) * len(robust))
+                          len(scores) + len(variants) * len(robust), base.derivative_filter_s)
     log(f"tune {strategy}: {result.summary()}")
     return result

@@ -36,6 +36,7 @@ from ..core.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 GAIN_SET_KEYS = ("strategy", "kp", "ki", "kd")   # what an active gain_set decides
 HANDBACK_TIMEOUT_RANGE_S = (0.05, 10.0)          # handback_timeout_s may not be shorter or longer than this
 HANDBACK_CHECK_S = 0.02                          # how often the hand-back condition is checked [s]
+DERIVATIVE_FILTER_RANGE_S = (1e-5, 0.1)          # the D term's filter time constant may lie within this [s]
 
 
 def gain_set_values(name: str) -> dict[str, Any]:
@@ -63,8 +64,12 @@ def settings_from_parameters(p: dict[str, Any]) -> tuple[ControllerConfig, Compe
         strategy=strategy, gains=gains, dt=as_float("control_period_s", p["control_period_s"]),
         command_min_v=as_float("command_min_v", p["command_min_v"]),
         command_max_v=as_float("command_max_v", p["command_max_v"]),
-        centre_voltage_v=as_float("centre_voltage_v", p["centre_voltage_v"]))
+        centre_voltage_v=as_float("centre_voltage_v", p["centre_voltage_v"]),
+        derivative_filter_s=as_float("derivative_filter_s", p["derivative_filter_s"]))
     problems = config.problems()
+    lo, hi = DERIVATIVE_FILTER_RANGE_S
+    if not lo <= config.derivative_filter_s <= hi:
+        problems.append(f"derivative_filter_s must lie within {lo:g}..{hi:g} s, got {config.derivative_filter_s:g}")
     model = None
     try:
         model = CompensationModel.from_parameters(p, config.command_min_v, config.command_max_v, config.dt)
@@ -87,6 +92,9 @@ class ValveControllerNode(Node):
             ("gain_set", "", "Table 1 gain set name: sets strategy/kp/ki/kd (which read back its values); '' = none"),
             ("kp", g.kp, "proportional gain (normalised, um/um)"), ("ki", g.ki, "integral gain [1/s]"),
             ("kd", g.kd, "derivative gain [s] (the paper uses 0)"),
+            ("derivative_filter_s", ControllerConfig.derivative_filter_s,
+             f"time constant of the D term's first-order filter [s] ({DERIVATIVE_FILTER_RANGE_S[0]:g}.."
+             f"{DERIVATIVE_FILTER_RANGE_S[1]:g}; valve_tune and the tune step use it)"),
             ("command_min_v", COMMAND_MIN_V, "[V]"), ("command_max_v", COMMAND_MAX_V, "[V]"),
             ("centre_voltage_v", CENTRE_VOLTAGE_V, "[V]"),
             ("reference_ramp_s", 0.0, "reference changes become ramps of this duration [s] (paper: 0.002)"),
@@ -318,6 +326,9 @@ class ValveControllerNode(Node):
             ctl.set_command_range(config.command_min_v, config.command_max_v, config.centre_voltage_v)
             self.get_logger().info(f"command range {config.command_min_v:g}..{config.command_max_v:g} V "
                                    f"(centre {config.centre_voltage_v:g} V) in use (bumpless)")
+        if config.derivative_filter_s != old.derivative_filter_s:
+            ctl.set_derivative_filter(config.derivative_filter_s)
+            self.get_logger().info(f"derivative filter {config.derivative_filter_s:g} s in use")
         if (config.strategy, config.gains) != (old.strategy, old.gains):
             ctl.set_strategy(config.strategy, config.gains)
             self.get_logger().info(f"strategy={config.strategy}{self._gains_text(config)} (bumpless)")

@@ -269,12 +269,13 @@ class ValveIdentificationNode(Node):
             self.get_logger().error("tune: no refitted model to tune on (the refit failed or was not pushed)")
             return {"step": "tune", "ok": False, "reason": "no refitted model"}
         comp, bag, report = last
-        names = ["control_period_s", "command_min_v", "command_max_v", "centre_voltage_v"]
+        names = ["control_period_s", "command_min_v", "command_max_v", "centre_voltage_v", "derivative_filter_s"]
         values = self._controller_values(names)
         config = ControllerConfig(strategy=self.tune_strategy, dt=float(values["control_period_s"]),
                                   command_min_v=float(values["command_min_v"]),
                                   command_max_v=float(values["command_max_v"]),
-                                  centre_voltage_v=float(values["centre_voltage_v"]))
+                                  centre_voltage_v=float(values["centre_voltage_v"]),
+                                  derivative_filter_s=float(values["derivative_filter_s"]))
         try:
             result = tune(self.tune_strategy, comp.controller_model, config.dt, self.tune_limits, config,
                           log=lambda s: self.get_logger().info(s))
