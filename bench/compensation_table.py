@@ -4,8 +4,11 @@ under OL HC and PID HC, with the baseline model (the paper's: GPIM + G_v) agains
 effect the controller can invert, dynamic feedforward on).
 
     python bench/compensation_table.py [--dt 5e-4] [--only NAME ...] [--markdown FILE] [--gains pid_hc_5]
+                                       [--no-tuned]
 
-Runs in-process on the core (no ROS); about a minute per valve at the default 2 kHz.
+Besides OL HC and the Table 1 set, PID HC with gains the tuner chose on each valve's extended model (the
+identification's ``tune`` step), with both models.  Runs in-process on the core (no ROS); one to three minutes
+per valve at the default 2 kHz.
 """
 import argparse
 import sys
@@ -22,6 +25,7 @@ def main(argv=None) -> int:
     ap.add_argument("--only", nargs="+", choices=list(SIMULATED_EFFECTS), help="these valves only")
     ap.add_argument("--gains", default="pid_hc_5", help="Table 1 set for PID HC (default pid_hc_5)")
     ap.add_argument("--markdown", metavar="FILE", help="also write the table as Markdown")
+    ap.add_argument("--no-tuned", action="store_true", help="leave out the PID HC rows with tuned gains")
     args = ap.parse_args(argv)
     strategy, gains = gain_set(args.gains)
     strategies = {"OL HC": ControllerConfig(strategy="ol_hc", gains=PIDGains(0.0, 0.0)),
@@ -33,11 +37,14 @@ def main(argv=None) -> int:
     for name in args.only or SIMULATED_EFFECTS:
         t0 = time.perf_counter()
         sim = SIMULATED_EFFECTS[name](ValveSimConfig(dt=args.dt))
-        result = compare_compensations(sim, strategies, log=lambda s: None)
-        for label in strategies:
+        result = compare_compensations(sim, strategies, log=lambda s: None,
+                                       tuned=() if args.no_tuned else ("pid_hc",))
+        for label, config in result.strategies.items():
             b, e = result.errors[("baseline", label)], result.errors[("extended", label)]
+            g = config.gains
+            shown = label if label in strategies else f"{label} (kp {g.kp:.3g}, ki {g.ki:.4g}, kd {g.kd:.2g})"
             row = (f"| {name} | {', '.join(result.effects_added) or 'none'} | {', '.join(result.refused) or '-'} | "
-                   f"{label} | {b.rms_um:.3f} | {e.rms_um:.3f} | {b.peak_um:.3f} ({b.peak_pct:.2f} %) | "
+                   f"{shown} | {b.rms_um:.3f} | {e.rms_um:.3f} | {b.peak_um:.3f} ({b.peak_pct:.2f} %) | "
                    f"{e.peak_um:.3f} ({e.peak_pct:.2f} %) | {e.rms_um / b.rms_um:.2f} |")
             print(row, flush=True)
             lines.append(row)

@@ -9,7 +9,7 @@ compensation_table.py`` prints the README's table from it; a test runs one case.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Callable, Optional
+from typing import TYPE_CHECKING, Callable, Optional, Sequence
 
 import numpy as np
 
@@ -78,22 +78,31 @@ class CompensationResult:
     effects_added: list[str]
     refused: dict[str, str]
     errors: dict[tuple[str, str], TrackingError]   # (model "baseline"/"extended", strategy label) -> error
+    strategies: dict[str, ControllerConfig]         # strategy label -> the settings it ran with (tuned ones too)
 
 
 def compare_compensations(sim_config: ValveSimConfig, strategies: dict[str, ControllerConfig],
                           validation_s: float = 53.0, amplitude_um: float = 60.0,
-                          log: Callable[[str], None] = print) -> CompensationResult:
+                          log: Callable[[str], None] = print, tuned: Sequence[str] = ()) -> CompensationResult:
     """Identify the simulated valve, then track the paper's validation reference under each strategy with the
     baseline compensation (the paper's: GPIM, G_v for ff_pid_g) and the extended one (every effect the
-    controller can invert, dynamic feedforward on)."""
+    controller can invert, dynamic feedforward on).  ``tuned``: strategies whose gains are also chosen by the
+    tuner on the extended model (``tuning.tune``, default limits), as the identification's ``tune`` step
+    would; they run with both models under the label ``"<STRATEGY> tuned"``."""
     from ..identify import baseline_compensation, compensation
     analysis = simulated_analysis(sim_config, log=log)
     extended = compensation(analysis)
     models = {"baseline": baseline_compensation(analysis).controller_model, "extended": extended.controller_model}
+    if tuned:
+        from .tuning import tune
+        strategies = dict(strategies)
+        for strategy in tuned:
+            gains = tune(strategy, extended.controller_model, sim_config.dt, log=log).gains
+            strategies[f"{strategy.upper().replace('_', ' ')} tuned"] = ControllerConfig(strategy=strategy, gains=gains)
     reference = validation_reference_m(sim_config.dt, validation_s, amplitude_um)
     errors = {(name, label): tracking_test(config, model, sim_config, reference)
               for name, model in models.items() for label, config in strategies.items()}
-    return CompensationResult(list(analysis.report["effects_added"]), dict(extended.refused), errors)
+    return CompensationResult(list(analysis.report["effects_added"]), dict(extended.refused), errors, strategies)
 
 
 @dataclass(frozen=True)
