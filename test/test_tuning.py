@@ -142,3 +142,16 @@ def test_valve_tune_fails_with_one_line_and_writes_nothing(tmp_path, capsys):
 def _write(path, text):
     path.write_text(text)
     return path
+
+
+def test_a_step_run_gives_up_after_a_step_past_the_limit_and_never_wins():
+    """PID HC 5 rings at 1 kHz (tens of % overshoot): with give_up_above_pct the first step ends the run, the
+    score says it is incomplete and its settling time is infinite (no comparison prefers it)."""
+    config = ControllerConfig(strategy="pid_hc", gains=TABLE1_GAINS["pid_hc_5"][1], dt=DT)
+    full = step_score(config, PAPER, lambda: ModelValve(PAPER, DT, 5.0), 5.0)
+    cut = step_score(config, PAPER, lambda: ModelValve(PAPER, DT, 5.0), 5.0, give_up_above_pct=2.0)
+    assert full.complete and len(full.steps) == 3 and full.steps[0].overshoot_pct > 2.0
+    assert not cut.complete and len(cut.steps) == 1 and cut.steps[0] == full.steps[0]
+    assert cut.settling_time_s == float("inf") and cut.worst_overshoot_pct > 2.0
+    fine = ControllerConfig(strategy="pid_hc", gains=TABLE1_GAINS["pid_hc_1"][1], dt=DT)
+    assert step_score(fine, PAPER, lambda: ModelValve(PAPER, DT, 5.0), 5.0, give_up_above_pct=2.0).complete
