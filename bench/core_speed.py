@@ -7,11 +7,15 @@ import time
 
 import numpy as np
 
+from piezo_valve_ros.core.compensation import CompensationModel
 from piezo_valve_ros.core.hysteresis import GPIM, PAPER_GPIM
 from piezo_valve_ros.core.rate_dependence import hysteresis_inverse, hysteresis_stream
 from piezo_valve_ros.core.signals import training_voltage
 from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig
 from piezo_valve_ros.core.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController
+
+
+RATE_WIDENING_V = (-0.006, -0.37, 1.79, -0.028, 0.44, -1.25)   # as identified on the simulated rate valve
 
 
 def best_of(fn, repeats=3):
@@ -27,18 +31,18 @@ def controller_cost(n=50_000):
     t = np.arange(n) * 1e-4
     ref = 40e-6 * np.sin(2 * np.pi * 5 * t)
     meas = SimulatedValve(ValveSimConfig()).run(5 + ref * 1e6 / 13.5)
-    print(f"controller step cost over {n} samples (inverse GPIM n=15 included), best of 3:")
-    for s in STRATEGIES:
+    print(f"controller step cost over {n} samples at 10 kHz (inverse GPIM n=15 included), best of 3:")
+    rate_model = CompensationModel(rate_widening_v=RATE_WIDENING_V)
+    cases = [(s, CompensationModel()) for s in STRATEGIES] + [(s, rate_model) for s in ("ol_hc", "pid_hc")]
+    for s, model in cases:
         def loop():
-            ctl = ValveController(ControllerConfig(strategy=s, gains=PIDGains(1.1987, 474.509)))
+            ctl = ValveController(ControllerConfig(strategy=s, gains=PIDGains(1.1987, 474.509)), model)
             step = ctl.step
             for r, y in zip(ref.tolist(), meas.tolist()):
                 step(r, y)
         sec = best_of(loop)
-        print(f"  {s:9s} {sec / n * 1e6:6.2f} us/sample  (target < 20 us; max rate {n / sec / 1e3:5.1f} kHz)")
-
-
-RATE_WIDENING_V = (-0.006, -0.37, 1.79, -0.028, 0.44, -1.25)   # as identified on the simulated rate valve
+        name = s + (" rate" if model is rate_model else "")
+        print(f"  {name:14s} {sec / n * 1e6:6.2f} us/sample  (target < 20 us; max rate {n / sec / 1e3:5.1f} kHz)")
 
 
 def inverse_cost(n=20_000, dt=5e-4):
