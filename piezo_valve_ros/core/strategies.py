@@ -17,7 +17,9 @@ ff_pid_g    v = inverse(y_ref) + PID(G_v(y_ref) - y) / k
 ``inverse`` is the whole compensation model (``compensation.CompensationModel``): on the feedforward
 path the dynamic inverse W = F/G_v when ``dynamic_feedforward`` is on (ff_pid_g then shapes with F
 instead of G_v), the creep and saturation inverse, the inverse GPIM; in pid_hc's loop the saturation
-inverse and the inverse GPIM (creep and dynamics are the feedback's there).
+inverse and the inverse GPIM (creep and dynamics are the feedback's there).  With rate-dependent thresholds
+the inverses widen them as the model does (``rate_dependence``); pid_hc's in-loop inverse takes the
+feedforward's widening (the demand's cycling rate), not one from its own noisy command.
 
 The output is clamped to the command range with conditional-integration anti-windup.
 Switching strategy (or gains) is bumpless: the integrator absorbs the difference where the
@@ -341,8 +343,10 @@ class ValveController:
         # asked for that period's demand) and the difference handed to the integrator or the decaying bump:
         # the command moves as the old model would have moved it, then settles onto the new one.  (The new
         # model's voltage for the last demand is no reference: with thresholds widened by the rate it may
-        # lie across a dead band from the voltage the next demand needs.)
-        self._swap_from = old_ff if self._last_ff_demand_um is not None else None
+        # lie across a dead band from the voltage the next demand needs.)  Two swaps before a period: the
+        # command still follows the first one's old model.
+        if self._swap_from is None and self._last_ff_demand_um is not None:
+            self._swap_from = old_ff
         if filters is not None:
             self._gv, self._dyn = filters
             self._gv.reset(self._last_gv_out)
