@@ -127,6 +127,20 @@ def test_every_step_is_exact_for_widenings_that_jump_about():
         assert worst <= 1e-9, (name, worst)
 
 
+def test_a_follower_predicts_the_output_it_just_produced():
+    """Between steps a follower keeps the widening it was given: peek_forward at its last input gives back the
+    demand it just met (the controller's bumpless transfer into PID HC reads it), not a value under a widening
+    computed from its own outputs."""
+    from types import SimpleNamespace
+    leader = SimpleNamespace(applied_widening_v=0.8)
+    inv = RateDependentInverseGPIM(PAPER, WIDENINGS["narrows"], DT, v0=5.0, follow=leader)   # its own: narrower
+    y = _demand(PAPER, 400, seed=3)
+    for k in range(y.size):
+        leader.applied_widening_v = 0.8 + 0.3 * np.sin(0.05 * k)
+        v = inv.step(y[k])
+        assert abs(inv.peek_forward(v) - y[k]) < 1e-9, k
+
+
 def test_without_widening_the_closed_form_inverse_is_kept():
     assert not isinstance(hysteresis_inverse(PAPER, (0.0,) * 6, DT), RateDependentInverseGPIM)
     assert not isinstance(hysteresis_inverse(PAPER, (), DT), RateDependentInverseGPIM)

@@ -198,7 +198,8 @@ class RateDependentInverseGPIM(MonotoneInverseGPIM):
         v = super().step(y_um)
         self.applied_widening_v = follow.applied_widening_v if follow is not None else self.rate.value
         self.rate.advance(v)
-        self._use_widening()
+        # until the next step: a follower keeps the widening it was just given (what peeks should see)
+        self._use_widening(self.applied_widening_v if follow is not None else None)
         return v
 
     def reset(self, v0: float = CENTRE_VOLTAGE_V) -> None:
