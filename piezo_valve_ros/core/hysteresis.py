@@ -711,6 +711,7 @@ class MonotoneInverseGPIM:
         self._b1 = float(model.a1 if symmetric else model.b1)
         self._b2 = float(model.b2)
         self._dead_band = not dead_band_problems(model, v_min, v_max)   # the bounds never cross (r_j >= 0)
+        self._one_envelope = model.symmetric
         self._p_list, self._base_list = self._p.tolist(), model.thresholds.tolist()
         self._shift = 0.0              # every threshold widened by this [V] (rate_dependence sets it)
         self._consistent = False       # the state is what the last step left at _v_last (output _y_now)
@@ -771,7 +772,11 @@ class MonotoneInverseGPIM:
         step away passes a few of them, so a plain loop from the first finds the piece and solves it.  None
         when the step is not of this kind (the general solve then takes it).  ``state``: the operators at the
         last input under the present thresholds, ``now``: the output there [um]."""
-        if not rising and self._widest_crossing_below(self._v_last) > 2.0 * (self._base_list[0] + self._shift):
+        # one envelope (L = U): an operator whose threshold the rate narrowed below 0 has crossed bounds for good
+        # and follows L(v) - r_j = U(v) - r_j; with two, any crossing on the way down is the general solve's
+        crossed_for_good = not rising and self._one_envelope
+        if not rising and not crossed_for_good and \
+                self._widest_crossing_below(self._v_last) > 2.0 * (self._base_list[0] + self._shift):
             return None   # some operator's bounds may cross on the way down
         z, p, base, w = state.tolist(), self._p_list, self._base_list, self._shift
         off = self.model.offset_um
@@ -780,6 +785,12 @@ class MonotoneInverseGPIM:
         following = before = 0.0          # sum p_j and sum p_j r_j over the operators that follow
         for i in range(len(z)):
             r_i = base[i] + w
+            if crossed_for_good and r_i < 0.0:    # follows from the start, on its lower bound U(v) - r_i
+                p_i = p[i]
+                following += p_i
+                before -= p_i * r_i
+                held -= p_i * z[i]
+                continue
             if sign * (off + held + following * (z[i] + sign * r_i) - sign * before - y) >= 0.0:
                 break                     # the demand is reached before this operator starts to follow
             p_i = p[i]
@@ -837,7 +848,7 @@ class MonotoneInverseGPIM:
         # all the way up: rising, it stays on its lower bound)
         if self._ordered and (self._consistent or not (
                 np.any((self._z > np.maximum(hi, lo)) & (2.0 * self._r >= self._narrowest_gap_above(v_last)))
-                if rising else np.any(self._z < lo))):
+                if rising else np.any((self._z < lo) & (lo <= hi)))):
             v = self._solve_on_one_envelope(y, rising, state, f_now)
             if v is not None:
                 return v
