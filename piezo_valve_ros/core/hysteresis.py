@@ -424,13 +424,14 @@ class GPIM:
         return float(min(up.min(), down.min())), float(max(up.max(), down.max()))
 
     def descending_inverse(self, x):
-        """The input [V] at which the descending envelope b0 v + b1 + b2 v^2 reaches ``x`` (its rising branch;
-        scalar or array)."""
-        d = np.asarray(x, float) - self.b1
+        """The input [V] at which the descending envelope b0 v + b1 + b2 v^2 (a symmetric model's: the ascending
+        one) reaches ``x`` (its rising branch; scalar or array)."""
+        b0, b1 = (self.a0, self.a1) if self.b0 is None else (self.b0, self.b1)
+        d = (x if isinstance(x, float) else np.asarray(x, float)) - b1   # a float stays one (per-step use)
         if not self.b2:
-            return d / self.b0
-        root = np.sqrt(np.maximum(self.b0 * self.b0 + 4.0 * self.b2 * d, 0.0))
-        return 2.0 * d / (self.b0 + root)
+            return d / b0
+        root = np.sqrt(np.maximum(b0 * b0 + 4.0 * self.b2 * d, 0.0))
+        return 2.0 * d / (b0 + root)
 
 
 class GPIMStream:
@@ -753,7 +754,7 @@ class MonotoneInverseGPIM:
 
     def _breakpoints(self) -> np.ndarray:
         m, z, r = self.model, self._z, self._r
-        points = [(z + r - m.a1) / m.a0, self._descending_inverse(z - r)]   # L(v) = z + r, U(v) = z - r
+        points = [(z + r - m.a1) / m.a0, m.descending_inverse(z - r)]   # L(v) = z + r, U(v) = z - r
         # L(v) - U(v) = 2 r:  -b2 v^2 + (a0 - b0) v + (a1 - b1 - 2 r) = 0
         q1, q0 = m.a0 - self._b0, m.a1 - self._b1 - 2.0 * r
         if self._b2:
@@ -776,7 +777,8 @@ class MonotoneInverseGPIM:
         # and follows L(v) - r_j = U(v) - r_j; with two, any crossing on the way down is the general solve's
         crossed_for_good = not rising and self._one_envelope
         if not rising and not crossed_for_good and \
-                self._widest_crossing_below(self._v_last) > 2.0 * (self._base_list[0] + self._shift):
+                self._gap_range(min(self.v_min, self._v_last), self._v_last)[1] > \
+                2.0 * (self._base_list[0] + self._shift):
             return None   # some operator's bounds may cross on the way down
         z, p, base, w = state.tolist(), self._p_list, self._base_list, self._shift
         off = self.model.offset_um
@@ -802,34 +804,17 @@ class MonotoneInverseGPIM:
         drive = (y - off - held + sign * before) / following     # L(v) rising, U(v) falling
         if rising:
             return min((drive - self.model.a1) / self.model.a0, self.v_max)
-        return max(float(self._descending_inverse(drive)), self.v_min)
+        return max(float(self.model.descending_inverse(drive)), self.v_min)
 
-    def _descending_inverse(self, x):
-        """The input [V] at which the descending envelope reaches ``x`` (its rising branch; scalar or array)."""
-        d = x - self._b1
-        if not self._b2:
-            return d / self._b0
-        return 2.0 * d / (self._b0 + np.sqrt(np.maximum(self._b0 * self._b0 + 4.0 * self._b2 * d, 0.0)))
-
-    def _widest_crossing_below(self, v: float) -> float:
-        """max of L(u) - U(u) over u in v_min..v [V] (L - U is linear or quadratic in u)."""
+    def _gap_range(self, a: float, b: float) -> tuple[float, float]:
+        """(min, max) of L(u) - U(u) over u in a..b [V] (linear or quadratic in u: the ends and the vertex)."""
         m = self.model
         q2, q1, q0 = -self._b2, m.a0 - self._b0, m.a1 - self._b1
-        lo = min(self.v_min, v)
-        points = [lo, v]
-        if q2 < 0.0 and lo < -q1 / (2.0 * q2) < v:
+        points = [a, b]
+        if q2 and a < -q1 / (2.0 * q2) < b:
             points.append(-q1 / (2.0 * q2))
-        return max(q2 * u * u + q1 * u + q0 for u in points)
-
-    def _narrowest_gap_above(self, v: float) -> float:
-        """min of L(u) - U(u) over u in v..v_max [V]."""
-        m = self.model
-        q2, q1, q0 = -self._b2, m.a0 - self._b0, m.a1 - self._b1
-        hi = max(self.v_max, v)
-        points = [v, hi]
-        if q2 > 0.0 and v < -q1 / (2.0 * q2) < hi:
-            points.append(-q1 / (2.0 * q2))
-        return min(q2 * u * u + q1 * u + q0 for u in points)
+        gaps = [q2 * u * u + q1 * u + q0 for u in points]
+        return min(gaps), max(gaps)
 
     def _solve(self, y: float) -> float:
         v_last = self._v_last
@@ -847,7 +832,8 @@ class MonotoneInverseGPIM:
         # not the usual step (one pushed along the motion follows anyway, and so does one whose bounds cross
         # all the way up: rising, it stays on its lower bound)
         if self._ordered and (self._consistent or not (
-                np.any((self._z > np.maximum(hi, lo)) & (2.0 * self._r >= self._narrowest_gap_above(v_last)))
+                np.any((self._z > np.maximum(hi, lo))
+                       & (2.0 * self._r >= self._gap_range(v_last, max(self.v_max, v_last))[0]))
                 if rising else np.any((self._z < lo) & (lo <= hi)))):
             v = self._solve_on_one_envelope(y, rising, state, f_now)
             if v is not None:

@@ -48,14 +48,15 @@ def rate_terms(v: np.ndarray, dt: float, v_before: Optional[float] = None) -> np
     Column order filter-major, as the coefficients.  Row k depends on ``v[:k]`` only.
     """
     v = np.asarray(v, float)
-    prev = float(v[0]) if v_before is None and v.size else float(v_before or 0.0)
-    rate = np.abs(np.diff(v, prepend=prev)) / dt
+    if v_before is None:
+        v_before = float(v[0]) if v.size else 0.0
+    rate = np.abs(np.diff(v, prepend=v_before)) / dt
     cols = []
     for tau in RATE_FILTERS_S:
         a = _lag_pole(tau, dt)
         rho = signal.lfilter([0.0, 1.0 - a], [1.0, -a], rate)   # rho_k = a rho_{k-1} + (1 - a) rate_{k-1}
         cols += [rho / (rho + s) for s in RATE_SCALES_V_S]
-    return np.column_stack(cols) if cols else np.zeros((v.size, 0))
+    return np.column_stack(cols)
 
 
 def widening_problems(widening_v: Sequence[float]) -> list[str]:
@@ -86,9 +87,9 @@ class RateWidening:
         self._a = [_lag_pole(tau, self.dt) for tau in RATE_FILTERS_S]
         self.reset(v0)
 
-    def reset(self, v0: float, rho: Optional[Sequence[float]] = None) -> None:
-        """At rest at input ``v0`` [V] (or with filtered rates ``rho`` [V/s], one per filter)."""
-        self.rho = [0.0] * len(self._a) if rho is None else [float(x) for x in rho]
+    def reset(self, v0: float) -> None:
+        """At rest at input ``v0`` [V]."""
+        self.rho = [0.0] * len(self._a)
         self._last_v = float(v0)
         self.value = self._widening()
 
@@ -118,11 +119,6 @@ class RateWidening:
         self.rho = list(rho)
         self.value = self._widening()
 
-    def with_coefficients(self, widening_v: Sequence[float]) -> "RateWidening":
-        """A widening with other coefficients and this one's rate history."""
-        out = RateWidening(widening_v, self.dt, self._last_v)
-        out.set_state(self.state())
-        return out
 
 
 class RateDependentGPIMStream:
