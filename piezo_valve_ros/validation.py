@@ -27,7 +27,9 @@ def as_int(name: str, value: Any) -> int:
 
 
 def as_float_list(name: str, value: Any) -> list[float]:
-    """A list of finite numbers."""
+    """A list of finite numbers (a string is not one, though it iterates)."""
+    if isinstance(value, (str, bytes)):
+        raise ValueError(f"{name} must be a list of numbers, got {value!r}")
     try:
         return [as_float(name, x) for x in list(value)]
     except TypeError:

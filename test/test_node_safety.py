@@ -188,14 +188,40 @@ def test_an_active_gain_set_decides_strategy_and_gains_and_says_so(controller):
                                          ("saturation.coefficients_um", [float("nan")] * 8),
                                          ("saturation.coefficients_um", [0.0] * 7), ("feedforward.dynamics", "true"),
                                          ("feedforward.dynamics", 0), ("derivative_filter_s", 0.0),
-                                         ("derivative_filter_s", 1.0), ("derivative_filter_s", float("nan")),
-                                         ("gpim.rate_widening_v", [30.0] * 6)])
+                                         ("derivative_filter_s", -1e-3), ("derivative_filter_s", 1.0),
+                                         ("derivative_filter_s", float("nan")), ("derivative_filter_s", "abc"),
+                                         ("gpim.rate_widening_v", [30.0] * 6), ("gpim.rate_widening_v", "abc"),
+                                         ("gpim.rate_widening_v", [float("nan")] * 6),
+                                         ("gpim.rate_widening_v", [1.0, 2.0])])
 def test_controller_refuses_what_it_would_not_apply(controller, name, value):
     ctl = controller(gain_set="")
     before = (ctl.controller.config, ctl.controller.compensation, ctl.enabled, ctl.get_parameter(name).value)
     result = set_one(ctl, name, value)
     assert not result.successful and result.reason
     assert (ctl.controller.config, ctl.controller.compensation, ctl.enabled, ctl.get_parameter(name).value) == before
+
+
+@pytest.mark.parametrize("overrides, says", [
+    ({"derivative_filter_s": 0.0}, "derivative_filter_s must be > 0"),
+    ({"derivative_filter_s": -1e-3}, "derivative_filter_s must be > 0"),
+    ({"derivative_filter_s": float("nan")}, "derivative_filter_s must be"),
+    ({"derivative_filter_s": "abc"}, "derivative_filter_s must be a number"),
+    ({"derivative_filter_s": 1.0}, "within"),
+    ({"gpim__rate_widening_v": [1.0, 2.0]}, "needs 6 coefficients"),
+    ({"gpim__rate_widening_v": [float("nan")] * 6}, "must be finite"),
+    ({"gpim__rate_widening_v": "abc"}, "list of numbers"),
+])
+def test_controller_refuses_bad_filter_and_rate_widening_at_start_up(controller, overrides, says):
+    with pytest.raises(Exception, match=says):
+        controller(gain_set="", **overrides)
+
+
+def test_rate_widening_zeros_mean_none_and_negative_coefficients_are_a_model(controller):
+    from piezo_valve_ros.core.rate_dependence import RateDependentInverseGPIM
+    assert not isinstance(controller(gain_set="", gpim__rate_widening_v=[0.0] * 6).controller.ff_inverse,
+                          RateDependentInverseGPIM)
+    narrowing = controller(gain_set="", gpim__rate_widening_v=[-1.0] * 6)   # thresholds that narrow with the rate
+    assert isinstance(narrowing.controller.ff_inverse, RateDependentInverseGPIM)
 
 
 def test_derivative_filter_is_applied_at_run_time(controller):
