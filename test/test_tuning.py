@@ -136,6 +136,11 @@ def test_valve_tune_fails_with_one_line_and_writes_nothing(tmp_path, capsys):
     broken = _model_file(tmp_path / "broken.yaml", **{"creep.gains": [0.95], "creep.time_constants_s": [1.0]})
     assert valve_tune([str(broken), "--params-out", str(out)]) == 2
     assert "creep" in capsys.readouterr().err
+    for bad, says in ((-1e-3, "derivative_filter_s must be > 0"), (0.0, "derivative_filter_s must be > 0"),
+                      ("abc", "derivative_filter_s must be a number")):
+        filtered = _model_file(tmp_path / "filter.yaml", derivative_filter_s=bad)
+        assert valve_tune([str(filtered), "--quiet", "--params-out", str(out)]) == 2
+        assert says in capsys.readouterr().err
     assert not out.exists()
 
 
