@@ -19,14 +19,12 @@ from dataclasses import replace
 import sys
 
 from .core.compensation import CompensationModel
-from .core.drive import COMMAND_MAX_V, COMMAND_MIN_V
-from .core.strategies import TABLE1_GAINS, ControllerConfig
+from .core.strategies import TABLE1_GAINS, loop_settings
 from .core.tuning import (MAX_NOISE_GAIN, MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG, OVERSHOOT_LIMIT_PCT,
                           TUNABLE_STRATEGIES, ModelValve, TuningError, TuningLimits, loop_margins, step_score, tune)
 from .core.signals import PAPER_STEPS_UM
 from .identify import ParametersFileError, parameters_yaml, read_parameters_file, write_outputs
 from .tool import run_tool
-from .validation import as_float
 
 __all__ = ["main"]
 
@@ -61,15 +59,8 @@ def main(argv=None) -> int:
 
     def work() -> list[str]:
         params = read_parameters_file(args.params_file)
-        dt = args.control_period_s if args.control_period_s is not None else \
-            as_float("control_period_s", params.get("control_period_s", DEFAULT_PERIOD_S))
-        v_min = as_float("command_min_v", params.get("command_min_v", COMMAND_MIN_V))
-        v_max = as_float("command_max_v", params.get("command_max_v", COMMAND_MAX_V))
-        config = ControllerConfig(strategy=args.strategy, dt=dt, command_min_v=v_min, command_max_v=v_max,
-                                  centre_voltage_v=as_float("centre_voltage_v", params.get("centre_voltage_v",
-                                                                                           ControllerConfig.centre_voltage_v)),
-                                  derivative_filter_s=as_float("derivative_filter_s", params.get(
-                                      "derivative_filter_s", ControllerConfig.derivative_filter_s)))
+        config = loop_settings(params, args.strategy, dt=args.control_period_s, default_dt=DEFAULT_PERIOD_S)
+        dt, v_min, v_max = config.dt, config.command_min_v, config.command_max_v
         try:  # the command range and period are checked by tune(), with the limits
             model = CompensationModel.from_parameters(params, v_min, v_max, dt)
         except ValueError as exc:

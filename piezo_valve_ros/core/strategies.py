@@ -46,6 +46,7 @@ from .rate_dependence import hysteresis_inverse, swap_inverse, take_over_state
 from .drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 __all__ = ["STRATEGIES", "PIDGains", "ControllerConfig", "ValveController", "TABLE1_GAINS", "gain_set",
+           "LOOP_SETTINGS", "loop_settings",
            "nominal_static_gain"]
 
 STRATEGIES = ("ol", "ol_hc", "pid", "pid_hc", "ff_pid", "ff_pid_g")
@@ -138,6 +139,24 @@ class ControllerConfig:
                                                           and self.static_gain_um_per_v > 0):
             out.append("static_gain_um_per_v must be > 0")
         return out
+
+
+LOOP_SETTINGS = ("control_period_s", "command_min_v", "command_max_v", "centre_voltage_v", "derivative_filter_s")
+
+
+def loop_settings(values: dict, strategy: str, gains: PIDGains = PIDGains(), dt: Optional[float] = None,
+                  default_dt: float = 1e-3) -> ControllerConfig:
+    """A ControllerConfig from ``valve_controller`` parameter values (``LOOP_SETTINGS``; a missing one takes
+    ControllerConfig's default, the period ``default_dt`` [s]); ``dt`` overrides the period.  Unchecked (see
+    ``ControllerConfig.problems``); ValueError for a value that is not a finite number."""
+    from ..validation import as_float
+    d = ControllerConfig()
+    defaults = {"control_period_s": default_dt, "command_min_v": d.command_min_v, "command_max_v": d.command_max_v,
+                "centre_voltage_v": d.centre_voltage_v, "derivative_filter_s": d.derivative_filter_s}
+    v = {k: as_float(k, values.get(k, defaults[k])) for k in LOOP_SETTINGS}
+    return ControllerConfig(strategy=strategy, gains=gains, dt=v["control_period_s"] if dt is None else float(dt),
+                            command_min_v=v["command_min_v"], command_max_v=v["command_max_v"],
+                            centre_voltage_v=v["centre_voltage_v"], derivative_filter_s=v["derivative_filter_s"])
 
 
 class ValveController:

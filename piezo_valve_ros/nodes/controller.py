@@ -28,7 +28,8 @@ from std_msgs.msg import Float64, Float64MultiArray
 from ..core.compensation import MODEL_PARAMETERS, CompensationModel
 from ..core.rate_dependence import describe_inverse, solved_each_step
 from ..core.signals import ReferenceRamp
-from ..core.strategies import GUARD_WINDOW_S, STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set
+from ..core.strategies import (GUARD_WINDOW_S, STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set,
+                               loop_settings)
 from .common import (COMMAND_QOS, LATEST_SENSOR_QOS, SAMPLES_QOS, as_float,
                      declare, declare_realtime, parameter_values, realtime_settings, refuse, run_node, samples_from_message)
 from ..core.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
@@ -60,12 +61,7 @@ def settings_from_parameters(p: dict[str, Any]) -> tuple[ControllerConfig, Compe
         if differ:
             raise ValueError(f"gain_set {name!r} is active and decides {', '.join(GAIN_SET_KEYS)}: to set "
                              f"{', '.join(differ)}, clear it in the same request (gain_set: '')")
-    config = ControllerConfig(
-        strategy=strategy, gains=gains, dt=as_float("control_period_s", p["control_period_s"]),
-        command_min_v=as_float("command_min_v", p["command_min_v"]),
-        command_max_v=as_float("command_max_v", p["command_max_v"]),
-        centre_voltage_v=as_float("centre_voltage_v", p["centre_voltage_v"]),
-        derivative_filter_s=as_float("derivative_filter_s", p["derivative_filter_s"]))
+    config = loop_settings(p, strategy, gains)
     problems = config.problems()
     lo, hi = DERIVATIVE_FILTER_RANGE_S
     if not lo <= config.derivative_filter_s <= hi:

@@ -14,8 +14,9 @@ The ``plan`` (comma-separated, run in order once the rig answers) is made of:
               good parameters (file and controller) untouched.
 ``tune``      PID gains for ``tune_strategy`` chosen on the last refit's model (``core.tuning``: margins of the
               linearised loop with one period of delay, the paper's steps on the model with at most
-              ``tune_max_overshoot_pct`` overshoot), pushed to the controller with one atomic request
-              (strategy, kp, ki, kd; a Table 1 gain set cleared) and added to the parameters file.  Gains that
+              ``tune_max_overshoot_pct`` overshoot, the controller's period, range and D filter), pushed to
+              the controller with one atomic request (strategy, kp, ki, kd, derivative_filter_s; a Table 1
+              gain set cleared) and added to the parameters file.  Gains that
               cannot meet the limits are reported and nothing is pushed.
 ``validate``  the controller (switched to ``validation_strategy``, default ``ol_hc``) tracks the paper's
               validation demand (eq. 12) sent on ``position_reference``; the tracking error is logged.
@@ -45,7 +46,7 @@ from std_msgs.msg import Float64
 from ..bagio import BagError
 from ..core.records import IdentificationError
 from ..core.signals import rig_training_voltage, validation_reference_m
-from ..core.strategies import ControllerConfig
+from ..core.strategies import LOOP_SETTINGS, loop_settings
 from ..core.tuning import OVERSHOOT_LIMIT_PCT, TUNABLE_STRATEGIES, TuningError, TuningLimits, tune
 from ..identify import (compensation, controller_parameters, controller_parameters_yaml, identify_bags, report_json,
                         write_atomically)
@@ -269,13 +270,7 @@ class ValveIdentificationNode(Node):
             self.get_logger().error("tune: no refitted model to tune on (the refit failed or was not pushed)")
             return {"step": "tune", "ok": False, "reason": "no refitted model"}
         comp, bag, report = last
-        names = ["control_period_s", "command_min_v", "command_max_v", "centre_voltage_v", "derivative_filter_s"]
-        values = self._controller_values(names)
-        config = ControllerConfig(strategy=self.tune_strategy, dt=float(values["control_period_s"]),
-                                  command_min_v=float(values["command_min_v"]),
-                                  command_max_v=float(values["command_max_v"]),
-                                  centre_voltage_v=float(values["centre_voltage_v"]),
-                                  derivative_filter_s=float(values["derivative_filter_s"]))
+        config = loop_settings(self._controller_values(list(LOOP_SETTINGS)), self.tune_strategy)
         try:
             result = tune(self.tune_strategy, comp.controller_model, config.dt, self.tune_limits, config,
                           log=lambda s: self.get_logger().info(s))
