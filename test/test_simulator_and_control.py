@@ -139,11 +139,37 @@ def test_anti_windup_recovers_quickly_after_saturation():
     assert abs(rec.position_m[-1] * 1e6) < 1.0  # no wind-up left
 
 
+def test_pid_hc_integrator_moves_toward_the_demand_on_a_rail_never_past_it():
+    """PID HC's integrator holds the position demand: on a rail it may still move toward the demand (frozen
+    where the 87.5 um step first met the rail it was tens of um short and the step settled on a slow integrator
+    tail), never past it.  The paper's 87.5 um step at 10 kHz then settles about as fast as the small steps."""
+    from piezo_valve_ros.core.signals import step_reference_m
+    config = ValveSimConfig()
+    ctl = ValveController(ControllerConfig(strategy="pid_hc", gains=gain_set("pid_hc_5")[1], dt=config.dt))
+    ctl.reset(config.initial_voltage_v)
+    sim = SimulatedValve(config)
+    ref, k0 = step_reference_m(config.dt, -52.5, 35.0)
+    y, v, integ = sim.step(config.initial_voltage_v), np.empty(ref.size), np.empty(ref.size)
+    for k, r in enumerate(ref):
+        v[k] = ctl.step(r, y)
+        integ[k] = ctl.integrator_um
+        y = sim.step(v[k])
+    on_rail = np.flatnonzero(v >= ctl.config.command_max_v)
+    assert on_rail.size >= 3                                   # the step meets the rail ...
+    assert np.all(np.diff(integ[on_rail[0]:on_rail[-1] + 1]) >= -1e-12)   # ... the integrator still rises ...
+    assert np.all(integ[on_rail] <= ref[on_rail] * 1e6 + 1e-9)  # ... but never past the demand
+    metrics = [m for m in paper_step_tests(ControllerConfig(strategy="pid_hc", gains=gain_set("pid_hc_5")[1],
+                                                            dt=config.dt))]
+    small, big = metrics[0], metrics[2]
+    assert big.settling_time_s < small.settling_time_s + 1e-3, (small, big)   # frozen: 6.3 vs 3.8 ms
+    assert big.overshoot_pct < 2.0
+
+
 @pytest.mark.parametrize("strategy, gains", [("pid_hc", "pid_hc_2"), ("ff_pid", "ff_pid_5"), ("ff_pid_g", "ff_pid_g_5")])
 def test_drift_is_absorbed_by_the_integrator_without_winding_up_at_the_rails(strategy, gains):
     """Issue 11.2: drift is left to the feedback.  A valve whose offset drifts by 10 um (and its gain by 3 %)
     within seconds: the integrator takes the offset (OL HC keeps it whole); half a second of an unreachable
-    demand holds the command on the rail without the integrator growing, and tracking is back at once."""
+    demand holds the command on the rail without the integrator winding up, and tracking is back at once."""
     dt = 5e-4
     drift = DriftParams(enabled=True, offset_um=10.0, gain_change=0.03, time_constant_s=0.5)
     sim_config = ValveSimConfig(dt=dt, drift=drift)
@@ -171,7 +197,11 @@ def test_drift_is_absorbed_by_the_integrator_without_winding_up_at_the_rails(str
     assert rms(err, 2.0, 3.0) < 0.6, rms(err, 2.0, 3.0)          # absorbed
     assert -15.0 < integ[t < 3.0][-1] < -5.0                    # by the integrator (the drift's offset is +10 um)
     assert np.all(v[rail][100:] == 10.0)                          # held on the rail ...
-    assert np.ptp(integ[rail][100:]) < 1.0                        # ... with the integrator frozen, not winding up
+    assert np.ptp(integ[rail][100:]) < 1.0                        # ... with the integrator still, not winding up
+    if strategy == "pid_hc":    # (pid_hc's may move toward the demand, but not past what the valve can reach)
+        model = CompensationModel()
+        reach_um = model.output_map.value(model.gpim.output_range(0.0, 10.0)[1])
+        assert integ[rail].max() <= reach_um + 1e-9
     assert rms(err, 3.6, 6.0) < 1.0, rms(err, 3.6, 6.0)          # tracking again at once
 
 
@@ -259,7 +289,8 @@ def _delayed_loop(strategy_gains: str, delay_periods, dt=1e-3, duration_s=3.0, s
 def test_a_loop_delay_that_makes_pid_hc_swing_rail_to_rail_is_caught_and_held_on_feedforward():
     """Two periods of extra delay for 0.8 s make PID HC 5 at 1 kHz oscillate rail to rail (the +-60 um swings
     seen on a loaded rig).  The guard notices (both rails within 20 ms), runs on the inverse alone with the
-    integrator frozen, and hands back to feedback bumplessly once the delay has gone."""
+    integrator frozen, and hands back to feedback bumplessly once the delay has gone.  (With the feedforward
+    inverse left in the state the demand history gave it, the hold was 10-20 um off for up to 110 ms.)"""
     episode = (1.0, 1.8)
     delay = (lambda t: 2 if episode[0] <= t < episode[1] else 0)
     t, ref, y, v, ctl = _delayed_loop("pid_hc_5", delay)
@@ -268,7 +299,9 @@ def test_a_loop_delay_that_makes_pid_hc_swing_rail_to_rail_is_caught_and_held_on
     assert ctl.guard_trips >= 1
     assert rails[during].mean() < 0.05      # unguarded: about 40 % of the periods on a rail
     err = np.abs(y - ref)
-    assert np.mean(err[during] > 10.0) < 0.1
+    # more than 10 um off only while it swings (about 30 ms per trip); on the hold the feedforward starts
+    # from the operator states the swing left (taken from the in-loop inverse), not from the demand history's
+    assert np.mean(err[during] > 10.0) < 0.05
     # no effect before the episode, and normal tracking again after it (feedback back in charge)
     assert not rails[t < episode[0]].any()
     after = t > episode[1] + 2 * 0.25 + 0.3

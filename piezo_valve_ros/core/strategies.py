@@ -21,7 +21,12 @@ inverse and the inverse GPIM (creep and dynamics are the feedback's there).  Wit
 the inverses widen them as the model does (``rate_dependence``); pid_hc's in-loop inverse takes the
 feedforward's widening (the demand's cycling rate), not one from its own noisy command.
 
-The output is clamped to the command range with conditional-integration anti-windup.
+The output is clamped to the command range with conditional-integration anti-windup: the integrator stops
+while the command is on a limit and the error pushes further into it.  pid_hc's integrator holds the position
+demand the inverse turns into volts (in steady state it is the demand plus what the model misses), so there
+it may still move toward the demand on a limit, never past it nor past the loop's admissible range
+(``_finish``): frozen where a large step first met the rail it would be tens of um short of the new demand
+and the step would settle on a slow integrator tail; bounded by the demand it cannot wind up.
 Switching strategy (or gains) is bumpless: the integrator absorbs the difference where the
 new law has one, and any rest decays with ``bump_time_constant_s``.
 
@@ -302,6 +307,12 @@ class ValveController:
         self.guard_trips += 1
         self._bump_v = 0.0      # no continuity with a rail-to-rail swing: straight to the feedforward command
         self.integrator_um = 0.0
+        if c.strategy == "pid_hc":
+            # the swing has moved the valve's operators far from where the demand history puts the feedforward
+            # inverse's; pid_hc's in-loop inverse has followed every command applied: the feedforward takes
+            # over its states (otherwise the fallback is off by up to the hysteresis width until the demand's
+            # next reversal)
+            self.ff_inverse.set_forward_state(self.loop_inverse.forward_state(), self.last_command_v)
 
     def set_strategy(self, strategy: str, gains: Optional[PIDGains] = None) -> None:
         """Switch law (and optionally gains) at run time without a jump in the command."""
@@ -453,17 +464,21 @@ class ValveController:
                                                      self._demand_max_um)
             else:
                 h_c = u_c
-            v = self._finish(self.loop_inverse.step(h_c), e, di, int(u > u_c) - int(u < u_c))
+            v = self._finish(self.loop_inverse.step(h_c), e, di, int(u > u_c) - int(u < u_c),
+                             min(max(y_ref, self._loop_min_um), self._loop_max_um))
         else:
             base = c.centre_voltage_v if s == "pid" else ff_v
             v = self._finish(base + u / self._k, e, di)
         self._guard()
         return v
 
-    def _finish(self, v_raw: float, e: float, di: float, demand_clip: int = 0) -> float:
+    def _finish(self, v_raw: float, e: float, di: float, demand_clip: int = 0,
+                integrator_goal_um: Optional[float] = None) -> float:
         """Add the decaying bump, clamp, and integrate unless that pushes further into a limit.
 
-        ``demand_clip`` is +1/-1 when pid_hc's position demand was clipped high/low.
+        ``demand_clip`` is +1/-1 when pid_hc's position demand was clipped high/low; ``integrator_goal_um``
+        (pid_hc: the demand within the loop's range [um]): on a limit the integrator may still move toward it,
+        never past it.
         """
         c = self.config
         if self._bump_v:
@@ -478,5 +493,8 @@ class ValveController:
         self._rail = 1 if high else (-1 if low else 0)
         if not ((high and e > 0) or (low and e < 0)):
             self.integrator_um += di
+        elif integrator_goal_um is not None:
+            i = self.integrator_um
+            self.integrator_um = min(i + di, max(i, integrator_goal_um)) if high else max(i + di, min(i, integrator_goal_um))
         self.last_command_v = v
         return v
