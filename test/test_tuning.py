@@ -10,8 +10,9 @@ from piezo_valve_ros.core.compensation import CompensationModel
 from piezo_valve_ros.core.evaluation import SIMULATED_EFFECTS
 from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig
 from piezo_valve_ros.core.strategies import TABLE1_GAINS, ControllerConfig, PIDGains
-from piezo_valve_ros.core.tuning import (ModelValve, TuningError, TuningLimits, loop_margins, plant_gain_range,
-                                         step_score, time_scaled, tune)
+from piezo_valve_ros.core.tuning import (ModelValve, StepScore, TuningError, TuningLimits, dynamics_variants,
+                                         loop_margins, plant_gain_range, robust_overshoot_pct, step_score,
+                                         time_scaled, tune)
 from piezo_valve_ros.identify import ParametersFileError, parameters_yaml, read_parameters_file
 from piezo_valve_ros.nodes.controller import settings_from_parameters
 from piezo_valve_ros.tune_cli import main as valve_tune
@@ -70,13 +71,29 @@ def test_tuned_gains_meet_the_limits_and_hold_on_a_valve_table1_does_not_fit():
     assert result.score.worst_overshoot_pct <= 2.0
     assert any("screened" in line for line in logged) and "gain margin" in logged[-1]
     config = ControllerConfig("pid_hc", result.gains, DT)
+    assert robust_overshoot_pct(config, model, dynamics_variants(model), 5.0) <= 2.0   # G_v 10 % off too
     on_valve = step_score(config, model, lambda: SimulatedValve(SLOW), 5.0)
     assert on_valve.worst_overshoot_pct < 2.0 and on_valve.settling_time_s < 0.06, on_valve
-    # every Table 1 pid_hc set overshoots or oscillates on this valve at this rate
+    # every Table 1 pid_hc set overshoots or oscillates on this valve at this rate (the oscillation guard trips
+    # and holds it on the feedforward: the tuned set never needs that)
+    from piezo_valve_ros.core.experiments import run_closed_loop
+    from piezo_valve_ros.core.signals import PAPER_STEPS_UM, step_reference_m
+    from piezo_valve_ros.core.strategies import ValveController
+
+    def trips(gains):
+        n = 0
+        for a, b in PAPER_STEPS_UM:
+            valve, ctl = SimulatedValve(SLOW), ValveController(replace(config, gains=gains), model)
+            ctl.reset(5.0)
+            run_closed_loop(valve, ctl, step_reference_m(DT, a, b)[0], first_position_m=valve.step(5.0))
+            n += ctl.guard_trips
+        return n
+
+    assert trips(result.gains) == 0
     for name, (strategy, gains) in TABLE1_GAINS.items():
         if strategy == "pid_hc":
             paper = step_score(replace(config, gains=gains), model, lambda: SimulatedValve(SLOW), 5.0)
-            assert paper.overshoot_pct > 10 * on_valve.overshoot_pct, name
+            assert paper.overshoot_pct > 10 * on_valve.overshoot_pct or trips(gains) > 0, name
 
 
 def test_bad_requests_are_refused_with_the_reason():
@@ -160,3 +177,28 @@ def test_a_step_run_gives_up_after_a_step_past_the_limit_and_never_wins():
     assert cut.settling_time_s == float("inf") and cut.worst_overshoot_pct > 2.0
     fine = ControllerConfig(strategy="pid_hc", gains=TABLE1_GAINS["pid_hc_1"][1], dt=DT)
     assert step_score(fine, PAPER, lambda: ModelValve(PAPER, DT, 5.0), 5.0, give_up_above_pct=2.0).complete
+
+
+def test_the_comparison_says_why_a_faster_table1_set_is_not_the_tuners_choice():
+    """TuningComparison's verdict: beaten, or not beaten and why (outside the tuner's limits)."""
+    from piezo_valve_ros.core.evaluation import TuningComparison
+    from piezo_valve_ros.core.metrics import StepMetrics
+    from piezo_valve_ros.core.tuning import LoopMargins, TuningResult
+
+    def score(ms, pct):
+        return StepScore(tuple(StepMetrics(ms * 1e-3, pct, 0.0) for _ in range(3)), 0.0)
+
+    good = LoopMargins(True, 12.0, 60.0, 50.0, 1.0)
+    result = TuningResult("pid_hc", PIDGains(1.0, 400.0), good, score(4.5, 0.5), TuningLimits(), 1, 1)
+
+    def verdict(table1_ms, table1_pct, table1_robust_pct, table1_margins=good):
+        return TuningComparison(result, {"tuned": score(4.5, 0.5), "pid_hc_5": score(table1_ms, table1_pct)},
+                                {"tuned": good, "pid_hc_5": table1_margins},
+                                {"tuned": 1.5, "pid_hc_5": table1_robust_pct}).verdict()
+
+    assert verdict(5.0, 0.5, 1.0).startswith("tuned beats pid_hc_5")
+    assert verdict(4.0, 0.7, 1.0) == "tuned does not beat pid_hc_5 (4.50 vs 4.00 ms, 0.50 vs 0.70 %)"
+    assert verdict(4.0, 0.7, 2.3).endswith("pid_hc_5 is outside the tuner's limits: it overshoots 2.30 % with "
+                                           "G_v 10 % slower or faster")
+    assert "misses the margins (gain margin 3.0 dB" in verdict(4.0, 0.7, 1.0, LoopMargins(True, 3.0, 30.0, 90.0, 1.0))
+    assert verdict(4.0, 2.5, 1.0).startswith("no Table 1 set stays within 2 % overshoot")

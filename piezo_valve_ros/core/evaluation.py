@@ -113,6 +113,13 @@ class TuningComparison:
     result: "TuningResult"
     scores: dict[str, "StepScore"]      # "tuned" and the Table 1 set names
     margins: dict[str, "LoopMargins"]
+    robust_overshoot_pct: dict[str, float]   # worst step overshoot on the model with G_v 10 % slower / faster [%]
+
+    def meets_limits(self, name: str) -> bool:
+        """Whether set ``name`` meets the tuner's limits on the model: margins, and the overshoot limit with G_v
+        slower and faster (the nominal run is the valve's here)."""
+        limits = self.result.limits
+        return self.margins[name].meets(limits) and self.robust_overshoot_pct[name] <= limits.max_overshoot_pct
 
     def best_table1(self, max_overshoot_pct: float) -> Optional[str]:
         """The Table 1 set with the shortest average settling time among those whose average overshoot on the
@@ -130,8 +137,13 @@ class TuningComparison:
         b = self.scores[best]
         if tuned.settling_time_s < b.settling_time_s and tuned.overshoot_pct <= b.overshoot_pct:
             return f"tuned beats {best} (faster at equal or lower overshoot)"
-        return (f"tuned does not beat {best} ({1e3 * tuned.settling_time_s:.2f} vs {1e3 * b.settling_time_s:.2f} ms, "
-                f"{tuned.overshoot_pct:.2f} vs {b.overshoot_pct:.2f} %)")
+        out = (f"tuned does not beat {best} ({1e3 * tuned.settling_time_s:.2f} vs {1e3 * b.settling_time_s:.2f} ms, "
+               f"{tuned.overshoot_pct:.2f} vs {b.overshoot_pct:.2f} %)")
+        if not self.meets_limits(best):
+            why = (f"overshoots {self.robust_overshoot_pct[best]:.2f} % with G_v 10 % slower or faster"
+                   if self.margins[best].meets(self.result.limits) else f"misses the margins ({self.margins[best].text()})")
+            out += f"; {best} is outside the tuner's limits: it {why}"
+        return out
 
 
 def compare_tuning(strategy: str, sim_config: ValveSimConfig, model: CompensationModel,
@@ -139,7 +151,7 @@ def compare_tuning(strategy: str, sim_config: ValveSimConfig, model: Compensatio
     """Tune ``strategy`` on ``model`` (what identification found, the controller running on it) at the valve's
     period, then run the paper's steps on the simulated valve with the tuned gains and each Table 1 set."""
     from .strategies import TABLE1_GAINS
-    from .tuning import loop_margins, step_score, tune
+    from .tuning import dynamics_variants, loop_margins, robust_overshoot_pct, step_score, tune
     dt, v0 = sim_config.dt, sim_config.initial_voltage_v
     result = tune(strategy, model, dt, log=log, **tune_kwargs)
     sets = {"tuned": result.gains, **{n: g for n, (s, g) in TABLE1_GAINS.items() if s == strategy}}
@@ -147,4 +159,6 @@ def compare_tuning(strategy: str, sim_config: ValveSimConfig, model: Compensatio
     scores = {n: step_score(replace(base, gains=g), model, lambda: SimulatedValve(sim_config), v0)
               for n, g in sets.items()}
     margins = {n: loop_margins(strategy, g, model, dt) for n, g in sets.items()}
-    return TuningComparison(result, scores, margins)
+    variants = dynamics_variants(tune_kwargs.get("plant") or model)
+    robust = {n: robust_overshoot_pct(replace(base, gains=g), model, variants, v0) for n, g in sets.items()}
+    return TuningComparison(result, scores, margins, robust)
