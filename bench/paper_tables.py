@@ -14,7 +14,7 @@ from piezo_valve_ros.core.compensation import CompensationModel
 from piezo_valve_ros.core.experiments import DEFAULT_SWEEP_HZ, frequency_response, paper_step_tests
 from piezo_valve_ros.core.strategies import TABLE1_GAINS, ControllerConfig, PIDGains
 from piezo_valve_ros.core.tuning import (OVERSHOOT_LIMIT_PCT, TUNABLE_STRATEGIES, dynamics_variants, loop_margins,
-                                         robust_overshoot_pct, tune)
+                                         outside_limits, robust_overshoot_pct, tune)
 
 # paper Table 1: name -> (ts 17.5, 52.5, 87.5, avg [ms]; os 17.5, 52.5, 87.5, avg [%])
 PAPER_T1 = {
@@ -104,12 +104,11 @@ def table1_tuned(lines, t1):
                    f"{'beaten' if beats else 'not beaten'}")
             if not beats:   # is the faster set within the limits the tuner keeps to?
                 bc = ControllerConfig(strategy=strategy, gains=TABLE1_GAINS[best][1], dt=1e-4)
-                bm = loop_margins(strategy, bc.gains, model, bc.dt)
-                worst = robust_overshoot_pct(bc, model, dynamics_variants(model), bc.centre_voltage_v)
-                if not bm.meets(result.limits):
-                    cmp += f" ({label(best)} misses the tuner's margins: {bm.text()})"
-                elif worst > result.limits.max_overshoot_pct:
-                    cmp += f" ({label(best)} overshoots {worst:.2f} % on the model with G_v 10 % slower or faster)"
+                why = outside_limits(loop_margins(strategy, bc.gains, model, bc.dt),
+                                     robust_overshoot_pct(bc, model, dynamics_variants(model), bc.centre_voltage_v),
+                                     result.limits)
+                if why:
+                    cmp += f" ({label(best)} {why}, on the model)"
         else:
             cmp = "none"
         g = result.gains

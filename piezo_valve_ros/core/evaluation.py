@@ -115,11 +115,11 @@ class TuningComparison:
     margins: dict[str, "LoopMargins"]
     robust_overshoot_pct: dict[str, float]   # worst step overshoot on the model with G_v 10 % slower / faster [%]
 
-    def meets_limits(self, name: str) -> bool:
-        """Whether set ``name`` meets the tuner's limits on the model: margins, and the overshoot limit with G_v
-        slower and faster (the nominal run is the valve's here)."""
-        limits = self.result.limits
-        return self.margins[name].meets(limits) and self.robust_overshoot_pct[name] <= limits.max_overshoot_pct
+    def outside_limits(self, name: str) -> Optional[str]:
+        """Why set ``name`` is outside the tuner's limits on the model (margins, the overshoot limit with G_v
+        slower and faster; the nominal run is the valve's here), None when it is within them."""
+        from .tuning import outside_limits
+        return outside_limits(self.margins[name], self.robust_overshoot_pct[name], self.result.limits)
 
     def best_table1(self, max_overshoot_pct: float) -> Optional[str]:
         """The Table 1 set with the shortest average settling time among those whose average overshoot on the
@@ -139,9 +139,8 @@ class TuningComparison:
             return f"tuned beats {best} (faster at equal or lower overshoot)"
         out = (f"tuned does not beat {best} ({1e3 * tuned.settling_time_s:.2f} vs {1e3 * b.settling_time_s:.2f} ms, "
                f"{tuned.overshoot_pct:.2f} vs {b.overshoot_pct:.2f} %)")
-        if not self.meets_limits(best):
-            why = (f"overshoots {self.robust_overshoot_pct[best]:.2f} % with G_v 10 % slower or faster"
-                   if self.margins[best].meets(self.result.limits) else f"misses the margins ({self.margins[best].text()})")
+        why = self.outside_limits(best)
+        if why:
             out += f"; {best} is outside the tuner's limits: it {why}"
         return out
 

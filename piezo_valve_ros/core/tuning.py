@@ -45,7 +45,7 @@ from .strategies import TABLE1_GAINS, ControllerConfig, PIDGains, ValveControlle
 
 __all__ = ["TUNABLE_STRATEGIES", "TuningLimits", "LoopMargins", "StepScore", "TuningResult", "TuningError",
            "ModelValve", "plant_gain_range", "loop_margins", "step_score", "dynamics_variants",
-           "robust_overshoot_pct", "tune"]
+           "robust_overshoot_pct", "outside_limits", "tune"]
 
 TUNABLE_STRATEGIES = ("pid", "pid_hc", "ff_pid", "ff_pid_g")
 OVERSHOOT_LIMIT_PCT = 2.0      # default: no step may overshoot by more than this [% of the step]
@@ -386,6 +386,18 @@ def robust_overshoot_pct(config: ControllerConfig, model: CompensationModel, var
         if give_up_above_pct is not None and worst > give_up_above_pct:
             break
     return worst
+
+
+def outside_limits(margins: LoopMargins, robust_overshoot: float, limits: TuningLimits) -> Optional[str]:
+    """Why a gain set with ``margins`` and worst step overshoot ``robust_overshoot`` [%] on the
+    :func:`dynamics_variants` is outside the tuner's ``limits`` (None: it is within them)."""
+    if not margins.meets(limits):
+        return f"misses the margins ({margins.text()})"
+    if robust_overshoot > limits.max_overshoot_pct:
+        slower, faster = (round(abs(1.0 - f) * 100) for f in DYNAMICS_SCALES)
+        spread = f"{slower:g} %" if slower == faster else f"{slower:g} % / {faster:g} %"
+        return f"overshoots {robust_overshoot:.2f} % with G_v {spread} slower or faster"
+    return None
 
 
 def _key(score: StepScore) -> tuple[float, float, float]:
