@@ -169,8 +169,21 @@ class DynamicFeedforward:
         return ContinuousTF(tuple(float(x) for x in num), tuple(float(x) for x in f.den))
 
     def filters(self) -> tuple[DiscreteFilter, DiscreteFilter]:
-        """(W, F) sampled every ``dt`` (zero-order hold)."""
-        return self.inverse().discretise(self.dt), self.target().discretise(self.dt)
+        """(W, F) as the controller runs them every ``dt``, designed on the *sampled* plant.
+
+        Sampling W and F separately (W_d G_d != F_d) overshoots: W's fast transient held over each period
+        carries more than the continuous one, 8.6 % on the paper's 2 ms step at 10 kHz.  Instead, with the
+        zero-order-hold valve ``G_d = z^-1 B(z) / A(z)`` and F's sampled step ``F_d = z^-1 F'(z)``:
+        ``W = F' A / B(1)``, so that ``W G_d = F_d B(z) / B(1)``: G_d's poles are cancelled, its sampling
+        zeros (B's, near z = -1 for a second order, not invertible without ringing at Nyquist) are kept as
+        a unity-gain FIR with positive taps, which adds no overshoot to F's.  Returned F is that product,
+        what the valve's output follows."""
+        g = self.valve_model.discretise(self.dt)
+        f = self.target().discretise(self.dt)
+        b_g, a_g = np.trim_zeros(g.b, "f"), g.a        # z^-1 (one period of ZOH delay) taken out of G_d
+        b_f = f.b[1:] if f.b[0] == 0.0 else f.b        # ... and out of F_d
+        w = DiscreteFilter(np.convolve(b_f, a_g) / np.sum(b_g), f.a)
+        return w, DiscreteFilter(np.convolve(f.b, b_g) / np.sum(b_g), f.a)   # (np.polymul drops the leading 0)
 
 
 def _asymmetric(descending: Optional[list[float]], a0: float, a1: float) -> bool:

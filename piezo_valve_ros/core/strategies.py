@@ -46,6 +46,7 @@ from typing import Optional
 
 
 from .compensation import CompensationModel, DynamicFeedforward, StaticInverse
+from .dynamics import DiscreteFilter
 from .hysteresis import GPIM, NotInvertibleError
 from .rate_dependence import hysteresis_inverse, swap_inverse, take_over_state
 from .drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
@@ -164,6 +165,11 @@ def loop_settings(values: dict, strategy: str, gains: PIDGains = PIDGains(), dt:
                             centre_voltage_v=v["centre_voltage_v"], derivative_filter_s=v["derivative_filter_s"])
 
 
+def _one_period_later(f: DiscreteFilter) -> DiscreteFilter:
+    """``f`` followed by one period of delay (z^-1 f)."""
+    return DiscreteFilter([0.0] + [float(x) for x in f.b], f.a)
+
+
 class ValveController:
     """Streaming controller: ``step(reference_m, measured_m) -> voltage [V]`` once per period."""
 
@@ -199,11 +205,12 @@ class ValveController:
             self._static.bounds = (lo, hi)
 
     def _dynamic_filters(self, comp: CompensationModel):
-        """(shaping filter of ff_pid_g's reference, dynamic inverse W or None): (G_v, None) or (F, W)."""
+        """(shaping filter of ff_pid_g's reference, dynamic inverse W or None): (G_v, None) or (F, W), the
+        shaping one period late: the measurement the error compares with answers the previous command."""
         if not comp.dynamic_feedforward:
-            return comp.valve_model.discretise(self.config.dt), None
+            return _one_period_later(comp.valve_model.discretise(self.config.dt)), None
         w, f = DynamicFeedforward(comp.valve_model, self.config.dt).filters()
-        return f, w
+        return _one_period_later(f), w
 
     def _inverse(self, v0: float, follow=None):
         """A fresh inverse of the model's hysteresis (rate-dependent when the model says so), virgin at v0 [V];
