@@ -20,7 +20,7 @@ import sys
 
 from .core.compensation import CompensationModel
 from .core.strategies import TABLE1_GAINS, loop_settings
-from .core.tuning import (MAX_NOISE_GAIN, MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG, OVERSHOOT_LIMIT_PCT,
+from .core.tuning import (MAX_NOISE_GAIN, MIN_CROSSOVER_HZ, MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG, OVERSHOOT_LIMIT_PCT,
                           TUNABLE_STRATEGIES, ModelValve, TuningError, TuningLimits, loop_margins, step_score, tune)
 from .core.signals import PAPER_STEPS_UM
 from .identify import ParametersFileError, parameters_yaml, read_parameters_file, write_outputs
@@ -51,6 +51,8 @@ def main(argv=None) -> int:
     ap.add_argument("--min-phase-margin-deg", type=float, default=MIN_PHASE_MARGIN_DEG)
     ap.add_argument("--max-noise-gain", type=float, default=MAX_NOISE_GAIN,
                     help="PID gain at the Nyquist frequency [um of command per um of measurement]")
+    ap.add_argument("--min-crossover-hz", type=float, default=MIN_CROSSOVER_HZ,
+                    help="the loop's slowest gain crossover [Hz]: how fast feedback corrects creep and drift")
     ap.add_argument("--compare", action="store_true", help="also show Table 1's sets for the strategy on the model")
     ap.add_argument("--params-out", metavar="FILE", help="write the parameters with the tuned gains here")
     ap.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -66,7 +68,7 @@ def main(argv=None) -> int:
         except ValueError as exc:
             raise ParametersFileError(f"{args.params_file}: {exc}") from None
         limits = TuningLimits(args.max_overshoot_pct, args.min_gain_margin_db, args.min_phase_margin_deg,
-                              args.max_noise_gain)
+                              args.max_noise_gain, args.min_crossover_hz)
         result = tune(args.strategy, model, dt, limits, config, log=log)
         lines = [f"tuned {result.summary()}", "  on the model:"] + _steps_text(result.score)
         if args.compare:

@@ -10,9 +10,9 @@ from piezo_valve_ros.core.compensation import CompensationModel
 from piezo_valve_ros.core.evaluation import SIMULATED_EFFECTS
 from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig
 from piezo_valve_ros.core.strategies import TABLE1_GAINS, ControllerConfig, PIDGains
-from piezo_valve_ros.core.tuning import (ModelValve, StepScore, TuningError, TuningLimits, dynamics_variants,
-                                         loop_margins, plant_gain_range, robust_overshoot_pct, step_score,
-                                         time_scaled, tune)
+from piezo_valve_ros.core.tuning import (ModelValve, StepScore, TuningError, TuningLimits, _moves, dynamics_variants,
+                                         linear_step, loop_margins, plant_gain_range, robust_overshoot_pct,
+                                         step_score, time_scaled, tune)
 from piezo_valve_ros.identify import ParametersFileError, parameters_yaml, read_parameters_file
 from piezo_valve_ros.nodes.controller import settings_from_parameters
 from piezo_valve_ros.tune_cli import main as valve_tune
@@ -70,6 +70,10 @@ def test_tuned_gains_meet_the_limits_and_hold_on_a_valve_table1_does_not_fit():
     assert result.margins.meets(limits), result.margins
     assert result.score.worst_overshoot_pct <= 2.0
     assert any("screened" in line for line in logged) and "gain margin" in logged[-1]
+    # robust performance: the settling time with G_v 10 % off is part of the result and its summary
+    assert len(result.variant_scores) == 2 and all(s.complete for s in result.variant_scores)
+    assert result.worst_settling_time_s >= result.score.settling_time_s
+    assert "G_v 10 % slower or faster: settling up to" in result.summary()
     config = ControllerConfig("pid_hc", result.gains, DT)
     assert robust_overshoot_pct(config, model, dynamics_variants(model), 5.0) <= 2.0   # G_v 10 % off too
     on_valve = step_score(config, model, lambda: SimulatedValve(SLOW), 5.0)
@@ -94,6 +98,31 @@ def test_tuned_gains_meet_the_limits_and_hold_on_a_valve_table1_does_not_fit():
         if strategy == "pid_hc":
             paper = step_score(replace(config, gains=gains), model, lambda: SimulatedValve(SLOW), 5.0)
             assert paper.overshoot_pct > 10 * on_valve.overshoot_pct or trips(gains) > 0, name
+
+
+def test_the_linearised_step_is_the_real_loop_where_the_loop_is_linear():
+    """pid_hc on the model as a valve (the inverse exact, no creep, commands within range) is linear: the
+    linearised step the tuner ranks with gives the real controller's settling time and overshoot."""
+    for dt, gains in ((1e-4, TABLE1_GAINS["pid_hc_6"][1]), (DT, PIDGains(0.6, 400.0, 1e-4))):
+        config = ControllerConfig("pid_hc", gains, dt)
+        real = step_score(config, PAPER, lambda: ModelValve(PAPER, dt, 5.0), 5.0, steps=[(0.0, 17.5)]).steps[0]
+        linear = linear_step("pid_hc", gains, PAPER, dt)
+        assert real.overshoot_pct > 0.1
+        assert linear.overshoot_pct == pytest.approx(real.overshoot_pct, rel=1e-6)
+        assert linear.settling_time_s == pytest.approx(real.settling_time_s, abs=1.01 * dt)   # where its step starts
+
+
+def test_the_pattern_search_moves_in_the_loops_own_coordinates():
+    """Overall gain (kp, ki, kd together), PI zero ki/kp, derivative time kd/kp; a PI stays a PI under the gain
+    move and gets a derivative only by the derivative move."""
+    g = PIDGains(1.0, 400.0, 0.0)
+    moves = _moves(g, 0.4)
+    f = np.exp(0.4)
+    assert PIDGains(f, 400.0 * f, 0.0) in moves and PIDGains(1 / f, 400.0 / f, 0.0) in moves
+    assert PIDGains(1.0, 400.0 * f, 0.0) in moves and PIDGains(1.0, 400.0 / f, 0.0) in moves
+    assert sum(m.kd > 0 for m in moves) == 1
+    with_d = _moves(PIDGains(1.0, 400.0, 1e-4), 0.4)
+    assert PIDGains(1.0, 400.0, 1e-4 * f) in with_d and PIDGains(f, 400.0 * f, 1e-4 * f) in with_d
 
 
 def test_bad_requests_are_refused_with_the_reason():
