@@ -35,7 +35,7 @@ def main():
              "Each case: the simulated valve identified (`simulated_analysis`, 30 s training), the controller on the "
              "identified model (`identify.compensation`), gains tuned on that model (`core.tuning.tune`, default "
              "limits: overshoot <= 2 % on every step, also on the model with G_v 10 % slower and faster, gain margin "
-             ">= 6 dB, phase margin >= 45 deg, noise gain <= 3), "
+             ">= 6 dB, phase margin >= 45 deg, noise gain <= 3, crossover >= 5 Hz), "
              "then the paper's three steps on the simulated valve.  Settling and overshoot are the averages over "
              "the three steps (Table 1's columns); margins are the model's (worst case over the plant-gain range, "
              "one period of delay).", ""]
