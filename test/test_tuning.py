@@ -230,4 +230,8 @@ def test_the_comparison_says_why_a_faster_table1_set_is_not_the_tuners_choice():
     assert verdict(4.0, 0.7, 2.3).endswith("pid_hc_5 is outside the tuner's limits: it overshoots 2.30 % with "
                                            "G_v 10 % slower or faster")
     assert "misses the margins (gain margin 3.0 dB" in verdict(4.0, 0.7, 1.0, LoopMargins(True, 3.0, 30.0, 90.0, 1.0))
-    assert verdict(4.0, 2.5, 1.0).startswith("no Table 1 set stays within 2 % overshoot")
+    assert verdict(4.0, 2.5, 1.0).endswith("on this valve; the tuned one does")
+    overshooting = TuningComparison(result, {"tuned": score(4.5, 2.2), "pid_hc_5": score(4.0, 2.5)},
+                                    {"tuned": good, "pid_hc_5": good}, {"tuned": 1.5, "pid_hc_5": 1.0})
+    assert overshooting.verdict().endswith("nor does the tuned one (2.20 %: the valve is not the model it was "
+                                           "tuned on)")

@@ -133,7 +133,10 @@ class TuningComparison:
         limit = self.result.limits.max_overshoot_pct
         best = self.best_table1(limit)
         if best is None:
-            return f"no Table 1 set stays within {limit:g} % overshoot on this valve; the tuned one does"
+            if tuned.overshoot_pct <= limit:
+                return f"no Table 1 set stays within {limit:g} % overshoot on this valve; the tuned one does"
+            return (f"no Table 1 set stays within {limit:g} % overshoot on this valve, nor does the tuned one "
+                    f"({tuned.overshoot_pct:.2f} %: the valve is not the model it was tuned on)")
         b = self.scores[best]
         if tuned.settling_time_s < b.settling_time_s and tuned.overshoot_pct <= b.overshoot_pct:
             return f"tuned beats {best} (faster at equal or lower overshoot)"
