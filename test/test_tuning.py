@@ -132,6 +132,9 @@ def test_bad_requests_are_refused_with_the_reason():
         tune("pid_hc", PAPER, DT, TuningLimits(max_overshoot_pct=-1.0))
     with pytest.raises(TuningError, match="dt must be > 0"):
         tune("pid_hc", PAPER, 0.0)
+    for bad in (float("nan"), -1.0, "5"):
+        with pytest.raises(TuningError, match="min_crossover_hz must be a finite number >= 0"):
+            tune("pid_hc", PAPER, DT, TuningLimits(min_crossover_hz=bad))
     with pytest.raises(TuningError, match="min_phase_margin_deg must be < 90"):
         tune("pid_hc", PAPER, DT, TuningLimits(min_phase_margin_deg=95.0))
     with pytest.raises(TuningError, match="no PID gains"):
@@ -179,6 +182,10 @@ def test_valve_tune_fails_with_one_line_and_writes_nothing(tmp_path, capsys):
                        "--params-out", str(out)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("valve_tune: error: no PID gains") and err.count("\n") == 1
+    assert valve_tune([str(src), "--quiet", "--min-crossover-hz", "nan", "--params-out", str(out)]) == 2
+    assert "min_crossover_hz must be a finite number >= 0, got nan" in capsys.readouterr().err
+    with pytest.raises(SystemExit):            # not a number: argparse's usage error
+        valve_tune([str(src), "--min-crossover-hz", "fast"])
     broken = _model_file(tmp_path / "broken.yaml", **{"creep.gains": [0.95], "creep.time_constants_s": [1.0]})
     assert valve_tune([str(broken), "--params-out", str(out)]) == 2
     assert "creep" in capsys.readouterr().err

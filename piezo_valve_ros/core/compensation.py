@@ -34,7 +34,7 @@ from .hysteresis import GPIM, PAPER_GPIM, GPIMParams, inverse_problems
 from .rate_dependence import RATE_FILTERS_S, RATE_SCALES_V_S, TERM_COUNT as RATE_TERM_COUNT, widening_problems
 from ..validation import as_bool, as_float, as_float_list, as_int
 
-__all__ = ["CreepModel", "OutputMap", "DynamicFeedforward", "CompensationModel", "StaticInverse",
+__all__ = ["CreepModel", "OutputMap", "DynamicFeedforward", "CompensationModel", "StaticInverse", "reference_filters",
            "MODEL_PARAMETERS", "GPIM_FORM_KEYS", "FF_BANDWIDTH_RATIO", "FF_NYQUIST_SHARE", "MAX_CREEP_GAIN_SUM"]
 
 MAX_CREEP_GAIN_SUM = 0.9     # creep gains must sum below this (the inverse divides by 1 - sum)
@@ -180,10 +180,22 @@ class DynamicFeedforward:
         what the valve's output follows."""
         g = self.valve_model.discretise(self.dt)
         f = self.target().discretise(self.dt)
-        b_g, a_g = np.trim_zeros(g.b, "f"), g.a        # z^-1 (one period of ZOH delay) taken out of G_d
-        b_f = f.b[1:] if f.b[0] == 0.0 else f.b        # ... and out of F_d
+        # both strictly proper, so their ZOH samples start with a zero tap: z^-1 taken out of G_d and F_d
+        b_g, a_g, b_f = g.b[1:], g.a, f.b[1:]
         w = DiscreteFilter(np.convolve(b_f, a_g) / np.sum(b_g), f.a)
         return w, DiscreteFilter(np.convolve(f.b, b_g) / np.sum(b_g), f.a)   # (np.polymul drops the leading 0)
+
+
+def reference_filters(model: "CompensationModel", dt: float) -> tuple[DiscreteFilter, Optional[DiscreteFilter]]:
+    """The controller's filters on the demand, sampled every ``dt`` [s]: (ff_pid_g's shaping filter, the
+    dynamic inverse W or None).  Shaping is G_v, or with the dynamic feedforward on F (what the valve follows
+    through W), either one period late: the measurement the error compares with answers the previous
+    command."""
+    if model.dynamic_feedforward:
+        w, f = DynamicFeedforward(model.valve_model, dt).filters()
+    else:
+        w, f = None, model.valve_model.discretise(dt)
+    return DiscreteFilter(np.concatenate(([0.0], f.b)), f.a), w
 
 
 def _asymmetric(descending: Optional[list[float]], a0: float, a1: float) -> bool:

@@ -45,8 +45,7 @@ from dataclasses import dataclass, replace
 from typing import Optional
 
 
-from .compensation import CompensationModel, DynamicFeedforward, StaticInverse
-from .dynamics import DiscreteFilter
+from .compensation import CompensationModel, StaticInverse, reference_filters
 from .hysteresis import GPIM, NotInvertibleError
 from .rate_dependence import hysteresis_inverse, swap_inverse, take_over_state
 from .drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
@@ -165,11 +164,6 @@ def loop_settings(values: dict, strategy: str, gains: PIDGains = PIDGains(), dt:
                             centre_voltage_v=v["centre_voltage_v"], derivative_filter_s=v["derivative_filter_s"])
 
 
-def _one_period_later(f: DiscreteFilter) -> DiscreteFilter:
-    """``f`` followed by one period of delay (z^-1 f)."""
-    return DiscreteFilter([0.0] + [float(x) for x in f.b], f.a)
-
-
 class ValveController:
     """Streaming controller: ``step(reference_m, measured_m) -> voltage [V]`` once per period."""
 
@@ -181,7 +175,7 @@ class ValveController:
         self.config = config
         self.compensation = compensation
         self._setup_model()
-        self._gv, self._dyn = self._dynamic_filters(compensation)
+        self._gv, self._dyn = reference_filters(compensation, self.config.dt)
         self.reset()
 
     @property
@@ -203,14 +197,6 @@ class ValveController:
         self._loop_max_um = out_map.value(self._demand_max_um)
         if getattr(self, "_static", None) is not None:
             self._static.bounds = (lo, hi)
-
-    def _dynamic_filters(self, comp: CompensationModel):
-        """(shaping filter of ff_pid_g's reference, dynamic inverse W or None): (G_v, None) or (F, W), the
-        shaping one period late: the measurement the error compares with answers the previous command."""
-        if not comp.dynamic_feedforward:
-            return _one_period_later(comp.valve_model.discretise(self.config.dt)), None
-        w, f = DynamicFeedforward(comp.valve_model, self.config.dt).filters()
-        return _one_period_later(f), w
 
     def _inverse(self, v0: float, follow=None):
         """A fresh inverse of the model's hysteresis (rate-dependent when the model says so), virgin at v0 [V];
@@ -371,7 +357,7 @@ class ValveController:
         loop = self._swap_inverse(self.loop_inverse, compensation, self.last_command_v, ff)
         dynamics_changed = (compensation.valve_model, compensation.dynamic_feedforward) != \
             (old.valve_model, old.dynamic_feedforward)
-        filters = self._dynamic_filters(compensation) if dynamics_changed else None
+        filters = reference_filters(compensation, self.config.dt) if dynamics_changed else None
         self.compensation, self.ff_inverse, self.loop_inverse = compensation, ff, loop
         if (compensation.creep, compensation.output_map) != (old.creep, old.output_map):
             self._static = self._static_inverse(ff.peek_forward(self._last_ff_v))

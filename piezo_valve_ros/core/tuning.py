@@ -44,7 +44,7 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 from scipy.signal import lfilter
 
-from .compensation import CompensationModel, DynamicFeedforward
+from .compensation import CompensationModel, reference_filters
 from .dynamics import first_order_lag
 from .experiments import responses, run_closed_loop
 from .metrics import StepMetrics, step_metrics
@@ -371,14 +371,10 @@ def linear_step(strategy: str, gains: PIDGains, model: CompensationModel, dt: fl
     loop_num, loop_den = plant_gain * _poly_mul(cnum, pnum), _poly_mul(cden, pden)
     char = _poly_add(loop_den, loop_num)
     if strategy in ("ff_pid", "ff_pid_g"):
-        if model.dynamic_feedforward:
-            inverse, shaping = DynamicFeedforward(model.valve_model, dt).filters()
-            u_ff = lfilter(inverse.b, inverse.a, ref)
-        else:
-            shaping, u_ff = model.valve_model.discretise(dt), ref
+        shaping, inverse = reference_filters(model, dt)
+        u_ff = ref if inverse is None else lfilter(inverse.b, inverse.a, ref)
         y_ff = lfilter(pnum, pden, u_ff)                      # the feedforward through the plant
-        # ff_pid_g's demand: the shaped reference one period late, as the controller compares it
-        demand = lfilter(np.concatenate(([0.0], shaping.b)), shaping.a, ref) if strategy == "ff_pid_g" else ref
+        demand = lfilter(shaping.b, shaping.a, ref) if strategy == "ff_pid_g" else ref
         y = lfilter(loop_den, char, y_ff) + lfilter(loop_num, char, demand)
     else:
         y = lfilter(loop_num, char, ref)
@@ -564,8 +560,8 @@ def tune(strategy: str, model: CompensationModel, dt: float, limits: TuningLimit
 
     def key(g: PIDGains) -> tuple[float, float, float]:
         """What the tuner minimises: the average settling time on the plant or a dynamics variant, whichever is
-        longest (robust performance: a set whose settling hangs on the fitted G_v being exact loses), then
-        the time on a command limit and the overshoot on the plant."""
+        longest (robust performance: a set whose settling hangs on the fitted G_v being exact loses), times
+        the overshoot factor; then the time on a command limit and the overshoot on the plant."""
         nominal, others = score(g), variant_runs(g)
         settling = max([nominal.settling_time_s] + [s.settling_time_s for s in others])
         return settling * overshoot_factor(nominal, *others), nominal.rail_time_s, nominal.worst_overshoot_pct
