@@ -28,9 +28,13 @@ creep, saturation map).  It
 4. refines the best by a pattern search on the real steps (:func:`_moves`: the overall gain, the PI zero
    ki/kp and the derivative time kd/kp, halving steps) under the same constraints.
 
-What it minimises (robust performance): the average settling time on the model or a dynamics variant,
-whichever is longest, times ``1 + OVERSHOOT_COST`` x (the worst overshoot on either / the limit); ties go
-to less time on a command limit, then less overshoot.
+What it minimises (nominal performance under robust constraints): the average settling time on the model
+times ``1 + OVERSHOOT_COST`` x (its worst overshoot / the limit); ties go to less time on a command limit,
+then less overshoot.  The dynamics variants are constraints (overshoot within the limit), not part of the
+cost: taking their slowest settling time as the cost (robust performance) bought robustness the limits
+already ensure with speed on the valve (the default valve identified at 10 kHz, PID HC: 3.30 ms / 0.77 %
+on the valve with that cost, 3.47 ms / 0.46 % with this one), and with identification's G_v within a few
+per cent of the valve's the nominal model is the one to be fast on.
 
 Nothing here imports ROS: ``valve_tune`` and the identification node's ``tune`` step are faces over
 :func:`tune`.
@@ -77,10 +81,9 @@ VERIFIED_FEASIBLE = 6          # grid sets run through the real steps, fastest o
 REFINE_ROUNDS = 4              # pattern-search rounds (the step halves each round)
 REFINE_START_STEP = 0.4        # first pattern step in natural-log units (x1.5)
 OVERSHOOT_COST = 0.4           # a set's settling time counts (1 + this x its worst overshoot / the limit) times
-#                                (on the model or a dynamics variant): overshoot at the limit costs 40 % more time,
+#                                (on the model): overshoot at the limit costs 40 % more time,
 #                                so of two sets about equally fast the one overshooting less wins (the model is
-#                                noise-free: the valve's sensor noise adds its peaks on top; 0.1-0.2 chose faster
-#                                sets that overshot 1 % on the valve)
+#                                noise-free: the valve's sensor noise adds its peaks on top)
 DYNAMICS_SCALES = (0.9, 1.1)   # the overshoot limit must also hold with G_v this much slower and faster
 RAIL_MARGIN_V = 1e-9           # a command this close to a limit is on it
 LINEAR_HOLD_S = 0.1            # the linearised step's hold after the ramp [s] (the paper steps' 0.1 s)
@@ -179,8 +182,8 @@ class TuningResult:
 
     @property
     def worst_settling_time_s(self) -> float:
-        """The average settling time [s] on the model or a dynamics variant, whichever is longest (what the
-        tuner minimises, before the cost of overshoot)."""
+        """The average settling time [s] on the model or a dynamics variant, whichever is longest (how much the
+        speed hangs on the fitted G_v being exact)."""
         return max([self.score.settling_time_s] + [v.settling_time_s for v in self.variant_scores])
 
     def parameters(self) -> dict:
@@ -554,17 +557,12 @@ def tune(strategy: str, model: CompensationModel, dt: float, limits: TuningLimit
             on_variants[g] = variant_scores(replace(base, gains=g), model, variants, v0, limits.max_overshoot_pct)
         return on_variants[g]
 
-    def overshoot_factor(*runs: StepScore) -> float:
-        worst = max(s.worst_overshoot_pct for s in runs)
-        return 1.0 + OVERSHOOT_COST * worst / max(limits.max_overshoot_pct, 1e-9)
-
     def key(g: PIDGains) -> tuple[float, float, float]:
-        """What the tuner minimises: the average settling time on the plant or a dynamics variant, whichever is
-        longest (robust performance: a set whose settling hangs on the fitted G_v being exact loses), times
-        the overshoot factor; then the time on a command limit and the overshoot on the plant."""
-        nominal, others = score(g), variant_runs(g)
-        settling = max([nominal.settling_time_s] + [s.settling_time_s for s in others])
-        return settling * overshoot_factor(nominal, *others), nominal.rail_time_s, nominal.worst_overshoot_pct
+        """What the tuner minimises: the average settling time on the plant times (1 + OVERSHOOT_COST x its
+        worst overshoot / the limit); then the time on a command limit and the overshoot."""
+        nominal = score(g)
+        factor = 1.0 + OVERSHOOT_COST * nominal.worst_overshoot_pct / max(limits.max_overshoot_pct, 1e-9)
+        return nominal.settling_time_s * factor, nominal.rail_time_s, nominal.worst_overshoot_pct
 
     def feasible(g: PIDGains) -> bool:
         if not margins(g).meets(limits) or score(g).worst_overshoot_pct > limits.max_overshoot_pct:
@@ -572,13 +570,10 @@ def tune(strategy: str, model: CompensationModel, dt: float, limits: TuningLimit
         return all(s.worst_overshoot_pct <= limits.max_overshoot_pct for s in variant_runs(g))
 
     def better(g: PIDGains, than: Optional[PIDGains]) -> bool:
-        """Feasible and better than ``than``; the variants are only run for a set whose nominal settling time
-        and overshoot could still win (the worst over the variants is never less)."""
-        if not margins(g).meets(limits):
+        """Feasible and better than ``than``; the dynamics variants are only run for a set that would win."""
+        if not margins(g).meets(limits) or (than is not None and not key(g) < key(than)):
             return False
-        if than is not None and score(g).settling_time_s * overshoot_factor(score(g)) > key(than)[0]:
-            return False
-        return feasible(g) and (than is None or key(g) < key(than))
+        return feasible(g)
 
     # 1. screen the grid on the margins; 2. refine the fastest sets on the linearised loop (cheap: settling
     # time of the paper's step there, within the overshoot limit on the plant and the dynamics variants);
@@ -637,7 +632,7 @@ def tune(strategy: str, model: CompensationModel, dt: float, limits: TuningLimit
                           f"{limits.max_overshoot_pct:g} % on this model")
     log(f"tune {strategy}: best of the grid and Table 1: kp {best.kp:.4g}, ki {best.ki:.4g}, kd {best.kd:.3g}: settling "
         f"{1e3 * score(best).settling_time_s:.2f} ms; refining")
-    best = _pattern_search(best, lambda g, than: better(g, than))
+    best = _pattern_search(best, better)
     result = TuningResult(strategy, best, margins(best), score(best), limits, len(margins_cache),
                           len(scores) + sum(len(v) for v in on_variants.values()), base.derivative_filter_s,
                           tuple(variant_runs(best)))
