@@ -252,6 +252,22 @@ def test_step_metrics_on_known_response():
     assert step_metrics(y2, 0, 0.0, 10.0, dt).overshoot_pct == pytest.approx(20.0)
 
 
+def test_the_band_exit_time_resolves_the_settling_time_below_the_sample_period():
+    """A ramp entering the 5 % band between samples: the paper's settling time is the next sample, the band
+    exit time the interpolated crossing; a response that never leaves the band exits at 0, one that never
+    enters it at its end."""
+    dt = 1e-3
+    for crossing in (0.0105, 0.0107, 0.0109):     # the ramp tops out after the sample at 11 ms
+        t = np.arange(100) * dt
+        y = np.minimum(t / crossing * 9.5, 10.0) * 1e-6     # reaches 9.5 um (the band's edge) at `crossing`
+        m = step_metrics(y, 0, 0.0, 10.0, dt)
+        assert m.settling_time_s == pytest.approx(0.011)
+        assert m.band_exit_s == pytest.approx(crossing, abs=1e-12)
+    assert step_metrics(np.full(50, 10e-6), 0, 0.0, 10.0, dt).band_exit_s == 0.0
+    never = step_metrics(np.full(50, 5e-6), 0, 0.0, 10.0, dt)
+    assert never.band_exit_s == never.settling_time_s == pytest.approx(50 * dt)
+
+
 def test_bandwidth_metrics_on_second_order_model():
     f = np.geomspace(1, 1000, 400)
     h = PAPER_VALVE_MODEL.frequency_response(f)

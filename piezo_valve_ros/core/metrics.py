@@ -2,12 +2,16 @@
 
 Step: settling time = last time outside +-5 % of the step amplitude around the target
 (measured from the start of the ramp); overshoot = peak beyond the target as % of the amplitude.
+The band exit time is the settling time resolved below the sample period (the last crossing into the band,
+interpolated between the samples around it): the tuner ranks by it, where the paper's settling time moves
+in whole periods and leaves a search on flat steps.
 Frequency response: gain and phase of the fundamental (correlation over whole periods);
 -3 dB and -90 deg frequencies (first crossing, log-interpolated); resonant peak = max gain in dB
 (0 when the gain never exceeds the low-frequency gain).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,20 +25,31 @@ class StepMetrics:
     settling_time_s: float
     overshoot_pct: float
     final_error_um: float
+    band_exit_s: float = math.nan   # the last entry into the band, interpolated between samples [s]
 
 
 def step_metrics(y_m: np.ndarray, start_index: int, start_um: float, end_um: float, dt: float,
                  band: float = 0.05) -> StepMetrics:
-    """Settling time [s] and overshoot [%] of a step response ``y_m`` [m] whose ramp starts at ``start_index``."""
+    """Settling time [s], overshoot [%] and band exit time [s] of a step response ``y_m`` [m] whose ramp starts at
+    ``start_index``."""
     y = np.asarray(y_m, float)[start_index:] * 1e6
     amplitude = end_um - start_um
     if amplitude == 0:
         raise ValueError("step amplitude is zero")
-    outside = np.flatnonzero(np.abs(y - end_um) > band * abs(amplitude))
-    settling = 0.0 if outside.size == 0 else (outside[-1] + 1) * dt
+    beyond_band = np.abs(y - end_um) - band * abs(amplitude)       # > 0: outside [um]
+    outside = np.flatnonzero(beyond_band > 0)
+    if outside.size == 0:
+        settling = exit_s = 0.0
+    else:
+        last = int(outside[-1])
+        settling = (last + 1) * dt
+        exit_s = settling
+        if last + 1 < y.size:       # crossed into the band between samples last and last + 1
+            a, b = beyond_band[last], beyond_band[last + 1]
+            exit_s = (last + a / (a - b)) * dt
     beyond = (y - end_um) * np.sign(amplitude)
     overshoot = max(float(beyond.max()), 0.0) / abs(amplitude) * 100.0
-    return StepMetrics(float(settling), overshoot, float(y[-1] - end_um))
+    return StepMetrics(float(settling), overshoot, float(y[-1] - end_um), float(exit_s))
 
 
 def fundamental(x: np.ndarray, frequency_hz: float, dt: float) -> complex:
