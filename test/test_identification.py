@@ -308,3 +308,6 @@ def test_a_fast_creep_does_not_bend_the_identified_g_v():
     assert final == pytest.approx(true, rel=0.03)
     assert baseline != pytest.approx(true, rel=0.1)   # what the refit with the effects corrects
     assert a.final.dynamics_note.startswith("fitted with the effects")
+    # each effect's drop-one model (the plots' "without it") is on the same poles: the difference is the effect
+    assert set(a.drop_one) == set(a.report["effects_added"])
+    assert all(m.sections == a.final.sections for m in a.drop_one.values())

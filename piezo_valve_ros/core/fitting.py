@@ -379,7 +379,6 @@ def refit_poles_with_effects(train: Record, model: ValveModel, cache: Optional[F
     if len(model.sections) != 1 or not model.effects or not model.dynamics_free:
         return model
     cache = FitCache() if cache is None else cache
-    none = np.zeros(2, bool)
     for _ in range(BASELINE_ROUNDS):
         fit = fit_dynamics(train, model.static_output(cache.context(train, model)), train.position_um,
                            model.sections)
@@ -387,11 +386,19 @@ def refit_poles_with_effects(train: Record, model: ValveModel, cache: Optional[F
             break
         moved = max(abs(math.log(a / b)) for a, b in zip(fit.sections[0], model.sections[0]))
         poles = ", ".join(f"{abs(p):.0f}" for p in sorted(np.roots(unity_dc_poles(list(fit.sections)).den), key=abs))
-        model = replace(model, sections=fit.sections, dynamics_note=f"fitted with the effects (poles {poles} rad/s)")
-        model = _linear_solve(train, model, steps=False, free=none, cache=cache)[0]
+        model = with_poles(train, model, fit.sections, f"fitted with the effects (poles {poles} rad/s)", cache)
         if moved < BASELINE_POLE_TOLERANCE:
             break
     return model
+
+
+def with_poles(train: Record, model: ValveModel, sections: tuple[tuple[float, float], ...], note: str,
+               cache: Optional[FitCache] = None) -> ValveModel:
+    """``model`` with G_v's pole sections ``sections`` (as ``ValveModel.sections``) and its linear parameters
+    (GPIM weights, effects' terms) solved again on ``train`` for them; ``note`` becomes its dynamics note."""
+    model = replace(model, sections=tuple(sections), dynamics_note=note)
+    return _linear_solve(train, model, steps=False, free=np.zeros(2 * len(model.sections), bool),
+                         cache=FitCache() if cache is None else cache)[0]
 
 
 # --------------------------------------------------------------------------- G's poles

@@ -45,7 +45,7 @@ from scipy import linalg
 from threadpoolctl import threadpool_limits
 
 from .effects import CATALOGUE, Effect
-from .fitting import (BASIS_RIDGE, FitCache, fit_model, fit_paper_gpim, refit_poles_with_effects,
+from .fitting import (BASIS_RIDGE, FitCache, fit_model, fit_paper_gpim, refit_poles_with_effects, with_poles,
                       uniform_thresholds)
 from .hysteresis import GPIM
 from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, SUPPORTED_RATE_HZ, Record,
@@ -397,6 +397,8 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
             log(f"G_v: {polished.dynamics_note} with {', '.join(current)} in the model; held-out RMS "
                 f"{before:.4f} -> {after:.4f} um")
             final = polished
+            # the drop-one models on the same poles: final minus one of them is that effect's share alone
+            drop_one = {n: with_poles(fit, m, final.sections, final.dynamics_note, cache) for n, m in drop_one.items()}
         else:
             log(f"G_v: refitted with {', '.join(current)} ({polished.dynamics_note}) but the held-out RMS rose "
                 f"{before:.4f} -> {after:.4f} um; poles kept")
