@@ -25,7 +25,8 @@ def test_identification_refits_pushes_and_cuts_the_ol_hc_error(tmp_path):
                                                                      "gain_set": ""}, ns), str(tmp_path))
         bags = tmp_path / "runs"
         ident = {"plan": "validate,train,refit,tune,validate", "time_scale": 0.25, "validation_s": 20.0,
-                 "control_period_s": PERIOD, "bag_dir": str(bags), "exit_when_done": True}
+                 "control_period_s": PERIOD, "bag_dir": str(bags), "exit_when_done": True,
+                 "progress_period_s": 0.5}   # the experiments may take only seconds on a fast machine
         proc = start(group, "identification", node_command("valve_identification", ident, ns), str(tmp_path))
         assert proc.wait(240) == 0, open(tmp_path / "identification.log").read()
     finally:
@@ -88,3 +89,7 @@ def test_bad_plan_is_rejected_with_one_line(tmp_path):
                          env=ros_env(), capture_output=True, text=True, timeout=60)
     assert out.returncode == 2
     assert "tune needs a refit step before it" in out.stderr
+    out = subprocess.run(node_command("valve_identification", {"plan": "train", "progress_period_s": 0.0},
+                                      f"/bad{os.getpid()}"), env=ros_env(), capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2
+    assert "progress_period_s must be > 0" in out.stderr

@@ -56,7 +56,7 @@ from .common import COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, as_float, declare, p
 from ..core.drive import CENTRE_VOLTAGE_V
 
 STEPS = ("train", "refit", "tune", "validate")
-PROGRESS_PERIOD_S = 5.0   # a running experiment logs its progress this often
+PROGRESS_PERIOD_S = 5.0   # default: a running experiment logs its progress this often [s]
 
 
 class _Player:
@@ -100,6 +100,7 @@ class ValveIdentificationNode(Node):
             ("push", True, "push refitted parameters to the controller"),
             ("controller", "valve_controller", "name of the controller node (relative to this namespace)"),
             ("exit_when_done", False, "shut down after the plan"),
+            ("progress_period_s", PROGRESS_PERIOD_S, "a running experiment logs its progress this often [s]"),
         ]:
             declare(self, name, default, text, read_only=True)  # the plan's settings: start-up only
         p = parameter_values(self)
@@ -124,8 +125,10 @@ class ValveIdentificationNode(Node):
         self.validation_s = as_float("validation_s", p["validation_s"])
         self.validation_amplitude_m = as_float("validation_amplitude_m", p["validation_amplitude_m"])
         self.time_scale = as_float("time_scale", p["time_scale"])
-        if not (self.period_s > 0 and self.time_scale > 0 and self.training_s > 0 and self.validation_s > 0):
-            raise ValueError("control_period_s, time_scale, training_s and validation_s must be > 0")
+        self.progress_period_s = as_float("progress_period_s", p["progress_period_s"])
+        if not (self.period_s > 0 and self.time_scale > 0 and self.training_s > 0 and self.validation_s > 0
+                and self.progress_period_s > 0):
+            raise ValueError("control_period_s, time_scale, training_s, validation_s and progress_period_s must be > 0")
         self.validation_strategy = str(p["validation_strategy"])
         self.bag_dir = Path(str(p["bag_dir"]))
         self.storage = str(p["storage"])
@@ -178,7 +181,7 @@ class ValveIdentificationNode(Node):
             if time.monotonic() > deadline:
                 raise TimeoutError(f"{what}: rig stopped answering ({player.index}/{player.values.size} periods)")
             now = time.monotonic()
-            if now - last_log > PROGRESS_PERIOD_S:
+            if now - last_log > self.progress_period_s:
                 last_log = now
                 done = player.index / player.values.size
                 elapsed = now - started
