@@ -89,7 +89,9 @@ def test_bad_plan_is_rejected_with_one_line(tmp_path):
                          env=ros_env(), capture_output=True, text=True, timeout=60)
     assert out.returncode == 2
     assert "tune needs a refit step before it" in out.stderr
-    out = subprocess.run(node_command("valve_identification", {"plan": "train", "progress_period_s": 0.0},
-                                      f"/bad{os.getpid()}"), env=ros_env(), capture_output=True, text=True, timeout=60)
-    assert out.returncode == 2
-    assert "progress_period_s must be > 0" in out.stderr
+    for bad, says in [(0.0, "progress_period_s must be > 0"), (-1.0, "progress_period_s must be > 0"),
+                      (float("nan"), "progress_period_s must be finite"), ("often", "progress_period_s")]:
+        out = subprocess.run(node_command("valve_identification", {"plan": "train", "progress_period_s": bad},
+                                          f"/bad{os.getpid()}"), env=ros_env(), capture_output=True, text=True,
+                             timeout=60)
+        assert out.returncode == 2 and says in out.stderr, (bad, out.stderr)

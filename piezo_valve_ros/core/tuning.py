@@ -629,7 +629,7 @@ def tune(strategy: str, model: CompensationModel, dt: float, limits: TuningLimit
     pool = list(dict.fromkeys(candidates[:VERIFIED_RUNS] + list(starts)))
     within: list[PIDGains] = []
     for g in sorted(pool, key=lambda g: key(g) if margins(g).meets(limits) else (math.inf,) * 3):
-        if margins(g).meets(limits) and math.isfinite(key(g)[0]) and feasible(g):
+        if feasible(g):     # the margins, then the nominal steps (a run given up overshot), then the variants
             within.append(g)
             if len(within) == REFINE_STARTS:
                 break
