@@ -296,6 +296,22 @@ def test_asymmetry_is_compensated_only_where_the_controller_can_invert_it():
         effect.compensation(SimpleNamespace(gpim=falling), None)
 
 
+def test_a_valve_slower_than_its_g_v_gets_the_extra_pole_pair():
+    """The slow-dynamics valve (a 60 Hz section, zeta 0.6, times the paper's 500/2400 rad/s poles): the
+    baseline's one section stretches to 260 rad/s to cover both, and an extra pair placed with that
+    section held only found a resonance near 1400 rad/s (held-out RMS cut 14 %, dropped: the valve was
+    left "unexplained").  Placed with G_v's poles free as well, the fit finds the 60 Hz section and the
+    dynamics effect is added."""
+    from piezo_valve_ros.core.evaluation import SIMULATED_EFFECTS, simulated_analysis
+    a = simulated_analysis(SIMULATED_EFFECTS["slow dynamics"](ValveSimConfig(dt=1e-3)), log=lambda s: None)
+    r = a.report
+    assert "dynamics" in r["effects_added"] and not r["unexplained"], r["residual"]
+    assert len(a.final.sections) == 2
+    resonant = min(a.final.sections, key=lambda s: s[1])
+    assert resonant[0] == pytest.approx(2 * np.pi * 60.0, rel=0.05) and resonant[1] == pytest.approx(0.6, abs=0.05)
+    assert r["final"]["validate"]["rms_um"] < 0.3 * r["baseline"]["validate"]["rms_um"]
+
+
 def test_a_fast_creep_does_not_bend_the_identified_g_v():
     """Creep with a 30 ms lag takes part of the static gain away within a few samples, which bent the
     baseline's poles to 462/3248 rad/s; refitted with creep in the model they are the valve's 500/2400."""

@@ -318,6 +318,8 @@ def _fit(train: Record, start: ValveModel, effects: Sequence[Effect], *, poles: 
                       on the variable-projection objective: each round one linear solve with their
                       sensitivities gives the step, the linear parameters are solved again at the trial
                       point, and the step is halved until the training error falls (an effect's refit);
+                      a new pole pair is placed first, from two starts (``_place_extra_poles``), and the
+                      refit that ends lower on the training record is kept;
       ``"fixed"``     G as in ``start`` (the capacity scan).
     """
     model = replace(start, effects=tuple(effects), coefs=tuple(np.zeros(0) for _ in effects))
@@ -338,17 +340,27 @@ def _fit(train: Record, start: ValveModel, effects: Sequence[Effect], *, poles: 
         return model, sse
     rounds = GN_ROUNDS if rounds is None else rounds
     model, sse, _ = _linear_solve(train, model, steps=False, free=none, cache=cache)
+    starts = [(model, sse)]
     if len(model.sections) > len(start.sections):  # a new pole pair: place it first (its fit has local minima)
-        free = np.zeros(2 * len(model.sections), bool)
-        free[2 * len(start.sections):] = True
-        fit = fit_dynamics(train, model.static_output(cache.context(train, model)), train.position_um, model.sections,
-                           free=free, multistart=True)
-        model, sse, _ = _linear_solve(train, replace(model, sections=fit.sections), steps=False, free=none, cache=cache)
+        starts = _place_extra_poles(train, model, len(start.sections), cache)
     # G_v's own poles come from the baseline (fitted on differences, so slow structure cannot bend them);
     # a joint refit moves them only together with an extra pole pair
     free = _free_poles(model) if poles == "joint" and len(model.sections) > 1 else none
     if not (nonlinear or free.any()):
+        # linear effects only: their columns follow H, so one more solve at the solved weights
+        model, sse = min(starts, key=lambda f: f[1])
         return _linear_solve(train, model, steps=False, free=none, cache=cache)[:2] if effects else (model, sse)
+    # from each start; the lowest training SSE wins (a placement's own SSE does not rank where it ends)
+    return min((_gauss_newton(train, m, e, free, rounds, cache) for m, e in starts), key=lambda f: f[1])
+
+
+def _gauss_newton(train: Record, model: ValveModel, sse: float, free: np.ndarray, rounds: int,
+                  cache: FitCache) -> tuple[ValveModel, float]:
+    """Gauss-Newton steps of the nonlinear parameters (the effects' structures and the ``free`` poles) on the
+    variable-projection objective, from ``model`` (linear parameters solved, training SSE ``sse``): each
+    round one linear solve with the sensitivities gives the step, the linear parameters are solved again at
+    the trial point and the step is halved until the SSE falls.  Returns (model, training SSE)."""
+    none = np.zeros(2 * len(model.sections), bool)
     for _ in range(rounds):
         _, _, (x, layout, pole_step) = _linear_solve(train, model, steps=True, free=free, cache=cache)
         fraction, accepted = 1.0, False
@@ -364,6 +376,30 @@ def _fit(train: Record, start: ValveModel, effects: Sequence[Effect], *, poles: 
         if not accepted or gain < GN_TOLERANCE:
             break
     return model, sse
+
+
+def _place_extra_poles(train: Record, model: ValveModel, own: int,
+                       cache: FitCache) -> list[tuple[ValveModel, float]]:
+    """Starting places for the pole pairs ``model`` adds after its first ``own`` sections, by
+    ``fit_dynamics`` (multistart) on the static output: with G_v's own poles held, and with them free as
+    well when the record determines them.  Held, a baseline G_v that stretched to cover a slower valve
+    (one second-order section for two) keeps the extra pair from the valve's poles; free, a noisy
+    difference fit can pull a good G_v off, so both are refined and the fit keeps the better end.
+    Returns [(model with its linear parameters solved, training SSE)], one per distinct placement."""
+    none = np.zeros(2 * len(model.sections), bool)
+    held = none.copy()
+    held[2 * own:] = True
+    options = [held]
+    if _free_poles(model)[:2 * own].any():
+        options.append(_free_poles(model))
+    static = model.static_output(cache.context(train, model))
+    placed: dict[tuple, tuple[ValveModel, float]] = {}
+    for free in options:
+        fit = fit_dynamics(train, static, train.position_um, model.sections, free=free, multistart=True)
+        if fit.sections not in placed:
+            placed[fit.sections] = _linear_solve(train, replace(model, sections=fit.sections), steps=False,
+                                                 free=none, cache=cache)[:2]
+    return list(placed.values())
 
 
 def refit_poles_with_effects(train: Record, model: ValveModel, cache: Optional[FitCache] = None) -> ValveModel:
