@@ -6,7 +6,9 @@ effect the controller can invert, dynamic feedforward on).
     python bench/compensation_table.py [--dt 5e-4] [--only NAME ...] [--markdown FILE] [--gains pid_hc_5]
                                        [--no-tuned]
 
-Besides OL HC and the Table 1 set, PID HC with gains the tuner chose on each valve's extended model (the
+Errors of the measured position (LVDT noise and quantisation included, as a rig sees them) and, in the
+"spool" columns, of the spool's true position in the same runs (the simulator's: the tracking beneath the
+sensor's noise floor).  Besides OL HC and the Table 1 set, PID HC with gains the tuner chose on each valve's extended model (the
 identification's ``tune`` step), with both models.  Runs in-process on the core (no ROS); one to three minutes
 per valve at the default 2 kHz.
 """
@@ -31,8 +33,9 @@ def main(argv=None) -> int:
     strategies = {"OL HC": ControllerConfig(strategy="ol_hc", gains=PIDGains(0.0, 0.0)),
                   f"{args.gains.upper().replace('_', ' ')}": ControllerConfig(strategy=strategy, gains=gains)}
     head = ("| valve | effects found | not compensated | strategy | RMS baseline [um] | RMS extended [um] | "
-            "peak baseline [um] (% range) | peak extended [um] (% range) | RMS ratio |")
-    lines = [head, "|" + "---|" * 9]
+            "peak baseline [um] (% range) | peak extended [um] (% range) | RMS ratio | peak ratio | "
+            "spool RMS [um] | spool peak [um] | spool peak ratio |")
+    lines = [head, "|" + "---|" * 13]
     print(head)
     for name in args.only or SIMULATED_EFFECTS:
         t0 = time.perf_counter()
@@ -41,11 +44,14 @@ def main(argv=None) -> int:
                                        tuned=() if args.no_tuned else ("pid_hc",))
         for label, config in result.strategies.items():
             b, e = result.errors[("baseline", label)], result.errors[("extended", label)]
+            sb, se = result.spool_errors[("baseline", label)], result.spool_errors[("extended", label)]
             g = config.gains
             shown = label if label in strategies else f"{label} (kp {g.kp:.3g}, ki {g.ki:.4g}, kd {g.kd:.2g})"
             row = (f"| {name} | {', '.join(result.effects_added) or 'none'} | {', '.join(result.refused) or '-'} | "
                    f"{shown} | {b.rms_um:.3f} | {e.rms_um:.3f} | {b.peak_um:.3f} ({b.peak_pct:.2f} %) | "
-                   f"{e.peak_um:.3f} ({e.peak_pct:.2f} %) | {e.rms_um / b.rms_um:.2f} |")
+                   f"{e.peak_um:.3f} ({e.peak_pct:.2f} %) | {e.rms_um / b.rms_um:.2f} | {e.peak_um / b.peak_um:.2f} | "
+                   f"{sb.rms_um:.3f} -> {se.rms_um:.3f} | {sb.peak_um:.3f} -> {se.peak_um:.3f} | "
+                   f"{se.peak_um / sb.peak_um:.2f} |")
             print(row, flush=True)
             lines.append(row)
         for effect, why in result.refused.items():

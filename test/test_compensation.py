@@ -221,3 +221,8 @@ def test_identify_compensate_track_halves_the_ol_hc_error_on_a_saturating_valve(
     assert e[("extended", "OL HC")].rms_um <= 0.5 * e[("baseline", "OL HC")].rms_um, e
     assert e[("extended", "OL HC")].peak_pct < 1.0, e
     assert e[("extended", "PID HC 1")].rms_um <= 1.05 * e[("baseline", "PID HC 1")].rms_um, e
+    # the same runs on the spool's true position: beneath the LVDT noise, OL HC's peak is halved as well
+    s = result.spool_errors
+    assert s[("extended", "OL HC")].peak_um <= 0.5 * s[("baseline", "OL HC")].peak_um, s
+    for key in e:   # the sensor adds its noise, it takes none away
+        assert s[key].rms_um < e[key].rms_um and s[key].rms_um > e[key].rms_um - 0.05, (key, s[key], e[key])

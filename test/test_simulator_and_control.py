@@ -352,6 +352,24 @@ def test_sensor_delay_shifts_the_measurement_exactly_and_step_equals_batch():
     assert np.array_equal(stepped, mixed)
 
 
+def test_the_spool_position_is_the_measurement_without_the_sensor():
+    """``spool_position_m`` after each sample (``step`` and ``run``) is what a noise-free, undelayed sensor
+    reads from the same valve; the measured position differs from it by the LVDT noise."""
+    v = 5.0 + 3.0 * np.sin(np.arange(3000) * 0.01)
+    clean = SimulatedValve(ValveSimConfig(sensor=SensorParams(noise_enabled=False, quantisation_enabled=False)))
+    truth = clean.run(v)
+    valve = SimulatedValve(ValveSimConfig(sensor=SensorParams(delay_samples=3)))
+    spool, measured = [], []
+    for x in v[:2000]:
+        measured.append(valve.step(x))
+        spool.append(valve.spool_position_m)
+    np.testing.assert_allclose(spool, truth[:2000], rtol=0, atol=1e-15)
+    valve.run(v[2000:])
+    assert valve.spool_position_m == pytest.approx(truth[-1], abs=1e-15)
+    noise_um = (np.asarray(measured[3:]) - truth[:1997]) * 1e6
+    assert 0.04 < np.std(noise_um) < 0.06   # the default LVDT noise, 0.05 um RMS
+
+
 def _regridded(model: GPIM) -> GPIM:
     """The same model on a grid twice as fine (zero weight at the new midpoints): identical output."""
     r = model.thresholds

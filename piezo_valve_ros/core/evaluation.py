@@ -25,7 +25,7 @@ from .valve_model import PAPER_SECTION, unity_dc_poles
 if TYPE_CHECKING:
     from .tuning import LoopMargins, StepScore, TuningResult
 
-__all__ = ["SIMULATED_EFFECTS", "SETTLE_S", "simulated_analysis", "tracking_test", "CompensationResult",
+__all__ = ["SIMULATED_EFFECTS", "SETTLE_S", "simulated_analysis", "Tracking", "tracking_test", "CompensationResult",
            "compare_compensations", "TuningComparison", "compare_tuning"]
 
 SETTLE_S = 2.0   # the first seconds of a tracking run are left out of its error (the start from the centre)
@@ -58,19 +58,44 @@ def simulated_analysis(sim_config: ValveSimConfig, training_s: float = 30.0, log
     return analyse(train, validate, log=log)
 
 
+@dataclass(frozen=True)
+class Tracking:
+    """One tracking run's error [um]: of the measured position (what a rig sees: LVDT noise and quantisation
+    included) and of the spool's true position (the simulator's: the tracking beneath the noise floor)."""
+
+    measured: TrackingError
+    spool: TrackingError
+
+
+class _SpoolLog:
+    """A simulated valve for ``run_closed_loop`` that also keeps the spool's true position after each sample."""
+
+    def __init__(self, valve: SimulatedValve):
+        self.valve, self.config, self.spool_m = valve, valve.config, []
+
+    def step(self, voltage_v: float) -> float:
+        y = self.valve.step(voltage_v)
+        self.spool_m.append(self.valve.spool_position_m)
+        return y
+
+
 def tracking_test(ctl_config: ControllerConfig, compensation: CompensationModel, sim_config: ValveSimConfig,
-                  reference_m: np.ndarray, settle_s: float = SETTLE_S) -> TrackingError:
+                  reference_m: np.ndarray, settle_s: float = SETTLE_S) -> Tracking:
     """Track ``reference_m`` (one value per period ``sim_config.dt``) on a fresh simulated valve (seed
     TRACKING_SEED); the error of each position against the demand it answers (the command of period k shows
-    at k + 1), after ``settle_s``, its peak as % of the demand's range."""
-    valve = SimulatedValve(replace(sim_config, seed=TRACKING_SEED))
+    at k + 1), after ``settle_s``, its peak as % of the demand's range; measured and true spool position."""
+    valve = _SpoolLog(SimulatedValve(replace(sim_config, seed=TRACKING_SEED)))
     controller = ValveController(replace(ctl_config, dt=sim_config.dt), compensation)
     controller.reset(sim_config.initial_voltage_v, float(reference_m[0]))
     rec = run_closed_loop(valve, controller, reference_m)
     y = responses(valve, rec)
+    n = rec.command_v.size
+    spool = np.asarray(valve.spool_m)
+    spool = np.append(spool[1:n], spool[-1])   # as ``responses``: y_1 .. y_{n-1}, then the extra sample
     k = int(round(settle_s / sim_config.dt))
     span_um = float(np.ptp(reference_m)) * 1e6
-    return tracking_error(y[k:] * 1e6, reference_m[k:] * 1e6, span_um)
+    ref_um = reference_m[k:] * 1e6
+    return Tracking(tracking_error(y[k:] * 1e6, ref_um, span_um), tracking_error(spool[k:] * 1e6, ref_um, span_um))
 
 
 @dataclass(frozen=True)
@@ -78,6 +103,7 @@ class CompensationResult:
     effects_added: list[str]
     refused: dict[str, str]
     errors: dict[tuple[str, str], TrackingError]   # (model "baseline"/"extended", strategy label) -> error
+    spool_errors: dict[tuple[str, str], TrackingError]   # the same runs, the spool's true position's error
     strategies: dict[str, ControllerConfig]         # strategy label -> the settings it ran with (tuned ones too)
 
 
@@ -100,9 +126,11 @@ def compare_compensations(sim_config: ValveSimConfig, strategies: dict[str, Cont
             gains = tune(strategy, extended.controller_model, sim_config.dt, log=log).gains
             strategies[f"{strategy.upper().replace('_', ' ')} tuned"] = ControllerConfig(strategy=strategy, gains=gains)
     reference = validation_reference_m(sim_config.dt, validation_s, amplitude_um)
-    errors = {(name, label): tracking_test(config, model, sim_config, reference)
-              for name, model in models.items() for label, config in strategies.items()}
-    return CompensationResult(list(analysis.report["effects_added"]), dict(extended.refused), errors, strategies)
+    runs = {(name, label): tracking_test(config, model, sim_config, reference)
+            for name, model in models.items() for label, config in strategies.items()}
+    return CompensationResult(list(analysis.report["effects_added"]), dict(extended.refused),
+                              {key: run.measured for key, run in runs.items()},
+                              {key: run.spool for key, run in runs.items()}, strategies)
 
 
 @dataclass(frozen=True)

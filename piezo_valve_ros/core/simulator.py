@@ -183,6 +183,7 @@ class SimulatedValve:
             raise ValueError(f"sensor delay_samples must be >= 0, got {d}")
         self._delay_line = np.full(d, self._static(y0))  # the spool's last d positions, oldest first
         self._delay_pos = 0
+        self._spool_um = self._static(y0)
 
     def _static(self, y_um: float) -> float:
         s = self.config.saturation
@@ -222,6 +223,7 @@ class SimulatedValve:
             y = self._gv.step(y)
         t = self.time_s
         y = self._drift_scalar(y, t)
+        self._spool_um = y
         if self._delay_line.size:
             line, k = self._delay_line, self._delay_pos
             y, line[k] = float(line[k]), y
@@ -290,6 +292,7 @@ class SimulatedValve:
             d = c.drift
             k = 1.0 - np.exp(-t / d.time_constant_s)
             y = y * (1.0 + d.gain_change * k) + d.offset_um * k
+        self._spool_um = float(y[-1])
         if self._delay_line.size:
             line = np.roll(self._delay_line, -self._delay_pos)  # oldest first
             both = np.concatenate((line, y))
@@ -342,6 +345,12 @@ class SimulatedValve:
         return out
 
     # ------------------------------------------------------------------ helpers
+    @property
+    def spool_position_m(self) -> float:
+        """The spool's true position [m] after the last sample: what the sensor reads before its delay,
+        noise and quantisation (a simulator's privilege, for judging tracking beneath the noise floor)."""
+        return self._spool_um * 1e-6
+
     def position_um(self) -> float:
         """Noise-free present hysteresis output [um] (for diagnostics)."""
         return self._gpim.model.output_from_state(self._gpim.state)
