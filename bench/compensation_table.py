@@ -54,6 +54,11 @@ def main(argv=None) -> int:
                    f"{se.peak_um / sb.peak_um:.2f} |")
             print(row, flush=True)
             lines.append(row)
+        f = result.model_floor
+        print(f"    OL HC extended on its own model (the feedforward's floor): RMS {f.rms_um:.3f} um, peak "
+              f"{f.peak_um:.3f} um", flush=True)
+        lines.append(f"| {name} | | | OL HC extended on its own model (no noise, no missing effect) | | {f.rms_um:.3f} | "
+                     f"| {f.peak_um:.3f} ({f.peak_pct:.2f} %) | | | | | |")
         for effect, why in result.refused.items():
             print(f"    {name}: not compensated: {why}")
         print(f"    ({time.perf_counter() - t0:.0f} s)", flush=True)

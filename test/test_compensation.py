@@ -224,5 +224,8 @@ def test_identify_compensate_track_halves_the_ol_hc_error_on_a_saturating_valve(
     # the same runs on the spool's true position: beneath the LVDT noise, OL HC's peak is halved as well
     s = result.spool_errors
     assert s[("extended", "OL HC")].peak_um <= 0.5 * s[("baseline", "OL HC")].peak_um, s
+    # on a valve that is exactly its model, OL HC leaves only what the feedforward's design does: less
+    floor = result.model_floor
+    assert 0 < floor.rms_um < s[("extended", "OL HC")].rms_um, (floor, s)
     for key in e:   # the sensor adds its noise, it takes none away
         assert s[key].rms_um < e[key].rms_um and s[key].rms_um > e[key].rms_um - 0.05, (key, s[key], e[key])

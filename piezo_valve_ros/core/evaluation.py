@@ -19,13 +19,14 @@ from .metrics import TrackingError, tracking_error
 from .records import Record
 from .signals import rig_training_voltage, validation_reference_m, validation_voltage
 from .simulator import CreepParams, RateDependenceParams, SaturationParams, SimulatedValve, ValveSimConfig
-from .strategies import ControllerConfig, ValveController
+from .strategies import ControllerConfig, PIDGains, ValveController
 from .valve_model import PAPER_SECTION, unity_dc_poles
 
 if TYPE_CHECKING:
     from .tuning import LoopMargins, StepScore, TuningResult
 
-__all__ = ["SIMULATED_EFFECTS", "SETTLE_S", "simulated_analysis", "Tracking", "tracking_test", "CompensationResult",
+__all__ = ["SIMULATED_EFFECTS", "SETTLE_S", "simulated_analysis", "Tracking", "tracking_test", "model_tracking_test",
+           "CompensationResult",
            "compare_compensations", "TuningComparison", "compare_tuning"]
 
 SETTLE_S = 2.0   # the first seconds of a tracking run are left out of its error (the start from the centre)
@@ -98,6 +99,22 @@ def tracking_test(ctl_config: ControllerConfig, compensation: CompensationModel,
     return Tracking(tracking_error(y[k:] * 1e6, ref_um, span_um), tracking_error(spool[k:] * 1e6, ref_um, span_um))
 
 
+def model_tracking_test(compensation: CompensationModel, sim_config: ValveSimConfig, reference_m: np.ndarray,
+                        settle_s: float = SETTLE_S) -> TrackingError:
+    """OL HC's error (as ``tracking_test``) when the valve is exactly the model it compensates
+    (``tuning.ModelValve``: no noise, no amplifier, no effect the model lacks): what the feedforward's own
+    design leaves, chiefly the lag of the dynamic feedforward's target F."""
+    from .tuning import ModelValve   # the tuner is heavy to import; the rest of this module is not
+    valve = ModelValve(compensation, sim_config.dt, sim_config.initial_voltage_v)
+    controller = ValveController(ControllerConfig(strategy="ol_hc", gains=PIDGains(0.0, 0.0), dt=sim_config.dt),
+                                 compensation)
+    controller.reset(sim_config.initial_voltage_v, float(reference_m[0]))
+    rec = run_closed_loop(valve, controller, reference_m, first_position_m=valve.step(sim_config.initial_voltage_v))
+    y = responses(valve, rec)
+    k = int(round(settle_s / sim_config.dt))
+    return tracking_error(y[k:] * 1e6, reference_m[k:] * 1e6, float(np.ptp(reference_m)) * 1e6)
+
+
 @dataclass(frozen=True)
 class CompensationResult:
     effects_added: list[str]
@@ -105,6 +122,7 @@ class CompensationResult:
     errors: dict[tuple[str, str], TrackingError]   # (model "baseline"/"extended", strategy label) -> error
     spool_errors: dict[tuple[str, str], TrackingError]   # the same runs, the spool's true position's error
     strategies: dict[str, ControllerConfig]         # strategy label -> the settings it ran with (tuned ones too)
+    model_floor: TrackingError   # OL HC with the extended compensation on its own model (model_tracking_test)
 
 
 def compare_compensations(sim_config: ValveSimConfig, strategies: dict[str, ControllerConfig],
@@ -130,7 +148,8 @@ def compare_compensations(sim_config: ValveSimConfig, strategies: dict[str, Cont
             for name, model in models.items() for label, config in strategies.items()}
     return CompensationResult(list(analysis.report["effects_added"]), dict(extended.refused),
                               {key: run.measured for key, run in runs.items()},
-                              {key: run.spool for key, run in runs.items()}, strategies)
+                              {key: run.spool for key, run in runs.items()}, strategies,
+                              model_tracking_test(models["extended"], sim_config, reference))
 
 
 @dataclass(frozen=True)
