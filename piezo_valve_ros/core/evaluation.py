@@ -80,6 +80,13 @@ class _SpoolLog:
         return y
 
 
+def _after_settling(position_m: np.ndarray, reference_m: np.ndarray, dt: float, settle_s: float) -> TrackingError:
+    """The error [um] of positions against the demands they answer after ``settle_s``, peak as % of the
+    demand's range."""
+    k = int(round(settle_s / dt))
+    return tracking_error(position_m[k:] * 1e6, reference_m[k:] * 1e6, float(np.ptp(reference_m)) * 1e6)
+
+
 def tracking_test(ctl_config: ControllerConfig, compensation: CompensationModel, sim_config: ValveSimConfig,
                   reference_m: np.ndarray, settle_s: float = SETTLE_S) -> Tracking:
     """Track ``reference_m`` (one value per period ``sim_config.dt``) on a fresh simulated valve (seed
@@ -93,10 +100,8 @@ def tracking_test(ctl_config: ControllerConfig, compensation: CompensationModel,
     n = rec.command_v.size
     spool = np.asarray(valve.spool_m)
     spool = np.append(spool[1:n], spool[-1])   # as ``responses``: y_1 .. y_{n-1}, then the extra sample
-    k = int(round(settle_s / sim_config.dt))
-    span_um = float(np.ptp(reference_m)) * 1e6
-    ref_um = reference_m[k:] * 1e6
-    return Tracking(tracking_error(y[k:] * 1e6, ref_um, span_um), tracking_error(spool[k:] * 1e6, ref_um, span_um))
+    return Tracking(_after_settling(y, reference_m, sim_config.dt, settle_s),
+                    _after_settling(spool, reference_m, sim_config.dt, settle_s))
 
 
 def model_tracking_test(compensation: CompensationModel, sim_config: ValveSimConfig, reference_m: np.ndarray,
@@ -110,9 +115,7 @@ def model_tracking_test(compensation: CompensationModel, sim_config: ValveSimCon
                                  compensation)
     controller.reset(sim_config.initial_voltage_v, float(reference_m[0]))
     rec = run_closed_loop(valve, controller, reference_m, first_position_m=valve.step(sim_config.initial_voltage_v))
-    y = responses(valve, rec)
-    k = int(round(settle_s / sim_config.dt))
-    return tracking_error(y[k:] * 1e6, reference_m[k:] * 1e6, float(np.ptp(reference_m)) * 1e6)
+    return _after_settling(responses(valve, rec), reference_m, sim_config.dt, settle_s)
 
 
 @dataclass(frozen=True)
