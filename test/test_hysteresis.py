@@ -322,3 +322,25 @@ def test_ol_hc_with_the_asymmetric_inverse_tracks_an_asymmetric_valve_exactly():
         rec = run_closed_loop(SimulatedValve(sim_config), ctl, ref)
         errors[label] = np.abs(rec.position_m[1:] - ref[:-1]).max() * 1e6
     assert errors["asymmetric"] < 1e-6 and errors["symmetric"] > 1.0, errors
+
+
+def test_the_turning_points_of_a_path_leave_the_operators_as_the_whole_path_does():
+    """``InitialState`` keeps only where an input path turned: the states after it are the same, for a
+    symmetric and an asymmetric GPIM."""
+    from piezo_valve_ros.core.hysteresis import GPIM
+    from piezo_valve_ros.core.valve_model import InitialState, turning_points
+    g = PAPER_GPIM.model()
+    asymmetric = GPIM(g.thresholds, g.weights, g.a0, g.a1, g.offset_um, 1.1, 0.3, 0.01)
+    rng = np.random.default_rng(3)
+    for _ in range(100):
+        v = np.round(np.cumsum(rng.standard_normal(rng.integers(2, 300))) * 0.3 + 5.0, 1)
+        path = turning_points(v)
+        assert len(path) <= v.size
+        for model in (g, asymmetric):
+            assert np.allclose(model.state_after(v), model.state_after(path), atol=1e-12)
+            assert np.allclose(InitialState("remanent", path[:-1]).states(model, v[-1:]), model.state_after(v),
+                               atol=1e-12)
+    with pytest.raises(ValueError):
+        InitialState("remanent")
+    with pytest.raises(ValueError):
+        InitialState("rest", (1.0,))

@@ -24,7 +24,7 @@ from scipy import linalg, optimize
 from .effects.base import Effect
 from .hysteresis import GPIM, GPIMParams
 from .records import Record, analysis_record
-from .valve_model import (PAPER_SECTION, Context, ValveModel, discretise_for, filter_at_rest, filter_rows_at_rest,
+from .valve_model import (PAPER_SECTION, REST, Context, InitialState, ValveModel, discretise_for, filter_at_rest, filter_rows_at_rest,
                           unity_dc_poles)
 
 __all__ = ["uniform_thresholds", "partial_sum_basis", "solve_bounded", "solve_gram", "fit_model", "fit_dynamics", "refit_poles_with_effects", "BASIS_RIDGE",
@@ -573,7 +573,7 @@ class PaperFit:
 
 
 def fit_paper_gpim(train: Record, sections: Sequence[tuple[float, float]] = (PAPER_SECTION,), n: int = 15,
-                   max_evaluations: int = 200, history: str = "rest") -> PaperFit:
+                   max_evaluations: int = 200, history: InitialState = REST) -> PaperFit:
     """The paper's GPIM (r_j = alpha j, p_j = rho exp(-tau r_j), n fixed) followed by G (``sections``), by NLS.
 
     The 5-parameter form has two exact invariances: (a0, alpha, rho, tau) -> (c a0, c alpha, rho/c, tau/c)
@@ -593,7 +593,7 @@ def fit_paper_gpim(train: Record, sections: Sequence[tuple[float, float]] = (PAP
         return GPIMParams(a0=1.0, a1=0.0, alpha=float(x[0]), rho=float(x[1]), tau=float(x[2]), n=n, offset_um=0.0).model()
 
     def hysteresis(g: GPIM) -> np.ndarray:
-        return g.run(v, g.cycled_state(v) if history == "cycled" else None)[0]
+        return g.run(v, history.states(g, v))[0]
 
     def residual(x):
         e = filter_at_rest(b, a, hysteresis(model_of(x))) - y

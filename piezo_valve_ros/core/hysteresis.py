@@ -373,7 +373,12 @@ class GPIM:
         lo, hi = float(np.min(v)), float(np.max(v))
         moves = np.diff(v)
         rising = bool(moves[np.flatnonzero(moves)[0]] > 0) if np.any(moves) else True
-        path = np.array([hi, lo, v[0]] if rising else [lo, hi, v[0]])
+        return self.state_after([hi, lo, v[0]] if rising else [lo, hi, v[0]])
+
+    def state_after(self, path_v) -> np.ndarray:
+        """Operator states after the input went through the voltages ``path_v`` [V] in order, from rest at the
+        first (straight lines between them: only the turning points matter)."""
+        path = np.asarray(path_v, dtype=float).reshape(-1)
         lower = self.ascending_envelope(path)
         upper = lower if self.symmetric else self.descending_envelope(path)
         states, _ = play_batch(lower, upper, self.thresholds, self.virgin_state(float(path[0])))

@@ -28,9 +28,67 @@ if TYPE_CHECKING:
 
 __all__ = ["ValveModel", "Context", "second_order", "unity_dc_poles", "sections", "discretise_for", "filter_at_rest",
            "filter_rows_at_rest", "describe_dynamics", "RATE_FILTERS_S", "RATE_SCALES_V_S", "PAPER_VALVE_MODEL",
-           "PAPER_SECTION", "INITIAL_STATES"]
+           "PAPER_SECTION", "INITIAL_STATES", "InitialState", "REST", "turning_points"]
 
-INITIAL_STATES = ("rest", "cycled")      # the operators' state before a record's first sample (ValveModel.history)
+INITIAL_STATES = ("rest", "cycled", "remanent")   # kinds of the operators' state before a record (InitialState)
+
+
+@dataclass(frozen=True)
+class InitialState:
+    """The operators' state at a record's first sample, as the input path that left it there.
+
+    kind:  "rest" (no history at the first voltage: a valve started from rest), "cycled" (the record's own
+           range swept before it: a record cut from running operation) or "remanent" (the input went from
+           rest at ``turning_points_v[0]`` through the others to the record's first voltage: a valve left
+           off its loop by an earlier excitation, e.g. the part of a record before its input wiped the
+           unknown state out, see ``residual``)
+    turning_points_v: [V], remanent only
+    """
+
+    kind: str = "rest"
+    turning_points_v: tuple[float, ...] = ()
+
+    def __post_init__(self):
+        if self.kind not in INITIAL_STATES:
+            raise ValueError(f"initial state must be one of {INITIAL_STATES}, got {self.kind!r}")
+        if (self.kind == "remanent") != bool(self.turning_points_v):
+            raise ValueError("turning points are given for a remanent initial state, and only for it")
+        object.__setattr__(self, "turning_points_v", tuple(float(x) for x in self.turning_points_v))
+
+    def states(self, gpim: GPIM, v: np.ndarray) -> np.ndarray:
+        """Operator states (n,) at ``v[0]`` for the record whose input is ``v`` [V]."""
+        if self.kind == "cycled":
+            return gpim.cycled_state(v)
+        if self.kind == "remanent":
+            return gpim.state_after(self.turning_points_v + (float(v[0]),))
+        return gpim.virgin_state(float(v[0]))
+
+    def describe(self) -> str:
+        if self.kind == "remanent":
+            tp = self.turning_points_v
+            shown = " V to ".join(f"{x:.4g}" for x in tp) if len(tp) <= 6 else (
+                f"{tp[0]:.4g} V through {len(tp) - 3} turning points to " + " V to ".join(f"{x:.4g}" for x in tp[-2:]))
+            return f"remanent (before the record the input went from rest at {shown} V, then to the first voltage)"
+        return {"rest": "rest (no history at the first voltage)",
+                "cycled": "cycled (the record's own range swept before it)"}[self.kind]
+
+
+REST = InitialState()
+
+
+def turning_points(v: np.ndarray) -> tuple[float, ...]:
+    """The first value and the turning points [V] of an input path, ending with its last value: what
+    ``GPIM.state_after`` needs to give the same states as for the whole path (the operators remember
+    only where the input turned)."""
+    v = np.asarray(v, float).reshape(-1)
+    keep = [float(v[0])]
+    moves = np.diff(v)
+    idx = np.flatnonzero(moves)
+    if idx.size:
+        sign = np.sign(moves[idx])
+        ends = np.concatenate((idx[np.flatnonzero(sign[1:] != sign[:-1])], [idx[-1]])) + 1  # each run's end
+        keep += [float(v[k]) for k in ends]
+    return tuple(keep)
 
 
 def second_order(omega_rad_s: float, zeta: float) -> ContinuousTF:
@@ -78,9 +136,7 @@ class ValveModel:
     effects:   the effects added, each with its coefficients (possibly none: its structure is nonlinear)
     t0:        record time [s] from which drift terms count
     dynamics_note, dynamics_free: where G's poles came from, and whether refits may move them
-    history:   the operators' state at a record's first sample: "rest" (no history at the first voltage, a
-               valve started from rest) or "cycled" (the record's own range swept before it, a record cut
-               from running operation); see ``GPIM.virgin_state`` and ``GPIM.cycled_state``
+    history:   the operators' state at a record's first sample (``InitialState``; a kind's name is accepted)
     """
 
     gpim: GPIM
@@ -91,11 +147,11 @@ class ValveModel:
     t0: float = 0.0
     dynamics_note: str = "paper"
     dynamics_free: bool = True   # the record determines G_v's poles (refits may move them)
-    history: str = "rest"
+    history: InitialState = REST
 
     def __post_init__(self):
-        if self.history not in INITIAL_STATES:
-            raise ValueError(f"history must be one of {INITIAL_STATES}, got {self.history!r}")
+        if isinstance(self.history, str):
+            object.__setattr__(self, "history", InitialState(self.history))
 
     @property
     def dynamics(self) -> ContinuousTF:
@@ -150,7 +206,8 @@ class ValveModel:
                "gpim": {"thresholds": [float(x) for x in g.thresholds], "weights": [float(x) for x in g.weights],
                         "a0": g.a0, "a1": g.a1, "offset_um": g.offset_um},
                "G_v": describe_dynamics(self.dynamics, self.dynamics_note),
-               "initial_state": self.history}
+               "initial_state": {"kind": self.history.kind, "turning_points_v": list(self.history.turning_points_v),
+                                 "description": self.history.describe()}}
         if not g.symmetric:
             out["gpim"].update({"b0": g.b0, "b1": g.b1})
         if any(self.rate_widening_v):
@@ -221,10 +278,7 @@ class Context:
 
     @property
     def initial_state(self) -> np.ndarray:
-        g = self.model.gpim
-        if self.model.history == "cycled":
-            return self._structural("initial_state", lambda: g.cycled_state(self.v))
-        return self._structural("initial_state", lambda: g.virgin_state(float(self.v[0])))
+        return self._structural("initial_state", lambda: self.model.history.states(self.model.gpim, self.v))
 
     @property
     def states(self) -> np.ndarray:
