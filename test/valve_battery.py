@@ -258,3 +258,19 @@ OUTSIDE: dict[str, Valve] = {
     "backlash, 1 um": replace(NOMINAL, after=backlash(0.5)),
     "mechanical hum, 7.3 Hz": replace(NOMINAL, after=hum(1.5, 7.3)),
 }
+
+
+# ---------------------------------------------------------------------------- records that start off the loop
+PRE_HISTORIES: dict[str, np.ndarray] = {
+    # driven before the record starts (not recorded), then held at the centre for 1 s at DT
+    "to 9 V, 1.5 V and back": np.concatenate((np.linspace(5.0, 9.0, 400), np.linspace(9.0, 1.5, 800),
+                                               np.linspace(1.5, 5.0, 400), np.full(2000, 5.0))),
+    "to 10 V and back": np.concatenate((np.linspace(5.0, 10.0, 400), np.linspace(10.0, 5.0, 400),
+                                        np.full(2000, 5.0))),
+}
+
+
+def rows_after(valve: Valve, pre_history: np.ndarray, voltage: np.ndarray, seed: int, dt: float = DT) -> np.ndarray:
+    """``samples`` rows of ``voltage`` for a valve that was driven through ``pre_history`` before the record
+    (the valve remembers it; the record does not show it)."""
+    return valve.rows(np.concatenate((pre_history, voltage)), seed, dt)[pre_history.size:]

@@ -3,8 +3,10 @@
 How it decides (every figure on data the fit has not seen: a validation record, or the last
 ``HELD_OUT_FRACTION`` of the training record, through which the model runs on with its memory):
 
-1. **Baseline capacity first.**  The baseline is the paper's model, GPIM followed by a second-order G_v
-   with unity DC gain.  G_v's poles are fitted to the record (the paper's G_v as start, and as fallback
+1. **Baseline capacity first.**  The operators' state at the record's first sample is rest, cycled, or,
+   when neither fits by ``WIPE_GAIN``, unknown: the fit then starts where the input has wiped it out
+   (``Split.after_wipe``) and the state before the record is only estimated, for the report.  The
+   baseline is the paper's model, GPIM followed by a second-order G_v with unity DC gain.  G_v's poles are fitted to the record (the paper's G_v as start, and as fallback
    when the record cannot determine them); the GPIM's number of thresholds is chosen on held-out data
    among ``CAPACITY_OPERATORS`` (and the grid of the paper's 5-parameter fit).  Only structure the best
    baseline cannot fit may be blamed on an effect.
@@ -48,9 +50,9 @@ from .effects import CATALOGUE, Effect
 from .fitting import (BASIS_RIDGE, FitCache, fit_model, fit_paper_gpim, refit_poles_with_effects, with_poles,
                       uniform_thresholds)
 from .hysteresis import GPIM
-from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, SUPPORTED_RATE_HZ, Record,
+from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, SUPPORTED_RATE_HZ, IdentificationError, Record,
                       analysis_record, noise_floor_um, quality, split_held_out)
-from .valve_model import INITIAL_STATES, ValveModel, describe_dynamics
+from .valve_model import REST, InitialState, ValveModel, describe_dynamics, turning_points
 
 __all__ = ["analyse", "Analysis", "Split", "GAIN_THRESHOLD", "MIN_EFFECT_NOISE_RATIO", "UNEXPLAINED_NOISE_RATIO",
            "CAPACITY_OPERATORS", "HELD_OUT_FRACTION", "MID_CAPACITY"]
@@ -59,6 +61,10 @@ CAPACITY_OPERATORS = (12, 18, 27, 40, 60)   # GPIM sizes tried for the baseline
 MID_CAPACITY = 27                           # the size G_v's poles are first fitted with
 CAPACITY_TOLERANCE = 0.02                   # a smaller GPIM within 2 % of the best held-out RMS is preferred
 INITIAL_STATE_TOLERANCE = 0.02              # "cycled" replaces "rest" only if it cuts the held-out RMS by more
+WIPE_MARGIN = 0.02                          # the input has wiped the unknown initial state once it has come this
+                                            # close (share of its span) to both extremes of the fit part
+WIPE_MAX_SHARE = 0.75                       # ... which must happen in the first three quarters of the fit part
+WIPE_GAIN = 0.1                             # fitting only after the wipe must cut the held-out RMS by >= 10 %
 GAIN_THRESHOLD = 0.2                        # an effect added last must cut the held-out RMS by >= 20 %
 MIN_EFFECT_NOISE_RATIO = 1.0                # ... and explain an RMS >= the sensor noise RMS
 UNEXPLAINED_NOISE_RATIO = 2.0               # structured residual RMS above this many noise RMS: unexplained
@@ -87,6 +93,33 @@ class Split:
     score_full: Record
     start_full: int
     held_out: bool
+    wiped_at_s: Optional[float] = None   # record time [s] the fit starts at when cut after the wipe (after_wipe)
+
+    def after_wipe(self) -> Optional[tuple["Split", InitialState]]:
+        """The split with the fit part cut where its input has wiped out the operators' unknown state before
+        the record (it has been within ``WIPE_MARGIN`` of both its extremes: every operator below that much
+        of half the span has forgotten it), with the initial state that the cut part's input path leaves
+        (``InitialState`` "remanent": exact but for the operators the record never fully moves).  None for a
+        validation record, or when the wipe comes later than ``WIPE_MAX_SHARE`` of the fit part."""
+        if not self.held_out:
+            return None
+        v = self.fit.voltage_v
+        lo, hi = float(np.min(v)), float(np.max(v))
+        margin = WIPE_MARGIN * (hi - lo)
+        w = max(int(np.argmax(v >= hi - margin)), int(np.argmax(v <= lo + margin)))
+        if w == 0 or w > WIPE_MAX_SHARE * len(self.fit):
+            return None
+        try:
+            self.fit_full.slice(w * (self.fit.block // max(self.fit_full.block, 1))).check("training part after the wipe")
+        except IdentificationError:
+            return None
+        block = self.fit.block // max(self.fit_full.block, 1)
+        w_full = w * block
+        history = InitialState("remanent", turning_points(self.fit_full.voltage_v[:w_full + 1]))
+        t0 = float(self.fit.time_s[w])
+        cut = Split(self.fit.slice(w), self.score.slice(w), self.start - w, t0, t0, self.fit_full.slice(w_full),
+                    self.score_full.slice(w_full), self.start_full - w_full, True, float(self.fit_full.time_s[w_full]))
+        return cut, history
 
     def held_out_error(self, model: ValveModel, full: bool = False) -> np.ndarray:
         rec, start = (self.score_full, self.start_full) if full else (self.score, self.start)
@@ -113,6 +146,28 @@ def _split(train: Record, validate: Optional[Record], max_rate_hz: float) -> Spl
     fit = analysis_record(train, max_rate_hz)
     score = analysis_record(validate, max_rate_hz)
     return Split(fit, score, 0, float(fit.time_s[0]), float(score.time_s[0]), train, validate, 0, False)
+
+
+REMANENT_GRID = 41   # turning points tried when estimating a remanent state before the record
+
+
+def _estimate_remanent(model: ValveModel, before: Record) -> dict:
+    """The state before the record, estimated on the rows ``before`` the wipe (which the fit did not use) with
+    ``model`` (its GPIM and G): rest, cycled, or remanent after one excursion of the input from rest at the
+    first voltage to a turning point within one span of it.  For the report only: nothing is fitted on it."""
+    v0, span = float(before.voltage_v[0]), float(np.ptp(before.voltage_v)) or 1.0
+
+    def rms(state: InitialState) -> float:
+        return _rms(before.position_um - replace(model, history=state, effects=(), coefs=()).predict(before))
+
+    options = {"rest": REST, "cycled": InitialState("cycled")}
+    options.update({f"remanent {e:.4g} V": InitialState("remanent", (v0, e))
+                    for e in np.linspace(v0 - span, v0 + span, REMANENT_GRID) if e != v0})
+    scores = {name: rms(state) for name, state in options.items()}
+    best = min(scores, key=scores.get)
+    return {"estimate": options[best].describe(), "rms_before_wipe_um": round(scores[best], 6),
+            "rms_before_wipe_from_rest_um": round(scores["rest"], 6),
+            "samples_before_wipe": len(before)}
 
 
 def _rms(e: np.ndarray) -> float:
@@ -258,8 +313,8 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     def held_out(model: ValveModel) -> Score:
         return Score.of(split.held_out_error(model))
 
-    # ---- 1. baseline: G_v's poles, then the GPIM's capacity on held-out data
-    def start_model(thresholds, like: Optional[ValveModel] = None, history: str = "rest"):
+    # ---- 1. baseline: the initial state, G_v's poles, then the GPIM's capacity on held-out data
+    def start_model(thresholds, like: Optional[ValveModel] = None, history: InitialState = REST):
         m = ValveModel(GPIM(thresholds, np.ones(thresholds.size)), t0=split.t0, history=history)
         if like is not None:
             m = replace(m, sections=like.sections, dynamics_note=like.dynamics_note, dynamics_free=like.dynamics_free,
@@ -267,18 +322,45 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
         return m
 
     cache = FitCache()  # operator states etc. shared by every fit on the fit record
-    # the operators' state at the first sample: a valve started from rest, or a record cut from running operation
-    mid = uniform_thresholds(fit.voltage_v, MID_CAPACITY)
-    def fitted_and_scored(start: ValveModel, poles: str) -> tuple[ValveModel, float]:
-        m = fit_model(fit, start, poles=poles, cache=cache)
-        return m, held_out(m).rms
 
-    fits = each([lambda h=h: fitted_and_scored(start_model(mid, history=h), "baseline") for h in INITIAL_STATES])
-    starts = {h: m for h, (m, _) in zip(INITIAL_STATES, fits)}
-    start_rms = {h: r for h, (_, r) in zip(INITIAL_STATES, fits)}
-    history = "cycled" if start_rms["cycled"] < (1 - INITIAL_STATE_TOLERANCE) * start_rms["rest"] else "rest"
-    first = starts[history]
-    log("initial state: " + ", ".join(f"{h} {r:.4f}" for h, r in start_rms.items()) + f" um held-out RMS; chosen {history}")
+    def fitted_and_scored(start: ValveModel, poles: str, on: Optional[Split] = None) -> tuple[ValveModel, float]:
+        on = split if on is None else on
+        m = fit_model(on.fit, start, poles=poles, cache=cache)
+        return m, Score.of(on.held_out_error(m)).rms
+
+    # the operators' state at the first sample: a valve started from rest, a record cut from running operation,
+    # or unknown (a valve left off its loop by an unrecorded excitation): then the fit starts where the
+    # record's own input has wiped it out
+    candidates = {"rest": REST, "cycled": InitialState("cycled")}
+    fits = each([lambda h=h: fitted_and_scored(start_model(uniform_thresholds(fit.voltage_v, MID_CAPACITY), history=h),
+                                               "baseline") for h in candidates.values()])
+    starts = {h: m for h, (m, _) in zip(candidates, fits)}
+    start_rms = {h: r for h, (_, r) in zip(candidates, fits)}
+    chosen_state = "cycled" if start_rms["cycled"] < (1 - INITIAL_STATE_TOLERANCE) * start_rms["rest"] else "rest"
+    split_all = split
+    wiped = split.after_wipe()
+    if wiped is not None:  # on the poles just fitted on the whole record: only the initial state differs
+        cut, state = wiped
+        starts["wiped"], start_rms["wiped"] = fitted_and_scored(
+            replace(start_model(uniform_thresholds(cut.fit.voltage_v, MID_CAPACITY), starts[chosen_state]),
+                    history=state, t0=cut.t0), "fixed", cut)
+        if start_rms["wiped"] < (1 - WIPE_GAIN) * start_rms[chosen_state]:
+            chosen_state, split = "wiped", cut
+            fit = split.fit
+    first = starts[chosen_state]
+    history = first.history
+    assumed = {"assumed": history.describe(), "fit_starts_at_s": split.wiped_at_s}
+    if chosen_state == "wiped":
+        before = split_all.fit.slice(0, len(split_all.fit) - len(fit))
+        assumed = {"assumed": f"unknown before the record: the fit and every decision use the record from "
+                              f"t = {split.wiped_at_s:.6g} s, where its input has come within "
+                              f"{100 * WIPE_MARGIN:g} % of both its extremes and so wiped the state out; the operators "
+                              f"start there as the record's input since its first sample left them",
+                   "fit_starts_at_s": split.wiped_at_s,
+                   "before_the_record": _estimate_remanent(first, before)}
+    log("initial state: " + ", ".join(f"{h} {r:.4f}" for h, r in start_rms.items()) + " um held-out RMS; chosen "
+        + (f"{chosen_state}: the state before the record is unknown, the fit starts at t = {split.wiped_at_s:.4g} s, "
+           f"where the input has wiped it out" if chosen_state == "wiped" else chosen_state))
     log(f"G_v: {first.dynamics_note}")
     paper_job = pool.submit(fit_paper_gpim, fit, first.sections, history=history)
     grids = {f"{n} operators": uniform_thresholds(fit.voltage_v, n) for n in CAPACITY_OPERATORS}
@@ -442,6 +524,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
         if n in verdicts and n in added:
             cut, explained, ok, without, with_ = verdicts[n]
             diagnosis.append({"effect": n, "added": True, "statistic": round(cut, 4), "threshold": GAIN_THRESHOLD,
+                              "margin": round(cut - GAIN_THRESHOLD, 4),
                               "held_out_gain": round(cut, 4), "explained_rms_um": round(explained, 5),
                               "evidence": _evidence(by_name[n], cut, explained, without, with_, noise, exact=True)})
         else:
@@ -449,6 +532,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
             cut, explained, _ = _support(with_s, without_s, noise)
             with_, without = with_s.rms, without_s.rms
             diagnosis.append({"effect": n, "added": False, "statistic": round(cut, 4), "threshold": GAIN_THRESHOLD,
+                              "margin": round(cut - GAIN_THRESHOLD, 4),
                               "held_out_gain": round(cut, 4), "explained_rms_um": round(explained, 5),
                               "evidence": _evidence(by_name[n], cut, explained, without, with_, noise, exact=False)})
     diagnosis.sort(key=lambda d: (not d["added"], added.index(d["effect"]) if d["added"] else names.index(d["effect"])))
@@ -468,7 +552,8 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
         "baseline_fits": {
             "capacity": [{"grid": c[0], "operators": c[1], "held_out_rms_um": round(c[2], 6)} for c in capacity],
             "chosen": label,
-            "initial_state": {"held_out_rms_um": {h: round(r, 6) for h, r in start_rms.items()}, "chosen": history},
+            "initial_state": {"held_out_rms_um": {h: round(r, 6) for h, r in start_rms.items()}, "chosen": chosen_state,
+                              **assumed},
             "linear": {**figured[id(baseline)], "operators": baseline.gpim.n, "invertible": True},
             "paper_nls": {**figured[id(paper.model)],
                           "params": {k: getattr(paper.params, k) for k in ("a0", "a1", "alpha", "rho", "tau", "n",
