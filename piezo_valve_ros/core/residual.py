@@ -4,8 +4,9 @@ How it decides (every figure on data the fit has not seen: a validation record, 
 ``HELD_OUT_FRACTION`` of the training record, through which the model runs on with its memory):
 
 1. **Baseline capacity first.**  The operators' state at the record's first sample is rest, cycled, or,
-   when neither fits by ``WIPE_GAIN``, unknown: the fit then starts where the input has wiped it out
-   (``Split.after_wipe``) and the state before the record is only estimated, for the report.  The
+   when neither fits by ``WIPE_GAIN`` and a state before the record explains the rows before the wipe
+   (``WIPE_STATE_GAIN``: a slow drift shows there too, and no state explains it), unknown: the fit then
+   starts where the input has wiped it out (``Split.after_wipe``).  The
    baseline is the paper's model, GPIM followed by a second-order G_v with unity DC gain.  G_v's poles are fitted to the record (the paper's G_v as start, and as fallback
    when the record cannot determine them); the GPIM's number of thresholds is chosen on held-out data
    among ``CAPACITY_OPERATORS`` (and the grid of the paper's 5-parameter fit).  Only structure the best
@@ -65,6 +66,7 @@ WIPE_MARGIN = 0.02                          # the input has wiped the unknown in
                                             # close (share of its span) to both extremes of the fit part
 WIPE_MAX_SHARE = 0.75                       # ... which must happen in the first three quarters of the fit part
 WIPE_GAIN = 0.1                             # fitting only after the wipe must cut the held-out RMS by >= 10 %
+WIPE_STATE_GAIN = 0.5                       # ... and a state before the record must halve the RMS before the wipe
 GAIN_THRESHOLD = 0.2                        # an effect added last must cut the held-out RMS by >= 20 %
 MIN_EFFECT_NOISE_RATIO = 1.0                # ... and explain an RMS >= the sensor noise RMS
 UNEXPLAINED_NOISE_RATIO = 2.0               # structured residual RMS above this many noise RMS: unexplained
@@ -337,7 +339,6 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     starts = {h: m for h, (m, _) in zip(candidates, fits)}
     start_rms = {h: r for h, (_, r) in zip(candidates, fits)}
     chosen_state = "cycled" if start_rms["cycled"] < (1 - INITIAL_STATE_TOLERANCE) * start_rms["rest"] else "rest"
-    split_all = split
     wiped = split.after_wipe()
     if wiped is not None:  # on the poles just fitted on the whole record: only the initial state differs
         cut, state = wiped
@@ -345,19 +346,27 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
             replace(start_model(uniform_thresholds(cut.fit.voltage_v, MID_CAPACITY), starts[chosen_state]),
                     history=state, t0=cut.t0), "fixed", cut)
         if start_rms["wiped"] < (1 - WIPE_GAIN) * start_rms[chosen_state]:
-            chosen_state, split = "wiped", cut
-            fit = split.fit
+            # a start off the loop, or a slow effect (drift, creep) that the earlier rows show most: only an
+            # initial state that explains the rows before the wipe makes it the former
+            before_wipe = _estimate_remanent(starts["wiped"], split.fit.slice(0, len(split.fit) - len(cut.fit)))
+            if before_wipe["rms_before_wipe_um"] <= (1 - WIPE_STATE_GAIN) * before_wipe["rms_before_wipe_from_rest_um"]:
+                chosen_state, split = "wiped", cut
+                fit = split.fit
+            else:
+                log(f"initial state: fitting from the wipe on cuts the held-out RMS {start_rms[chosen_state]:.4f} -> "
+                    f"{start_rms['wiped']:.4f} um, but no state before the record explains the rows before it "
+                    f"({before_wipe['rms_before_wipe_um']:.4f} um RMS against {before_wipe['rms_before_wipe_from_rest_um']:.4f} "
+                    f"from rest): a slow effect, not the start; the whole record is fitted")
     first = starts[chosen_state]
     history = first.history
     assumed = {"assumed": history.describe(), "fit_starts_at_s": split.wiped_at_s}
     if chosen_state == "wiped":
-        before = split_all.fit.slice(0, len(split_all.fit) - len(fit))
         assumed = {"assumed": f"unknown before the record: the fit and every decision use the record from "
                               f"t = {split.wiped_at_s:.6g} s, where its input has come within "
                               f"{100 * WIPE_MARGIN:g} % of both its extremes and so wiped the state out; the operators "
                               f"start there as the record's input since its first sample left them",
                    "fit_starts_at_s": split.wiped_at_s,
-                   "before_the_record": _estimate_remanent(first, before)}
+                   "before_the_record": before_wipe}
     log("initial state: " + ", ".join(f"{h} {r:.4f}" for h, r in start_rms.items()) + " um held-out RMS; chosen "
         + (f"{chosen_state}: the state before the record is unknown, the fit starts at t = {split.wiped_at_s:.4g} s, "
            f"where the input has wiped it out" if chosen_state == "wiped" else chosen_state))
@@ -577,7 +586,8 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
                        "min_effect_noise_ratio": MIN_EFFECT_NOISE_RATIO, "peak_tolerance": PEAK_TOLERANCE,
                        "unexplained_noise_ratio": UNEXPLAINED_NOISE_RATIO, "unexplained_pct": MIN_STRUCTURE_PCT,
                        "capacity_tolerance": CAPACITY_TOLERANCE,
-                       "initial_state_tolerance": INITIAL_STATE_TOLERANCE},
+                       "initial_state_tolerance": INITIAL_STATE_TOLERANCE, "wipe_gain": WIPE_GAIN,
+                       "wipe_state_gain": WIPE_STATE_GAIN, "wipe_margin": WIPE_MARGIN},
         "warnings": warnings,
         "final_model": final.describe(),
         "seconds": round(time.monotonic() - started, 3),
