@@ -45,7 +45,7 @@ def row(case, declared, report):
     state = start["chosen"] + (f" from {start['fit_starts_at_s']:.2f} s" if start.get("fit_starts_at_s") else "")
     margin = min(report["diagnosis"], key=lambda d: abs(d["margin"]))
     return (case, declared, ", ".join(report["effects_added"]) or "none", state,
-            "yes" if report["unexplained"] else "no",
+            "yes" if report["unexplained"] else "no", f"{report['residual_structure']['peak_ratio']:.1f}",
             f"{b['rms_um']:.3f} -> {f['rms_um']:.3f}", f"{b['peak_um']:.2f} -> {f['peak_um']:.2f}",
             f"{f['peak_pct']:.2f}", f"{margin['effect']} {100 * margin['margin']:+.1f}", f"{report['seconds']:.1f}")
 
@@ -73,7 +73,8 @@ def main():
     args = ap.parse_args()
     vb = load_battery()
     train_v, valid_v = vb.training_voltage(vb.DT), vb.validation_voltage_(vb.DT)
-    header = ("case", "declared", "named", "initial state", "unexplained", "held-out RMS [um]", "held-out peak [um]",
+    header = ("case", "declared", "named", "initial state", "unexplained", "peaks / noise's",
+              "held-out RMS [um]", "held-out peak [um]",
               "final peak [%]", "smallest margin [%]", "s")
     rows = []
     started = time.monotonic()
@@ -118,7 +119,8 @@ def main():
         with open(args.markdown, "w") as fh:
             fh.write("Output of `python bench/residual_battery.py --markdown docs/identification/battery.md` "
                      "(held-out figures at the record's rate; before = GPIM + refitted G_v; 'wiped from T s': the state before "
-                     "the record is unknown, and the fit starts where the input has wiped it out; smallest margin: "
+                     "the record is unknown, and the fit starts where the input has wiped it out; peaks / noise's: the 3rd largest 5 ms peak of the final held-out residual over what the "
+                     "sensor noise gives (unexplained above 2.5); smallest margin: "
                      "the effect whose held-out RMS cut lies nearest its threshold, cut minus threshold).\n\n")
             fh.write("\n".join(lines) + "\n")
             fh.write("".join(f"\n{n}\n" for n in notes))

@@ -27,8 +27,10 @@ How it decides (every figure on data the fit has not seen: a validation record, 
    held-out data than the baseline.
 4. **Unexplained.**  The final held-out residual's structured part (its RMS above the noise measured
    on the residual itself, at the analysis rate) is compared with the sensor noise at the record's rate:
-   above ``UNEXPLAINED_NOISE_RATIO`` times it, structure remains that no catalogue effect explains; the
-   report says its size, its strongest spectral line and which effect comes closest.
+   above ``UNEXPLAINED_NOISE_RATIO`` times it, structure remains that no catalogue effect explains.  So
+   does a residual whose peaks stand ``PEAK_NOISE_RATIO`` times above what the noise gives (``_peak_structure``:
+   backlash and dead zones leave little RMS but a peak at every reversal).  The report says its size, its
+   peaks, its strongest spectral line and which effect comes closest.
 
 Held-out error figures are at the record's own rate; fits and decisions use block means at up to
 ``ANALYSIS_RATE_HZ`` (extra keys give those figures too).  Nothing here imports ROS.
@@ -51,7 +53,7 @@ from .effects import CATALOGUE, Effect
 from .fitting import (BASIS_RIDGE, FitCache, fit_model, fit_paper_gpim, refit_poles_with_effects, with_poles,
                       uniform_thresholds)
 from .hysteresis import GPIM
-from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, SUPPORTED_RATE_HZ, IdentificationError, Record,
+from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, MIN_SAMPLES, SUPPORTED_RATE_HZ, IdentificationError, Record,
                       analysis_record, noise_floor_um, quality, split_held_out)
 from .valve_model import REST, InitialState, ValveModel, describe_dynamics, turning_points
 
@@ -70,6 +72,9 @@ WIPE_STATE_GAIN = 0.5                       # ... and a state before the record 
 GAIN_THRESHOLD = 0.2                        # an effect added last must cut the held-out RMS by >= 20 %
 MIN_EFFECT_NOISE_RATIO = 1.0                # ... and explain an RMS >= the sensor noise RMS
 UNEXPLAINED_NOISE_RATIO = 2.0               # structured residual RMS above this many noise RMS: unexplained
+PEAK_NOISE_RATIO = 2.5                      # held-out peaks above this many times the noise's: unexplained
+PEAK_BLOCK_S = 0.005                        # ... judged on the PEAK_RANK-th largest peak of blocks this long
+PEAK_RANK = 3
 PEAK_TOLERANCE = 1.1                        # an effect added last must not raise the held-out peak by > 10 %
 MIN_STRUCTURE_PCT = 0.01                    # ... and above this % of the range (noise-free records)
 REFIT_THREADS = min(4, os.cpu_count() or 1)  # independent refits run on this many threads (BLAS on one each)
@@ -97,6 +102,14 @@ class Split:
     held_out: bool
     wiped_at_s: Optional[float] = None   # record time [s] the fit starts at when cut after the wipe (after_wipe)
 
+    def wipe_index(self) -> int:
+        """Row of the fit record (analysis rate) from which its input has wiped out the operators' unknown
+        state before the record: it has come within ``WIPE_MARGIN`` of both its extremes."""
+        v = self.fit.voltage_v
+        lo, hi = float(np.min(v)), float(np.max(v))
+        margin = WIPE_MARGIN * (hi - lo)
+        return max(int(np.argmax(v >= hi - margin)), int(np.argmax(v <= lo + margin)))
+
     def after_wipe(self) -> Optional[tuple["Split", InitialState]]:
         """The split with the fit part cut where its input has wiped out the operators' unknown state before
         the record (it has been within ``WIPE_MARGIN`` of both its extremes: every operator below that much
@@ -105,10 +118,7 @@ class Split:
         validation record, or when the wipe comes later than ``WIPE_MAX_SHARE`` of the fit part."""
         if not self.held_out:
             return None
-        v = self.fit.voltage_v
-        lo, hi = float(np.min(v)), float(np.max(v))
-        margin = WIPE_MARGIN * (hi - lo)
-        w = max(int(np.argmax(v >= hi - margin)), int(np.argmax(v <= lo + margin)))
+        w = self.wipe_index()
         if w == 0 or w > WIPE_MAX_SHARE * len(self.fit):
             return None
         try:
@@ -150,26 +160,35 @@ def _split(train: Record, validate: Optional[Record], max_rate_hz: float) -> Spl
     return Split(fit, score, 0, float(fit.time_s[0]), float(score.time_s[0]), train, validate, 0, False)
 
 
-REMANENT_GRID = 41   # turning points tried when estimating a remanent state before the record
+REMANENT_GRID = 41   # voltages tried when estimating a remanent state before the record
 
 
-def _estimate_remanent(model: ValveModel, before: Record) -> dict:
-    """The state before the record, estimated on the rows ``before`` the wipe (which the fit did not use) with
-    ``model`` (its GPIM and G): rest, cycled, or remanent after one excursion of the input from rest at the
-    first voltage to a turning point within one span of it.  For the report only: nothing is fitted on it."""
-    v0, span = float(before.voltage_v[0]), float(np.ptp(before.voltage_v)) or 1.0
+def _estimate_state(model: ValveModel, rows: Record) -> tuple[InitialState, dict]:
+    """The state before a record, estimated on its first ``rows`` (before its input wiped it out) with
+    ``model``'s GPIM and G: rest, cycled, or remanent with one voltage e on the record's range and half a
+    span beyond: at rest at e and moved to the first voltage v0 (a valve that rested elsewhere, e.g. a
+    closed-loop record whose controller's first command left the rest voltage), or at rest at v0 and
+    back from an excursion to e (a valve left off its loop).  Returns (the best state, figures)."""
+    v0 = float(rows.voltage_v[0])
+    lo, hi = float(np.min(rows.voltage_v)), float(np.max(rows.voltage_v))
+    half = 0.5 * max(hi - lo, 1e-9)
+    grid = [float(e) for e in np.linspace(lo - half, hi + half, REMANENT_GRID) if e != v0]
+    options = {"rest": REST, "cycled": InitialState("cycled")}
+    options.update({f"rested at {e:.4g} V": InitialState("remanent", (e,)) for e in grid})
+    options.update({f"back from {e:.4g} V": InitialState("remanent", (v0, e)) for e in grid})
+    bare = replace(model, effects=(), coefs=())
 
     def rms(state: InitialState) -> float:
-        return _rms(before.position_um - replace(model, history=state, effects=(), coefs=()).predict(before))
+        return _rms(rows.position_um - replace(bare, history=state).predict(rows))
 
-    options = {"rest": REST, "cycled": InitialState("cycled")}
-    options.update({f"remanent {e:.4g} V": InitialState("remanent", (v0, e))
-                    for e in np.linspace(v0 - span, v0 + span, REMANENT_GRID) if e != v0})
     scores = {name: rms(state) for name, state in options.items()}
     best = min(scores, key=scores.get)
-    return {"estimate": options[best].describe(), "rms_before_wipe_um": round(scores[best], 6),
-            "rms_before_wipe_from_rest_um": round(scores["rest"], 6),
-            "samples_before_wipe": len(before)}
+    return options[best], {"estimate": options[best].describe(), "rms_before_wipe_um": round(scores[best], 6),
+                           "rms_before_wipe_from_rest_um": round(scores["rest"], 6), "samples_before_wipe": len(rows)}
+
+
+def _ordinal(k: int) -> str:
+    return {1: "1st", 2: "2nd", 3: "3rd"}.get(k, f"{k}th")
 
 
 def _rms(e: np.ndarray) -> float:
@@ -275,6 +294,25 @@ def _structure(e_score: np.ndarray, dt: float, noise_um: float, range_um: float)
             "pct_of_range": 100.0 * structured / range_um if range_um > 0 else 0.0}
 
 
+def _peak_structure(e_full: np.ndarray, dt: float, noise_um: float, range_um: float) -> dict:
+    """How far a held-out residual's peaks (record rate) stand above what the sensor noise alone gives.
+
+    The residual is cut into ``PEAK_BLOCK_S`` blocks; the ``PEAK_RANK``-th largest block peak (so a lone
+    outlier in the data cannot decide) is compared with the largest |noise| expected over the samples,
+    noise * sqrt(2 ln N).  Backlash and dead zones leave little RMS but peaks at every reversal or
+    crossing; a catalogue effect the model lacks raises them too."""
+    n = e_full.size
+    block = max(int(round(PEAK_BLOCK_S / dt)), 1)
+    m = n // block
+    if m < PEAK_RANK or not noise_um > 0:
+        return {"peak_um": 0.0, "expected_noise_peak_um": 0.0, "peak_ratio": 0.0, "peak_pct_of_range": 0.0}
+    peaks = np.abs(e_full[:m * block]).reshape(m, block).max(axis=1)
+    ranked = float(np.partition(peaks, m - PEAK_RANK)[m - PEAK_RANK])
+    expected = noise_um * math.sqrt(2.0 * math.log(n))
+    return {"peak_um": ranked, "expected_noise_peak_um": expected, "peak_ratio": ranked / expected,
+            "peak_pct_of_range": 100.0 * ranked / range_um if range_um > 0 else 0.0}
+
+
 def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_rate_hz: float = ANALYSIS_RATE_HZ,
             log: Callable[[str], None] = lambda s: None, threads: int = REFIT_THREADS) -> Analysis:
     """Fit, diagnose and extend; ``validate_full`` None holds out the last ``HELD_OUT_FRACTION`` of the record.
@@ -339,6 +377,17 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     starts = {h: m for h, (m, _) in zip(candidates, fits)}
     start_rms = {h: r for h, (_, r) in zip(candidates, fits)}
     chosen_state = "cycled" if start_rms["cycled"] < (1 - INITIAL_STATE_TOLERANCE) * start_rms["rest"] else "rest"
+    # a state estimated from the rows before the input wiped it (rested elsewhere, or left off the loop)
+    wipe = split.wipe_index()
+    estimated, estimate = _estimate_state(starts["rest"], fit.slice(0, max(wipe, MIN_SAMPLES)))
+    if estimated.kind == "remanent":
+        starts["estimated"], start_rms["estimated"] = fitted_and_scored(
+            replace(start_model(uniform_thresholds(fit.voltage_v, MID_CAPACITY), starts[chosen_state]),
+                    history=estimated), "fixed")
+        # as for the wipe below: a clear gain, and the state must explain the start (a slow effect cannot)
+        if (start_rms["estimated"] < (1 - WIPE_GAIN) * start_rms[chosen_state]
+                and estimate["rms_before_wipe_um"] <= (1 - WIPE_STATE_GAIN) * estimate["rms_before_wipe_from_rest_um"]):
+            chosen_state = "estimated"
     wiped = split.after_wipe()
     if wiped is not None:  # on the poles just fitted on the whole record: only the initial state differs
         cut, state = wiped
@@ -348,7 +397,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
         if start_rms["wiped"] < (1 - WIPE_GAIN) * start_rms[chosen_state]:
             # a start off the loop, or a slow effect (drift, creep) that the earlier rows show most: only an
             # initial state that explains the rows before the wipe makes it the former
-            before_wipe = _estimate_remanent(starts["wiped"], split.fit.slice(0, len(split.fit) - len(cut.fit)))
+            _, before_wipe = _estimate_state(starts["wiped"], split.fit.slice(0, len(split.fit) - len(cut.fit)))
             if before_wipe["rms_before_wipe_um"] <= (1 - WIPE_STATE_GAIN) * before_wipe["rms_before_wipe_from_rest_um"]:
                 chosen_state, split = "wiped", cut
                 fit = split.fit
@@ -360,6 +409,9 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     first = starts[chosen_state]
     history = first.history
     assumed = {"assumed": history.describe(), "fit_starts_at_s": split.wiped_at_s}
+    if chosen_state == "estimated":
+        assumed["assumed"] += ": estimated from the record's rows before its input wiped the state out"
+        assumed["before_the_record"] = estimate
     if chosen_state == "wiped":
         assumed = {"assumed": f"unknown before the record: the fit and every decision use the record from "
                               f"t = {split.wiped_at_s:.6g} s, where its input has come within "
@@ -505,11 +557,17 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     closest = {n: 1.0 - search.score(final_set | {n}).rms / max(search.score(final_set).rms, 1e-30)
                for n in names if n not in final_set}
     near = max(closest.items(), key=lambda kv: kv[1]) if closest else ("none", 0.0)
-    unexplained = (structure["ratio_to_noise"] > UNEXPLAINED_NOISE_RATIO
-                   and structure["pct_of_range"] > MIN_STRUCTURE_PCT)
+    peaks = _peak_structure(split.held_out_error(final, True), split.score_full.dt, noise, range_val)
+    structure.update(peaks)
+    by_rms = structure["ratio_to_noise"] > UNEXPLAINED_NOISE_RATIO and structure["pct_of_range"] > MIN_STRUCTURE_PCT
+    by_peak = peaks["peak_ratio"] > PEAK_NOISE_RATIO and peaks["peak_pct_of_range"] > MIN_STRUCTURE_PCT
+    unexplained = by_rms or by_peak
     seen = (f"held-out residual RMS {structure['rms_um']:.4f} um at {split.score.rate_hz:.0f} Hz, of which "
             f"{structure['structured_rms_um']:.4f} um structured ({structure['ratio_to_noise']:.1f}x the sensor noise "
-            f"{noise:.4f} um, threshold {UNEXPLAINED_NOISE_RATIO:g}x), lag-1 autocorrelation {structure['lag1']:.2f}; "
+            f"{noise:.4f} um, threshold {UNEXPLAINED_NOISE_RATIO:g}x); peaks: the {_ordinal(PEAK_RANK)} largest "
+            f"{1e3 * PEAK_BLOCK_S:g} ms peak {peaks['peak_um']:.3f} um at {split.score_full.rate_hz:.0f} Hz is "
+            f"{peaks['peak_ratio']:.1f}x what the noise gives ({peaks['expected_noise_peak_um']:.3f} um, threshold "
+            f"{PEAK_NOISE_RATIO:g}x); lag-1 autocorrelation {structure['lag1']:.2f}; "
             f"strongest spectral line {structure['line_hz']:.3g} Hz ({100 * structure['line_share']:.0f} % of residual "
             f"power); closest catalogue effect: {near[0]} (would cut the held-out RMS by {100 * max(near[1], 0):.1f} %)")
     log(("structure remains: " if unexplained else "residual: ") + seen)
@@ -585,6 +643,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
         "thresholds": {"held_out_gain": GAIN_THRESHOLD, "signature": GAIN_THRESHOLD,
                        "min_effect_noise_ratio": MIN_EFFECT_NOISE_RATIO, "peak_tolerance": PEAK_TOLERANCE,
                        "unexplained_noise_ratio": UNEXPLAINED_NOISE_RATIO, "unexplained_pct": MIN_STRUCTURE_PCT,
+                       "unexplained_peak_ratio": PEAK_NOISE_RATIO, "peak_block_s": PEAK_BLOCK_S, "peak_rank": PEAK_RANK,
                        "capacity_tolerance": CAPACITY_TOLERANCE,
                        "initial_state_tolerance": INITIAL_STATE_TOLERANCE, "wipe_gain": WIPE_GAIN,
                        "wipe_state_gain": WIPE_STATE_GAIN, "wipe_margin": WIPE_MARGIN},
