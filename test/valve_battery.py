@@ -274,3 +274,33 @@ def rows_after(valve: Valve, pre_history: np.ndarray, voltage: np.ndarray, seed:
     """``samples`` rows of ``voltage`` for a valve that was driven through ``pre_history`` before the record
     (the valve remembers it; the record does not show it)."""
     return valve.rows(np.concatenate((pre_history, voltage)), seed, dt)[pre_history.size:]
+
+
+# ---------------------------------------------------------------------------- closed-loop operating records
+def staircase_and_sines_um(seed: int, dt: float, seconds: float = 60.0) -> np.ndarray:
+    """What a valve under feedback follows in operation: 2 s levels for half the time, then half-size levels
+    with two slow sines on top [um]."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(round(seconds / dt))) * dt
+    stair = np.repeat(rng.uniform(-55.0, 55.0, int(seconds / 2.0) + 1), int(round(2.0 / dt)))[:t.size]
+    half = t >= 0.5 * seconds
+    sines = 25.0 * np.sin(2 * np.pi * 0.13 * t) + 15.0 * np.sin(2 * np.pi * 0.31 * t + 1.0) * (t >= 0.67 * seconds)
+    return np.clip(np.where(half, 0.5 * stair + sines, stair), -65.0, 65.0)
+
+
+def closed_loop_rows(sim_config, strategy: str, gains, seed: int) -> np.ndarray:
+    """``samples`` rows of the package's simulated valve (``sim_config``, seeded) under the package's
+    controller (``strategy``, ``gains``, the paper's model) following ``staircase_and_sines_um``: the
+    voltage is the controller's output, not a designed signal."""
+    from dataclasses import replace as _replace
+    from piezo_valve_ros.core.compensation import CompensationModel
+    from piezo_valve_ros.core.experiments import run_closed_loop
+    from piezo_valve_ros.core.simulator import SimulatedValve
+    from piezo_valve_ros.core.strategies import ControllerConfig, ValveController
+    dt = sim_config.dt
+    valve = SimulatedValve(_replace(sim_config, seed=seed))
+    controller = ValveController(ControllerConfig(strategy=strategy, gains=gains, dt=dt), CompensationModel())
+    controller.reset(5.0)
+    rec = run_closed_loop(valve, controller, staircase_and_sines_um(seed, dt) * 1e-6)
+    # sample k: the command applied during it and the position measured at its end
+    return np.column_stack((np.arange(rec.command_v.size - 1) * dt, rec.command_v[:-1], rec.position_m[1:]))
