@@ -5,7 +5,8 @@
 Every valve of ``test/valve_battery.py`` (effects written unlike the catalogue's regressors, all with G_v
 and sensor noise; three with structure outside the catalogue), analysed twice: with a separate validation
 record, and with the last 30 % of the training record held out; the nominal valve after unrecorded
-pre-histories (it starts off its loop).  Then the measured piezo record of ``test/data/smart_hysteresis``:
+pre-histories (it starts off its loop); the package's simulated valve, nominal and with creep, in closed
+loop under PI and PID HC following levels and slow sines (the voltage is the controller's output).  Then the measured piezo record of ``test/data/smart_hysteresis``:
 the 1.5 s window, the whole record at 1 kHz (5-sample means, in the tests) and, where ``../shared`` has it,
 at its own 5 kHz, beside the floor a periodic predictor sets there (the training cycles' mean at each
 phase, smoothed over 3 ms: what any model that repeats its training cycles can reach).  Prints, per case:
@@ -91,6 +92,19 @@ def main():
         report = analyse(Record.from_rows(vb.rows_after(vb.NOMINAL, pre, train_v, 11))).report
         rows.append(row(f"nominal, driven {name} before the record (held-out last 30 %)", "none", report))
         print(" | ".join(rows[-1]), flush=True)
+    from dataclasses import replace
+    from piezo_valve_ros.core.simulator import CreepParams, SensorParams, ValveSimConfig
+    from piezo_valve_ros.core.strategies import PIDGains
+    plain = replace(ValveSimConfig(dt=1e-3).ideal(), dynamics_enabled=True, sensor=SensorParams())
+    creep = replace(plain, creep=CreepParams(True, (0.03, 0.03, 0.03), (0.1, 1.0, 10.0)))
+    for valve_name, config, declared in (("nominal", plain, "none"), ("creep", creep, "creep")):
+        for strategy, gains in (("pid", PIDGains(0.5992, 237.2552, 0.0)), ("pid_hc", PIDGains(0.4823, 213.8982, 0.0))):
+            train = Record.from_rows(vb.closed_loop_rows(config, strategy, gains, 1))
+            for mode, validate in (("validation record", Record.from_rows(vb.closed_loop_rows(config, strategy, gains, 2))),
+                                   ("held-out last 30 %", None)):
+                report = analyse(train, validate).report
+                rows.append(row(f"closed loop under {strategy}, {valve_name} valve ({mode})", declared, report))
+                print(" | ".join(rows[-1]), flush=True)
     data = os.path.join(TEST_DIR, "data", "smart_hysteresis")
     for label, path in (("measured piezo record, 1.5 s window, 1 kHz", "hysteresis_v_150_1hz_1khz.csv"),
                         ("measured piezo record, whole, 1 kHz means", "hysteresis_v_150_1hz_1khz_full.csv")):

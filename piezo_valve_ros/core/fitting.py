@@ -115,6 +115,8 @@ class FitCache:
 
         def make():
             rows = filter_rows_at_rest(*ctx.filter, np.ascontiguousarray((ctx.states - ctx.states[0]).T))
+            if ctx.rest_states is not None:   # G at rest before the first move (Context.through_dynamics)
+                rows += np.multiply.outer(ctx.rest_states - ctx.states[0], ctx.free_response)
             return rows, rows @ rows.T, rows @ ctx.record.position_um
         return self._get(self._basis, key, make)
 

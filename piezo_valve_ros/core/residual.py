@@ -46,7 +46,7 @@ from dataclasses import dataclass, field, replace
 from typing import Callable, Optional
 
 import numpy as np
-from scipy import linalg
+from scipy import linalg, optimize
 from threadpoolctl import threadpool_limits
 
 from .effects import CATALOGUE, Effect
@@ -101,11 +101,16 @@ class Split:
     start_full: int
     held_out: bool
     wiped_at_s: Optional[float] = None   # record time [s] the fit starts at when cut after the wipe (after_wipe)
+    score_history: Optional[InitialState] = None   # a validation record's own start, where estimated
 
-    def wipe_index(self) -> int:
-        """Row of the fit record (analysis rate) from which its input has wiped out the operators' unknown
-        state before the record: it has come within ``WIPE_MARGIN`` of both its extremes."""
-        v = self.fit.voltage_v
+    def scored(self, model: ValveModel) -> ValveModel:
+        """``model`` as it runs over the score record: from the validation record's own start, where known."""
+        return model if self.score_history is None else replace(model, history=self.score_history)
+
+    def wipe_index(self, record: Optional[Record] = None) -> int:
+        """Row of the fit record (or ``record``; analysis rate) from which its input has wiped out the
+        operators' unknown state before it: it has come within ``WIPE_MARGIN`` of both its extremes."""
+        v = (self.fit if record is None else record).voltage_v
         lo, hi = float(np.min(v)), float(np.max(v))
         margin = WIPE_MARGIN * (hi - lo)
         return max(int(np.argmax(v >= hi - margin)), int(np.argmax(v <= lo + margin)))
@@ -135,7 +140,7 @@ class Split:
 
     def held_out_error(self, model: ValveModel, full: bool = False) -> np.ndarray:
         rec, start = (self.score_full, self.start_full) if full else (self.score, self.start)
-        return rec.position_um[start:] - model.predict(rec, self.score_t0)[start:]
+        return rec.position_um[start:] - self.scored(model).predict(rec, self.score_t0)[start:]
 
     def fit_error(self, model: ValveModel, full: bool = False) -> np.ndarray:
         rec = self.fit_full if full else self.fit
@@ -160,29 +165,49 @@ def _split(train: Record, validate: Optional[Record], max_rate_hz: float) -> Spl
     return Split(fit, score, 0, float(fit.time_s[0]), float(score.time_s[0]), train, validate, 0, False)
 
 
-REMANENT_GRID = 41   # voltages tried when estimating a remanent state before the record
+REMANENT_GRID = 201  # voltages tried when estimating a remanent state before the record ...
+ESTIMATE_SHORT_S = 0.1   # ... on its first rows this long; the best ESTIMATE_REFINED of each kind refined
+ESTIMATE_REFINED = 3
+ESTIMATE_WINDOW_S = 3.0  # ... on the rows before the wipe, at most this long (the start shows first)
+ESTIMATE_ROUNDS = 3   # estimate the start, fit, estimate again: at most this many fits
+EXCURSION_GAIN = 0.1  # "back from an excursion" replaces "rested at a voltage" only if 10 % closer to the data
 
 
-def _estimate_state(model: ValveModel, rows: Record) -> tuple[InitialState, dict]:
+def _estimate_state(model: ValveModel, rows: Record, whole: Record) -> tuple[InitialState, dict]:
     """The state before a record, estimated on its first ``rows`` (before its input wiped it out) with
-    ``model``'s GPIM and G: rest, cycled, or remanent with one voltage e on the record's range and half a
-    span beyond: at rest at e and moved to the first voltage v0 (a valve that rested elsewhere, e.g. a
+    ``model``'s GPIM and G: rest, cycled, or remanent with one voltage e on the ``whole`` record's range and
+    half a span beyond: at rest at e and moved to the first voltage v0 (a valve that rested elsewhere, e.g. a
     closed-loop record whose controller's first command left the rest voltage), or at rest at v0 and
     back from an excursion to e (a valve left off its loop).  Returns (the best state, figures)."""
     v0 = float(rows.voltage_v[0])
-    lo, hi = float(np.min(rows.voltage_v)), float(np.max(rows.voltage_v))
+    lo, hi = float(np.min(whole.voltage_v)), float(np.max(whole.voltage_v))
     half = 0.5 * max(hi - lo, 1e-9)
     grid = [float(e) for e in np.linspace(lo - half, hi + half, REMANENT_GRID) if e != v0]
     options = {"rest": REST, "cycled": InitialState("cycled")}
-    options.update({f"rested at {e:.4g} V": InitialState("remanent", (e,)) for e in grid})
-    options.update({f"back from {e:.4g} V": InitialState("remanent", (v0, e)) for e in grid})
     bare = replace(model, effects=(), coefs=())
+    # the misfit is sharp in the voltage (where the valve rested sets the first samples through G): a fine
+    # grid on the first ESTIMATE_SHORT_S, then each family's best few refined on all the rows
+    short = rows.slice(0, min(len(rows), max(int(ESTIMATE_SHORT_S / rows.dt), 20)))
 
-    def rms(state: InitialState) -> float:
-        return _rms(rows.position_um - replace(bare, history=state).predict(rows))
+    def rms(state: InitialState, on: Record = rows) -> float:
+        return _rms(on.position_um - replace(bare, history=state).predict(on))
 
-    scores = {name: rms(state) for name, state in options.items()}
-    best = min(scores, key=scores.get)
+    scores = {name: rms(state) for name, state in options.items() if not name.startswith(("rested", "back"))}
+    step = (grid[1] - grid[0]) if len(grid) > 1 else half
+    for family, make in (("rested at", lambda e: InitialState("remanent", (e,))),
+                         ("back from", lambda e: InitialState("remanent", (v0, e)))):
+        quick = sorted(grid, key=lambda e: rms(make(e), short))[:ESTIMATE_REFINED]
+        for e in quick:
+            found = optimize.minimize_scalar(lambda x: rms(make(x)), bounds=(e - step, e + step), method="bounded",
+                                             options={"xatol": 1e-4 * half})
+            x = float(found.x) if found.x != v0 else e
+            name = f"{family} {x:.6g} V"
+            options[name], scores[name] = make(x), rms(make(x))
+    # the simpler story first: rested somewhere (G then also starts from rest there) unless an excursion
+    # explains the first rows clearly better
+    simple = min((n for n in scores if not n.startswith("back from")), key=scores.get)
+    excursion = min((n for n in scores if n.startswith("back from")), key=scores.get, default=simple)
+    best = excursion if scores[excursion] < (1 - EXCURSION_GAIN) * scores[simple] else simple
     return options[best], {"estimate": options[best].describe(), "rms_before_wipe_um": round(scores[best], 6),
                            "rms_before_wipe_from_rest_um": round(scores["rest"], 6), "samples_before_wipe": len(rows)}
 
@@ -207,14 +232,19 @@ class _SubsetSearch:
                  each: Callable[[list[Callable[[], object]]], list] = lambda jobs: [job() for job in jobs]):
         self.effects = effects
         ctx_f = baseline.context(split.fit, split.t0)
-        ctx_s = baseline.context(split.score, split.score_t0)
+        ctx_s = split.scored(baseline).context(split.score, split.score_t0)
         z_first = ctx_f.states[0]
 
         def design(ctx) -> tuple[np.ndarray, list[int]]:
             """The columns through the baseline's G, and each effect's width (``each`` runs fit and score
             records side by side)."""
             blocks = [ctx.states - z_first, np.ones((len(ctx.record), 1))] + [e.search_columns(ctx) for e in effects]
-            return ctx.through_dynamics(np.column_stack(blocks)), [b.shape[1] for b in blocks[2:]]
+            columns = np.column_stack(blocks)
+            rest = None
+            if ctx.rest_states is not None:   # G at rest before the first move: the GPIM columns' rest values
+                rest = columns[0].copy()
+                rest[:z_first.size] = ctx.rest_states - z_first
+            return ctx.through_dynamics(columns, rest), [b.shape[1] for b in blocks[2:]]
 
         (A, widths), (B, _) = each([lambda: design(ctx_f), lambda: design(ctx_s)])
         n_basis = z_first.size + 1
@@ -379,15 +409,34 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     chosen_state = "cycled" if start_rms["cycled"] < (1 - INITIAL_STATE_TOLERANCE) * start_rms["rest"] else "rest"
     # a state estimated from the rows before the input wiped it (rested elsewhere, or left off the loop)
     wipe = split.wipe_index()
-    estimated, estimate = _estimate_state(starts["rest"], fit.slice(0, max(wipe, MIN_SAMPLES)))
-    if estimated.kind == "remanent":
+    first_rows = fit.slice(0, min(max(wipe, MIN_SAMPLES), max(int(ESTIMATE_WINDOW_S / fit.dt), MIN_SAMPLES)))
+    estimated, estimate = _estimate_state(starts["rest"], first_rows, fit)
+    for round_ in range(ESTIMATE_ROUNDS):   # weights fitted from rest are bent by the wrong start: alternate
+        if estimated.kind != "remanent":
+            break
         starts["estimated"], start_rms["estimated"] = fitted_and_scored(
             replace(start_model(uniform_thresholds(fit.voltage_v, MID_CAPACITY), starts[chosen_state]),
                     history=estimated), "fixed")
+        if round_ == ESTIMATE_ROUNDS - 1:
+            break
+        again, estimate_again = _estimate_state(starts["estimated"], first_rows, fit)
+        if again == estimated or again.kind != "remanent":
+            estimate = estimate_again if again == estimated else estimate
+            break
+        estimated, estimate = again, estimate_again
+    if "estimated" in start_rms:
         # as for the wipe below: a clear gain, and the state must explain the start (a slow effect cannot)
         if (start_rms["estimated"] < (1 - WIPE_GAIN) * start_rms[chosen_state]
                 and estimate["rms_before_wipe_um"] <= (1 - WIPE_STATE_GAIN) * estimate["rms_before_wipe_from_rest_um"]):
             chosen_state = "estimated"
+            if not split.held_out:
+                # the validation record started on its own: its start is estimated the same way on its
+                # first rows (as a simulation is started from the measured initial conditions)
+                score_state, _ = _estimate_state(starts["estimated"], split.score.slice(
+                    0, min(max(split.wipe_index(split.score), MIN_SAMPLES), max(int(ESTIMATE_WINDOW_S / fit.dt), MIN_SAMPLES))),
+                    split.score)
+                split = replace(split, score_history=score_state)
+                starts["estimated"], start_rms["estimated"] = fitted_and_scored(starts["estimated"], "fixed")
     wiped = split.after_wipe()
     if wiped is not None:  # on the poles just fitted on the whole record: only the initial state differs
         cut, state = wiped
@@ -397,7 +446,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
         if start_rms["wiped"] < (1 - WIPE_GAIN) * start_rms[chosen_state]:
             # a start off the loop, or a slow effect (drift, creep) that the earlier rows show most: only an
             # initial state that explains the rows before the wipe makes it the former
-            _, before_wipe = _estimate_state(starts["wiped"], split.fit.slice(0, len(split.fit) - len(cut.fit)))
+            _, before_wipe = _estimate_state(starts["wiped"], split.fit.slice(0, len(split.fit) - len(cut.fit)), split.fit)
             if before_wipe["rms_before_wipe_um"] <= (1 - WIPE_STATE_GAIN) * before_wipe["rms_before_wipe_from_rest_um"]:
                 chosen_state, split = "wiped", cut
                 fit = split.fit

@@ -55,6 +55,13 @@ class InitialState:
             raise ValueError("turning points are given for a remanent initial state, and only for it")
         object.__setattr__(self, "turning_points_v", tuple(float(x) for x in self.turning_points_v))
 
+    @property
+    def rested_at_v(self) -> Optional[float]:
+        """The voltage [V] the valve rested at until the record's first sample moved it (a remanent state
+        with one turning point: e.g. a closed-loop record whose controller's first command left the rest
+        voltage); None when it rested at the first voltage.  G then starts at rest at that voltage's output."""
+        return self.turning_points_v[0] if self.kind == "remanent" and len(self.turning_points_v) == 1 else None
+
     def states(self, gpim: GPIM, v: np.ndarray) -> np.ndarray:
         """Operator states (n,) at ``v[0]`` for the record whose input is ``v`` [V]."""
         if self.kind == "cycled":
@@ -192,9 +199,14 @@ class ValveModel:
         return s
 
     def predict(self, record: Record, t0: Optional[float] = None) -> np.ndarray:
-        """Position [um] for the record's voltages (operators virgin and G at rest at the first sample)."""
+        """Position [um] for the record's voltages (operators in the ``history`` state; G at rest at the first
+        sample, or before it where the valve rested at another voltage)."""
         ctx = self.context(record, t0)
-        return ctx.through_dynamics(self.static_output(ctx))
+        static = self.static_output(ctx)
+        rest = None
+        if ctx.rest_states is not None:   # the effects' terms are taken as continuous across the first move
+            rest = float(static[0] + self.gpim.weights @ (ctx.rest_states - ctx.states[0]))
+        return ctx.through_dynamics(static, rest)
 
     def without(self, name: str) -> "ValveModel":
         keep = [(e, c) for e, c in zip(self.effects, self.coefs) if e.name != name]
@@ -324,9 +336,30 @@ class Context:
         """(b, a) of G on this record (``discretise_for``)."""
         return discretise_for(self.model.dynamics, self.record)
 
-    def through_dynamics(self, x: np.ndarray) -> np.ndarray:
-        """G(s) applied to x (N,) or to each column of x (N, k), at rest at the first sample."""
-        return filter_at_rest(*self.filter, x)
+    def through_dynamics(self, x: np.ndarray, rest=None) -> np.ndarray:
+        """G(s) applied to x (N,) or to each column of x (N, k), at rest at the first sample, or at rest at
+        ``rest`` (a value, or one per column) before it: G is linear, so that adds (rest - x[0]) times G's
+        free response."""
+        y = filter_at_rest(*self.filter, x)
+        if rest is not None:
+            x = np.asarray(x, float)
+            y = y + np.multiply.outer(self.free_response, np.asarray(rest, float) - x[0])
+        return y
+
+    @cached_property
+    def free_response(self) -> np.ndarray:
+        """(N,) G's output from rest at 1 with its input at 0 from the first sample on (1 - step response)."""
+        b, a = self.filter
+        return 1.0 - signal.lfilter(b, a, np.ones(len(self.record)))
+
+    @property
+    def rest_states(self) -> Optional[np.ndarray]:
+        """Operator states (n,) while the valve rested before the record, where it rested at another voltage
+        than the first (``InitialState.rested_at_v``); else None."""
+        e = self.model.history.rested_at_v
+        if e is None:
+            return None
+        return self._structural("rest_states", lambda: self.model.gpim.state_after((e,)))
 
 
 def discretise_for(tf: ContinuousTF, record: Record) -> tuple[np.ndarray, np.ndarray]:
