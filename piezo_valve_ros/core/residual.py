@@ -169,6 +169,8 @@ REMANENT_GRID = 201  # voltages tried when estimating a remanent state before th
 ESTIMATE_SHORT_S = 0.1   # ... on its first rows this long; the best ESTIMATE_REFINED of each kind refined
 ESTIMATE_REFINED = 3
 ESTIMATE_WINDOW_S = 3.0  # ... on the rows before the wipe, at most this long (the start shows first)
+ESTIMATE_STATE_GAIN = 0.2   # an estimated start is taken when it cuts the first rows' misfit by >= 20 % (and
+                            # the held-out RMS by WIPE_GAIN); a drift's early misfit is not cut at all
 ESTIMATE_ROUNDS = 3   # estimate the start, fit, estimate again: at most this many fits
 EXCURSION_GAIN = 0.1  # "back from an excursion" replaces "rested at a voltage" only if 10 % closer to the data
 
@@ -427,7 +429,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     if "estimated" in start_rms:
         # as for the wipe below: a clear gain, and the state must explain the start (a slow effect cannot)
         if (start_rms["estimated"] < (1 - WIPE_GAIN) * start_rms[chosen_state]
-                and estimate["rms_before_wipe_um"] <= (1 - WIPE_STATE_GAIN) * estimate["rms_before_wipe_from_rest_um"]):
+                and estimate["rms_before_wipe_um"] <= (1 - ESTIMATE_STATE_GAIN) * estimate["rms_before_wipe_from_rest_um"]):
             chosen_state = "estimated"
             if not split.held_out:
                 # the validation record started on its own: its start is estimated the same way on its
