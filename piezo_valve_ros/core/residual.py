@@ -3,8 +3,10 @@
 How it decides (every figure on data the fit has not seen: a validation record, or the last
 ``HELD_OUT_FRACTION`` of the training record, through which the model runs on with its memory):
 
-1. **Baseline capacity first.**  The operators' state at the record's first sample is rest, cycled, or,
-   when neither fits by ``WIPE_GAIN`` and a state before the record explains the rows before the wipe
+1. **Baseline capacity first.**  The operators' state at the record's first sample is rest, cycled,
+   estimated from the first rows (``_estimate_state``: the valve rested at another voltage, as in a
+   closed-loop record, or came back from an excursion; a validation record's own start likewise), or,
+   when none fits by ``WIPE_GAIN`` and a state before the record explains the rows before the wipe
    (``WIPE_STATE_GAIN``: a slow drift shows there too, and no state explains it), unknown: the fit then
    starts where the input has wiped it out (``Split.after_wipe``).  The
    baseline is the paper's model, GPIM followed by a second-order G_v with unity DC gain.  G_v's poles are fitted to the record (the paper's G_v as start, and as fallback
@@ -167,11 +169,13 @@ def _split(train: Record, validate: Optional[Record], max_rate_hz: float) -> Spl
 
 REMANENT_GRID = 201  # voltages tried when estimating a remanent state before the record ...
 ESTIMATE_SHORT_S = 0.1   # ... on its first rows this long; the best ESTIMATE_REFINED of each kind refined
-ESTIMATE_REFINED = 3
-ESTIMATE_WINDOW_S = 3.0  # ... on the rows before the wipe, at most this long (the start shows first)
+ESTIMATE_REFINED = 2
+ESTIMATE_WINDOW_S = 2.0  # ... on the rows before the wipe, at most this long (the start shows first)
+START_MISFIT_RATIO = 1.5    # the start is estimated when, from rest, the first rows' RMS error is this many
+                            # times the rest of the training record's
 ESTIMATE_STATE_GAIN = 0.2   # an estimated start is taken when it cuts the first rows' misfit by >= 20 % (and
                             # the held-out RMS by WIPE_GAIN); a drift's early misfit is not cut at all
-ESTIMATE_ROUNDS = 3   # estimate the start, fit, estimate again: at most this many fits
+ESTIMATE_ROUNDS = 2   # estimate the start, fit, estimate again: at most this many fits
 EXCURSION_GAIN = 0.1  # "back from an excursion" replaces "rested at a voltage" only if 10 % closer to the data
 
 
@@ -201,7 +205,7 @@ def _estimate_state(model: ValveModel, rows: Record, whole: Record) -> tuple[Ini
         quick = sorted(grid, key=lambda e: rms(make(e), short))[:ESTIMATE_REFINED]
         for e in quick:
             found = optimize.minimize_scalar(lambda x: rms(make(x)), bounds=(e - step, e + step), method="bounded",
-                                             options={"xatol": 1e-4 * half})
+                                             options={"xatol": 1e-3 * half})
             x = float(found.x) if found.x != v0 else e
             name = f"{family} {x:.6g} V"
             options[name], scores[name] = make(x), rms(make(x))
@@ -412,7 +416,11 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     # a state estimated from the rows before the input wiped it (rested elsewhere, or left off the loop)
     wipe = split.wipe_index()
     first_rows = fit.slice(0, min(max(wipe, MIN_SAMPLES), max(int(ESTIMATE_WINDOW_S / fit.dt), MIN_SAMPLES)))
-    estimated, estimate = _estimate_state(starts["rest"], first_rows, fit)
+    from_rest = split.fit_error(starts["rest"])
+    start_misfit = _rms(from_rest[:len(first_rows)]) / max(_rms(from_rest[len(first_rows):]), 1e-12)
+    estimated, estimate = REST, {}
+    if start_misfit > START_MISFIT_RATIO:   # from rest the first rows fit worse than the rest of the record
+        estimated, estimate = _estimate_state(starts["rest"], first_rows, fit)
     for round_ in range(ESTIMATE_ROUNDS):   # weights fitted from rest are bent by the wrong start: alternate
         if estimated.kind != "remanent":
             break
