@@ -16,6 +16,7 @@ smallest decision margin (held-out RMS cut minus its threshold, over the effects
 the judgement sits).
 """
 import argparse
+from dataclasses import replace
 import importlib.util
 import os
 import sys
@@ -80,6 +81,8 @@ def main():
     rows = []
     started = time.monotonic()
     cases = [(name, valve, ", ".join(valve.effects) or "none") for name, valve in vb.BATTERY.items()]
+    cases += [("dynamics, mild additive rate widening (0.06 V, levelling off at 20 V/s)",
+               replace(vb.NOMINAL, threshold_add=vb.mild_rate_widening(0.06)), "dynamics")]
     cases += [(name, valve, "outside the catalogue") for name, valve in vb.OUTSIDE.items()]
     for mode in ("validation record", "held-out last 30 %"):
         for name, valve, declared in cases:
@@ -92,7 +95,6 @@ def main():
         report = analyse(Record.from_rows(vb.rows_after(vb.NOMINAL, pre, train_v, 11))).report
         rows.append(row(f"nominal, driven {name} before the record (held-out last 30 %)", "none", report))
         print(" | ".join(rows[-1]), flush=True)
-    from dataclasses import replace
     from piezo_valve_ros.core.simulator import CreepParams, SensorParams, ValveSimConfig
     from piezo_valve_ros.core.strategies import PIDGains
     plain = replace(ValveSimConfig(dt=1e-3).ideal(), dynamics_enabled=True, sensor=SensorParams())

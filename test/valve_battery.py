@@ -158,6 +158,17 @@ def rate_widening(extra: float, rate0_v_s: float = 100.0, window_s: float = 0.04
     return scale
 
 
+def mild_rate_widening(widening_v: float, rate0_v_s: float = 20.0, window_s: float = 0.04):
+    """Every threshold grows by widening_v * rho / (rho + rate0) [V] (rho = |dv/dt| through a trailing
+    moving average): a loop a few per cent wider at the training rates, levelling off."""
+    def add(v, dt):
+        rate = np.abs(np.gradient(v, dt))
+        n = max(int(round(window_s / dt)), 1)
+        rho = np.convolve(rate, np.ones(n) / n)[:rate.size]
+        return widening_v * rho / (rho + rate0_v_s)
+    return add
+
+
 def self_heating(offset_um: float, gain_change: float, tau_core_s: float = 8.0, tau_case_s: float = 30.0):
     """Dissipated power ~ (dv/dt)^2 heats a core that heats a case (two thermal time constants); offset and
     gain follow the case temperature."""
