@@ -347,6 +347,7 @@ def test_a_closed_loop_record_of_a_nominal_valve_adds_nothing(strategy, gains):
     assert start["chosen"] == "estimated" and start["held_out_rms_um"]["rest"] > 5 * start["held_out_rms_um"]["estimated"]
     rested_at = float(start["assumed"].split("rest at ")[1].split(" V")[0])
     assert abs(rested_at - 5.0) < 0.3, start["assumed"]            # the controller's centre voltage
+    assert "rest at" in start["validation_record_start"]           # its own start, estimated the same way
     assert report["final"]["validate"]["rms_um"] < 0.1
     # G starts at rest at the voltage the valve rested at, not at the first command (15-18 um peak at t = 0)
     assert report["final"]["validate"]["peak_um"] < 1.0

@@ -117,6 +117,12 @@ class Split:
         margin = WIPE_MARGIN * (hi - lo)
         return max(int(np.argmax(v >= hi - margin)), int(np.argmax(v <= lo + margin)))
 
+    def first_rows(self, record: Record) -> Record:
+        """The rows of ``record`` (analysis rate) a start is estimated on: before its input wiped the state
+        out, at most ``ESTIMATE_WINDOW_S`` and at least ``MIN_SAMPLES``."""
+        return record.slice(0, min(max(self.wipe_index(record), MIN_SAMPLES),
+                                   max(int(ESTIMATE_WINDOW_S / record.dt), MIN_SAMPLES)))
+
     def after_wipe(self) -> Optional[tuple["Split", InitialState]]:
         """The split with the fit part cut where its input has wiped out the operators' unknown state before
         the record (it has been within ``WIPE_MARGIN`` of both its extremes: every operator below that much
@@ -128,12 +134,11 @@ class Split:
         w = self.wipe_index()
         if w == 0 or w > WIPE_MAX_SHARE * len(self.fit):
             return None
+        w_full = w * (self.fit.block // max(self.fit_full.block, 1))
         try:
-            self.fit_full.slice(w * (self.fit.block // max(self.fit_full.block, 1))).check("training part after the wipe")
+            self.fit_full.slice(w_full).check("training part after the wipe")
         except IdentificationError:
             return None
-        block = self.fit.block // max(self.fit_full.block, 1)
-        w_full = w * block
         history = InitialState("remanent", turning_points(self.fit_full.voltage_v[:w_full + 1]))
         t0 = float(self.fit.time_s[w])
         cut = Split(self.fit.slice(w), self.score.slice(w), self.start - w, t0, t0, self.fit_full.slice(w_full),
@@ -414,8 +419,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     start_rms = {h: r for h, (_, r) in zip(candidates, fits)}
     chosen_state = "cycled" if start_rms["cycled"] < (1 - INITIAL_STATE_TOLERANCE) * start_rms["rest"] else "rest"
     # a state estimated from the rows before the input wiped it (rested elsewhere, or left off the loop)
-    wipe = split.wipe_index()
-    first_rows = fit.slice(0, min(max(wipe, MIN_SAMPLES), max(int(ESTIMATE_WINDOW_S / fit.dt), MIN_SAMPLES)))
+    first_rows = split.first_rows(fit)
     from_rest = split.fit_error(starts["rest"])
     start_misfit = _rms(from_rest[:len(first_rows)]) / max(_rms(from_rest[len(first_rows):]), 1e-12)
     estimated, estimate = REST, {}
@@ -442,9 +446,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
             if not split.held_out:
                 # the validation record started on its own: its start is estimated the same way on its
                 # first rows (as a simulation is started from the measured initial conditions)
-                score_state, _ = _estimate_state(starts["estimated"], split.score.slice(
-                    0, min(max(split.wipe_index(split.score), MIN_SAMPLES), max(int(ESTIMATE_WINDOW_S / fit.dt), MIN_SAMPLES))),
-                    split.score)
+                score_state, _ = _estimate_state(starts["estimated"], split.first_rows(split.score), split.score)
                 split = replace(split, score_history=score_state)
                 starts["estimated"], start_rms["estimated"] = fitted_and_scored(starts["estimated"], "fixed")
     wiped = split.after_wipe()
@@ -471,6 +473,8 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     if chosen_state == "estimated":
         assumed["assumed"] += ": estimated from the record's rows before its input wiped the state out"
         assumed["before_the_record"] = estimate
+        if split.score_history is not None:
+            assumed["validation_record_start"] = split.score_history.describe() + ": estimated the same way"
     if chosen_state == "wiped":
         assumed = {"assumed": f"unknown before the record: the fit and every decision use the record from "
                               f"t = {split.wiped_at_s:.6g} s, where its input has come within "
