@@ -203,7 +203,7 @@ def _estimate_state(model: ValveModel, rows: Record, whole: Record) -> tuple[Ini
     def rms(state: InitialState, on: Record = rows) -> float:
         return _rms(on.position_um - replace(bare, history=state).predict(on))
 
-    scores = {name: rms(state) for name, state in options.items() if not name.startswith(("rested", "back"))}
+    scores = {name: rms(state) for name, state in options.items()}
     step = (grid[1] - grid[0]) if len(grid) > 1 else half
     for family, make in (("rested at", lambda e: InitialState("remanent", (e,))),
                          ("back from", lambda e: InitialState("remanent", (v0, e)))):
