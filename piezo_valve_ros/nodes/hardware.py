@@ -33,6 +33,8 @@ MAX_CONTROL_PERIOD_S = 0.1      # slower than 10 Hz is no control loop for this 
 MAX_COMMAND_TIMEOUT_S = 10.0    # the watchdog may not be stretched beyond this
 MIN_TIMEOUT_PERIODS = 2         # ... nor shortened below this many control periods (it would fire between commands)
 PERIOD_TOLERANCE = 1e-3         # control_period_s must be a whole number of sample periods to this relative error
+FIRST_SAMPLE_SETTLE_S = 0.3   # lockstep: a commander matched this long before y_0 is sent (s)
+UNANSWERED_REPEAT_S = 1.0     # lockstep: an unanswered position is sent again after this long (s)
 
 
 def samples_per_period(control_period_s: float, sample_period_s: float) -> int:
@@ -143,7 +145,9 @@ class ValveHardwareNode(Node):
         self.backend.open()
         self.backend.write_voltage(self.safe_voltage)
         if self.clock_mode == "lockstep":
-            self._advance_and_publish()  # y_0 at the initial voltage
+            # y_0 (at the initial voltage) goes out once a commander is matched both ways and settled
+            # (_lockstep_idle), or before the first command that arrives earlier
+            self._matched_since: Optional[float] = None
             self.create_timer(min(0.05, self.command_timeout_s / 10), self._lockstep_idle)
         else:
             if not tighten_timer_slack():
@@ -212,6 +216,8 @@ class ValveHardwareNode(Node):
         if self.clock_mode == "realtime":
             self.backend.write_voltage(v)
             return
+        if self.periods == 0:
+            self._advance_and_publish()  # y_0 first: a commander that did not wait for it
         if self.step_budget == 0:
             self._held_command = v
             return
@@ -288,18 +294,37 @@ class ValveHardwareNode(Node):
         self._check_watchdog()
         self._publish(self.backend.read_samples())
 
+    def _commander_matched(self) -> bool:
+        return bool(self.position_pub.get_subscription_count() and self._command_sub.get_publisher_count())
+
     def _lockstep_idle(self) -> None:
-        if self.step_budget != 0 and self._check_watchdog():
+        if self.periods == 0:
+            self._publish_first_sample_when_settled()
+        elif self.step_budget != 0 and self._check_watchdog():
             self._advance_and_publish()  # the safe voltage is applied for one period
             self._flush_samples()
         elif (not self._command_since_publish and self._held_command is None
-              and time.monotonic() - self._last_publish_wall > (1.0 if self._armed else 0.25)
-              and self.position_pub.get_subscription_count() and self._command_sub.get_publisher_count()):
-            # nobody answered the last position (e.g. the controller started late): say it again, once a
+              and time.monotonic() - self._last_publish_wall > UNANSWERED_REPEAT_S
+              and self._commander_matched()):
+            # nobody answered the last position (e.g. the controller restarted): say it again, once a
             # commander's writer is matched on our side too (DDS matches each side on its own; an answer
             # sent before our reader knows its writer is dropped, and a repeat would be answered twice)
             self._last_publish_wall = time.monotonic()
             self.position_pub.publish(Float64(data=float(self.backend.read_position_cached())))
+
+    def _publish_first_sample_when_settled(self) -> None:
+        """y_0 goes out once a commander is matched both ways and has stayed so for FIRST_SAMPLE_SETTLE_S:
+        ``spool_position`` is best effort, so a sample sent while the commander's reader is still matching
+        is lost, and one answered before our reader knows the commander's writer would be answered twice
+        after a repeat (the controller's integrator would count the first period twice)."""
+        if not self._commander_matched():
+            self._matched_since = None
+            return
+        now = time.monotonic()
+        if self._matched_since is None:
+            self._matched_since = now
+        elif now - self._matched_since >= FIRST_SAMPLE_SETTLE_S:
+            self._advance_and_publish()
 
     # ------------------------------------------------------------------ parameters
     def _step_budget(self, value) -> int:
