@@ -6,7 +6,7 @@ to spool position, unity DC gain), lives here as ``PAPER_VALVE_MODEL``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 from scipy import signal
@@ -108,13 +108,15 @@ def first_order_lag(time_constant_s: float, dt: float) -> "DiscreteFilter":
     return ContinuousTF((1.0,), (float(time_constant_s), 1.0)).discretise(dt)
 
 
-def lag_bank(x: np.ndarray, time_constants_s: Sequence[float], dt: float) -> np.ndarray:
-    """First-order lags 1/(tau s + 1) of ``x`` (ZOH-exact, started at rest at x[0]); shape (N, k), each column
-    contiguous (a transposed view: the filters write whole rows)."""
+def lag_bank(x: np.ndarray, time_constants_s: Sequence[float], dt: float,
+             initial: Optional[float] = None) -> np.ndarray:
+    """First-order lags 1/(tau s + 1) of ``x`` (ZOH-exact, started at rest at ``initial``, default x[0]);
+    shape (N, k), each column contiguous (a transposed view: the filters write whole rows)."""
     out = np.empty((len(time_constants_s), x.size))
+    start = float(x[0]) if initial is None else float(initial)
     for i, tau in enumerate(time_constants_s):
         lag = first_order_lag(tau, dt)
-        lag.reset(float(x[0]))
+        lag.reset(start)
         out[i] = lag.run(x)
     return out.T
 

@@ -145,6 +145,10 @@ def _design(ctx: Context, effects: Sequence[Effect], with_sensitivities: bool):
     widths = [b.shape[1] for b in blocks] + [0 if b is None else b.shape[1] for b in sens_blocks]
     rows = np.empty((1 + sum(widths), len(ctx.record)))
     rows[0] = 1.0
+    at_rest = None   # each row's value before the record where the valve rested at another voltage
+    if ctx.rest_states is not None:
+        at_rest = np.concatenate([[1.0]] + [e.rest_columns(ctx, c) for e, c in zip(effects, blocks)]
+                                 + [c[0] for c in sens_blocks if c is not None])
     lower = [np.concatenate(([PARTIAL_SUM_FLOOR * y_slope], np.zeros(n - 1))), [-np.inf]]
     ridge = [np.full(n + 1, BASIS_RIDGE)]
     terms, sens = [], []
@@ -163,7 +167,7 @@ def _design(ctx: Context, effects: Sequence[Effect], with_sensitivities: bool):
         row += width
         lower.append(np.full(width, -np.inf))
         ridge.append(np.full(width, SENSITIVITY_RIDGE))
-    return rows, _Layout(n, tuple(terms), tuple(sens)), np.concatenate(lower), np.concatenate(ridge)
+    return rows, at_rest, _Layout(n, tuple(terms), tuple(sens)), np.concatenate(lower), np.concatenate(ridge)
 
 
 def _apply(model: ValveModel, x: np.ndarray, layout: _Layout, z_first: np.ndarray) -> ValveModel:
@@ -261,7 +265,7 @@ def _linear_solve(train: Record, model: ValveModel, *, steps: bool, free: np.nda
     The design is kept as rows (columns of A, each contiguous): filtered in place of a copy, and its Gram
     matrix assembled from blocks, the GPIM's own block cached with its filtered rows."""
     ctx = cache.context(train, model)
-    rest, layout, lower, ridge = _design(ctx, model.effects, with_sensitivities=steps)
+    rest, at_rest, layout, lower, ridge = _design(ctx, model.effects, with_sensitivities=steps)
     n_poles = int(free.sum()) if steps else 0
     if n_poles:
         static = ctx.H + sum((c @ rest[sl.start - layout.n:sl.stop - layout.n]
@@ -269,7 +273,10 @@ def _linear_solve(train: Record, model: ValveModel, *, steps: bool, free: np.nda
         poles = _pole_columns(train, model, static, free)
         lower = np.concatenate((lower, np.full(n_poles, -np.inf)))
         ridge = np.concatenate((ridge, np.full(n_poles, SENSITIVITY_RIDGE)))
+    first = rest[:, 0].copy()
     rest = filter_rows_at_rest(*ctx.filter, rest)
+    if at_rest is not None:   # G at rest before the first move (Context.through_dynamics)
+        rest += np.multiply.outer(at_rest - first, ctx.free_response)
     if n_poles:
         rest = np.vstack((rest, poles.T))
     basis, basis_gram, basis_rhs = cache.basis(ctx)

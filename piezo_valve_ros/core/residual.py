@@ -184,18 +184,20 @@ ESTIMATE_ROUNDS = 2   # estimate the start, fit, estimate again: at most this ma
 EXCURSION_GAIN = 0.1  # "back from an excursion" replaces "rested at a voltage" only if 10 % closer to the data
 
 
-def _estimate_state(model: ValveModel, rows: Record, whole: Record) -> tuple[InitialState, dict]:
+def _estimate_state(model: ValveModel, rows: Record, whole: Record, with_effects: bool = False
+                    ) -> tuple[InitialState, dict]:
     """The state before a record, estimated on its first ``rows`` (before its input wiped it out) with
     ``model``'s GPIM and G: rest, cycled, or remanent with one voltage e on the ``whole`` record's range and
     half a span beyond: at rest at e and moved to the first voltage v0 (a valve that rested elsewhere, e.g. a
     closed-loop record whose controller's first command left the rest voltage), or at rest at v0 and
-    back from an excursion to e (a valve left off its loop).  Returns (the best state, figures)."""
+    back from an excursion to e (a valve left off its loop).  The GPIM and G alone, unless ``with_effects``
+    (a final model's creep, e.g., has settled at rest too).  Returns (the best state, figures)."""
     v0 = float(rows.voltage_v[0])
     lo, hi = float(np.min(whole.voltage_v)), float(np.max(whole.voltage_v))
     half = 0.5 * max(hi - lo, 1e-9)
     grid = [float(e) for e in np.linspace(lo - half, hi + half, REMANENT_GRID) if e != v0]
     options = {"rest": REST, "cycled": InitialState("cycled")}
-    bare = replace(model, effects=(), coefs=())
+    bare = model if with_effects else replace(model, effects=(), coefs=())
     # the misfit is sharp in the voltage (where the valve rested sets the first samples through G): a fine
     # grid on the first ESTIMATE_SHORT_S, then each family's best few refined on all the rows
     short = rows.slice(0, min(len(rows), max(int(ESTIMATE_SHORT_S / rows.dt), 20)))
@@ -221,6 +223,21 @@ def _estimate_state(model: ValveModel, rows: Record, whole: Record) -> tuple[Ini
     best = excursion if scores[excursion] < (1 - EXCURSION_GAIN) * scores[simple] else simple
     return options[best], {"estimate": options[best].describe(), "rms_before_wipe_um": round(scores[best], 6),
                            "rms_before_wipe_from_rest_um": round(scores["rest"], 6), "samples_before_wipe": len(rows)}
+
+
+def _own_start(model: ValveModel, split: Split, always: bool) -> Optional[InitialState]:
+    """A validation record's own start, estimated on its first rows with ``model`` (``_estimate_state``):
+    taken ``always``, or where it halves those rows' misfit from the model's own initial state
+    (WIPE_STATE_GAIN, as a state before a wipe must: a closed-loop record whose controller's first command
+    left the rest voltage, cut 89 %; an unmodelled creep's early misfit is cut ~20 % by a wrong start).  The
+    misfit a slow effect leaves all over the record does not hide a wrong start, so no START_MISFIT_RATIO
+    here.  None otherwise."""
+    rows = split.first_rows(split.score)
+    state, figures = _estimate_state(model, rows, split.score)
+    if always:
+        return state
+    first = _rms(rows.position_um - model.predict(rows, split.score_t0))
+    return state if figures["rms_before_wipe_um"] <= (1 - WIPE_STATE_GAIN) * first else None
 
 
 def _ordinal(k: int) -> str:
@@ -252,9 +269,9 @@ class _SubsetSearch:
             blocks = [ctx.states - z_first, np.ones((len(ctx.record), 1))] + [e.search_columns(ctx) for e in effects]
             columns = np.column_stack(blocks)
             rest = None
-            if ctx.rest_states is not None:   # G at rest before the first move: the GPIM columns' rest values
-                rest = columns[0].copy()
-                rest[:z_first.size] = ctx.rest_states - z_first
+            if ctx.rest_states is not None:   # G at rest before the first move: each column's rest value
+                rest = np.concatenate([ctx.rest_states - z_first, [1.0]]
+                                      + [e.rest_columns(ctx, b) for e, b in zip(effects, blocks[2:])])
             return ctx.through_dynamics(columns, rest), [b.shape[1] for b in blocks[2:]]
 
         (A, widths), (B, _) = each([lambda: design(ctx_f), lambda: design(ctx_s)])
@@ -417,6 +434,14 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
                                                "baseline") for h in candidates.values()])
     starts = {h: m for h, (m, _) in zip(candidates, fits)}
     start_rms = {h: r for h, (_, r) in zip(candidates, fits)}
+    if not split.held_out:
+        # the validation record started on its own, whatever the training record's start: where its first
+        # rows misfit, its start is estimated (as a simulation is started from the measured initial
+        # conditions), and every candidate is scored from it
+        score_state = _own_start(starts["rest"], split, always=False)
+        if score_state is not None:
+            split = replace(split, score_history=score_state)
+            start_rms = {h: held_out(m).rms for h, m in starts.items()}
     chosen_state = "cycled" if start_rms["cycled"] < (1 - INITIAL_STATE_TOLERANCE) * start_rms["rest"] else "rest"
     # a state estimated from the rows before the input wiped it (rested elsewhere, or left off the loop)
     first_rows = split.first_rows(fit)
@@ -443,12 +468,10 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
         if (start_rms["estimated"] < (1 - WIPE_GAIN) * start_rms[chosen_state]
                 and estimate["rms_before_wipe_um"] <= (1 - ESTIMATE_STATE_GAIN) * estimate["rms_before_wipe_from_rest_um"]):
             chosen_state = "estimated"
-            if not split.held_out:
-                # the validation record started on its own: its start is estimated the same way on its
-                # first rows (as a simulation is started from the measured initial conditions)
-                score_state, _ = _estimate_state(starts["estimated"], split.first_rows(split.score), split.score)
-                split = replace(split, score_history=score_state)
-                starts["estimated"], start_rms["estimated"] = fitted_and_scored(starts["estimated"], "fixed")
+    if not split.held_out and chosen_state == "estimated":
+        # a record that starts off its loop is judged with the validation record's start estimated too
+        split = replace(split, score_history=_own_start(starts["estimated"], split, always=True))
+        start_rms["estimated"] = held_out(starts["estimated"]).rms
     wiped = split.after_wipe()
     if wiped is not None:  # on the poles just fitted on the whole record: only the initial state differs
         cut, state = wiped
@@ -473,8 +496,6 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     if chosen_state == "estimated":
         assumed["assumed"] += ": estimated from the record's rows before its input wiped the state out"
         assumed["before_the_record"] = estimate
-        if split.score_history is not None:
-            assumed["validation_record_start"] = split.score_history.describe() + ": estimated the same way"
     if chosen_state == "wiped":
         assumed = {"assumed": f"unknown before the record: the fit and every decision use the record from "
                               f"t = {split.wiped_at_s:.6g} s, where its input has come within "
@@ -482,6 +503,9 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
                               f"start there as the record's input since its first sample left them",
                    "fit_starts_at_s": split.wiped_at_s,
                    "before_the_record": before_wipe}
+    if split.score_history is not None:
+        assumed["validation_record_start"] = (split.score_history.describe() + ": estimated from its first rows "
+                                              "before its input wiped the state out")
     log("initial state: " + ", ".join(f"{h} {r:.4f}" for h, r in start_rms.items()) + " um held-out RMS; chosen "
         + (f"{chosen_state}: the state before the record is unknown, the fit starts at t = {split.wiped_at_s:.4g} s, "
            f"where the input has wiped it out" if chosen_state == "wiped" else chosen_state))
@@ -608,19 +632,38 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
         else:
             log(f"G_v: refitted with {', '.join(current)} ({polished.dynamics_note}) but the held-out RMS rose "
                 f"{before:.4f} -> {after:.4f} um; poles kept")
+    # the validation record's start, where estimated, is estimated for the final model too (its effects, creep
+    # say, were at rest before it as well): each model is scored from its own start, as a simulation of it
+    # is started from initial conditions estimated for it
+    if split.score_history is not None and final is not baseline:
+        rows = split.first_rows(split.score)
+        own, _ = _estimate_state(final, rows, split.score, with_effects=True)
+        misfit = {s: _rms(rows.position_um - replace(final, history=s).predict(rows, split.score_t0))
+                  for s in (split.score_history, own)}
+        final_split = replace(split, score_history=min(misfit, key=misfit.get))
+    else:
+        final_split = split
+
+    def held_out(model: ValveModel) -> Score:
+        on = final_split if model is final else split
+        return Score.of(on.held_out_error(model))
+
     if held_out(final).rms > held_out(baseline).rms:
         log("the extended model is worse on held-out data than the baseline: baseline kept")
-        final, drop_one, current = baseline, {}, []
+        final, drop_one, current, final_split = baseline, {}, [], split
     added = [n for n in names if n in current]
+    if final_split.score_history != split.score_history:
+        assumed["validation_record_start_final_model"] = (final_split.score_history.describe()
+                                                          + ": estimated the same way for the final model")
 
     # ---- 4. what remains
-    e_score = split.held_out_error(final)
+    e_score = final_split.held_out_error(final)
     structure = _structure(e_score, split.score.dt, noise, range_val)
     final_set = frozenset(added)
     closest = {n: 1.0 - search.score(final_set | {n}).rms / max(search.score(final_set).rms, 1e-30)
                for n in names if n not in final_set}
     near = max(closest.items(), key=lambda kv: kv[1]) if closest else ("none", 0.0)
-    peaks = _peak_structure(split.held_out_error(final, True), split.score_full.dt, noise, range_val)
+    peaks = _peak_structure(final_split.held_out_error(final, True), split.score_full.dt, noise, range_val)
     structure.update(peaks)
     by_rms = structure["ratio_to_noise"] > UNEXPLAINED_NOISE_RATIO and structure["pct_of_range"] > MIN_STRUCTURE_PCT
     by_peak = peaks["peak_ratio"] > PEAK_NOISE_RATIO and peaks["peak_pct_of_range"] > MIN_STRUCTURE_PCT
@@ -637,13 +680,14 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
 
     # ---- 5. figures at the record's own rate, report
     def figures(model: ValveModel) -> dict:
+        on = final_split if model is final else split
         return {"train": quality(split.fit_full.position_um, split.fit_full.position_um - split.fit_error(model, True),
                                  range_um).as_dict(),
                 "validate": quality(split.score_full.position_um[split.start_full:],
-                                    split.score_full.position_um[split.start_full:] - split.held_out_error(model, True),
+                                    split.score_full.position_um[split.start_full:] - on.held_out_error(model, True),
                                     range_val).as_dict(),
                 "validate_analysis_rate": quality(split.score.position_um[split.start:],
-                                                  split.score.position_um[split.start:] - split.held_out_error(model),
+                                                  split.score.position_um[split.start:] - on.held_out_error(model),
                                                   range_val).as_dict()}
 
     unique = list({id(m): m for m in (baseline, final, paper.model)}.values())

@@ -192,21 +192,26 @@ class ValveModel:
 
     def static_output(self, ctx: "Context") -> np.ndarray:
         """S = H + effect terms [um] (before G)."""
-        s = ctx.H.copy()
+        return self.static_output_and_rest(ctx)[0]
+
+    def static_output_and_rest(self, ctx: "Context") -> tuple[np.ndarray, Optional[float]]:
+        """(S (N,), S while the valve rested before the record [um], or None where it rested at the first
+        voltage): G's input and the value it had settled to (``Context.through_dynamics``)."""
+        static = ctx.H.copy()
+        rest = ctx.H_before if ctx.rest_states is not None else None
         for e, c in zip(self.effects, self.coefs):
             if c.size:
-                s += e.columns(ctx) @ c
-        return s
+                columns = e.columns(ctx)
+                static += columns @ c
+                if rest is not None:
+                    rest += float(e.rest_columns(ctx, columns) @ c)
+        return static, rest
 
     def predict(self, record: Record, t0: Optional[float] = None) -> np.ndarray:
         """Position [um] for the record's voltages (operators in the ``history`` state; G at rest at the first
         sample, or before it where the valve rested at another voltage)."""
         ctx = self.context(record, t0)
-        static = self.static_output(ctx)
-        rest = None
-        if ctx.rest_states is not None:   # the effects' terms are taken as continuous across the first move
-            rest = float(static[0] + self.gpim.weights @ (ctx.rest_states - ctx.states[0]))
-        return ctx.through_dynamics(static, rest)
+        return ctx.through_dynamics(*self.static_output_and_rest(ctx))
 
     def without(self, name: str) -> "ValveModel":
         keep = [(e, c) for e, c in zip(self.effects, self.coefs) if e.name != name]
@@ -309,6 +314,16 @@ class Context:
         lower, upper = self.drives
         h, _ = play_batch(lower, upper, g.thresholds, self.initial_state, g.weights)
         return h + g.offset_um
+
+    @property
+    def H_before(self) -> float:
+        """Hysteresis output [um] while the valve rested before the record: at the rest voltage where it
+        rested at another voltage than the first (``rest_states``), else the first sample's."""
+        z = self.rest_states
+        if z is None:
+            return float(self.H[0])
+        g = self.model.gpim
+        return float(g.weights @ z + g.offset_um)
 
     @property
     def contacts(self) -> tuple[np.ndarray, np.ndarray]:

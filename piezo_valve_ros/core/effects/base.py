@@ -60,6 +60,12 @@ class Effect:
         """(N, k) terms added before G; k = 0 when the effect is purely structural."""
         return np.zeros((len(ctx.record), 0))
 
+    def rest_columns(self, ctx: "Context", columns: np.ndarray) -> np.ndarray:
+        """(k,) values of ``columns`` (this effect's ``columns`` or ``search_columns`` on ``ctx``) while the
+        valve rested before the record, where it rested at another voltage (``Context.rest_states``): what G
+        had settled to.  Default: the first row (the terms taken as continuous across the first move)."""
+        return columns[0]
+
     # -- nonlinear structure
     def switch_on(self, model: "ValveModel") -> "ValveModel":
         """The model with this effect's structure in place (at its neutral value)."""

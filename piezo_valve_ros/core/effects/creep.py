@@ -46,19 +46,24 @@ class Creep(Effect):
         return tuple(t for t in self.time_constants_s if t <= SHAPED_UP_TO_S)
 
     def columns(self, ctx) -> np.ndarray:
-        H = ctx.H
-        plain = lag_bank(H, self.time_constants_s, ctx.dt) - H[:, None]
+        H, before = ctx.H, ctx.H_before
+        plain = lag_bank(H, self.time_constants_s, ctx.dt, before) - H[:, None]
         k = len(self.shaped)
         if not k:
             return plain
-        slow = lag_bank(H, (self.time_constants_s[0],), ctx.dt)[:, 0]  # creep follows the slow motion, not fast cycling
-        dH = np.diff(slow, prepend=slow[0])
+        # creep follows the slow motion, not fast cycling
+        slow = lag_bank(H, (self.time_constants_s[0],), ctx.dt, before)[:, 0]
+        dH = np.diff(slow, prepend=before)
         rising = np.cumsum(np.maximum(dH, 0.0))
         falling = np.cumsum(np.minimum(dH, 0.0))
         direction = ((lag_bank(rising, self.shaped, ctx.dt) - rising[:, None])
                      - (lag_bank(falling, self.shaped, ctx.dt) - falling[:, None]))
         level = plain[:, :k] * normalised(H, self.centre_um, self.half_range_um)[:, None]
         return np.column_stack((plain, direction, level))
+
+    def rest_columns(self, ctx, columns) -> np.ndarray:
+        """Every term is a lag of H minus H (or that times the level): zero once the valve has rested."""
+        return np.zeros(columns.shape[1])
 
     def describe(self, model, coefs) -> dict:
         n, k = len(self.time_constants_s), len(self.shaped)
