@@ -1,4 +1,4 @@
-"""The README's identification runs: ``valve_identify`` on simulated bags and on a measured record.
+"""The identification handbook's runs (docs/handbook/identification.md): ``valve_identify`` on simulated bags and on a measured record.
 
     python bench/identification_demo.py [--out docs/identification]
 

@@ -1,4 +1,4 @@
-"""The residual loop's judgement on the test battery, as a table (the README's figures come from here).
+"""The residual loop's judgement on the test battery, as a table (written to docs/identification/battery.md).
 
     python bench/residual_battery.py [--markdown docs/identification/battery.md]
 

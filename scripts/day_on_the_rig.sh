@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# A day on the rig with the package's commands only (README, "A day on the rig"): bring up a real-time rig,
+# A day on the rig with the package's commands only (docs/handbook/day_on_the_rig.md): bring up a real-time rig,
 # record it, send references and parameters, stop the recording, plot the run, identify the valve from it.
 #   bash scripts/day_on_the_rig.sh [OUT_DIR]      (default: day_on_the_rig/; about a minute)
 # Uses SCHED_FIFO priority 50 for the rig when the OS allows it (else the normal scheduler).

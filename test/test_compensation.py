@@ -208,7 +208,7 @@ def test_a_model_swap_to_saturation_and_dynamics_is_bumpless():
 
 
 def test_identify_compensate_track_halves_the_ol_hc_error_on_a_saturating_valve():
-    """The whole loop on one of the README table's valves (shorter): the extended model (creep and the end
+    """The whole loop on one of the battery table's valves (shorter): the extended model (creep and the end
     flattening found, inverted, dynamic feedforward on) at least halves OL HC's held-out RMS error against
     the paper's model, and PID HC's does not get worse."""
     from piezo_valve_ros.core.evaluation import SIMULATED_EFFECTS, compare_compensations
