@@ -14,6 +14,8 @@ Every valve is the paper's GPIM followed by G_v, with LVDT noise; each effect is
 * drift: offset and gain following a slow temperature swing through a play operator (a drift with its
   own hysteresis), a gain drift (the catalogue: time functions and lags of the drive's activity);
 * saturation: a one-sided soft end stop and an off-centre tanh (the catalogue: polynomials of the output);
+* another drive range: a +-150 V amplifier (30x the paper's volts) on a valve warming up (an S-shaped
+  temperature rise moving offset and gain);
 * outside the catalogue: an output dead zone and a backlash of about a micrometre, a mechanical hum.
 Nothing here is imported by the package.
 """
@@ -48,12 +50,14 @@ class Valve:
     noise_um: float = NOISE_UM
     effects: tuple[str, ...] = ()
     notes: dict = field(default_factory=dict)
+    drive: Optional[Callable[[np.ndarray], np.ndarray]] = None  # the record's voltage [V] -> the paper's 0-10 V
+
 
     def positions(self, voltage: np.ndarray, seed: int, dt: float = DT) -> np.ndarray:
         """Measured positions [um] for the applied voltages (one per sample)."""
         g = PAPER_GPIM.model()
         r = g.thresholds
-        v = np.asarray(voltage, float)
+        v = np.asarray(voltage, float) if self.drive is None else self.drive(np.asarray(voltage, float))
         lower = g.ascending_envelope(v)
         upper = self.descending(v) * g.a0 + g.a1 if self.descending is not None else lower
         z0 = g.virgin_state(float(v[0]))
@@ -76,7 +80,7 @@ class Valve:
         b = np.atleast_1d(np.squeeze(b))
         y = signal.lfilter(b, a, y, zi=signal.lfilter_zi(b, a) * y[0])[0]
         if self.after is not None:
-            y = self.after(y, v, dt)
+            y = self.after(y, np.asarray(voltage, float), dt)
         rng = np.random.default_rng(seed)
         y = y + self.noise_um * rng.standard_normal(y.size)
         return QUANTUM_UM * np.round(y / QUANTUM_UM)
@@ -194,6 +198,16 @@ def thermal_drift_with_hysteresis(offset_um_per_k: float, gain_per_k: float, swi
     return after
 
 
+def warm_up(offset_um: float, gain_change: float, tau_s: float = 40.0, lag_s: float = 15.0):
+    """A valve warming up after switch-on: offset and gain follow a temperature that rises as a second-order
+    step (a lag of ``lag_s`` behind one of ``tau_s``: an S-shaped start, unlike a first-order time function)."""
+    def after(y, v, dt):
+        t = np.arange(y.size) * dt
+        rise = 1.0 - (tau_s * np.exp(-t / tau_s) - lag_s * np.exp(-t / lag_s)) / (tau_s - lag_s)
+        return y * (1.0 + gain_change * rise) + offset_um * rise
+    return after
+
+
 def gain_drift(change: float, tau_s: float = 25.0):
     def after(y, v, dt):
         t = np.arange(y.size) * dt
@@ -268,6 +282,22 @@ OUTSIDE: dict[str, Valve] = {
     "dead zone, 1 um": replace(NOMINAL, after=dead_zone(0.5)),
     "backlash, 1 um": replace(NOMINAL, after=backlash(0.5)),
     "mechanical hum, 7.3 Hz": replace(NOMINAL, after=hum(1.5, 7.3)),
+}
+
+# ---------------------------------------------------------------------------- another drive range
+WIDE_DRIVE_V_PER_V = 30.0   # a +-150 V amplifier: the paper's 0-10 V span at 30 V per V around its centre
+
+
+def wide_drive(model_voltage: np.ndarray) -> np.ndarray:
+    """The paper's 0-10 V signal as a +-150 V drive [V]."""
+    return WIDE_DRIVE_V_PER_V * (np.asarray(model_voltage, float) - 5.0)
+
+
+WIDE: dict[str, Valve] = {
+    # recorded in the drive's own volts: thresholds, rates and ranges all 30x the paper's
+    "+-150 V drive, nominal": replace(NOMINAL, drive=lambda v: 5.0 + v / WIDE_DRIVE_V_PER_V),
+    "+-150 V drive, warming up (offset 2 um, gain +1.5 %, S-shaped over a minute)": replace(
+        NOMINAL, drive=lambda v: 5.0 + v / WIDE_DRIVE_V_PER_V, after=warm_up(2.0, 0.015), effects=("drift",)),
 }
 
 

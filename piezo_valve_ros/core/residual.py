@@ -81,6 +81,8 @@ PEAK_TOLERANCE = 1.1                        # an effect added last must not rais
 MIN_STRUCTURE_PCT = 0.01                    # ... and above this % of the range (noise-free records)
 REFIT_THREADS = min(4, os.cpu_count() or 1)  # independent refits run on this many threads (BLAS on one each)
 CONFIRM_ROUNDS = 4                          # exact drop-one rounds at most
+SEPARATION_SHARE = 0.8                       # an effect that does this share of an added one's work in its
+                                            # place: the record cannot tell the two apart (reported)
 EXACT_CHECK_GAIN = 0.05                     # effects the linear search credits with >= 5 % are checked exactly
 
 
@@ -176,8 +178,6 @@ REMANENT_GRID = 201  # voltages tried when estimating a remanent state before th
 ESTIMATE_SHORT_S = 0.1   # ... on its first rows this long; the best ESTIMATE_REFINED of each kind refined
 ESTIMATE_REFINED = 2
 ESTIMATE_WINDOW_S = 2.0  # ... on the rows before the wipe, at most this long (the start shows first)
-START_MISFIT_RATIO = 1.5    # the start is estimated when, from rest, the first rows' RMS error is this many
-                            # times the rest of the training record's
 ESTIMATE_STATE_GAIN = 0.2   # an estimated start is taken when it cuts the first rows' misfit by >= 20 % (and
                             # the held-out RMS by WIPE_GAIN); a drift's early misfit is not cut at all
 ESTIMATE_ROUNDS = 2   # estimate the start, fit, estimate again: at most this many fits
@@ -230,8 +230,7 @@ def _own_start(model: ValveModel, split: Split, always: bool) -> Optional[Initia
     taken ``always``, or where it halves those rows' misfit from the model's own initial state
     (WIPE_STATE_GAIN, as a state before a wipe must: a closed-loop record whose controller's first command
     left the rest voltage, cut 89 %; an unmodelled creep's early misfit is cut ~20 % by a wrong start).  The
-    misfit a slow effect leaves all over the record does not hide a wrong start, so no START_MISFIT_RATIO
-    here.  None otherwise."""
+    misfit a slow effect leaves all over the record does not hide a wrong start.  None otherwise."""
     rows = split.first_rows(split.score)
     state, figures = _estimate_state(model, rows, split.score)
     if always:
@@ -445,11 +444,9 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     chosen_state = "cycled" if start_rms["cycled"] < (1 - INITIAL_STATE_TOLERANCE) * start_rms["rest"] else "rest"
     # a state estimated from the rows before the input wiped it (rested elsewhere, or left off the loop)
     first_rows = split.first_rows(fit)
-    from_rest = split.fit_error(starts["rest"])
-    start_misfit = _rms(from_rest[:len(first_rows)]) / max(_rms(from_rest[len(first_rows):]), 1e-12)
-    estimated, estimate = REST, {}
-    if start_misfit > START_MISFIT_RATIO:   # from rest the first rows fit worse than the rest of the record
-        estimated, estimate = _estimate_state(starts["rest"], first_rows, fit)
+    estimated, estimate = _estimate_state(starts["rest"], first_rows, fit)
+    if estimate["rms_before_wipe_um"] > (1 - ESTIMATE_STATE_GAIN) * estimate["rms_before_wipe_from_rest_um"]:
+        estimated = REST   # it cannot be taken (below): not fitted
     for round_ in range(ESTIMATE_ROUNDS):   # weights fitted from rest are bent by the wrong start: alternate
         if estimated.kind != "remanent":
             break
@@ -464,9 +461,18 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
             break
         estimated, estimate = again, estimate_again
     if "estimated" in start_rms:
-        # as for the wipe below: a clear gain, and the state must explain the start (a slow effect cannot)
-        if (start_rms["estimated"] < (1 - WIPE_GAIN) * start_rms[chosen_state]
-                and estimate["rms_before_wipe_um"] <= (1 - ESTIMATE_STATE_GAIN) * estimate["rms_before_wipe_from_rest_um"]):
+        # as for the wipe below: a clear gain, and the state must explain the start (a slow effect cannot);
+        # a valve that rested at one voltage until the record's first command moved it (a closed-loop record)
+        # is one parameter beyond rest and shows in the first rows alone: there it must halve their misfit,
+        # whatever the baseline's held-out RMS says (a baseline that lacks an effect, creep say, bends its
+        # weights to the wrong start and scores better from it; the effect fitted later needs the right one)
+        explains = estimate["rms_before_wipe_um"] / max(estimate["rms_before_wipe_from_rest_um"], 1e-12)
+        clear_gain = (start_rms["estimated"] < (1 - WIPE_GAIN) * start_rms[chosen_state]
+                      and explains <= 1 - ESTIMATE_STATE_GAIN)
+        rested_elsewhere = estimated.rested_at_v is not None and explains <= 1 - WIPE_STATE_GAIN
+        log(f"initial state: estimated {estimate['estimate']}; first rows' RMS {estimate['rms_before_wipe_um']:.4f} um "
+            f"against {estimate['rms_before_wipe_from_rest_um']:.4f} from rest")
+        if clear_gain or rested_elsewhere:
             chosen_state = "estimated"
     if not split.held_out and chosen_state == "estimated":
         # a record that starts off its loop is judged with the validation record's start estimated too
@@ -710,6 +716,9 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
                               "held_out_gain": round(cut, 4), "explained_rms_um": round(explained, 5),
                               "evidence": _evidence(by_name[n], cut, explained, without, with_, noise, exact=False)})
     diagnosis.sort(key=lambda d: (not d["added"], added.index(d["effect"]) if d["added"] else names.index(d["effect"])))
+    alternatives = _alternatives(added, names, verdicts, search, refit_many)
+    for a in alternatives:
+        log(f"cannot tell apart: {a['effect']} and {a['alternative']}: {a['why']}")
     held_out_text = (f"held-out last {100 * HELD_OUT_FRACTION:.0f} % of the training record" if split.held_out
                      else "separate validation record")
     report = {
@@ -719,6 +728,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
                      "operators": baseline.gpim.n},
         "effects_added": added,
         "diagnosis": diagnosis,
+        "indistinguishable": alternatives,
         "final": {"model": final.name, **figured[id(final)]},
         "unexplained": bool(unexplained),
         "residual": seen,
@@ -753,7 +763,8 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
                        "unexplained_peak_ratio": PEAK_NOISE_RATIO, "peak_block_s": PEAK_BLOCK_S, "peak_rank": PEAK_RANK,
                        "capacity_tolerance": CAPACITY_TOLERANCE,
                        "initial_state_tolerance": INITIAL_STATE_TOLERANCE, "wipe_gain": WIPE_GAIN,
-                       "wipe_state_gain": WIPE_STATE_GAIN, "wipe_margin": WIPE_MARGIN},
+                       "wipe_state_gain": WIPE_STATE_GAIN, "wipe_margin": WIPE_MARGIN,
+                       "separation_share": SEPARATION_SHARE},
         "warnings": warnings,
         "final_model": final.describe(),
         "seconds": round(time.monotonic() - started, 3),
@@ -763,6 +774,39 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
         f"{b['peak_um']:.3f} -> {f['peak_um']:.3f} um at {full.rate_hz:.0f} Hz; unexplained: {str(unexplained).lower()} "
         f"({report['seconds']:.1f} s)")
     return Analysis(report, baseline, final, split, drop_one)
+
+
+def _alternatives(added: list[str], names: list[str], verdicts: dict, search: "_SubsetSearch",
+                  refit_many: Callable) -> list[dict]:
+    """Effects the record cannot tell apart: for each added effect a, each effect b outside the final set that,
+    put in a's place, explains at least SEPARATION_SHARE of what a explains (its held-out RMS cut from the
+    final model without a), by the linear search and then by an exact refit.  The loop names the better of
+    the two; the report says that the other would do nearly as well (a closed-loop record whose voltage
+    follows the output, or an excitation too narrow to separate their signatures)."""
+    found = []
+    for a in added:
+        rest = frozenset(added) - {a}
+        cut_a_linear = 1.0 - search.score(rest | {a}).rms / max(search.score(rest).rms, 1e-30)
+        options = [b for b in names if b not in added
+                   and 1.0 - search.score(rest | {b}).rms / max(search.score(rest).rms, 1e-30)
+                   >= SEPARATION_SHARE * cut_a_linear]
+        if not options:
+            continue
+        _, _, _, without, with_ = verdicts[a]
+        cut_a = 1.0 - with_ / max(without, 1e-30)
+        for b, (_, swapped) in zip(options, refit_many([([n for n in names if n in rest | {b}], None)
+                                                         for b in options])):
+            cut_b = 1.0 - swapped.rms / max(without, 1e-30)
+            if cut_b >= SEPARATION_SHARE * cut_a:
+                found.append({"effect": a, "alternative": b, "held_out_rms_um": {
+                    "without_either": round(without, 6), "with_" + a: round(with_, 6), "with_" + b: round(swapped.rms, 6)},
+                    "share": round(cut_b / cut_a, 4) if cut_a > 0 else None,
+                    "why": f"in {a}'s place {b} cuts the held-out RMS {without:.4f} -> {swapped.rms:.4f} um against "
+                           f"{with_:.4f} um with {a} ({100 * cut_b / max(cut_a, 1e-30):.0f} % of its cut, "
+                           f"threshold {100 * SEPARATION_SHARE:.0f} %): both signatures fit what this record shows; "
+                           f"{a} is named as the better, a record that excites them differently (other rates, levels "
+                           f"or holds) would separate them"})
+    return found
 
 
 def _evidence(effect: Effect, cut: float, explained: float, without: float, with_: float, noise: float,
