@@ -5,6 +5,7 @@ to spool position, unity DC gain), lives here as ``PAPER_VALVE_MODEL``.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
@@ -113,11 +114,13 @@ def lag_bank(x: np.ndarray, time_constants_s: Sequence[float], dt: float,
     """First-order lags 1/(tau s + 1) of ``x`` (ZOH-exact, started at rest at ``initial``, default x[0]);
     shape (N, k), each column contiguous (a transposed view: the filters write whole rows)."""
     out = np.empty((len(time_constants_s), x.size))
+    x = np.asarray(x, float)
     start = float(x[0]) if initial is None else float(initial)
     for i, tau in enumerate(time_constants_s):
-        lag = first_order_lag(tau, dt)
-        lag.reset(start)
-        out[i] = lag.run(x)
+        # first_order_lag's ZOH filter written out (b = [0, 1 - a], a = [1, -a], a = exp(-dt/tau); at rest
+        # at ``start`` its one state is ``start``): this runs thousands of times per analysis
+        pole = math.exp(-dt / float(tau))
+        out[i] = signal.lfilter([0.0, 1.0 - pole], [1.0, -pole], x, zi=[start])[0]
     return out.T
 
 
