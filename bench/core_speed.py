@@ -7,12 +7,12 @@ import time
 
 import numpy as np
 
-from piezo_valve_ros.core.compensation import CompensationModel
-from piezo_valve_ros.core.hysteresis import GPIM, PAPER_GPIM
-from piezo_valve_ros.core.rate_dependence import hysteresis_inverse, hysteresis_stream
-from piezo_valve_ros.core.signals import training_voltage
-from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController
+from piezo_valve_ros.core.control.compensation import CompensationModel
+from piezo_valve_ros.core.model.hysteresis import GPIM, PAPER_GPIM
+from piezo_valve_ros.core.model.rate_dependence import hysteresis_inverse, hysteresis_stream
+from piezo_valve_ros.core.sim.signals import training_voltage
+from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController
 
 
 RATE_WIDENING_V = (-0.006, -0.37, 1.79, -0.028, 0.44, -1.25)   # as identified on the simulated rate valve

@@ -16,9 +16,9 @@ from dataclasses import replace
 
 from piezo_valve_ros import identify_cli
 from piezo_valve_ros.bagio import write_samples_bag
-from piezo_valve_ros.core.experiments import simulate_rows
-from piezo_valve_ros.core.signals import identification_voltage, validation_voltage
-from piezo_valve_ros.core.simulator import ValveSimConfig
+from piezo_valve_ros.core.sim.experiments import simulate_rows
+from piezo_valve_ros.core.sim.signals import identification_voltage, validation_voltage
+from piezo_valve_ros.core.sim.simulator import ValveSimConfig
 
 REAL_RECORD = os.path.join(os.path.dirname(__file__), "..", "test", "data", "smart_hysteresis",
                            "hysteresis_v_150_1hz_1khz.csv")

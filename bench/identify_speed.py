@@ -23,13 +23,13 @@ from dataclasses import replace
 from pathlib import Path
 
 from piezo_valve_ros.bagio import read_samples, write_samples_bag
-from piezo_valve_ros.core.effects import CATALOGUE
-from piezo_valve_ros.core.experiments import simulate_rows
-from piezo_valve_ros.core.fitting import FitCache, fit_model
-from piezo_valve_ros.core.records import Record
-from piezo_valve_ros.core.residual import analyse
-from piezo_valve_ros.core.signals import identification_voltage, validation_voltage
-from piezo_valve_ros.core.simulator import DriftParams, ValveSimConfig
+from piezo_valve_ros.core.identification.effects import CATALOGUE
+from piezo_valve_ros.core.sim.experiments import simulate_rows
+from piezo_valve_ros.core.identification.fitting import FitCache, fit_model
+from piezo_valve_ros.core.identification.records import Record
+from piezo_valve_ros.core.identification.residual import analyse
+from piezo_valve_ros.core.sim.signals import identification_voltage, validation_voltage
+from piezo_valve_ros.core.sim.simulator import DriftParams, ValveSimConfig
 from piezo_valve_ros.identify import identify_bags
 from threadpoolctl import threadpool_limits
 

@@ -15,9 +15,9 @@ from __future__ import annotations
 import argparse
 import numpy as np
 
-from piezo_valve_ros.core.experiments import run_delayed_loop
-from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.strategies import ControllerConfig, ValveController, gain_set
+from piezo_valve_ros.core.sim.experiments import run_delayed_loop
+from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control.strategies import ControllerConfig, ValveController, gain_set
 
 EPISODE_S = (1.0, 1.8)
 FAR_OFF_UM = 10.0   # a tracking error beyond this is counted [um] (the sine's amplitude is 30 um)

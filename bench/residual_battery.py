@@ -22,8 +22,8 @@ import os
 import sys
 import time
 
-from piezo_valve_ros.core.records import Record, read_csv
-from piezo_valve_ros.core.residual import SEPARATION_SHARE, analyse
+from piezo_valve_ros.core.identification.records import Record, read_csv
+from piezo_valve_ros.core.identification.residual import SEPARATION_SHARE, analyse
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 TEST_DIR = os.path.join(HERE, "..", "test")
@@ -99,8 +99,8 @@ def main():
         report = analyse(Record.from_rows(vb.rows_after(vb.NOMINAL, pre, train_v, 11))).report
         rows.append(row(f"nominal, driven {name} before the record (held-out last 30 %)", "none", report))
         print(" | ".join(rows[-1]), flush=True)
-    from piezo_valve_ros.core.simulator import CreepParams, SensorParams, ValveSimConfig
-    from piezo_valve_ros.core.strategies import PIDGains
+    from piezo_valve_ros.core.sim.simulator import CreepParams, SensorParams, ValveSimConfig
+    from piezo_valve_ros.core.control.strategies import PIDGains
     plain = replace(ValveSimConfig(dt=1e-3).ideal(), dynamics_enabled=True, sensor=SensorParams())
     creep = replace(plain, creep=CreepParams(True, (0.03, 0.03, 0.03), (0.1, 1.0, 10.0)))
     for valve_name, config, declared in (("nominal", plain, "none"), ("creep", creep, "creep")):

@@ -13,8 +13,8 @@ import time
 from dataclasses import replace
 
 from piezo_valve_ros.core.evaluation import SIMULATED_EFFECTS, compare_tuning, simulated_analysis
-from piezo_valve_ros.core.simulator import ValveSimConfig
-from piezo_valve_ros.core.strategies import TABLE1_GAINS
+from piezo_valve_ros.core.sim.simulator import ValveSimConfig
+from piezo_valve_ros.core.control.strategies import TABLE1_GAINS
 from piezo_valve_ros.identify import compensation
 
 CASES = [("default", 1e-3), ("slow dynamics", 1e-3), ("default", 1e-4)]
@@ -33,7 +33,7 @@ def main():
     t0 = time.perf_counter()
     lines = ["# The tuner against Table 1 (bench/tuning_table.py)", "",
              "Each case: the simulated valve identified (`simulated_analysis`, 30 s training), the controller on the "
-             "identified model (`identify.compensation`), gains tuned on that model (`core.tuning.tune`, default "
+             "identified model (`core.identification.to_controller.compensation`), gains tuned on that model (`core.tuning.tuner.tune`, default "
              "limits: overshoot <= 2 % on every step, also on the model with G_v 10 % slower and faster, gain margin "
              ">= 6 dB, phase margin >= 45 deg, noise gain <= 3, crossover >= 5 Hz), "
              "then the paper's three steps on the simulated valve.  Settling and overshoot are the averages over "

@@ -5,7 +5,7 @@ found by name: the ``sim`` backend here, and any class another installed package
 group ``piezo_valve_ros.backends`` (so a DAQ needs no change to this package)::
 
     # my_daq/backend.py
-    from piezo_valve_ros.backends import BackendParameter, ValveBackend
+    from .backends import BackendParameter, ValveBackend
 
     class MyDaqBackend(ValveBackend):
         PARAMETERS = (BackendParameter("device", "/dev/daq0", "DAQ device"),)   # -> my_daq.device
@@ -35,10 +35,10 @@ from typing import Any, Callable, Dict, Type
 
 import numpy as np
 
-from .core.simulator import (AmplifierParams, CreepParams, DriftParams, RateDependenceParams, SaturationParams,
+from .core.sim.simulator import (AmplifierParams, CreepParams, DriftParams, RateDependenceParams, SaturationParams,
                              SensorParams, SimulatedValve, ValveSimConfig)
-from .validation import as_bool, as_float, as_int
-from .core.drive import CENTRE_VOLTAGE_V
+from .core.validation import as_bool, as_float, as_int
+from .core.model.drive import CENTRE_VOLTAGE_V
 
 __all__ = ["ValveBackend", "SimBackend", "BackendParameter", "register_backend", "backend_class",
            "available_backends", "sim_config_from_parameters", "ENTRY_POINT_GROUP"]
@@ -176,7 +176,7 @@ def sim_config_from_parameters(values: dict, initial_voltage_v: float = CENTRE_V
 
 
 def _sim_parameters() -> tuple:
-    from .core.hysteresis import PAPER_GPIM
+    from .core.model.hysteresis import PAPER_GPIM
     switches = [("slew_limit", True, "amplifier current limit"), ("creep", True, "creep"),
                 ("saturation", True, "loop-end flattening"), ("noise", True, "LVDT noise"),
                 ("dynamics", True, "G_v(s)"), ("rate_dependence", False, "rate dependence"),

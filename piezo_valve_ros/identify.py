@@ -9,18 +9,14 @@ from __future__ import annotations
 import json
 import os
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional
 
 from .bagio import read_samples
-from .core.compensation import CompensationModel
-from .core.effects import NotCompensable
-from .core.hysteresis import GPIM
-from .core.fitting import fit_model
-from .core.records import Record, read_csv
-from .core.residual import Analysis, analyse
-from .core.valve_model import ValveModel, unity_dc_poles
+from .core.identification.records import Record, read_csv
+from .core.identification.residual import Analysis, analyse
+from .core.identification.to_controller import (Compensation, base_parameters, baseline_compensation, compensation,
+                                                 controller_parameters)
 
 __all__ = ["identify_bags", "read_record", "Compensation", "compensation", "baseline_compensation", "base_parameters",
            "controller_parameters", "controller_parameters_yaml", "parameters_yaml", "read_parameters_file",
@@ -66,70 +62,6 @@ def identify_bags(train_bag, validate_bag=None, topic: Optional[str] = None,
     analysis.report["source"] = {"train_bag": str(train_bag), "validate_bag": None if validate_bag is None
                                  else str(validate_bag), "topic": name}
     return analysis, name
-
-
-@dataclass(frozen=True)
-class Compensation:
-    """What the controller gets from an identification: the identified model reduced to what it can invert,
-    that model as the controller's :class:`CompensationModel`, and what it had to leave (effect -> why)."""
-
-    model: ValveModel
-    controller_model: CompensationModel
-    refused: dict[str, str]
-
-
-def base_parameters(model: ValveModel, dynamic_feedforward: bool) -> dict:
-    """The controller parameters of a model's GPIM and G (all its sections) with no effect compensated; every
-    model parameter written (``CompensationModel.to_parameters``), so a push replaces a whole older model."""
-    g = model.gpim
-    symmetric = GPIM(g.thresholds, g.weights, g.a0, g.a1, g.offset_um)  # the asymmetry effect adds the envelope
-    return CompensationModel(symmetric, unity_dc_poles(list(model.sections)),
-                             dynamic_feedforward=dynamic_feedforward).to_parameters()
-
-
-def compensation(analysis: Analysis, dynamic_feedforward: bool = True) -> Compensation:
-    """The final model reduced to what the controller compensates.
-
-    Each effect's ``compensation`` gives its controller parameters or the reason it has none; an effect is
-    taken only if the model with it still passes ``CompensationModel.from_parameters`` as a whole (e.g. a
-    saturation map that stays invertible together with the creep).  When anything is left out the model is
-    refitted without it, so the GPIM the controller inverts is the best one without that structure.  With
-    ``dynamic_feedforward`` the feedforward also inverts the fitted G (``compensation.DynamicFeedforward``).
-    """
-    final = analysis.final
-    params = base_parameters(final, dynamic_feedforward)
-    usable, refused = [], {}
-    for e, c in zip(final.effects, final.coefs):
-        try:
-            trial = {**params, **e.compensation(final, c)}
-            CompensationModel.from_parameters(trial)
-        except NotCompensable as exc:
-            refused[e.name] = str(exc)
-            continue
-        except ValueError as exc:
-            refused[e.name] = f"{e.name}: with the rest of the model: {exc}"
-            continue
-        usable.append(e)
-        params = trial
-    if not refused:
-        return Compensation(final, CompensationModel.from_parameters(params), refused)
-    model = fit_model(analysis.split.fit, analysis.baseline, usable, try_forms=False) if usable else analysis.baseline
-    params = base_parameters(model, dynamic_feedforward)
-    for e, c in zip(model.effects, model.coefs):
-        params.update(e.compensation(model, c))
-    return Compensation(model, CompensationModel.from_parameters(params), refused)
-
-
-def baseline_compensation(analysis: Analysis) -> Compensation:
-    """The paper's compensation of the paper's model: the baseline GPIM (G_v for ff_pid_g), no effect, no
-    dynamic feedforward."""
-    base = analysis.baseline
-    return Compensation(base, CompensationModel.from_parameters(base_parameters(base, False)), {})
-
-
-def controller_parameters(comp: Compensation) -> dict:
-    """``valve_controller`` parameters (name -> value) for a compensation."""
-    return comp.controller_model.to_parameters()
 
 
 def _yaml_value(value) -> str:

@@ -16,7 +16,7 @@ import argparse
 import sys
 
 from .bagio import BagError
-from .core.records import HELD_OUT_FRACTION, IdentificationError
+from .core.identification.records import HELD_OUT_FRACTION, IdentificationError
 from .tool import run_tool
 from .identify import compensation, controller_parameters_yaml, identify_bags, report_json, write_outputs
 

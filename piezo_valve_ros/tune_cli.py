@@ -9,7 +9,7 @@ paper's Table 1 sets for the strategy on the same model.  ``--params-out`` write
 the tuned strategy and gains (atomically; nothing is written when tuning fails), ready for
 ``ros2 run piezo_valve_ros valve_controller --ros-args --params-file tuned.yaml``.  The identification
 node's ``tune`` step does the same on the rig and pushes the gains to the running controller.
-A thin face over ``piezo_valve_ros.core.tuning``; no ROS import.  Exit codes: 0 done, 2 bad input or no
+A thin face over ``piezo_valve_ros.core.tuning.tuner``; no ROS import.  Exit codes: 0 done, 2 bad input or no
 gains meet the limits, 1 anything else.
 """
 from __future__ import annotations
@@ -18,11 +18,11 @@ import argparse
 from dataclasses import replace
 import sys
 
-from .core.compensation import CompensationModel
-from .core.strategies import TABLE1_GAINS, loop_settings
-from .core.tuning import (MAX_NOISE_GAIN, MIN_CROSSOVER_HZ, MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG, OVERSHOOT_LIMIT_PCT,
+from .core.control.compensation import CompensationModel
+from .core.control.strategies import TABLE1_GAINS, loop_settings
+from .core.tuning.tuner import (MAX_NOISE_GAIN, MIN_CROSSOVER_HZ, MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG, OVERSHOOT_LIMIT_PCT,
                           TUNABLE_STRATEGIES, ModelValve, TuningError, TuningLimits, loop_margins, step_score, tune)
-from .core.signals import PAPER_STEPS_UM
+from .core.sim.signals import PAPER_STEPS_UM
 from .identify import ParametersFileError, parameters_yaml, read_parameters_file, write_outputs
 from .tool import run_tool
 

@@ -5,15 +5,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from piezo_valve_ros.core.compensation import (MODEL_PARAMETERS, CompensationModel, CreepModel, DynamicFeedforward,
+from piezo_valve_ros.core.control.compensation import (MODEL_PARAMETERS, CompensationModel, CreepModel, DynamicFeedforward,
                                                StaticInverse)
-from piezo_valve_ros.core.dynamics import PAPER_VALVE_MODEL, ContinuousTF, first_order_lag
-from piezo_valve_ros.core.effects.saturation import TERM_COUNT, OutputMap, terms
-from piezo_valve_ros.core.experiments import run_closed_loop
-from piezo_valve_ros.core.hysteresis import GPIM, PAPER_GPIM
-from piezo_valve_ros.core.signals import validation_reference_m
-from piezo_valve_ros.core.simulator import SaturationParams, SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.strategies import ControllerConfig, PIDGains, ValveController
+from piezo_valve_ros.core.model.dynamics import PAPER_VALVE_MODEL, ContinuousTF, first_order_lag
+from piezo_valve_ros.core.model.output_map import TERM_COUNT, OutputMap, terms
+from piezo_valve_ros.core.sim.experiments import run_closed_loop
+from piezo_valve_ros.core.model.hysteresis import GPIM, PAPER_GPIM
+from piezo_valve_ros.core.sim.signals import validation_reference_m
+from piezo_valve_ros.core.sim.simulator import SaturationParams, SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control.strategies import ControllerConfig, PIDGains, ValveController
 
 # a map that flattens both ends of the paper's range (about -68..67 um), as a tanh end stop does
 FLATTENING = OutputMap(0.0, 70.0, (0.0, -6.0, 0.0, 0.0, -3.0, 0.0, 0.0, 3.0))
@@ -140,7 +140,7 @@ def test_the_sampled_valve_behind_the_dynamic_feedforward_follows_f_without_over
     does not overshoot; W and F sampled separately (the first design) overshot 8 % at 10 kHz."""
     from scipy.signal import lfilter
 
-    from piezo_valve_ros.core.signals import step_reference_m
+    from piezo_valve_ros.core.sim.signals import step_reference_m
     for dt in (1e-4, 1e-3):
         ff = DynamicFeedforward(PAPER_VALVE_MODEL, dt)
         w, f = ff.filters()

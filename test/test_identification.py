@@ -9,16 +9,16 @@ import pytest
 from valve_battery import (BATTERY, NOMINAL, OUTSIDE, PRE_HISTORIES, rows_after, training_voltage,
                            validation_voltage_)
 
-from piezo_valve_ros.core import residual
-from piezo_valve_ros.core.experiments import run_closed_loop
-from piezo_valve_ros.core.fitting import fit_paper_gpim
-from piezo_valve_ros.core.hysteresis import PAPER_GPIM, inverse_problems
-from piezo_valve_ros.core.records import HELD_OUT_FRACTION, IdentificationError, Record, noise_floor_um, read_csv
-from piezo_valve_ros.core.residual import (GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE,
+from piezo_valve_ros.core.identification import residual
+from piezo_valve_ros.core.sim.experiments import run_closed_loop
+from piezo_valve_ros.core.identification.fitting import fit_paper_gpim
+from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM, inverse_problems
+from piezo_valve_ros.core.identification.records import HELD_OUT_FRACTION, IdentificationError, Record, noise_floor_um, read_csv
+from piezo_valve_ros.core.identification.residual import (GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE,
                                            UNEXPLAINED_NOISE_RATIO, analyse)
-from piezo_valve_ros.core.simulator import CreepParams, SensorParams, SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.compensation import CompensationModel, CreepModel
-from piezo_valve_ros.core.strategies import ControllerConfig, PIDGains, ValveController
+from piezo_valve_ros.core.sim.simulator import CreepParams, SensorParams, SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control.compensation import CompensationModel, CreepModel
+from piezo_valve_ros.core.control.strategies import ControllerConfig, PIDGains, ValveController
 
 DT = 5e-4
 TRAIN_V, VALID_V = training_voltage(DT), validation_voltage_(DT)
@@ -252,8 +252,8 @@ def test_identified_creep_compensation_cuts_the_step_and_hold_error():
     dt = 1e-3
     config = replace(ValveSimConfig(dt=dt).ideal(), dynamics_enabled=True, sensor=SensorParams(),
                      creep=CreepParams(True, (0.03, 0.03, 0.03), (0.1, 1.0, 10.0)))
-    from piezo_valve_ros.core.experiments import simulate_rows
-    from piezo_valve_ros.core.signals import identification_voltage, validation_voltage
+    from piezo_valve_ros.core.sim.experiments import simulate_rows
+    from piezo_valve_ros.core.sim.signals import identification_voltage, validation_voltage
     train = Record.from_rows(simulate_rows(identification_voltage(dt), replace(config, seed=1)))
     validate = Record.from_rows(simulate_rows(validation_voltage(dt), replace(config, seed=2)))
     a = analyse(train, validate)
@@ -443,9 +443,9 @@ def test_the_report_does_not_depend_on_the_number_of_threads():
 
 def test_asymmetry_is_compensated_only_where_the_controller_can_invert_it():
     from types import SimpleNamespace
-    from piezo_valve_ros.core.effects import NotCompensable
-    from piezo_valve_ros.core.effects.asymmetry import Asymmetry
-    from piezo_valve_ros.core.hysteresis import GPIM, PAPER_GPIM
+    from piezo_valve_ros.core.identification.effects import NotCompensable
+    from piezo_valve_ros.core.identification.effects.asymmetry import Asymmetry
+    from piezo_valve_ros.core.model.hysteresis import GPIM, PAPER_GPIM
     m = PAPER_GPIM.model()
     effect = Asymmetry()
     above = GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, m.a0 * 1.03, m.a1 + 0.08, 0.0)
@@ -464,8 +464,8 @@ def test_an_effects_refit_is_settled_not_one_solve_deep():
     single solve from the baseline does not, and on the direction-dependent creep valve its held-out error is
     several times the settled fit's at nearly the same training error: a judgement made on it (the exact
     drop-one check) would turn on how many solves were run, not on the valve."""
-    from piezo_valve_ros.core.effects import CATALOGUE
-    from piezo_valve_ros.core.fitting import SETTLE_TOLERANCE, FitCache, _linear_solve, fit_model
+    from piezo_valve_ros.core.identification.effects import CATALOGUE
+    from piezo_valve_ros.core.identification.fitting import SETTLE_TOLERANCE, FitCache, _linear_solve, fit_model
     a = analysis_of("creep, direction-dependent log kernel")
     fit, base = a.split.fit, a.baseline
     creep = next(e for e in (cls.prepare(fit, base.context(fit).H) for cls in CATALOGUE) if e.name == "creep")

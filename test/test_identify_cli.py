@@ -13,9 +13,9 @@ import yaml
 
 from piezo_valve_ros.bagio import (FLOAT64_TYPE, BagRecorder, qos_profile, read_samples, serialize_float64,
                                    write_samples_bag)
-from piezo_valve_ros.core.experiments import simulate_rows
-from piezo_valve_ros.core.signals import identification_voltage, validation_voltage
-from piezo_valve_ros.core.simulator import ValveSimConfig
+from piezo_valve_ros.core.sim.experiments import simulate_rows
+from piezo_valve_ros.core.sim.signals import identification_voltage, validation_voltage
+from piezo_valve_ros.core.sim.simulator import ValveSimConfig
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 

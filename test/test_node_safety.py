@@ -18,7 +18,7 @@ import rclpy
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64, Float64MultiArray
 
-from piezo_valve_ros.core.strategies import ControllerConfig, ValveController, gain_set
+from piezo_valve_ros.core.control.strategies import ControllerConfig, ValveController, gain_set
 from piezo_valve_ros.nodes.common import COMMAND_QOS, SAMPLES_QOS, make_executor, samples_message
 from piezo_valve_ros.nodes.controller import ValveControllerNode
 from piezo_valve_ros.nodes.hardware import ValveHardwareNode
@@ -217,7 +217,7 @@ def test_controller_refuses_bad_filter_and_rate_widening_at_start_up(controller,
 
 
 def test_rate_widening_zeros_mean_none_and_negative_coefficients_are_a_model(controller):
-    from piezo_valve_ros.core.rate_dependence import RateDependentInverseGPIM
+    from piezo_valve_ros.core.model.rate_dependence import RateDependentInverseGPIM
     assert not isinstance(controller(gain_set="", gpim__rate_widening_v=[0.0] * 6).controller.ff_inverse,
                           RateDependentInverseGPIM)
     narrowing = controller(gain_set="", gpim__rate_widening_v=[-1.0] * 6)   # thresholds that narrow with the rate
@@ -350,7 +350,7 @@ def test_hardware_applies_its_real_time_priority_and_cpus(tmp_path):
 def test_controller_takes_an_asymmetric_model_only_when_it_can_invert_it(controller):
     """Issue 11.2/3: gpim.descending_envelope makes the controller's GPIM asymmetric (inverted exactly);
     one that is not rising on the command range, or a malformed list, is refused with the reason."""
-    from piezo_valve_ros.core.hysteresis import PAPER_GPIM
+    from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM
     g = PAPER_GPIM
     good = [g.a0 * 1.03, g.a1 + 0.08, 0.0]
     ctl = controller(gain_set="", strategy="ol_hc", gpim__descending_envelope=good)
@@ -373,8 +373,8 @@ def test_controller_takes_an_asymmetric_model_only_when_it_can_invert_it(control
 def test_controller_takes_a_whole_extended_model_in_one_update_or_refuses_it_whole(controller):
     """Issue 11.3: the model the identification pushes (creep, saturation map, dynamic feedforward) is applied
     in one atomic update; a malformed part refuses all of it, with the reason, and changes nothing."""
-    from piezo_valve_ros.core.compensation import CompensationModel, CreepModel
-    from piezo_valve_ros.core.effects.saturation import OutputMap
+    from piezo_valve_ros.core.control.compensation import CompensationModel, CreepModel
+    from piezo_valve_ros.core.model.output_map import OutputMap
     ctl = controller(gain_set="", strategy="ol_hc")
     extended = CompensationModel(creep=CreepModel((0.5, 5.0), (0.02, 0.02)),
                                  output_map=OutputMap(0.0, 70.0, (0.0, -3.0, 0.0, 0.0, -1.0, 0.0, 0.0, 1.0)),
@@ -392,8 +392,8 @@ def test_controller_takes_a_rate_dependent_model_and_says_what_its_inverse_costs
     """Issue 11.2/3: gpim.rate_widening_v makes the controller's inverse rate-dependent (pushed with the rest
     of the model, atomically); a malformed widening is refused whole; at a 0.1 ms period the node warns that
     an inverse solved each step may overrun, at 1 ms it does not."""
-    from piezo_valve_ros.core.compensation import CompensationModel
-    from piezo_valve_ros.core.rate_dependence import RateDependentInverseGPIM
+    from piezo_valve_ros.core.control.compensation import CompensationModel
+    from piezo_valve_ros.core.model.rate_dependence import RateDependentInverseGPIM
     model = CompensationModel(rate_widening_v=(-0.006, -0.37, 1.79, -0.028, 0.44, -1.25))
     ctl = controller(gain_set="", strategy="ol_hc")
     assert ctl.set_parameters_atomically([Parameter(k, value=v) for k, v in model.to_parameters().items()]).successful

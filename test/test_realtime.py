@@ -16,7 +16,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64, Float64MultiArray
 
 from piezo_valve_ros.backends import SimBackend
-from piezo_valve_ros.core.simulator import ValveSimConfig
+from piezo_valve_ros.core.sim.simulator import ValveSimConfig
 from piezo_valve_ros.loop_timing import LoopTiming
 from piezo_valve_ros.nodes.common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, claim_pacing,
                                           make_executor, samples_from_message, spin_loop)

@@ -13,11 +13,11 @@ from ros_helpers import ros_env, start, wait_for_text
 import rclpy
 from std_msgs.msg import Float64
 
-from piezo_valve_ros.core.experiments import run_closed_loop
+from piezo_valve_ros.core.sim.experiments import run_closed_loop
 from piezo_valve_ros.core.metrics import step_metrics
-from piezo_valve_ros.core.signals import step_reference_m
-from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set
+from piezo_valve_ros.core.sim.signals import step_reference_m
+from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set
 from piezo_valve_ros.nodes.common import COMMAND_QOS
 from piezo_valve_ros.nodes.client import RigClient, run_in_background
 from piezo_valve_ros.processes import ProcessGroup, node_command
@@ -306,7 +306,7 @@ def test_a_loop_with_two_periods_of_delay_is_caught_by_the_guard_through_ros(ros
     assert "oscillation guard: commands on both rails" in log
     assert on_rail.mean() < 0.05, on_rail.mean()
     # in process, the same valve (delay included) and controller: the guard is part of the controller
-    from piezo_valve_ros.core.simulator import SensorParams
+    from piezo_valve_ros.core.sim.simulator import SensorParams
     config = ValveSimConfig(seed=3, sensor=SensorParams(delay_samples=20))
     valve = SimulatedValve(config)
     strategy, gains = gain_set("pid_hc_5")

@@ -4,16 +4,16 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from piezo_valve_ros.core.compensation import CompensationModel
-from piezo_valve_ros.core.dynamics import PAPER_VALVE_MODEL, ContinuousTF
-from piezo_valve_ros.core.experiments import paper_step_tests, run_closed_loop
-from piezo_valve_ros.core.hysteresis import PAPER_GPIM, GPIM
+from piezo_valve_ros.core.control.compensation import CompensationModel
+from piezo_valve_ros.core.model.dynamics import PAPER_VALVE_MODEL, ContinuousTF
+from piezo_valve_ros.core.sim.experiments import paper_step_tests, run_closed_loop
+from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM, GPIM
 from piezo_valve_ros.core.metrics import bandwidth_metrics, step_metrics, tracking_error
-from piezo_valve_ros.core.signals import (identification_voltage, training_voltage,
+from piezo_valve_ros.core.sim.signals import (identification_voltage, training_voltage,
                                           validation_reference_m)
-from piezo_valve_ros.core.simulator import (CreepParams, DriftParams, RateDependenceParams, SensorParams,
+from piezo_valve_ros.core.sim.simulator import (CreepParams, DriftParams, RateDependenceParams, SensorParams,
                                             SimulatedValve, ValveSimConfig)
-from piezo_valve_ros.core.strategies import (STRATEGIES, TABLE1_GAINS, ControllerConfig, PIDGains,
+from piezo_valve_ros.core.control.strategies import (STRATEGIES, TABLE1_GAINS, ControllerConfig, PIDGains,
                                              ValveController, gain_set)
 
 DT = 1e-4
@@ -143,7 +143,7 @@ def test_pid_hc_integrator_moves_toward_the_demand_on_a_rail_never_past_it():
     """PID HC's integrator holds the position demand: on a rail it may still move toward the demand (frozen
     where the 87.5 um step first met the rail it was tens of um short and the step settled on a slow integrator
     tail), never past it.  The paper's 87.5 um step at 10 kHz then settles about as fast as the small steps."""
-    from piezo_valve_ros.core.signals import step_reference_m
+    from piezo_valve_ros.core.sim.signals import step_reference_m
     config = ValveSimConfig()
     ctl = ValveController(ControllerConfig(strategy="pid_hc", gains=gain_set("pid_hc_5")[1], dt=config.dt))
     ctl.reset(config.initial_voltage_v)
@@ -289,7 +289,7 @@ def test_signals_shapes():
 def _delayed_loop(strategy_gains: str, delay_periods, dt=1e-3, duration_s=3.0, seed=0):
     """A 1 kHz loop on the simulated valve whose measurements reach the controller ``delay_periods(t)``
     periods late (a busy computer between two processes); a 2 Hz, 30 um sine demand."""
-    from piezo_valve_ros.core.experiments import run_delayed_loop
+    from piezo_valve_ros.core.sim.experiments import run_delayed_loop
     cfg = ValveSimConfig(seed=seed)
     strategy, gains = gain_set(strategy_gains)
     ctl = ValveController(ControllerConfig(strategy=strategy, gains=gains, dt=dt))
@@ -325,7 +325,7 @@ def test_a_loop_delay_that_makes_pid_hc_swing_rail_to_rail_is_caught_and_held_on
 
 def test_the_guard_never_trips_on_the_paper_step_tests_or_without_delay():
     """Every Table 1 set on the paper's three steps at 10 kHz: no trip, so the paper's results stand."""
-    from piezo_valve_ros.core.signals import PAPER_STEPS_UM, step_reference_m
+    from piezo_valve_ros.core.sim.signals import PAPER_STEPS_UM, step_reference_m
     for name, (strategy, gains) in TABLE1_GAINS.items():
         for a, b in PAPER_STEPS_UM:
             config = ValveSimConfig()
@@ -339,7 +339,7 @@ def test_the_guard_never_trips_on_the_paper_step_tests_or_without_delay():
 
 
 def test_sensor_delay_shifts_the_measurement_exactly_and_step_equals_batch():
-    from piezo_valve_ros.core.simulator import SensorParams
+    from piezo_valve_ros.core.sim.simulator import SensorParams
     v = 5.0 + 3.0 * np.sin(np.arange(3000) * 0.01)
     quiet = dict(noise_enabled=False, quantisation_enabled=False)
     plain = SimulatedValve(ValveSimConfig(sensor=SensorParams(**quiet))).run(v)

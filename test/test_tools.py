@@ -10,7 +10,7 @@ import pytest
 from ros_helpers import ros_env, wait_for_text
 
 from piezo_valve_ros.bagio import FLOAT64_TYPE, TYPESTORE, read_samples
-from piezo_valve_ros.core.signals import load_profile, ramp_profile, sine_profile
+from piezo_valve_ros.core.sim.signals import load_profile, ramp_profile, sine_profile
 from piezo_valve_ros.nodes.command import parse_assignment
 from piezo_valve_ros.nodes.record import dropped_sample_rows
 from piezo_valve_ros.processes import ProcessGroup

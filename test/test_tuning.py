@@ -1,4 +1,4 @@
-"""The PID tuner (core/tuning.py) and valve_tune: margins that mean what they say, gains that meet the limits
+"""The PID tuner (core/tuning/tuner.py) and valve_tune: margins that mean what they say, gains that meet the limits
 on the model and hold on the simulated valve, clear refusals."""
 from dataclasses import replace
 
@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import yaml
 
-from piezo_valve_ros.core.compensation import CompensationModel
+from piezo_valve_ros.core.control.compensation import CompensationModel
 from piezo_valve_ros.core.evaluation import SIMULATED_EFFECTS
-from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.strategies import TABLE1_GAINS, ControllerConfig, PIDGains
-from piezo_valve_ros.core.tuning import (DERIVATIVE_STARTS_S, ModelValve, StepScore, TuningError, TuningLimits,
+from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control.strategies import TABLE1_GAINS, ControllerConfig, PIDGains
+from piezo_valve_ros.core.tuning.tuner import (DERIVATIVE_STARTS_S, ModelValve, StepScore, TuningError, TuningLimits,
                                          _moves, dynamics_variants, linear_step, loop_margins, plant_gain_range, robust_overshoot_pct,
                                          step_score, time_scaled, tune)
 from piezo_valve_ros.identify import ParametersFileError, parameters_yaml, read_parameters_file
@@ -24,9 +24,9 @@ SLOW = SIMULATED_EFFECTS["slow dynamics"](ValveSimConfig(dt=DT))   # a valve Tab
 
 def _guard_trips(gains: PIDGains, model: CompensationModel, dt: float) -> int:
     """Oscillation-guard trips of pid_hc with ``gains`` on ``model`` as a valve over a 20 um step."""
-    from piezo_valve_ros.core.experiments import run_closed_loop
-    from piezo_valve_ros.core.signals import step_reference_m
-    from piezo_valve_ros.core.strategies import ValveController
+    from piezo_valve_ros.core.sim.experiments import run_closed_loop
+    from piezo_valve_ros.core.sim.signals import step_reference_m
+    from piezo_valve_ros.core.control.strategies import ValveController
     valve = ModelValve(model, dt, 5.0)
     ctl = ValveController(ControllerConfig("pid_hc", gains, dt), model)
     ctl.reset(5.0)
@@ -80,9 +80,9 @@ def test_tuned_gains_meet_the_limits_and_hold_on_a_valve_table1_does_not_fit():
     assert on_valve.worst_overshoot_pct < 2.0 and on_valve.settling_time_s < 0.06, on_valve
     # every Table 1 pid_hc set overshoots or oscillates on this valve at this rate (the oscillation guard trips
     # and holds it on the feedforward: the tuned set never needs that)
-    from piezo_valve_ros.core.experiments import run_closed_loop
-    from piezo_valve_ros.core.signals import PAPER_STEPS_UM, step_reference_m
-    from piezo_valve_ros.core.strategies import ValveController
+    from piezo_valve_ros.core.sim.experiments import run_closed_loop
+    from piezo_valve_ros.core.sim.signals import PAPER_STEPS_UM, step_reference_m
+    from piezo_valve_ros.core.control.strategies import ValveController
 
     def trips(gains):
         n = 0
@@ -219,7 +219,7 @@ def test_the_comparison_says_why_a_faster_table1_set_is_not_the_tuners_choice():
     """TuningComparison's verdict: beaten, or not beaten and why (outside the tuner's limits)."""
     from piezo_valve_ros.core.evaluation import TuningComparison
     from piezo_valve_ros.core.metrics import StepMetrics
-    from piezo_valve_ros.core.tuning import LoopMargins, TuningResult
+    from piezo_valve_ros.core.tuning.tuner import LoopMargins, TuningResult
 
     def score(ms, pct):
         return StepScore(tuple(StepMetrics(ms * 1e-3, pct, 0.0) for _ in range(3)), 0.0)

@@ -1,7 +1,7 @@
 """Simulated valves with undeclared effects, for judging the residual loop (kept in the tests on purpose).
 
 Every valve is the paper's GPIM followed by G_v, with LVDT noise; each effect is written in a form
-*unlike* the regressors of the catalogue (``piezo_valve_ros/core/effects``):
+*unlike* the regressors of the catalogue (``piezo_valve_ros/core/identification/effects``):
 
 * creep: a logarithmic kernel (convolution of the output's changes with log(1 + t/t_c)) whose size
   depends on the level, or whose speed depends on the direction of the move (the catalogue: sums of
@@ -27,9 +27,9 @@ from typing import Callable, Optional
 import numpy as np
 from scipy import signal
 
-from piezo_valve_ros.core.dynamics import PAPER_VALVE_MODEL, ContinuousTF
-from piezo_valve_ros.core.hysteresis import PAPER_GPIM, play_batch
-from piezo_valve_ros.core.signals import identification_voltage, validation_voltage
+from piezo_valve_ros.core.model.dynamics import PAPER_VALVE_MODEL, ContinuousTF
+from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM, play_batch
+from piezo_valve_ros.core.sim.signals import identification_voltage, validation_voltage
 
 DT = 5e-4            # 2 kHz: fast enough for G_v's poles, small enough for a quick suite
 NOISE_UM = 0.05
@@ -334,10 +334,10 @@ def closed_loop_rows(sim_config, strategy: str, gains, seed: int) -> np.ndarray:
     controller (``strategy``, ``gains``, the paper's model) following ``staircase_and_sines_um``: the
     voltage is the controller's output, not a designed signal."""
     from dataclasses import replace as _replace
-    from piezo_valve_ros.core.compensation import CompensationModel
-    from piezo_valve_ros.core.experiments import run_closed_loop
-    from piezo_valve_ros.core.simulator import SimulatedValve
-    from piezo_valve_ros.core.strategies import ControllerConfig, ValveController
+    from piezo_valve_ros.core.control.compensation import CompensationModel
+    from piezo_valve_ros.core.sim.experiments import run_closed_loop
+    from piezo_valve_ros.core.sim.simulator import SimulatedValve
+    from piezo_valve_ros.core.control.strategies import ControllerConfig, ValveController
     dt = sim_config.dt
     valve = SimulatedValve(_replace(sim_config, seed=seed))
     controller = ValveController(ControllerConfig(strategy=strategy, gains=gains, dt=dt), CompensationModel())

@@ -13,17 +13,17 @@ from typing import TYPE_CHECKING, Callable, Optional, Sequence
 
 import numpy as np
 
-from .compensation import CompensationModel
-from .experiments import responses, run_closed_loop, simulate_rows
+from .control.compensation import CompensationModel
+from .sim.experiments import responses, run_closed_loop, simulate_rows
 from .metrics import TrackingError, tracking_error
-from .records import Record
-from .signals import rig_training_voltage, validation_reference_m, validation_voltage
-from .simulator import CreepParams, RateDependenceParams, SaturationParams, SimulatedValve, ValveSimConfig
-from .strategies import ControllerConfig, PIDGains, ValveController
-from .valve_model import PAPER_SECTION, unity_dc_poles
+from .identification.records import Record
+from .sim.signals import rig_training_voltage, validation_reference_m, validation_voltage
+from .sim.simulator import CreepParams, RateDependenceParams, SaturationParams, SimulatedValve, ValveSimConfig
+from .control.strategies import ControllerConfig, PIDGains, ValveController
+from .model.dynamics import PAPER_SECTION, unity_dc_poles
 
 if TYPE_CHECKING:
-    from .tuning import LoopMargins, StepScore, TuningResult
+    from .tuning.tuner import LoopMargins, StepScore, TuningResult
 
 __all__ = ["SIMULATED_EFFECTS", "SETTLE_S", "simulated_analysis", "Tracking", "tracking_test", "model_tracking_test",
            "CompensationResult",
@@ -52,7 +52,7 @@ SIMULATED_EFFECTS: dict[str, Callable[[ValveSimConfig], ValveSimConfig]] = {
 def simulated_analysis(sim_config: ValveSimConfig, training_s: float = 30.0, log: Callable[[str], None] = print):
     """The residual loop on a training record (the identification node's experiment) and a validation record
     (``signals.validation_voltage``, another noise seed) of the simulated valve; returns the Analysis."""
-    from .residual import analyse  # the residual loop is heavy to import; the rest of this module is not
+    from .identification.residual import analyse  # the residual loop is heavy to import; the rest of this module is not
     dt = sim_config.dt
     train = Record.from_rows(simulate_rows(rig_training_voltage(dt, training_s), sim_config))
     validate = Record.from_rows(simulate_rows(validation_voltage(dt), replace(sim_config, seed=VALIDATION_SEED)))
@@ -109,7 +109,7 @@ def model_tracking_test(compensation: CompensationModel, sim_config: ValveSimCon
     """OL HC's error (as ``tracking_test``) when the valve is exactly the model it compensates
     (``tuning.ModelValve``: no noise, no amplifier, no effect the model lacks): what the feedforward's own
     design leaves, chiefly the lag of the dynamic feedforward's target F."""
-    from .tuning import ModelValve   # the tuner is heavy to import; the rest of this module is not
+    from .tuning.tuner import ModelValve   # the tuner is heavy to import; the rest of this module is not
     valve = ModelValve(compensation, sim_config.dt, sim_config.initial_voltage_v)
     controller = ValveController(ControllerConfig(strategy="ol_hc", gains=PIDGains(0.0, 0.0), dt=sim_config.dt),
                                  compensation)
@@ -136,12 +136,12 @@ def compare_compensations(sim_config: ValveSimConfig, strategies: dict[str, Cont
     controller can invert, dynamic feedforward on).  ``tuned``: strategies whose gains are also chosen by the
     tuner on the extended model (``tuning.tune``, default limits), as the identification's ``tune`` step
     would; they run with both models under the label ``"<STRATEGY> tuned"``."""
-    from ..identify import baseline_compensation, compensation
+    from .identification.to_controller import baseline_compensation, compensation
     analysis = simulated_analysis(sim_config, log=log)
     extended = compensation(analysis)
     models = {"baseline": baseline_compensation(analysis).controller_model, "extended": extended.controller_model}
     if tuned:
-        from .tuning import tune
+        from .tuning.tuner import tune
         strategies = dict(strategies)
         for strategy in tuned:
             gains = tune(strategy, extended.controller_model, sim_config.dt, log=log).gains
@@ -168,7 +168,7 @@ class TuningComparison:
     def outside_limits(self, name: str) -> Optional[str]:
         """Why set ``name`` is outside the tuner's limits on the model (margins, the overshoot limit with G_v
         slower and faster; the nominal run is the valve's here), None when it is within them."""
-        from .tuning import outside_limits
+        from .tuning.tuner import outside_limits
         return outside_limits(self.margins[name], self.robust_overshoot_pct[name], self.result.limits)
 
     def best_table1(self, max_overshoot_pct: float) -> Optional[str]:
@@ -202,8 +202,8 @@ def compare_tuning(strategy: str, sim_config: ValveSimConfig, model: Compensatio
                    log: Callable[[str], None] = print, **tune_kwargs) -> TuningComparison:
     """Tune ``strategy`` on ``model`` (what identification found, the controller running on it) at the valve's
     period, then run the paper's steps on the simulated valve with the tuned gains and each Table 1 set."""
-    from .strategies import TABLE1_GAINS
-    from .tuning import dynamics_variants, loop_margins, robust_overshoot_pct, step_score, tune
+    from .control.strategies import TABLE1_GAINS
+    from .tuning.tuner import dynamics_variants, loop_margins, robust_overshoot_pct, step_score, tune
     dt, v0 = sim_config.dt, sim_config.initial_voltage_v
     result = tune(strategy, model, dt, log=log, **tune_kwargs)
     sets = {"tuned": result.gains, **{n: g for n, (s, g) in TABLE1_GAINS.items() if s == strategy}}

@@ -24,7 +24,7 @@ import numpy as np
 import rclpy
 import yaml
 
-from ..core.signals import load_profile, ramp_profile, sine_profile
+from ..core.sim.signals import load_profile, ramp_profile, sine_profile
 from .client import RigClient, run_in_background
 from .common import init_ros, stop_requested
 

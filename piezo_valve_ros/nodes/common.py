@@ -19,7 +19,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy, DurabilityPo
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 from ..samples import SAMPLES_LABEL, decode_samples
-from ..validation import as_float, as_float_list, as_int  # noqa: F401  (the nodes' validators)
+from ..core.validation import as_float, as_float_list, as_int  # noqa: F401  (the nodes' validators)
 
 SENSOR_QOS = qos_profile_sensor_data  # spool_position: best effort, keep last
 LATEST_SENSOR_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST,

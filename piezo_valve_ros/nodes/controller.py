@@ -25,14 +25,14 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64, Float64MultiArray
 
-from ..core.compensation import MODEL_PARAMETERS, CompensationModel
-from ..core.rate_dependence import describe_inverse, solved_each_step
-from ..core.signals import ReferenceRamp
-from ..core.strategies import (GUARD_WINDOW_S, STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set,
+from ..core.control.compensation import MODEL_PARAMETERS, CompensationModel
+from ..core.model.rate_dependence import describe_inverse, solved_each_step
+from ..core.sim.signals import ReferenceRamp
+from ..core.control.strategies import (GUARD_WINDOW_S, STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set,
                                loop_settings)
 from .common import (COMMAND_QOS, LATEST_SENSOR_QOS, SAMPLES_QOS, as_float,
                      declare, declare_realtime, parameter_values, realtime_settings, refuse, run_node, samples_from_message)
-from ..core.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
+from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 GAIN_SET_KEYS = ("strategy", "kp", "ki", "kd")   # what an active gain_set decides
 HANDBACK_TIMEOUT_RANGE_S = (0.05, 10.0)          # handback_timeout_s may not be shorter or longer than this

@@ -26,7 +26,7 @@ from ..backends import ValveBackend, available_backends, backend_class
 from ..loop_timing import LoopTiming
 from .common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, as_float, as_int, declare,
                      declare_realtime, parameter_values, realtime_settings, refuse, run_node, samples_message, tighten_timer_slack)
-from ..core.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
+from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 
 MAX_CONTROL_PERIOD_S = 0.1      # slower than 10 Hz is no control loop for this valve

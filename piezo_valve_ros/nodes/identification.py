@@ -4,7 +4,7 @@ The ``plan`` (comma-separated, run in order once the rig answers) is made of:
 
 ``train``     the controller is disabled and this node drives ``voltage_command`` one value per
               ``spool_position`` (so it works in lockstep and in real time): the experiment of
-              ``core.signals.rig_training_voltage`` (synchronising sine, step-and-hold and multisine
+              ``core.sim.signals.rig_training_voltage`` (synchronising sine, step-and-hold and multisine
               segments before and after the paper's training signal, and a closing synchronising sine
               that leaves the valve in a known state at the centre); then the controller is re-enabled
               and resumes from there.
@@ -44,16 +44,16 @@ from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Float64
 
 from ..bagio import BagError
-from ..core.records import IdentificationError
-from ..core.signals import rig_training_voltage, validation_reference_m
-from ..core.strategies import LOOP_SETTINGS, loop_settings
-from ..core.tuning import OVERSHOOT_LIMIT_PCT, TUNABLE_STRATEGIES, TuningError, TuningLimits, tune
+from ..core.identification.records import IdentificationError
+from ..core.sim.signals import rig_training_voltage, validation_reference_m
+from ..core.control.strategies import LOOP_SETTINGS, loop_settings
+from ..core.tuning.tuner import OVERSHOOT_LIMIT_PCT, TUNABLE_STRATEGIES, TuningError, TuningLimits, tune
 from ..identify import (compensation, controller_parameters, controller_parameters_yaml, identify_bags, report_json,
                         write_atomically)
 from .client import get_parameter_values, wait_future, wait_until_answering
 from .recording import RigRecorder
 from .common import COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, as_float, declare, parameter_values, run_node
-from ..core.drive import CENTRE_VOLTAGE_V
+from ..core.model.drive import CENTRE_VOLTAGE_V
 
 STEPS = ("train", "refit", "tune", "validate")
 PROGRESS_PERIOD_S = 5.0   # default: a running experiment logs its progress this often [s]

@@ -20,8 +20,8 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from ..core.metrics import step_metrics
-from ..core.signals import PAPER_STEPS_UM
-from ..core.simulator import ValveSimConfig
+from ..core.sim.signals import PAPER_STEPS_UM
+from ..core.sim.simulator import ValveSimConfig
 from ..processes import ProcessGroup, node_command
 from .client import RigClient, run_in_background
 

@@ -23,9 +23,9 @@ from typing import Optional
 
 import numpy as np
 
-from .dynamics import PAPER_VALVE_MODEL, ContinuousTF, first_order_lag
-from .hysteresis import GPIM, GPIMParams, PAPER_GPIM
-from .drive import CENTRE_VOLTAGE_V
+from ..model.dynamics import PAPER_VALVE_MODEL, ContinuousTF, first_order_lag
+from ..model.hysteresis import GPIM, GPIMParams, PAPER_GPIM
+from ..model.drive import CENTRE_VOLTAGE_V
 
 __all__ = [
     "AmplifierParams",

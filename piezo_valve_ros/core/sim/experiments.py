@@ -11,10 +11,10 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .metrics import BandwidthMetrics, StepMetrics, bandwidth_metrics, fundamental, step_metrics
+from ..metrics import BandwidthMetrics, StepMetrics, bandwidth_metrics, fundamental, step_metrics
 from .signals import PAPER_STEPS_UM, step_reference_m, stepped_sine_reference_m
 from .simulator import SimulatedValve, ValveSimConfig
-from .strategies import ControllerConfig, ValveController
+from ..control.strategies import ControllerConfig, ValveController
 
 __all__ = ["ClosedLoopRecord", "run_closed_loop", "responses", "step_test", "paper_step_tests", "frequency_response",
            "DEFAULT_SWEEP_HZ", "simulate_rows"]

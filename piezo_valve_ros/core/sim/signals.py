@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .drive import CENTRE_VOLTAGE_V, HALF_SPAN_V
+from ..model.drive import CENTRE_VOLTAGE_V, HALF_SPAN_V
 
 __all__ = ["time_base", "synchronising_sine", "training_voltage", "validation_shape", "validation_reference_m",
            "PAPER_STEPS_UM", "step_reference_m", "stepped_sine_reference_m", "step_and_hold_voltage",

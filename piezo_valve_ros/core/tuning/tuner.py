@@ -51,13 +51,13 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 from scipy.signal import lfilter
 
-from .compensation import CompensationModel, reference_filters
-from .dynamics import first_order_lag
-from .experiments import responses, run_closed_loop
-from .metrics import StepMetrics, step_metrics
-from .rate_dependence import hysteresis_stream
-from .signals import PAPER_STEPS_UM, step_reference_m
-from .strategies import TABLE1_GAINS, ControllerConfig, PIDGains, ValveController, nominal_static_gain
+from ..control.compensation import CompensationModel, reference_filters
+from ..model.dynamics import first_order_lag
+from ..sim.experiments import responses, run_closed_loop
+from ..metrics import StepMetrics, step_metrics
+from ..model.rate_dependence import hysteresis_stream
+from ..sim.signals import PAPER_STEPS_UM, step_reference_m
+from ..control.strategies import TABLE1_GAINS, ControllerConfig, PIDGains, ValveController, nominal_static_gain
 
 __all__ = ["TUNABLE_STRATEGIES", "TuningLimits", "LoopMargins", "StepScore", "TuningResult", "TuningError",
            "ModelValve", "plant_gain_range", "loop_margins", "linear_step", "step_score", "dynamics_variants",

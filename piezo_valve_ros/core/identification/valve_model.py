@@ -13,22 +13,31 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import TYPE_CHECKING, Optional
+from typing import Optional, Protocol
 
 import numpy as np
 from scipy import signal
 
-from .dynamics import PAPER_VALVE_MODEL, ContinuousTF, discretise
-from .hysteresis import GPIM, last_contact, play_batch
-from .rate_dependence import RATE_FILTERS_S, RATE_SCALES_V_S, rate_terms
+from ..model.dynamics import PAPER_SECTION, ContinuousTF, describe_dynamics, discretise, unity_dc_poles
+from ..model.hysteresis import GPIM, last_contact, play_batch
+from ..model.rate_dependence import rate_terms
 from .records import Record
 
-if TYPE_CHECKING:
-    from .effects.base import Effect
+__all__ = ["ValveModel", "Context", "ModelTerm", "discretise_for", "filter_at_rest", "filter_rows_at_rest", "INITIAL_STATES",
+           "InitialState", "REST", "turning_points"]
 
-__all__ = ["ValveModel", "Context", "second_order", "unity_dc_poles", "sections", "discretise_for", "filter_at_rest",
-           "filter_rows_at_rest", "describe_dynamics", "RATE_FILTERS_S", "RATE_SCALES_V_S", "PAPER_VALVE_MODEL",
-           "PAPER_SECTION", "INITIAL_STATES", "InitialState", "REST", "turning_points"]
+class ModelTerm(Protocol):
+    """What a model asks of an effect term (``effects.base.Effect`` is one): its name, its columns on a record
+    (N, k), the columns' values at rest before it (k,), and a description of its coefficients."""
+
+    name: str
+
+    def columns(self, ctx: "Context") -> np.ndarray: ...
+
+    def rest_columns(self, ctx: "Context", columns: np.ndarray) -> np.ndarray: ...
+
+    def describe(self, model: "ValveModel", coefs: np.ndarray) -> dict: ...
+
 
 INITIAL_STATES = ("rest", "cycled", "remanent")   # kinds of the operators' state before a record (InitialState)
 
@@ -98,39 +107,6 @@ def turning_points(v: np.ndarray) -> tuple[float, ...]:
     return tuple(keep)
 
 
-def second_order(omega_rad_s: float, zeta: float) -> ContinuousTF:
-    """Unity-DC-gain second order w^2 / (s^2 + 2 zeta w s + w^2)."""
-    w = float(omega_rad_s)
-    return ContinuousTF((w * w,), (1.0, 2.0 * float(zeta) * w, w * w))
-
-
-def unity_dc_poles(sections: list[tuple[float, float]]) -> ContinuousTF:
-    """Product of unity-DC-gain second-order sections given as (omega [rad/s], zeta)."""
-    num, den = np.array([1.0]), np.array([1.0])
-    for w, z in sections:
-        tf = second_order(w, z)
-        num, den = np.polymul(num, tf.num), np.polymul(den, tf.den)
-    return ContinuousTF(tuple(float(x) for x in num), tuple(float(x) for x in den))
-
-
-PAPER_SECTION = (float(np.sqrt(1.2e6)), float(2900.0 / (2.0 * np.sqrt(1.2e6))))  # the paper's G_v as (omega, zeta)
-
-
-def sections(tf: ContinuousTF) -> list[tuple[float, float]]:
-    """(omega [rad/s], zeta) of the second-order sections of a unity-DC-gain G with stable poles (real
-    poles are paired in order of magnitude; an odd one out becomes a section with a very fast partner)."""
-    poles = np.roots(tf.den)
-    complex_ = sorted([p for p in poles if p.imag > 1e-9 * abs(p)], key=abs)
-    real = sorted([-p.real for p in poles if abs(p.imag) <= 1e-9 * abs(p)])
-    out = [(float(abs(p)), float(-p.real / abs(p))) for p in complex_]
-    if len(real) % 2:
-        real.append(1e3 * max(real))
-    for p1, p2 in zip(real[0::2], real[1::2]):
-        w = float(np.sqrt(p1 * p2))
-        out.append((w, float((p1 + p2) / (2.0 * w))))
-    return sorted(out)
-
-
 @dataclass(frozen=True)
 class ValveModel:
     """GPIM (linear form) -> effect terms -> G(s).  Units: V in, um out, s.
@@ -149,7 +125,7 @@ class ValveModel:
     gpim: GPIM
     sections: tuple[tuple[float, float], ...] = (PAPER_SECTION,)
     rate_widening_v: tuple[float, ...] = ()
-    effects: tuple["Effect", ...] = ()
+    effects: tuple[ModelTerm, ...] = ()
     coefs: tuple[np.ndarray, ...] = ()
     t0: float = 0.0
     dynamics_note: str = "paper"
@@ -173,7 +149,7 @@ class ValveModel:
     def effect_names(self) -> list[str]:
         return [e.name for e in self.effects]
 
-    def term(self, name: str) -> Optional[tuple["Effect", np.ndarray]]:
+    def term(self, name: str) -> Optional[tuple[ModelTerm, np.ndarray]]:
         for e, c in zip(self.effects, self.coefs):
             if e.name == name:
                 return e, c
@@ -232,13 +208,6 @@ class ValveModel:
         for e, c in zip(self.effects, self.coefs):
             out[e.name] = e.describe(self, c)
         return out
-
-
-def describe_dynamics(tf: ContinuousTF, note: str) -> dict:
-    poles = np.roots(tf.den)
-    return {"num": [float(x) for x in tf.num], "den": [float(x) for x in tf.den],
-            "poles_rad_s": [[round(float(p.real), 3), round(float(p.imag), 3)] for p in sorted(poles, key=abs)],
-            "source": note}
 
 
 @dataclass

@@ -18,8 +18,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..dynamics import lag_bank
-from ..rate_dependence import MAX_WIDENING_V, RATE_FILTERS_S, RATE_SCALES_V_S, TERM_COUNT
+from ...model.dynamics import lag_bank
+from ...model.rate_dependence import MAX_WIDENING_V, RATE_FILTERS_S, RATE_SCALES_V_S, TERM_COUNT
 from .base import Effect
 
 __all__ = ["Dynamics", "FAST_LAGS_S", "MAX_WIDENING_V", "EXTRA_START"]

@@ -14,7 +14,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..hysteresis import GPIM, inverse_problems
+from ...model.hysteresis import GPIM, inverse_problems
 from ..records import Record
 from .base import Effect, NotCompensable
 

@@ -14,7 +14,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..dynamics import lag_bank
+from ...model.dynamics import lag_bank
 from ..records import Record
 from .base import Effect, NotCompensable, normalised
 

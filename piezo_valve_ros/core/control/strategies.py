@@ -46,9 +46,9 @@ from typing import Optional
 
 
 from .compensation import CompensationModel, StaticInverse, reference_filters
-from .hysteresis import GPIM, NotInvertibleError
-from .rate_dependence import hysteresis_inverse, swap_inverse, take_over_state
-from .drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
+from ..model.hysteresis import GPIM, NotInvertibleError
+from ..model.rate_dependence import hysteresis_inverse, swap_inverse, take_over_state
+from ..model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 __all__ = ["STRATEGIES", "PIDGains", "ControllerConfig", "ValveController", "TABLE1_GAINS", "gain_set",
            "LOOP_SETTINGS", "loop_settings",

@@ -22,10 +22,10 @@ import numpy as np
 from scipy import linalg, optimize
 
 from .effects.base import Effect
-from .hysteresis import GPIM, GPIMParams
+from ..model.hysteresis import GPIM, GPIMParams
 from .records import Record, analysis_record
-from .valve_model import (PAPER_SECTION, REST, Context, InitialState, ValveModel, discretise_for, filter_at_rest, filter_rows_at_rest,
-                          unity_dc_poles)
+from ..model.dynamics import PAPER_SECTION, unity_dc_poles
+from .valve_model import REST, Context, InitialState, ValveModel, discretise_for, filter_at_rest, filter_rows_at_rest
 
 __all__ = ["uniform_thresholds", "partial_sum_basis", "solve_bounded", "solve_gram", "fit_model", "fit_dynamics", "refit_poles_with_effects", "BASIS_RIDGE",
            "fit_paper_gpim", "PaperFit", "DynamicsFit", "FitCache", "PARTIAL_SUM_FLOOR", "DYNAMICS_CONDITION_LIMIT", "POLE_STEP_LIMIT"]

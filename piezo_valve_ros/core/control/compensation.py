@@ -27,11 +27,11 @@ from typing import Any, Optional
 
 import numpy as np
 
-from .drive import COMMAND_MAX_V, COMMAND_MIN_V
-from .dynamics import PAPER_VALVE_MODEL, ContinuousTF, DiscreteFilter
-from .effects.saturation import TERM_COUNT, OutputMap
-from .hysteresis import GPIM, PAPER_GPIM, GPIMParams, inverse_problems
-from .rate_dependence import RATE_FILTERS_S, RATE_SCALES_V_S, TERM_COUNT as RATE_TERM_COUNT, widening_problems
+from ..model.drive import COMMAND_MAX_V, COMMAND_MIN_V
+from ..model.dynamics import PAPER_VALVE_MODEL, ContinuousTF, DiscreteFilter, sections
+from ..model.hysteresis import GPIM, PAPER_GPIM, GPIMParams, inverse_problems
+from ..model.output_map import TERM_COUNT, OutputMap
+from ..model.rate_dependence import RATE_FILTERS_S, RATE_SCALES_V_S, TERM_COUNT as RATE_TERM_COUNT, widening_problems
 from ..validation import as_bool, as_float, as_float_list, as_int
 
 __all__ = ["CreepModel", "OutputMap", "DynamicFeedforward", "CompensationModel", "StaticInverse", "reference_filters",
@@ -151,7 +151,6 @@ class DynamicFeedforward:
 
     def filter_poles(self) -> list[float]:
         """F's double poles omega_f [rad/s], one per section of G."""
-        from .valve_model import sections  # valve_model imports records and effects: keep this module light
         cap = FF_NYQUIST_SHARE * math.pi / self.dt
         return [min(FF_BANDWIDTH_RATIO * w, cap) for w, _ in sections(self.valve_model)]
 

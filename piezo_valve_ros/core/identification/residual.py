@@ -54,10 +54,11 @@ from threadpoolctl import threadpool_limits
 from .effects import CATALOGUE, Effect
 from .fitting import (BASIS_RIDGE, FitCache, fit_model, fit_paper_gpim, refit_poles_with_effects, with_poles,
                       uniform_thresholds)
-from .hysteresis import GPIM
+from ..model.hysteresis import GPIM
 from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, MIN_SAMPLES, SUPPORTED_RATE_HZ, IdentificationError, Record,
                       analysis_record, noise_floor_um, quality, split_held_out)
-from .valve_model import REST, InitialState, ValveModel, describe_dynamics, turning_points
+from ..model.dynamics import describe_dynamics
+from .valve_model import REST, InitialState, ValveModel, turning_points
 
 __all__ = ["analyse", "Analysis", "Split", "GAIN_THRESHOLD", "MIN_EFFECT_NOISE_RATIO", "UNEXPLAINED_NOISE_RATIO",
            "CAPACITY_OPERATORS", "HELD_OUT_FRACTION", "MID_CAPACITY"]

@@ -1,0 +1,123 @@
+"""The package's import graph: no cycle, the core ROS-free and pointing one way, nodes never reaching into a
+command-line tool.  Read from the source (every import, also those inside functions and under
+TYPE_CHECKING), so an arrow cannot hide in a lazy import."""
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = "piezo_valve_ros"
+ROOT = Path(__file__).resolve().parent.parent / PACKAGE
+
+# what each part of the core may import from the rest of the core (besides itself and the shared leaves)
+SHARED_LEAVES = {"core.metrics", "core.validation"}
+MAY_IMPORT = {
+    "core.model": set(),
+    "core.control": {"core.model"},
+    "core.sim": {"core.model", "core.control"},
+    "core.identification": {"core.model", "core.control"},
+    "core.tuning": {"core.model", "core.control", "core.sim"},
+    "core.runs": set(),
+    "core.evaluation": {"core.model", "core.control", "core.sim", "core.identification", "core.tuning"},
+}
+CLI_MODULES = {"identify_cli", "plot_cli", "tune_cli", "tool"}
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _graph() -> tuple[dict[str, set[str]], dict[str, set[str]]]:
+    """(module -> package modules it imports, module -> top-level names of everything it imports)."""
+    files = {_module_name(p): p for p in ROOT.rglob("*.py")}
+    edges, externals = {}, {}
+    for name, path in files.items():
+        package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+        found, outside = set(), set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = package[:len(package) - node.level + 1]
+                    target = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    target = node.module or ""
+                if target.split(".")[0] != PACKAGE:
+                    outside.add(target.split(".")[0])
+                    continue
+                for alias in node.names:
+                    candidate = f"{target}.{alias.name}"
+                    found.add(candidate if candidate in files else target)
+            elif isinstance(node, ast.Import):
+                for alias in node.names:
+                    (found if alias.name.split(".")[0] == PACKAGE else outside).add(
+                        alias.name if alias.name.split(".")[0] == PACKAGE else alias.name.split(".")[0])
+        edges[name] = {t for t in found if t in files and t != name}
+        externals[name] = outside
+    return edges, externals
+
+
+EDGES, EXTERNALS = _graph()
+
+
+def _short(module: str) -> str:
+    return module[len(PACKAGE) + 1:] if module.startswith(PACKAGE + ".") else module
+
+
+def _part(module: str) -> str:
+    """The part of the core a module belongs to (core.model, core.runs, ...)."""
+    return ".".join(_short(module).split(".")[:2])
+
+
+def test_the_graph_is_read():
+    assert len(EDGES) > 40
+    assert f"{PACKAGE}.core.model.hysteresis" in EDGES[f"{PACKAGE}.core.control.compensation"]
+
+
+def test_no_import_cycle():
+    index, low, stack, on_stack, cycles = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in EDGES[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(_short(w))
+                if w == v:
+                    break
+            if len(component) > 1:
+                cycles.append(sorted(component))
+
+    for v in EDGES:
+        if v not in index:
+            visit(v)
+    assert cycles == []
+
+
+@pytest.mark.parametrize("module", sorted(m for m in EDGES if _short(m).startswith("core")))
+def test_the_core_is_ros_free_and_points_one_way(module):
+    assert not EXTERNALS[module] & {"rclpy", "std_msgs", "diagnostic_msgs", "rosbags", "matplotlib"}, EXTERNALS[module]
+    part = _part(module)
+    for target in EDGES[module]:
+        other = _part(target)
+        assert _short(target).startswith("core"), f"{_short(module)} imports {_short(target)} from outside the core"
+        if other in (part, "core") or other in SHARED_LEAVES:
+            continue
+        if part in MAY_IMPORT:
+            assert other in MAY_IMPORT[part], f"{_short(module)} ({part}) imports {_short(target)} ({other})"
+
+
+def test_nodes_never_import_a_command_line_tool():
+    for module, targets in EDGES.items():
+        if _short(module).startswith("nodes"):
+            assert not {_short(t) for t in targets} & CLI_MODULES, (module, targets)
