@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from piezo_valve_ros.core.hysteresis import (GPIM, GPIMParams, InverseGPIM, NotInvertibleError, PAPER_GPIM,
+from piezo_valve_ros.core.model.hysteresis import (GPIM, GPIMParams, InverseGPIM, NotInvertibleError, PAPER_GPIM,
                                              PlayOperatorBank, play_batch, inverse_problems)
 
 
@@ -155,7 +155,7 @@ def _play_by_definition(lower, upper, r, z0, scale=None):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_play_batch_with_widening_and_scaled_thresholds_matches_the_definition(seed):
-    from piezo_valve_ros.core.hysteresis import play_batch
+    from piezo_valve_ros.core.model.hysteresis import play_batch
     rng = np.random.default_rng(seed)
     v = np.cumsum(rng.standard_normal(4000)) * 0.3
     r = np.linspace(0, 3, 7)
@@ -173,7 +173,7 @@ def test_play_batch_with_widening_and_scaled_thresholds_matches_the_definition(s
 def test_last_contact_gives_the_exact_sensitivities():
     """dH/dtheta from the last contacts equals central finite differences, for the descending envelope
     (asymmetry) and for thresholds widened by a rate term (rate dependence)."""
-    from piezo_valve_ros.core.hysteresis import last_contact, play_batch
+    from piezo_valve_ros.core.model.hysteresis import last_contact, play_batch
     rng = np.random.default_rng(4)
     v = np.cumsum(rng.standard_normal(5000)) * 0.3
     r = np.linspace(0, 3, 9)
@@ -203,8 +203,8 @@ def test_last_contact_gives_the_exact_sensitivities():
 @pytest.mark.parametrize("method, delay", [("zoh", 0.0), ("foh", 0.0), ("foh", 5e-5)])
 def test_closed_form_discretisation_matches_scipy(method, delay):
     from scipy import signal
-    from piezo_valve_ros.core.dynamics import ContinuousTF, PAPER_VALVE_MODEL, discretise
-    from piezo_valve_ros.core.valve_model import unity_dc_poles
+    from piezo_valve_ros.core.model.dynamics import ContinuousTF, PAPER_VALVE_MODEL, discretise
+    from piezo_valve_ros.core.model.dynamics import unity_dc_poles
     x = np.random.default_rng(0).standard_normal(3000).cumsum()
     for tf in (PAPER_VALVE_MODEL, unity_dc_poles([(1095.0, 1.32), (3000.0, 0.2)]), ContinuousTF((1.0,), (0.03, 1.0))):
         num, den = np.asarray(tf.num), np.asarray(tf.den)
@@ -213,6 +213,25 @@ def test_closed_form_discretisation_matches_scipy(method, delay):
         b0, a0, _ = signal.cont2discrete((num, den), 5e-4, method=method)
         b1, a1 = discretise(tf, 5e-4, method, delay)
         assert np.max(np.abs(signal.lfilter(np.squeeze(b0), a0, x) - signal.lfilter(b1, a1, x))) < 1e-8
+
+
+def test_discretisation_of_a_repeated_pole_pair_keeps_unity_dc_gain():
+    """Two equal critically damped pairs (a feedforward target whose poles both sit at the Nyquist cap): a
+    4-fold pole, which np.roots splits by ~1e-4; partial fractions over it gave a DC gain of 8e6 and a
+    controller banging between its rails.  The sampled filter matches scipy's and has unity DC gain."""
+    from scipy import signal
+    from piezo_valve_ros.core.control.compensation import DynamicFeedforward
+    from piezo_valve_ros.core.model.dynamics import ContinuousTF, discretise, unity_dc_poles
+    wf = 1570.8
+    quad = ContinuousTF((wf ** 4,), tuple(np.polymul([1.0, 2 * wf, wf * wf], [1.0, 2 * wf, wf * wf])))
+    b, a = discretise(quad, 1e-3)
+    b0, a0, _ = signal.cont2discrete((quad.num, quad.den), 1e-3, method="zoh")
+    np.testing.assert_allclose(b, np.squeeze(b0), atol=1e-12)
+    assert np.sum(b) / np.sum(a) == pytest.approx(1.0, abs=1e-9)
+    # a fitted G with a second section far above the 1 kHz controller's reach: W stays a unity-DC filter
+    w, f = DynamicFeedforward(unity_dc_poles([(1230.7, 1.46), (62831.9, 2.42)]), 1e-3).filters()
+    assert np.sum(w.b) / np.sum(w.a) == pytest.approx(1.0, abs=1e-9)
+    assert np.sum(f.b) / np.sum(f.a) == pytest.approx(1.0, abs=1e-9)
 
 
 @pytest.mark.parametrize("phase", [0.3, 2.0, 4.0])  # starts rising, near the top, falling
@@ -267,7 +286,7 @@ def test_envelopes_that_cross_are_inverted_exactly_step_by_step():
     """Issue 11.2: a descending envelope below the ascending one on part of the range has no closed-form
     inverse (InverseGPIM refuses it, saying where), but the per-step solve inverts it to rounding over long
     random admissible demands, linear and curved, after a reset, a state take-over and a model update."""
-    from piezo_valve_ros.core.hysteresis import MonotoneInverseGPIM, dead_band_problems, inverse_gpim
+    from piezo_valve_ros.core.model.hysteresis import MonotoneInverseGPIM, dead_band_problems, inverse_gpim
     crossing = asymmetric(0.95 / 0.9647, 0.2 - 0.1014)      # U < L above 6.7 V
     assert "below the ascending one from 6.7" in dead_band_problems(crossing)[0]
     assert not inverse_problems(crossing)
@@ -307,11 +326,11 @@ def test_ol_hc_with_the_asymmetric_inverse_tracks_an_asymmetric_valve_exactly():
     """The controller's feedforward on an ideal simulated valve (hysteresis only, no G_v) with separate
     envelopes: the exact asymmetric inverse tracks to rounding, the symmetric model does not."""
     from dataclasses import replace
-    from piezo_valve_ros.core.experiments import run_closed_loop
-    from piezo_valve_ros.core.signals import validation_reference_m
-    from piezo_valve_ros.core.simulator import SimulatedValve, ValveSimConfig
-    from piezo_valve_ros.core.compensation import CompensationModel
-    from piezo_valve_ros.core.strategies import ControllerConfig, ValveController
+    from piezo_valve_ros.core.sim.experiments import run_closed_loop
+    from piezo_valve_ros.core.sim.signals import validation_reference_m
+    from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
+    from piezo_valve_ros.core.control.compensation import CompensationModel
+    from piezo_valve_ros.core.control.strategies import ControllerConfig, ValveController
     model = asymmetric()
     sim_config = replace(ValveSimConfig().ideal(), dynamics_enabled=False,
                          descending_envelope=(model.b0, model.b1))
@@ -327,8 +346,8 @@ def test_ol_hc_with_the_asymmetric_inverse_tracks_an_asymmetric_valve_exactly():
 def test_the_turning_points_of_a_path_leave_the_operators_as_the_whole_path_does():
     """``InitialState`` keeps only where an input path turned: the states after it are the same, for a
     symmetric and an asymmetric GPIM."""
-    from piezo_valve_ros.core.hysteresis import GPIM
-    from piezo_valve_ros.core.valve_model import InitialState, turning_points
+    from piezo_valve_ros.core.model.hysteresis import GPIM
+    from piezo_valve_ros.core.identification.valve_model import InitialState, turning_points
     g = PAPER_GPIM.model()
     asymmetric = GPIM(g.thresholds, g.weights, g.a0, g.a1, g.offset_um, 1.1, 0.3, 0.01)
     rng = np.random.default_rng(3)
