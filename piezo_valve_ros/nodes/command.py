@@ -21,12 +21,11 @@ import re
 import sys
 
 import numpy as np
-import rclpy
 import yaml
 
 from ..core.sim.signals import load_profile, ramp_profile, sine_profile
 from .client import RigClient, run_in_background
-from .common import init_ros, stop_requested
+from .common import close, init_ros, split_ros_args, stop_requested
 
 PROFILE_HISTORY = 10_000   # references kept for readers that fall behind (the nodes keep 10)
 
@@ -156,9 +155,8 @@ def run(args, client: RigClient, request, out=sys.stdout) -> int:
 
 
 def main(argv=None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    ros_args = argv[argv.index("--ros-args"):] if "--ros-args" in argv else []
-    args = parse_args(argv[:len(argv) - len(ros_args)])
+    own, ros_args = split_ros_args(sys.argv[1:] if argv is None else argv)
+    args = parse_args(own)
     try:  # bad input is refused before touching ROS
         request = checked_request(args)
     except (ValueError, OSError) as exc:
@@ -175,10 +173,7 @@ def main(argv=None) -> int:
     finally:
         stop.set()
         thread.join(2.0)
-        executor.remove_node(client)
-        client.destroy_node()
-        executor.shutdown()
-        rclpy.try_shutdown()
+        close([client], executor)
 
 
 if __name__ == "__main__":

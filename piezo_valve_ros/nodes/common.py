@@ -215,6 +215,32 @@ def stop_requested() -> bool:
     return _STOP_REQUESTED.requested
 
 
+def split_ros_args(argv) -> tuple[list[str], list[str]]:
+    """(a tool's own arguments, ``--ros-args`` and everything after it: ROS's)."""
+    argv = list(argv)
+    cut = argv.index("--ros-args") if "--ros-args" in argv else len(argv)
+    return argv[:cut], argv[cut:]
+
+
+def close(nodes=(), executor=None) -> None:
+    """End a ROS session: each node out of the executor and destroyed, the executor shut down, then rclpy;
+    every step runs even if an earlier one fails (a session ends once, whatever broke it)."""
+    for node in nodes:
+        try:
+            if executor is not None:
+                executor.remove_node(node)
+            node.destroy_node()
+        except Exception:
+            pass
+    if executor is not None:
+        try:
+            executor.shutdown()
+        except Exception:
+            pass
+    if rclpy.ok():
+        rclpy.try_shutdown()
+
+
 def spin(nodes, on_exit: Optional[Callable[[], None]] = None, executor=None) -> int:
     """Spin until shutdown (Ctrl-C / SIGTERM); ``on_exit`` runs whatever ends the loop.
 
@@ -237,15 +263,7 @@ def spin(nodes, on_exit: Optional[Callable[[], None]] = None, executor=None) -> 
         _ignore_signals_while_cleaning_up()
         if on_exit is not None:
             on_exit()
-        for node in nodes:
-            executor.remove_node(node)
-            node.destroy_node()
-        try:
-            executor.shutdown()
-        except Exception:
-            pass
-        if rclpy.ok():
-            rclpy.try_shutdown()
+        close(nodes, executor)
     return code
 
 
@@ -262,10 +280,8 @@ def _ignore_signals_while_cleaning_up() -> None:
 def wants_help(args=None) -> bool:
     """``-h``/``--help`` before any ``--ros-args`` (what follows those belongs to ROS)."""
     import sys
-    argv = list(sys.argv[1:] if args is None else args)
-    if "--ros-args" in argv:
-        argv = argv[:argv.index("--ros-args")]
-    return "-h" in argv or "--help" in argv
+    own, _ = split_ros_args(sys.argv[1:] if args is None else args)
+    return "-h" in own or "--help" in own
 
 
 def print_help(name: str, doc: Optional[str]) -> None:
@@ -292,6 +308,6 @@ def run_node(factory: Callable[[], Node], name: str, args=None, on_exit_of=None)
         node = factory()
     except Exception as exc:
         print(f"{name}: {exc}", file=sys.stderr)
-        rclpy.try_shutdown()
+        close()
         return 2
     return spin([node], on_exit=on_exit_of(node) if on_exit_of else None)

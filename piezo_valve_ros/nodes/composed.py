@@ -13,10 +13,8 @@ from __future__ import annotations
 
 import sys
 
-import rclpy
-
 from ..processes import die_with_parent
-from .common import init_ros, print_help, spin, wants_help
+from .common import close, init_ros, print_help, spin, wants_help
 from .controller import ValveControllerNode
 from .hardware import ValveHardwareNode
 
@@ -54,7 +52,7 @@ def main(args=None) -> int:
         hardware, controller = build()
     except Exception as exc:
         print(f"valve_composed: {exc}", file=sys.stderr)
-        rclpy.try_shutdown()
+        close()
         return 2
     return spin([hardware, controller], on_exit=hardware.shutdown_safely)
 

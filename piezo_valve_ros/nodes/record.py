@@ -22,7 +22,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 
 from ..bagio import STORAGES, BagError, read_samples
-from .common import init_ros, spin_loop, stop_requested
+from .common import close, init_ros, spin_loop, split_ros_args, stop_requested
 from .recording import RigRecorder
 
 NO_RIG_WARNING_S = 5.0   # warn when nothing publishes the rig's topics this long after start
@@ -70,9 +70,8 @@ def summary_line(path: Path, elapsed_s: float, counts: dict[str, int]) -> str:
 
 
 def main(argv=None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    ros_args = argv[argv.index("--ros-args"):] if "--ros-args" in argv else []
-    args = parse_args(argv[:len(argv) - len(ros_args)])
+    own, ros_args = split_ros_args(sys.argv[1:] if argv is None else argv)
+    args = parse_args(own)
     if args.duration is not None and not args.duration > 0:
         print(f"valve_record: --duration must be > 0, got {args.duration}", file=sys.stderr)
         return 2
@@ -108,10 +107,7 @@ def main(argv=None) -> int:
     finally:
         counts = recorder.stop()
         elapsed = time.monotonic() - started
-        executor.remove_node(node)
-        node.destroy_node()
-        executor.shutdown()
-        rclpy.try_shutdown()
+        close([node], executor)
     print(summary_line(out, elapsed, counts), flush=True)
     return 0
 

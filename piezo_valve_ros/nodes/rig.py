@@ -24,6 +24,7 @@ from ..core.sim.signals import PAPER_STEPS_UM
 from ..core.sim.simulator import ValveSimConfig
 from ..processes import ProcessGroup, node_command
 from .client import RigClient, run_in_background
+from .common import close
 
 
 # ---------------------------------------------------------------------------- demo
@@ -182,16 +183,7 @@ def main(argv=None) -> int:
         if hardware is not None:
             hardware.shutdown_safely()
         procs.stop()
-        for n in nodes:
-            try:
-                if executor is not None:
-                    executor.remove_node(n)
-                n.destroy_node()
-            except Exception:
-                pass
-        if executor is not None:
-            executor.shutdown()
-        rclpy.try_shutdown()
+        close(nodes, executor)
     return code
 
 
