@@ -207,6 +207,7 @@ def test_a_model_swap_to_saturation_and_dynamics_is_bumpless():
         assert abs(v[2000] - v[1999]) < max(3 * usual, 0.01), strategy
 
 
+@pytest.mark.slow
 def test_identify_compensate_track_halves_the_ol_hc_error_on_a_saturating_valve():
     """The whole loop on one of the battery table's valves (shorter): the extended model (creep and the end
     flattening found, inverted, dynamic feedforward on) at least halves OL HC's held-out RMS error against

@@ -347,6 +347,7 @@ def test_a_simulated_valve_with_an_unrecorded_pre_history_adds_nothing(pre_histo
         assert 9.0 <= turning <= 11.0, start["before_the_record"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("strategy, gains", [("pid", PIDGains(0.5992, 237.2552, 0.0)),
                                              ("pid_hc", PIDGains(0.4823, 213.8982, 0.0))])
 def test_a_closed_loop_record_of_a_nominal_valve_adds_nothing(strategy, gains):
@@ -372,6 +373,7 @@ def test_a_closed_loop_record_of_a_nominal_valve_adds_nothing(strategy, gains):
     assert report["final"]["validate"]["peak_um"] < 1.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("strategy, gains", [("pid", PIDGains(0.5992, 237.2552, 0.0)),
                                              ("pid_hc", PIDGains(0.4823, 213.8982, 0.0))])
 def test_a_closed_loop_record_of_a_creeping_valve_names_creep(strategy, gains):
@@ -417,6 +419,7 @@ def test_a_150_v_drive_is_judged_in_its_own_volts(case, held_out):
     assert_every_name_is_supported(report)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("held_out", [False, True])
 def test_a_mild_additive_rate_dependence_is_named_dynamics(held_out):
     """Thresholds a few hundredths of a volt wider at the training rates (a form unlike the catalogue's
@@ -430,6 +433,7 @@ def test_a_mild_additive_rate_dependence_is_named_dynamics(held_out):
     assert_every_name_is_supported(report)
 
 
+@pytest.mark.slow
 def test_the_report_does_not_depend_on_the_number_of_threads():
     """Refits run on a thread pool; the judgement and every figure must be the same on one thread."""
     train, validate = records("masking pair: creep + drift")

@@ -38,6 +38,7 @@ def bags_10khz(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 def test_report_parameters_and_plots_from_10khz_bags(bags_10khz, tmp_path):
     out = run_cli(bags_10khz / "train", "--validate", bags_10khz / "validate", "--report", tmp_path / "report.json",
                   "--params-out", tmp_path / "fitted.yaml", "--plots", tmp_path / "plots")
@@ -63,6 +64,7 @@ def test_report_parameters_and_plots_from_10khz_bags(bags_10khz, tmp_path):
     assert "held-out rms" in out.stdout and "at the record's rate (10000 Hz)" in out.stdout
 
 
+@pytest.mark.slow
 def test_outputs_are_written_together_or_not_at_all(bags_10khz, tmp_path):
     report = tmp_path / "report.json"
     report.write_text("old report\n")
@@ -97,6 +99,7 @@ def _one_error_line(out, *needles):
         assert n in lines[0], lines[0]
 
 
+@pytest.mark.slow
 def test_bad_input_ends_with_one_clear_line_and_keeps_the_last_good_parameters(tmp_path):
     good = tmp_path / "fitted.yaml"
     good.write_text("# last good parameters\n")
@@ -256,6 +259,7 @@ def _segmented_bag(path, rows, storage, messages_per_segment=5, batch=1000):
     rec.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
 def test_a_bag_with_one_damaged_segment_is_read_from_the_intact_ones_and_says_what_it_left_out(tmp_path, storage):
     rows = simulate_rows(identification_voltage(1e-3, 30.0), ValveSimConfig(dt=1e-3, seed=4))

@@ -235,6 +235,7 @@ def test_direct_link_needs_the_realtime_clock(ros_context):
         hw.destroy_node()
 
 
+@pytest.mark.slow
 def test_realtime_hardware_process_watchdog_and_sigterm(ros_context, tmp_path):
     """valve_hardware on the wall clock at 10 kHz in its own process: commands apply, the watchdog
     puts it on safe_voltage within command_timeout_s plus a period, SIGTERM ends it cleanly."""

@@ -4,6 +4,7 @@ import os
 import subprocess
 
 import numpy as np
+import pytest
 import yaml
 
 from ros_helpers import ros_env, start
@@ -15,6 +16,7 @@ PERIOD = 1e-3  # 1 kHz control, 10 kHz sampling
 PERTURBED = {"sim.gpim.rho": 6.6, "sim.gpim.tau": 1.0, "sim.gpim.offset_um": -75.0}  # not the paper's valve
 
 
+@pytest.mark.slow
 def test_identification_refits_pushes_and_cuts_the_ol_hc_error(tmp_path):
     ns = f"/ident{os.getpid()}"
     group = ProcessGroup()
@@ -80,6 +82,7 @@ def test_refit_without_data_fails_cleanly_and_keeps_the_parameters_file(tmp_path
     assert good.read_text() == "# last good parameters\n"
 
 
+@pytest.mark.slow
 def test_bad_plan_is_rejected_with_one_line(tmp_path):
     out = subprocess.run(node_command("valve_identification", {"plan": "train,dance"}, f"/bad{os.getpid()}"),
                          env=ros_env(), capture_output=True, text=True, timeout=60)

@@ -71,6 +71,7 @@ def this_rig_rows(client):
     return rows[np.flatnonzero(rows[:, 0] == 0.0)[-1]:]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("strategy", STRATEGIES)
 def test_step_through_ros_equals_in_process(ros, procs, tmp_path, strategy):
     a, b = -17.5, 35.0
@@ -99,6 +100,7 @@ def test_step_through_ros_equals_in_process(ros, procs, tmp_path, strategy):
     assert abs(m_ros.overshoot_pct - m_core.overshoot_pct) < 0.05
 
 
+@pytest.mark.slow
 def test_strategy_switch_over_parameters_is_bumpless_and_bad_updates_rejected(ros, procs, tmp_path):
     start_rig(procs, tmp_path, ros.get_namespace(), ctl={"gain_set": "", "strategy": "pid", "kp": 1, "ki": 474})  # ints accepted
     ros.wait_ready()
@@ -119,6 +121,7 @@ def test_strategy_switch_over_parameters_is_bumpless_and_bad_updates_rejected(ro
     assert "rejected parameter update" in log and "bang_bang" in log
 
 
+@pytest.mark.slow
 def test_watchdog_applies_safe_voltage_when_controller_dies(ros, procs, tmp_path):
     timeout = 0.3
     start_rig(procs, tmp_path, ros.get_namespace(), hw={"command_timeout_s": timeout, "safe_voltage": 5.0})
@@ -182,12 +185,14 @@ def run_rig_until_signal(tmp_path, args, sig, run_s=0.5) -> str:
             pass
 
 
+@pytest.mark.slow
 def test_sigterm_to_rig_leaves_no_process(tmp_path):
     text = run_rig_until_signal(tmp_path, ["--clock", "realtime", "--control-period-s", "0.001"], signal.SIGTERM)
     assert "safe_voltage 5.0 V applied" in text
     assert "FATAL" not in text and "Traceback" not in text and "Error occurred" not in text, text
 
 
+@pytest.mark.slow
 def test_sigterm_to_a_lockstep_rig_stops_every_node_without_a_stack_trace(tmp_path):
     """Lockstep runs flat out: a signal lands inside a callback nearly every time (it used to print
     "[FATAL] Exception in 'subscriptions' callback" with a trace).  The shutdown line says what lockstep
@@ -198,6 +203,7 @@ def test_sigterm_to_a_lockstep_rig_stops_every_node_without_a_stack_trace(tmp_pa
     assert line and "periods/s" in line[0] and "commands in time" not in line[0]
 
 
+@pytest.mark.slow
 def test_nodes_die_with_a_rig_killed_by_sigkill(tmp_path):
     """SIGKILL gives the rig no chance to stop its children: they get SIGTERM from the kernel
     (PR_SET_PDEATHSIG), apply the safe voltage and exit."""
@@ -249,6 +255,7 @@ def _demo_table(text: str) -> list[tuple[float, ...]]:
     return rows
 
 
+@pytest.mark.slow
 def test_step_demo_prints_the_same_table_in_separate_processes_and_composed(tmp_path):
     """The main job (`valve_rig`): the paper's three steps, settling time and overshoot, identical
     whether the nodes run in separate processes or composed in one."""
@@ -265,6 +272,7 @@ def test_step_demo_prints_the_same_table_in_separate_processes_and_composed(tmp_
     assert tables[0] == tables[1]
 
 
+@pytest.mark.slow
 def test_step_demo_counts_control_periods_not_sample_rows():
     """At 2 ms a control period holds 20 samples: settling times and the period count are in periods; the rig
     runs in the namespace it is given."""
@@ -287,6 +295,7 @@ def test_composed_realtime_rig_runs_and_stops_on_sigint(tmp_path):
     assert line and "(nominal 10000 Hz)" in line[0] and "unanswered 0, late 0" in line[0]
 
 
+@pytest.mark.slow
 def test_a_loop_with_two_periods_of_delay_is_caught_by_the_guard_through_ros(ros, procs, tmp_path):
     """A sensor (or transport) delay of two control periods makes PID HC 5 at 1 kHz oscillate rail to rail
     (the +-60 um swings a busy computer produced).  Through the ROS graph, in lockstep (deterministic): the

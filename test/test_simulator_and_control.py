@@ -85,6 +85,7 @@ def _ol_hc_training_error(sim_config):
     return err
 
 
+@pytest.mark.slow
 def test_ol_hc_training_error_clean_and_with_default_effects():
     clean = replace(ValveSimConfig(), creep=CreepParams(enabled=False),
                     sensor=SensorParams(noise_enabled=False, quantisation_enabled=False))

@@ -79,6 +79,7 @@ def test_dropped_sample_rows_are_counted_from_the_time_column():
     assert dropped_sample_rows(np.delete(t, np.r_[100:150, 700])) == 51
 
 
+@pytest.mark.slow
 def test_tools_refuse_bad_arguments_before_touching_ros(tmp_path):
     for args, says in [(("sine", "--amplitude", "1e-5", "--frequency", "500", "--duration", "1"), "frequency"),
                        (("set", "controller", "kp"), "expected NAME:=VALUE"),
@@ -108,6 +109,7 @@ def test_tools_refuse_bad_arguments_before_touching_ros(tmp_path):
 
 
 # ---------------------------------------------------------------------------- through a running rig
+@pytest.mark.slow
 def test_record_command_and_identify_a_running_rig(tmp_path):
     """A real-time rig in its own namespace; valve_record records while valve_command sends a step and a
     sine and changes parameters; the bag holds what was sent and what the valve did, and valve_identify
@@ -206,6 +208,7 @@ def plugin_env() -> dict:
     return env
 
 
+@pytest.mark.slow
 def test_an_out_of_tree_backend_runs_the_rig(tmp_path):
     """A backend installed by another package (found through the entry-point group piezo_valve_ros.backends)
     runs the rig with no change to this package: its parameters are declared under its name and checked by

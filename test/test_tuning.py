@@ -62,6 +62,7 @@ def test_margins_cover_the_hysteresis_slope_range_and_the_delay():
         pytest.approx(PAPER.valve_model.frequency_response([0.5]))
 
 
+@pytest.mark.slow
 def test_tuned_gains_meet_the_limits_and_hold_on_a_valve_table1_does_not_fit():
     model = CompensationModel(valve_model=SLOW.valve_model)
     limits = TuningLimits(max_overshoot_pct=2.0)
@@ -252,6 +253,7 @@ def default_valve_identified():
     return sim, compensation(simulated_analysis(sim, log=lambda s: None)).controller_model
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("strategy", ["pid_hc", "pid"])
 def test_identify_tune_and_beat_table1_on_the_default_valve(strategy, default_valve_identified):
     """The issue's loop end to end at the rig's 1 kHz: identify the default simulated valve (creep, flattening,
