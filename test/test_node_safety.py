@@ -442,3 +442,36 @@ def test_identification_settings_are_start_up_only(identification, name, value):
     assert not result.successful and "read-only" in result.reason.lower()
     assert node.get_parameter(name).value == before or (before != before and value != value)
     assert node.tune_limits.max_overshoot_pct == 0.0 and node.tune_strategy == "pid_hc"
+
+
+@pytest.mark.parametrize("executable, module", [("valve_hardware", "hardware"), ("valve_controller", "controller"),
+                                                ("valve_identification", "identification")])
+def test_help_lists_every_parameter_of_the_one_declaration_the_node_uses(executable, module, hardware, controller):
+    """Each node declares its parameters from one tuple of ParameterSpec; --help prints each with its type,
+    default and range; the handbook's tables are written from the same tuples and are up to date."""
+    import importlib
+    specs = getattr(importlib.import_module(f"piezo_valve_ros.nodes.{module}"), f"{module.upper()}_PARAMETERS")
+    exe = os.path.join(os.path.dirname(sys.executable), executable)
+    text = subprocess.run([exe, "--help"], env=ros_env(), capture_output=True, text=True, timeout=60).stdout
+    for s in specs:
+        assert f"  {s.name} ({s.type_name}, default {s.default!r}" in text, s.name
+        if s.read_only:
+            assert s.help_line().splitlines()[0] in text
+    if module != "identification":   # in-process: what the node declared is that tuple, read-only flags too
+        node = {"hardware": hardware, "controller": controller}[module]()
+        for s in specs:
+            descriptor = node.describe_parameter(s.name)
+            assert descriptor.read_only == s.read_only and descriptor.description == s.description, s.name
+    script = os.path.join(os.path.dirname(__file__), "..", "scripts", "parameter_tables.py")
+    check = subprocess.run([sys.executable, script, "--check"], capture_output=True, text=True, timeout=60)
+    assert check.returncode == 0, check.stderr
+
+
+def test_every_node_shares_the_one_control_period_declaration():
+    from piezo_valve_ros.nodes.common import CONTROL_PERIOD
+    from piezo_valve_ros.nodes.controller import CONTROLLER_PARAMETERS
+    from piezo_valve_ros.nodes.hardware import HARDWARE_PARAMETERS
+    from piezo_valve_ros.nodes.identification import IDENTIFICATION_PARAMETERS
+    for specs in (HARDWARE_PARAMETERS, CONTROLLER_PARAMETERS, IDENTIFICATION_PARAMETERS):
+        assert [s for s in specs if s.name == "control_period_s"] == [CONTROL_PERIOD]
+        assert len({s.name for s in specs}) == len(specs)   # declared once each

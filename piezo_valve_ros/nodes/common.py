@@ -21,6 +21,8 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from ..samples import SAMPLES_LABEL, decode_samples
 from ..core.validation import as_float, as_float_list, as_int  # noqa: F401  (the nodes' validators)
 
+MAX_CONTROL_PERIOD_S = 0.1      # slower than 10 Hz is no control loop for this valve
+
 SENSOR_QOS = qos_profile_sensor_data  # spool_position: best effort, keep last
 LATEST_SENSOR_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST,
                                durability=DurabilityPolicy.VOLATILE)  # a reader that wants only the newest sample
@@ -51,17 +53,71 @@ def declare(node: Node, name: str, default: Any, description: str, *, read_only:
     return node.declare_parameter(name, default, descriptor)
 
 
-def declare_realtime(node: Node) -> None:
+@dataclass(frozen=True)
+class ParameterSpec:
+    """One node parameter, declared once: the node declares it from here (typed descriptor, range, read-only),
+    ``--help`` lists it, and the handbook's parameter tables are written from it
+    (``scripts/parameter_tables.py``).  ``low``/``high``: the admissible range of a number, where it has one."""
+
+    name: str
+    default: Any
+    description: str
+    read_only: bool = False
+    low: Optional[float] = None
+    high: Optional[float] = None
+
+    @property
+    def type_name(self) -> str:
+        d = self.default
+        if isinstance(d, bool):
+            return "bool"
+        if isinstance(d, str):
+            return "string"
+        if isinstance(d, int):
+            return "integer"
+        if isinstance(d, (list, tuple)):
+            return "double array"
+        return "double"
+
+    def range_text(self) -> str:
+        if self.low is None and self.high is None:
+            return ""
+        return f"{'' if self.low is None else format(self.low, 'g')}..{'' if self.high is None else format(self.high, 'g')}"
+
+    def help_line(self) -> str:
+        extras = [self.type_name, f"default {self.default!r}"]
+        if self.range_text():
+            extras.append(f"range {self.range_text()}")
+        if self.read_only:
+            extras.append("read-only")
+        return f"  {self.name} ({', '.join(extras)})\n      {self.description}"
+
+
+CONTROL_PERIOD = ParameterSpec(
+    "control_period_s", 1e-3, "control period [s]: one spool_position and one command per period (a whole number "
+    "of the hardware's sample periods); every node of a rig must use the same", read_only=True,
+    low=0.0, high=MAX_CONTROL_PERIOD_S)
+
+
+def realtime_specs() -> tuple[ParameterSpec, ...]:
     """The read-only ``realtime.*`` scheduling parameters of a real-time node (see :mod:`..realtime`)."""
     from ..realtime import DEFAULT_SWITCH_INTERVAL_S, PRIORITY_RANGE, SWITCH_INTERVAL_RANGE_S
     lo, hi = SWITCH_INTERVAL_RANGE_S
-    declare(node, "realtime.switch_interval_s", DEFAULT_SWITCH_INTERVAL_S,
-            "CPython's GIL switch interval in this process [s] (the interpreter's default 5 ms lets another "
-            "thread, e.g. DDS's, hold it for several control periods)", read_only=True, low=lo, high=hi)
-    declare(node, "realtime.priority", 0, f"SCHED_FIFO priority of the process's threads "
-            f"({PRIORITY_RANGE[0]}..{PRIORITY_RANGE[1]}; 0 = the normal scheduler); refused at start-up when "
-            "the OS does not allow it", read_only=True)
-    declare(node, "realtime.cpus", [], "CPUs the process may run on (e.g. [1]; empty = any)", read_only=True)
+    return (
+        ParameterSpec("realtime.switch_interval_s", DEFAULT_SWITCH_INTERVAL_S,
+                      "CPython's GIL switch interval in this process [s] (the interpreter's default 5 ms lets another "
+                      "thread, e.g. DDS's, hold it for several control periods)", read_only=True, low=lo, high=hi),
+        ParameterSpec("realtime.priority", 0, "SCHED_FIFO priority of the process's threads (0 = the normal "
+                      f"scheduler; {PRIORITY_RANGE[0]}..{PRIORITY_RANGE[1]}); refused at start-up when the OS does not "
+                      "allow it", read_only=True),
+        ParameterSpec("realtime.cpus", [], "CPUs the process may run on (e.g. [1]; empty = any)", read_only=True),
+    )
+
+
+def declare_all(node: Node, specs) -> None:
+    """Declare every parameter of ``specs`` on ``node`` (:func:`declare`)."""
+    for s in specs:
+        declare(node, s.name, s.default, s.description, read_only=s.read_only, low=s.low, high=s.high)
 
 
 def realtime_settings(p: dict):
@@ -284,15 +340,18 @@ def wants_help(args=None) -> bool:
     return "-h" in own or "--help" in own
 
 
-def print_help(name: str, doc: Optional[str]) -> None:
-    """What a node executable prints for ``--help`` (it does not start the node)."""
+def print_help(name: str, doc: Optional[str], specs=()) -> None:
+    """What a node executable prints for ``--help`` (it does not start the node): usage, its docstring and
+    every parameter of ``specs`` with type, default, range and whether it is read-only."""
     print(f"usage: {name} [--ros-args [-p NAME:=VALUE]... [--params-file FILE] [-r __ns:=/NAMESPACE]]\n")
     print((doc or "").strip())
-    print("\nParameters, their units, ranges and whether they can change at run time: README.md ('Interface'), "
-          f"or on a running node `ros2 param describe /{name} NAME`.")
+    if specs:
+        print("\nparameters (read-only ones are taken at start-up only):")
+        for s in specs:
+            print(s.help_line())
 
 
-def run_node(factory: Callable[[], Node], name: str, args=None, on_exit_of=None) -> int:
+def run_node(factory: Callable[[], Node], name: str, args=None, on_exit_of=None, specs=()) -> int:
     """Console-script body: init, build the node (one clear line and exit 2 if that fails), spin.
 
     ``on_exit_of(node)`` gives the callable run when spinning ends (e.g. apply safe_voltage).
@@ -300,7 +359,7 @@ def run_node(factory: Callable[[], Node], name: str, args=None, on_exit_of=None)
     import sys
     from ..processes import die_with_parent
     if wants_help(args):
-        print_help(name, sys.modules[getattr(factory, "__module__", __name__)].__doc__)
+        print_help(name, sys.modules[getattr(factory, "__module__", __name__)].__doc__, specs)
         return 0
     die_with_parent()
     init_ros(args)

@@ -30,8 +30,8 @@ from ..core.model.rate_dependence import describe_inverse, solved_each_step
 from ..core.sim.signals import ReferenceRamp
 from ..core.control.strategies import (GUARD_WINDOW_S, STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set,
                                loop_settings)
-from .common import (COMMAND_QOS, LATEST_SENSOR_QOS, SAMPLES_QOS, as_float,
-                     declare, declare_realtime, parameter_values, realtime_settings, refuse, run_node, samples_from_message)
+from .common import (CONTROL_PERIOD, COMMAND_QOS, LATEST_SENSOR_QOS, SAMPLES_QOS, ParameterSpec, as_float, declare_all,
+                     parameter_values, realtime_settings, realtime_specs, refuse, run_node, samples_from_message)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 GAIN_SET_KEYS = ("strategy", "kp", "ki", "kd")   # what an active gain_set decides
@@ -79,32 +79,35 @@ def settings_from_parameters(p: dict[str, Any]) -> tuple[ControllerConfig, Compe
 SOLVED_INVERSE_MIN_PERIOD_S = 5e-4   # below this period an inverse solved each step is said to risk overruns
 
 
+_GAINS = ControllerConfig().gains
+CONTROLLER_PARAMETERS: tuple[ParameterSpec, ...] = tuple(
+    ParameterSpec(name, default, text) for name, default, text in [
+        ("strategy", "pid_hc", f"one of {', '.join(STRATEGIES)}"),
+        ("gain_set", "", "Table 1 gain set name: sets strategy/kp/ki/kd (which read back its values); '' = none"),
+        ("kp", _GAINS.kp, "proportional gain (normalised, um/um)"), ("ki", _GAINS.ki, "integral gain [1/s]"),
+        ("kd", _GAINS.kd, "derivative gain [s] (the paper uses 0)"),
+        ("derivative_filter_s", ControllerConfig.derivative_filter_s,
+         f"time constant of the D term's first-order filter [s] ({DERIVATIVE_FILTER_RANGE_S[0]:g}.."
+         f"{DERIVATIVE_FILTER_RANGE_S[1]:g}; valve_tune and the tune step use it)"),
+        ("command_min_v", COMMAND_MIN_V, "[V]"), ("command_max_v", COMMAND_MAX_V, "[V]"),
+        ("centre_voltage_v", CENTRE_VOLTAGE_V, "[V]"),
+        ("reference_ramp_s", 0.0, "reference changes become ramps of this duration [s] (paper: 0.002)"),
+        ("initial_reference_m", 0.0, "reference until the first position_reference [m]"),
+        ("enabled", True, "false: publish no commands (another node drives voltage_command, e.g. identification); "
+                          "true again resumes from the applied voltage"),
+    ] + [(name, default, text) for name, (default, text) in MODEL_PARAMETERS.items()]) + (
+    CONTROL_PERIOD,
+    ParameterSpec("handback_timeout_s", 1.0, "disabled: when the commands of the node that took over stop for this "
+                  f"long, take control back [s] ({HANDBACK_TIMEOUT_RANGE_S[0]:g}..{HANDBACK_TIMEOUT_RANGE_S[1]:g})",
+                  low=HANDBACK_TIMEOUT_RANGE_S[0], high=HANDBACK_TIMEOUT_RANGE_S[1]),
+    *realtime_specs(),
+)
+
+
 class ValveControllerNode(Node):
     def __init__(self, **kwargs):
         super().__init__("valve_controller", **kwargs)
-        g = ControllerConfig().gains
-        for name, default, text in [
-            ("strategy", "pid_hc", f"one of {', '.join(STRATEGIES)}"),
-            ("gain_set", "", "Table 1 gain set name: sets strategy/kp/ki/kd (which read back its values); '' = none"),
-            ("kp", g.kp, "proportional gain (normalised, um/um)"), ("ki", g.ki, "integral gain [1/s]"),
-            ("kd", g.kd, "derivative gain [s] (the paper uses 0)"),
-            ("derivative_filter_s", ControllerConfig.derivative_filter_s,
-             f"time constant of the D term's first-order filter [s] ({DERIVATIVE_FILTER_RANGE_S[0]:g}.."
-             f"{DERIVATIVE_FILTER_RANGE_S[1]:g}; valve_tune and the tune step use it)"),
-            ("command_min_v", COMMAND_MIN_V, "[V]"), ("command_max_v", COMMAND_MAX_V, "[V]"),
-            ("centre_voltage_v", CENTRE_VOLTAGE_V, "[V]"),
-            ("reference_ramp_s", 0.0, "reference changes become ramps of this duration [s] (paper: 0.002)"),
-            ("initial_reference_m", 0.0, "reference until the first position_reference [m]"),
-            ("enabled", True, "false: publish no commands (another node drives voltage_command, e.g. identification); "
-                              "true again resumes from the applied voltage"),
-        ] + [(name, default, text) for name, (default, text) in MODEL_PARAMETERS.items()]:
-            declare(self, name, default, text)
-        declare(self, "control_period_s", 1e-3, "control period [s]; must match the hardware's (same default)",
-                read_only=True)
-        lo, hi = HANDBACK_TIMEOUT_RANGE_S
-        declare(self, "handback_timeout_s", 1.0, "disabled: when the commands of the node that took over stop for "
-                f"this long, take control back [s] ({lo:g}..{hi:g})", low=lo, high=hi)
-        declare_realtime(self)
+        declare_all(self, CONTROLLER_PARAMETERS)
         name = str(self.get_parameter("gain_set").value or "")
         if name:  # the set's values are what runs: the parameters say so
             self.set_parameters([Parameter(k, value=v) for k, v in gain_set_values(name).items()])
@@ -336,7 +339,7 @@ class ValveControllerNode(Node):
 
 
 def main(args=None) -> int:
-    return run_node(ValveControllerNode, "valve_controller", args)
+    return run_node(ValveControllerNode, "valve_controller", args, specs=CONTROLLER_PARAMETERS)
 
 
 if __name__ == "__main__":

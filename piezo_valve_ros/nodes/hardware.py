@@ -22,19 +22,42 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64, Float64MultiArray
 
-from ..backends import ValveBackend, available_backends, backend_class
+from ..backends import ValveBackend, backend_class
 from ..loop_timing import LoopTiming
-from .common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, as_float, as_int, declare,
-                     declare_realtime, parameter_values, realtime_settings, refuse, run_node, samples_message, tighten_timer_slack)
+from .common import (CONTROL_PERIOD, COMMAND_QOS, MAX_CONTROL_PERIOD_S, SAMPLES_QOS, SENSOR_QOS, Pacing, ParameterSpec,
+                     as_float, as_int, declare, declare_all, parameter_values, realtime_settings, realtime_specs, refuse,
+                     run_node, samples_message, tighten_timer_slack)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 
-MAX_CONTROL_PERIOD_S = 0.1      # slower than 10 Hz is no control loop for this valve
 MAX_COMMAND_TIMEOUT_S = 10.0    # the watchdog may not be stretched beyond this
 MIN_TIMEOUT_PERIODS = 2         # ... nor shortened below this many control periods (it would fire between commands)
 PERIOD_TOLERANCE = 1e-3         # control_period_s must be a whole number of sample periods to this relative error
 FIRST_SAMPLE_SETTLE_S = 0.3   # lockstep: a commander matched this long before y_0 is sent (s)
 UNANSWERED_REPEAT_S = 1.0     # lockstep: an unanswered position is sent again after this long (s)
+
+
+HARDWARE_PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec("backend", "sim", "valve backend: sim (default) or one installed under the entry-point group "
+                  "piezo_valve_ros.backends", read_only=True),
+    ParameterSpec("clock", "realtime", "realtime (wall clock) or lockstep (one period per command)", read_only=True),
+    CONTROL_PERIOD,
+    ParameterSpec("samples_batch", 1000, "rows per samples message", read_only=True),
+    ParameterSpec("command_timeout_s", 0.5, "no valid command for this long -> safe_voltage [s] "
+                  f"(> 0, at least {MIN_TIMEOUT_PERIODS} control periods, at most {MAX_COMMAND_TIMEOUT_S} s)",
+                  low=0.0, high=MAX_COMMAND_TIMEOUT_S),
+    ParameterSpec("safe_voltage", CENTRE_VOLTAGE_V, "voltage applied on timeout and shutdown [V] (default: the "
+                  "drive's centre)", read_only=True),
+    ParameterSpec("command_min_v", COMMAND_MIN_V, "commands below are clamped [V]", read_only=True),
+    ParameterSpec("command_max_v", COMMAND_MAX_V, "commands above are clamped [V]", read_only=True),
+    ParameterSpec("lockstep.step_budget", -1, "lockstep only: periods to run before pausing (-1 = no pause); "
+                  "refused on the real-time clock (a paused watchdog would hold the last command)"),
+    ParameterSpec("realtime.busy_poll_s", 0.0, "realtime clock: poll for messages instead of sleeping this long "
+                  "before each tick [s] (costs a core; >= control_period_s polls all the time)", read_only=True),
+    *realtime_specs(),
+    ParameterSpec("loop_stats_period_s", 0.0, "log the loop timing (rate, commands in time, latency) this often [s]; "
+                  "0: only at shutdown", read_only=True),
+)
 
 
 def samples_per_period(control_period_s: float, sample_period_s: float) -> int:
@@ -51,28 +74,7 @@ def samples_per_period(control_period_s: float, sample_period_s: float) -> int:
 class ValveHardwareNode(Node):
     def __init__(self, backend: Optional[ValveBackend] = None, **kwargs):
         super().__init__("valve_hardware", **kwargs)
-        declare(self, "backend", "sim", "valve backend: sim (default) or one installed under the entry-point group "
-                f"piezo_valve_ros.backends (here: {', '.join(available_backends())})", read_only=True)
-        declare(self, "clock", "realtime", "realtime (wall clock) or lockstep (one period per command)", read_only=True)
-        declare(self, "control_period_s", 1e-3, "period of spool_position [s] (a multiple of the sample period)",
-                read_only=True, low=0.0, high=MAX_CONTROL_PERIOD_S)
-        declare(self, "samples_batch", 1000, "rows per samples message", read_only=True)
-        declare(self, "command_timeout_s", 0.5, "no valid command for this long -> safe_voltage [s] "
-                f"(> 0, at least {MIN_TIMEOUT_PERIODS} control periods, at most {MAX_COMMAND_TIMEOUT_S} s)",
-                low=0.0, high=MAX_COMMAND_TIMEOUT_S)
-        declare(self, "safe_voltage", CENTRE_VOLTAGE_V, "voltage applied on timeout and shutdown [V] (default: the "
-                "drive's centre)", read_only=True)
-        declare(self, "command_min_v", COMMAND_MIN_V, "commands below are clamped [V]", read_only=True)
-        declare(self, "command_max_v", COMMAND_MAX_V, "commands above are clamped [V]", read_only=True)
-        declare(self, "lockstep.step_budget", -1, "lockstep only: periods to run before pausing (-1 = no pause); "
-                "refused on the real-time clock (a paused watchdog would hold the last command)")
-        declare(self, "realtime.busy_poll_s", 0.0,
-                "realtime clock: poll for messages instead of sleeping this long before each tick [s] "
-                "(costs a core; >= control_period_s polls all the time)", read_only=True)
-        declare_realtime(self)
-        declare(self, "loop_stats_period_s", 0.0,
-                "log the loop timing (rate, commands in time, latency) this often [s]; 0: only at shutdown",
-                read_only=True)
+        declare_all(self, HARDWARE_PARAMETERS)
         backend_name = str(self.get_parameter("backend").value)
         backend_type = type(backend) if backend is not None else backend_class(backend_name)
         for prm in backend_type.PARAMETERS:  # each backend's own parameters, under its name
@@ -393,7 +395,8 @@ class ValveHardwareNode(Node):
 
 
 def main(args=None) -> int:
-    return run_node(ValveHardwareNode, "valve_hardware", args, on_exit_of=lambda n: n.shutdown_safely)
+    return run_node(ValveHardwareNode, "valve_hardware", args, on_exit_of=lambda n: n.shutdown_safely,
+                    specs=HARDWARE_PARAMETERS)
 
 
 if __name__ == "__main__":

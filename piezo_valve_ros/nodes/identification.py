@@ -52,7 +52,8 @@ from ..identify import (compensation, controller_parameters, controller_paramete
                         write_atomically)
 from .client import get_parameter_values, wait_future, wait_until_answering
 from .recording import RigRecorder
-from .common import COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, as_float, declare, parameter_values, run_node
+from .common import (CONTROL_PERIOD, COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, ParameterSpec, as_float, declare_all,
+                     parameter_values, run_node)
 from ..core.model.drive import CENTRE_VOLTAGE_V
 
 STEPS = ("train", "refit", "tune", "validate")
@@ -81,28 +82,31 @@ class _Player:
             self.record(value)
 
 
+# the plan's settings: start-up only
+IDENTIFICATION_PARAMETERS: tuple[ParameterSpec, ...] = (CONTROL_PERIOD,) + tuple(
+    ParameterSpec(name, default, text, read_only=True) for name, default, text in [
+        ("plan", "train,refit", f"steps run in order: {', '.join(STEPS)}"),
+        ("training_s", 30.0, "length of the paper's training signal (eq. 11) in the experiment [s]"),
+        ("validation_s", 30.0, "length of the validation demand (eq. 12) [s]"),
+        ("validation_amplitude_m", 50e-6, "peak of the validation demand [m]"),
+        ("validation_strategy", "ol_hc", "controller strategy during validate"),
+        ("tune_strategy", "pid_hc", f"strategy the tune step chooses gains for: {', '.join(TUNABLE_STRATEGIES)}"),
+        ("tune_max_overshoot_pct", OVERSHOOT_LIMIT_PCT, "tune: largest overshoot of any paper step [%]"),
+        ("time_scale", 1.0, "< 1 compresses the experiments in time (quick runs); 1 = the paper's signals"),
+        ("bag_dir", "identification_runs", "one bag per experiment is written below this directory"),
+        ("storage", "mcap", "bag storage: mcap or sqlite3"),
+        ("params_out", "", "parameters file written by refit (default: <bag_dir>/fitted.yaml)"),
+        ("push", True, "push refitted parameters to the controller"),
+        ("controller", "valve_controller", "name of the controller node (relative to this namespace)"),
+        ("exit_when_done", False, "shut down after the plan"),
+        ("progress_period_s", PROGRESS_PERIOD_S, "a running experiment logs its progress this often [s]"),
+    ])
+
+
 class ValveIdentificationNode(Node):
     def __init__(self, **kwargs):
         super().__init__("valve_identification", **kwargs)
-        for name, default, text in [
-            ("plan", "train,refit", f"steps run in order: {', '.join(STEPS)}"),
-            ("control_period_s", 1e-3, "the hardware's control period [s] (one experiment value per period)"),
-            ("training_s", 30.0, "length of the paper's training signal (eq. 11) in the experiment [s]"),
-            ("validation_s", 30.0, "length of the validation demand (eq. 12) [s]"),
-            ("validation_amplitude_m", 50e-6, "peak of the validation demand [m]"),
-            ("validation_strategy", "ol_hc", "controller strategy during validate"),
-            ("tune_strategy", "pid_hc", f"strategy the tune step chooses gains for: {', '.join(TUNABLE_STRATEGIES)}"),
-            ("tune_max_overshoot_pct", OVERSHOOT_LIMIT_PCT, "tune: largest overshoot of any paper step [%]"),
-            ("time_scale", 1.0, "< 1 compresses the experiments in time (quick runs); 1 = the paper's signals"),
-            ("bag_dir", "identification_runs", "one bag per experiment is written below this directory"),
-            ("storage", "mcap", "bag storage: mcap or sqlite3"),
-            ("params_out", "", "parameters file written by refit (default: <bag_dir>/fitted.yaml)"),
-            ("push", True, "push refitted parameters to the controller"),
-            ("controller", "valve_controller", "name of the controller node (relative to this namespace)"),
-            ("exit_when_done", False, "shut down after the plan"),
-            ("progress_period_s", PROGRESS_PERIOD_S, "a running experiment logs its progress this often [s]"),
-        ]:
-            declare(self, name, default, text, read_only=True)  # the plan's settings: start-up only
+        declare_all(self, IDENTIFICATION_PARAMETERS)
         p = parameter_values(self)
         self.plan = [s.strip() for s in str(p["plan"]).split(",") if s.strip()]
         unknown = [s for s in self.plan if s not in STEPS]
@@ -359,7 +363,8 @@ def main(args=None) -> int:
     def factory():
         made.append(ValveIdentificationNode())
         return made[0]
-    code = run_node(factory, "valve_identification", args, on_exit_of=lambda n: n._stop_recording)
+    code = run_node(factory, "valve_identification", args, on_exit_of=lambda n: n._stop_recording,
+                    specs=IDENTIFICATION_PARAMETERS)
     return code or (1 if made and made[0].failed else 0)
 
 

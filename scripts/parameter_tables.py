@@ -1,0 +1,55 @@
+"""Write the nodes' parameter tables (docs/handbook/parameters.md) from their one declaration each.
+
+    python scripts/parameter_tables.py [--check]
+
+``--check`` writes nothing and exits 1 when the file differs from what the declarations give (the tests
+run it, so the tables cannot drift from the code).
+"""
+import argparse
+import sys
+from pathlib import Path
+
+OUT = Path(__file__).resolve().parent.parent / "docs" / "handbook" / "parameters.md"
+
+
+def _cell(text: str) -> str:
+    return str(text).replace("|", "\\|")
+
+
+def tables() -> str:
+    from piezo_valve_ros.nodes.controller import CONTROLLER_PARAMETERS
+    from piezo_valve_ros.nodes.hardware import HARDWARE_PARAMETERS
+    from piezo_valve_ros.nodes.identification import IDENTIFICATION_PARAMETERS
+    lines = ["# Node parameters", "",
+             "Written by `scripts/parameter_tables.py` from each node's declaration (the one the node declares, "
+             "checks and prints for `--help` from); do not edit by hand. Read-only parameters are taken at "
+             "start-up only. The simulated backend's own `sim.*` parameters and the controller's model "
+             "schema are described in [the interface](interface.md).", ""]
+    for node, specs in (("valve_hardware", HARDWARE_PARAMETERS), ("valve_controller", CONTROLLER_PARAMETERS),
+                        ("valve_identification", IDENTIFICATION_PARAMETERS)):
+        lines += [f"## `{node}`", "", "| name | type | default | range | read-only | description |",
+                  "|---|---|---|---|---|---|"]
+        for s in specs:
+            lines.append(f"| `{s.name}` | {s.type_name} | `{s.default!r}` | {s.range_text() or '-'} | "
+                         f"{'yes' if s.read_only else 'no'} | {_cell(s.description)} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--check", action="store_true", help="only compare with the file")
+    args = ap.parse_args()
+    text = tables()
+    if args.check:
+        if not OUT.exists() or OUT.read_text() != text:
+            print(f"{OUT} is out of date: run python scripts/parameter_tables.py", file=sys.stderr)
+            return 1
+        return 0
+    OUT.write_text(text)
+    print(f"wrote {OUT}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
