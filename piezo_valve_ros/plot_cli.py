@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .bagio import BagError, read_run
+from .core.metrics import error_figures
 from .core.runs import STEP_MIN_HOLD_S, STEP_MIN_JUMP_M, find_steps, reference_on_samples
 
 __all__ = ["main"]
@@ -31,9 +32,9 @@ def summary_lines(rows: np.ndarray, reference_m: np.ndarray, topic: str) -> list
            f"{v.max():.2f} V, position {y.min() * 1e6:.2f} .. {y.max() * 1e6:.2f} um"]
     known = np.isfinite(reference_m)
     if known.any():
-        e = (y[known] - reference_m[known]) * 1e6
+        f = error_figures(y[known] * 1e6, reference_m[known] * 1e6, float(np.ptp(reference_m[known])) * 1e6)
         out.append(f"tracking error over {known.mean() * 100:.0f} % of the run (where a reference was in force): "
-                   f"RMS {np.sqrt(np.mean(e ** 2)):.3f} um, peak {np.abs(e).max():.3f} um")
+                   f"RMS {f.rms_um:.3f} um, peak {f.peak_um:.3f} um, fit {f.fit_pct:.1f} % (NRMSE)")
     else:
         out.append("no position_reference in the bag: no tracking error, no steps")
     return out

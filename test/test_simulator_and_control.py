@@ -8,7 +8,7 @@ from piezo_valve_ros.core.control.compensation import CompensationModel
 from piezo_valve_ros.core.model.dynamics import PAPER_VALVE_MODEL, ContinuousTF
 from piezo_valve_ros.core.sim.experiments import paper_step_tests, run_closed_loop
 from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM, GPIM
-from piezo_valve_ros.core.metrics import bandwidth_metrics, step_metrics, tracking_error
+from piezo_valve_ros.core.metrics import bandwidth_metrics, step_metrics, error_figures
 from piezo_valve_ros.core.sim.signals import (identification_voltage, training_voltage,
                                           validation_reference_m)
 from piezo_valve_ros.core.sim.simulator import (CreepParams, DriftParams, RateDependenceParams, SensorParams,
@@ -81,7 +81,7 @@ def _ol_hc_training_error(sim_config):
     rec = run_closed_loop(SimulatedValve(sim_config), ValveController(ControllerConfig(strategy="ol_hc")),
                           y_ref * 1e-6)
     y = rec.position_m[1:] * 1e6
-    err = tracking_error(y, y_ref[:-1], y.max() - y.min())
+    err = error_figures(y, y_ref[:-1], y.max() - y.min())
     return err
 
 
@@ -424,3 +424,16 @@ def test_a_model_swap_mid_run_keeps_the_valves_memory(strategy, gains):
         else:  # what the refit predicts is what it would have said had it run the whole history
             y_refit, _ = model.run(history, model.virgin_state(history[0]))
             assert abs(after - y_refit[-1]) < 1e-6
+
+
+def test_error_figures_give_rms_peak_and_the_nrmse_fit():
+    """One error type for predictions and tracking runs: RMS, peak, peak as % of a range, and MATLAB
+    compare's fit (100 perfect, 0 the mean, negative worse than the mean)."""
+    y = np.sin(np.linspace(0.0, 6.0, 600)) * 10.0
+    perfect = error_figures(y, y, float(np.ptp(y)))
+    assert (perfect.rms_um, perfect.peak_um, perfect.fit_pct) == (0.0, 0.0, 100.0)
+    mean = error_figures(y, np.full_like(y, y.mean()), float(np.ptp(y)))
+    assert mean.fit_pct == pytest.approx(0.0, abs=1e-9)
+    off = error_figures(y, y + 0.5, 20.0)
+    assert off.rms_um == pytest.approx(0.5) and off.peak_um == pytest.approx(0.5) and off.peak_pct == pytest.approx(2.5)
+    assert 0.0 < off.fit_pct < 100.0 and set(off.as_dict()) == {"rms_um", "peak_um", "peak_pct", "fit_pct"}

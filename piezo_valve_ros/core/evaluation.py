@@ -15,7 +15,7 @@ import numpy as np
 
 from .control.compensation import CompensationModel
 from .sim.experiments import responses, run_closed_loop, simulate_rows
-from .metrics import TrackingError, tracking_error
+from .metrics import ErrorFigures, error_figures
 from .identification.records import Record
 from .sim.signals import rig_training_voltage, validation_reference_m, validation_voltage
 from .sim.simulator import CreepParams, RateDependenceParams, SaturationParams, SimulatedValve, ValveSimConfig
@@ -64,8 +64,8 @@ class Tracking:
     """One tracking run's error [um]: of the measured position (what a rig sees: LVDT noise and quantisation
     included) and of the spool's true position (the simulator's: the tracking beneath the noise floor)."""
 
-    measured: TrackingError
-    spool: TrackingError
+    measured: ErrorFigures
+    spool: ErrorFigures
 
 
 class _SpoolLog:
@@ -80,11 +80,11 @@ class _SpoolLog:
         return y
 
 
-def _after_settling(position_m: np.ndarray, reference_m: np.ndarray, dt: float, settle_s: float) -> TrackingError:
+def _after_settling(position_m: np.ndarray, reference_m: np.ndarray, dt: float, settle_s: float) -> ErrorFigures:
     """The error [um] of positions against the demands they answer after ``settle_s``, peak as % of the
     demand's range."""
     k = int(round(settle_s / dt))
-    return tracking_error(position_m[k:] * 1e6, reference_m[k:] * 1e6, float(np.ptp(reference_m)) * 1e6)
+    return error_figures(position_m[k:] * 1e6, reference_m[k:] * 1e6, float(np.ptp(reference_m)) * 1e6)
 
 
 def tracking_test(ctl_config: ControllerConfig, compensation: CompensationModel, sim_config: ValveSimConfig,
@@ -105,7 +105,7 @@ def tracking_test(ctl_config: ControllerConfig, compensation: CompensationModel,
 
 
 def model_tracking_test(compensation: CompensationModel, sim_config: ValveSimConfig, reference_m: np.ndarray,
-                        settle_s: float = SETTLE_S) -> TrackingError:
+                        settle_s: float = SETTLE_S) -> ErrorFigures:
     """OL HC's error (as ``tracking_test``) when the valve is exactly the model it compensates
     (``tuning.ModelValve``: no noise, no amplifier, no effect the model lacks): what the feedforward's own
     design leaves, chiefly the lag of the dynamic feedforward's target F."""
@@ -122,10 +122,10 @@ def model_tracking_test(compensation: CompensationModel, sim_config: ValveSimCon
 class CompensationResult:
     effects_added: list[str]
     refused: dict[str, str]
-    errors: dict[tuple[str, str], TrackingError]   # (model "baseline"/"extended", strategy label) -> error
-    spool_errors: dict[tuple[str, str], TrackingError]   # the same runs, the spool's true position's error
+    errors: dict[tuple[str, str], ErrorFigures]   # (model "baseline"/"extended", strategy label) -> error
+    spool_errors: dict[tuple[str, str], ErrorFigures]   # the same runs, the spool's true position's error
     strategies: dict[str, ControllerConfig]         # strategy label -> the settings it ran with (tuned ones too)
-    model_floor: TrackingError   # OL HC with the extended compensation on its own model (model_tracking_test)
+    model_floor: ErrorFigures   # OL HC with the extended compensation on its own model (model_tracking_test)
 
 
 def compare_compensations(sim_config: ValveSimConfig, strategies: dict[str, ControllerConfig],

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["StepMetrics", "step_metrics", "fundamental", "BandwidthMetrics", "bandwidth_metrics",
-           "TrackingError", "tracking_error"]
+           "ErrorFigures", "error_figures"]
 
 
 @dataclass(frozen=True)
@@ -92,17 +92,30 @@ def bandwidth_metrics(freqs_hz: np.ndarray, response: np.ndarray) -> BandwidthMe
 
 
 @dataclass(frozen=True)
-class TrackingError:
+class ErrorFigures:
+    """The error of a prediction (a model against a record) or of a tracking run (the position against its
+    reference): RMS and peak [um], the peak as % of a range, and the fit as NRMSE % (MATLAB ``compare``'s:
+    100 (1 - |e| / |y - mean y|), 100 = perfect, 0 = no better than the mean)."""
+
     rms_um: float
     peak_um: float
-    peak_pct: float  # peak error as % of range_um
+    peak_pct: float
+    fit_pct: float
 
     def as_dict(self) -> dict:
-        return {"rms_um": self.rms_um, "peak_um": self.peak_um, "peak_pct": self.peak_pct}
+        return {"rms_um": round(self.rms_um, 6), "peak_um": round(self.peak_um, 6),
+                "peak_pct": round(self.peak_pct, 6), "fit_pct": round(self.fit_pct, 4)}
 
 
-def tracking_error(actual_um: np.ndarray, predicted_um: np.ndarray, range_um: float) -> TrackingError:
-    err = np.asarray(actual_um, float) - np.asarray(predicted_um, float)
-    peak = float(np.max(np.abs(err))) if err.size else 0.0
-    return TrackingError(float(np.sqrt(np.mean(err ** 2))) if err.size else 0.0, peak,
-                         peak / range_um * 100.0 if range_um > 0 else float("nan"))
+def error_figures(actual_um: np.ndarray, predicted_um: np.ndarray, range_um: float) -> ErrorFigures:
+    """:class:`ErrorFigures` of ``actual_um - predicted_um`` (same shape, [um]); ``range_um`` the range the
+    peak is a share of (the measured or demanded span)."""
+    actual = np.asarray(actual_um, float)
+    err = actual - np.asarray(predicted_um, float)
+    if not err.size:
+        return ErrorFigures(0.0, 0.0, float("nan"), float("nan"))
+    peak = float(np.max(np.abs(err)))
+    spread = float(np.linalg.norm(actual - np.mean(actual)))
+    fit = 100.0 * (1.0 - float(np.linalg.norm(err)) / spread) if spread > 0 else float("nan")
+    return ErrorFigures(float(np.sqrt(np.mean(err * err))), peak, peak / range_um * 100.0 if range_um > 0 else float("nan"),
+                        fit)

@@ -45,6 +45,7 @@ from std_msgs.msg import Float64
 
 from ..bagio import BagError
 from ..core.identification.records import IdentificationError
+from ..core.metrics import error_figures
 from ..core.sim.signals import rig_training_voltage, validation_reference_m
 from ..core.control.strategies import LOOP_SETTINGS, loop_settings
 from ..core.tuning.tuner import OVERSHOOT_LIMIT_PCT, TUNABLE_STRATEGIES, TuningError, TuningLimits, tune
@@ -320,12 +321,14 @@ class ValveIdentificationNode(Node):
         n = min(len(player.positions), len(sent) - 1)
         err_um = (np.asarray(player.positions[:n]) - np.asarray(sent[:n])) * 1e6
         err_um = err_um[lead:]  # scored on the demand itself
-        rms, peak = float(np.sqrt(np.mean(err_um ** 2))), float(np.max(np.abs(err_um)))
         span = float(np.ptp(ref) * 1e6)
-        self.get_logger().info(f"validate ({self.validation_strategy}): tracking error RMS {rms:.3f} um, "
-                               f"peak {peak:.3f} um ({100 * peak / span:.2f} % of the {span:.1f} um demand range)")
-        return {"step": "validate", "strategy": self.validation_strategy, "bag": str(bag), "rms_um": rms,
-                "peak_um": peak, "peak_pct": 100 * peak / span}
+        demand_um = np.asarray(sent[:n])[lead:] * 1e6
+        figures = error_figures(demand_um + err_um, demand_um, span)
+        self.get_logger().info(f"validate ({self.validation_strategy}): tracking error RMS {figures.rms_um:.3f} um, "
+                               f"peak {figures.peak_um:.3f} um ({figures.peak_pct:.2f} % of the {span:.1f} um demand "
+                               f"range), fit {figures.fit_pct:.1f} % (NRMSE)")
+        return {"step": "validate", "strategy": self.validation_strategy, "bag": str(bag),
+                **{k: float(v) for k, v in vars(figures).items()}}
 
     def _run_plan(self) -> None:
         if not self.plan:

@@ -12,7 +12,7 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ["IdentificationError", "Record", "FitQuality", "quality", "analysis_record", "split_held_out",
+__all__ = ["IdentificationError", "Record", "analysis_record", "split_held_out",
            "noise_floor_um", "join", "HELD_OUT_FRACTION", "ANALYSIS_RATE_HZ", "SUPPORTED_RATE_HZ",
            "MIN_SAMPLES", "read_csv", "CSV_POSITION_COLUMNS"]
 
@@ -207,23 +207,3 @@ def noise_floor_um(position_um: np.ndarray) -> float:
     d2 = y[2:] - 2.0 * y[1:-1] + y[:-2]
     mad = float(np.median(np.abs(d2 - np.median(d2))))
     return 1.4826 * mad / math.sqrt(6.0)
-
-
-@dataclass(frozen=True)
-class FitQuality:
-    """Error figures of a prediction: RMS and peak [um], peak as % of the measured range."""
-
-    rms_um: float
-    peak_um: float
-    peak_pct: float
-
-    def as_dict(self) -> dict:
-        return {"rms_um": round(self.rms_um, 6), "peak_um": round(self.peak_um, 6),
-                "peak_pct": round(self.peak_pct, 6)}
-
-
-def quality(measured_um: np.ndarray, predicted_um: np.ndarray, range_um: float) -> FitQuality:
-    e = np.asarray(measured_um, float) - np.asarray(predicted_um, float)
-    peak = float(np.max(np.abs(e))) if e.size else 0.0
-    return FitQuality(float(np.sqrt(np.mean(e * e))) if e.size else 0.0, peak,
-                      100.0 * peak / range_um if range_um > 0 else float("nan"))

@@ -56,7 +56,8 @@ from .fitting import (BASIS_RIDGE, FitCache, fit_model, fit_paper_gpim, refit_po
                       uniform_thresholds)
 from ..model.hysteresis import GPIM
 from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, MIN_SAMPLES, SUPPORTED_RATE_HZ, IdentificationError, Record,
-                      analysis_record, noise_floor_um, quality, split_held_out)
+                      analysis_record, noise_floor_um, split_held_out)
+from ..metrics import error_figures
 from ..model.dynamics import describe_dynamics
 from .valve_model import REST, InitialState, ValveModel, turning_points
 
@@ -688,12 +689,12 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     # ---- 5. figures at the record's own rate, report
     def figures(model: ValveModel) -> dict:
         on = final_split if model is final else split
-        return {"train": quality(split.fit_full.position_um, split.fit_full.position_um - split.fit_error(model, True),
+        return {"train": error_figures(split.fit_full.position_um, split.fit_full.position_um - split.fit_error(model, True),
                                  range_um).as_dict(),
-                "validate": quality(split.score_full.position_um[split.start_full:],
+                "validate": error_figures(split.score_full.position_um[split.start_full:],
                                     split.score_full.position_um[split.start_full:] - on.held_out_error(model, True),
                                     range_val).as_dict(),
-                "validate_analysis_rate": quality(split.score.position_um[split.start:],
+                "validate_analysis_rate": error_figures(split.score.position_um[split.start:],
                                                   split.score.position_um[split.start:] - on.held_out_error(model),
                                                   range_val).as_dict()}
 
