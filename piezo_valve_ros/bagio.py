@@ -11,18 +11,17 @@ from __future__ import annotations
 import os
 import shutil
 import time
-from io import StringIO
 from pathlib import Path
 from typing import Callable, Optional
 
 import numpy as np
-from ruamel.yaml import YAML
 
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.rosbag2.metadata import dump_qos_v9
 from rosbags.typesys import Stores, get_typestore
 
+from .params_yaml import dump as dump_yaml, load as load_yaml
 from .samples import SAMPLES_COLUMNS, SAMPLES_LABEL, SamplesLayoutError, decode_samples
 
 __all__ = ["BagError", "BagRecorder", "qos_profile", "read_samples", "write_samples_bag", "SAMPLES_TYPE",
@@ -182,12 +181,8 @@ class BagRecorder:
             "custom_data": None,
             "ros_distro": "jazzy",
         }
-        yaml = YAML(typ="safe")
-        yaml.default_flow_style = False
-        text = StringIO()
-        yaml.dump({"rosbag2_bagfile_information": info}, text)
         tmp = self.path / "metadata.yaml.tmp"
-        tmp.write_text(text.getvalue(), "utf8")
+        tmp.write_text(dump_yaml({"rosbag2_bagfile_information": info}), "utf8")
         os.replace(tmp, self.path / "metadata.yaml")
 
 
@@ -234,9 +229,8 @@ def _read_file_by_file(path: Path, topic: Optional[str], skipped: list[str]) -> 
     the blocks of every readable file and the topic's name; each unreadable file is named in ``skipped``.
     No blocks when nothing is readable (or the bag is compressed)."""
     from rosbags.rosbag2.reader import DirectoryReader
-    from ruamel.yaml import YAML
     try:
-        meta = YAML(typ="safe").load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        meta = load_yaml((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
         plugin = DirectoryReader.STORAGE_PLUGINS[meta["storage_identifier"]]
         files = [path / Path(x).name for x in meta["relative_file_paths"]]
         if meta.get("compression_mode"):

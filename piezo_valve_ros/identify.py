@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Callable, Optional
 
 from .bagio import read_samples
+from .params_yaml import YAMLError, load as load_yaml, yaml_value
 from .core.identification.records import Record, read_csv
 from .core.identification.residual import Analysis, analyse
 from .core.identification.to_controller import (Compensation, base_parameters, baseline_compensation, compensation,
@@ -64,24 +65,11 @@ def identify_bags(train_bag, validate_bag=None, topic: Optional[str] = None,
     return analysis, name
 
 
-def _yaml_value(value) -> str:
-    """One parameter value as YAML, keeping its ROS type (bool, integer, double, string, double array)."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(repr(float(x)) for x in value) + "]"
-    if isinstance(value, str):
-        return json.dumps(value)  # a double-quoted YAML scalar
-    if isinstance(value, int):
-        return str(value)
-    return repr(float(value))
-
-
 def parameters_yaml(values: dict, comments: list[str]) -> str:
     """A ROS parameters file for ``valve_controller``: ``comments`` (one line each) then ``values``."""
     lines = [f"# {c}" for c in comments] + [f"/**/{CONTROLLER_NODE}:", "  ros__parameters:"]
     for key, value in values.items():
-        lines.append(f"    {key}: {_yaml_value(value)}")
+        lines.append(f"    {key}: {yaml_value(value)}")
     return "\n".join(lines) + "\n"
 
 
@@ -101,13 +89,12 @@ def read_parameters_file(path: str | os.PathLike) -> dict:
     """The ``valve_controller`` parameters of a ROS parameters file (as ``valve_identify --params-out`` writes:
     a ``ros__parameters`` mapping under ``valve_controller``, ``/**/valve_controller`` or a namespaced name
     ending in it).  Raises ParametersFileError with the reason."""
-    import yaml  # python3-yaml: a dependency of rclpy and of this package, imported where it is needed
     try:
         with open(path) as f:
-            doc = yaml.safe_load(f)
+            doc = load_yaml(f)
     except OSError as exc:
         raise ParametersFileError(f"cannot read {path}: {exc.strerror or exc}") from None
-    except yaml.YAMLError as exc:
+    except YAMLError as exc:
         raise ParametersFileError(f"{path} is not YAML: {str(exc).splitlines()[0]}") from None
     if not isinstance(doc, dict):
         raise ParametersFileError(f"{path}: expected a mapping of node names, got {type(doc).__name__}")

@@ -14,6 +14,8 @@ import subprocess
 import sys
 import time
 
+from .params_yaml import yaml_value
+
 PARENT_PID_ENV = "PIEZO_VALVE_PARENT_PID"   # set by ProcessGroup: the pid the child must not outlive
 STOP_GRACE_S = 3.0                          # each of SIGINT, SIGTERM, SIGKILL gets this long
 PARENT_POLL_S = 0.2                         # a child checks this often whether its parent is still there ...
@@ -28,13 +30,7 @@ def node_command(executable: str, params: dict, namespace: str = "") -> list[str
     if namespace:
         cmd += ["-r", f"__ns:={namespace}"]
     for k, v in params.items():
-        if isinstance(v, bool):
-            v = str(v).lower()
-        elif isinstance(v, str):
-            v = "'" + v.replace("'", "''") + "'"  # YAML string, also when empty
-        elif isinstance(v, (list, tuple)):
-            v = "[" + ",".join(repr(float(x)) for x in v) + "]" if v else "[]"
-        cmd += ["-p", f"{k}:={v}"]
+        cmd += ["-p", f"{k}:={yaml_value(v)}"]
     return cmd
 
 

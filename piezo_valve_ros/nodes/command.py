@@ -21,8 +21,8 @@ import re
 import sys
 
 import numpy as np
-import yaml
 
+from ..params_yaml import YAMLError, load as load_yaml
 from ..core.sim.signals import load_profile, ramp_profile, sine_profile
 from .client import RigClient, run_in_background
 from .common import close, init_ros, split_ros_args, stop_requested
@@ -80,8 +80,8 @@ def parse_assignment(text: str) -> tuple[str, object]:
     if not value.strip():
         raise ValueError(f"{name}: a value is needed (an empty string is written '')")
     try:
-        parsed = yaml.safe_load(value)
-    except yaml.YAMLError as exc:
+        parsed = load_yaml(value)
+    except YAMLError as exc:
         raise ValueError(f"{name}: value {value!r} is not YAML ({str(exc).splitlines()[0]})") from None
     if parsed is None:
         raise ValueError(f"{name}: {value!r} is no value")
