@@ -122,12 +122,6 @@ class ValveBackend(ABC):
     def close(self) -> None:
         ...
 
-    _last_position_m: float = float("nan")
-
-    def read_position_cached(self) -> float:
-        """Latest position [m] already read, without sampling again."""
-        return self._last_position_m
-
     def advance(self, n_samples: int) -> np.ndarray:  # pragma: no cover - only lockstep backends
         raise NotImplementedError(f"{type(self).__name__} cannot advance time on demand (no lockstep)")
 
@@ -245,7 +239,6 @@ class SimBackend(ValveBackend):
             y = self.valve.run(np.full(n_samples, self._voltage))
             rows = np.column_stack(((k0 + np.arange(n_samples)) * dt, np.full(n_samples, self.valve.last_voltage_v), y))
         self._done += n_samples
-        self._last_position_m = float(rows[-1, 2])
         return rows
 
     def read_samples(self) -> np.ndarray:

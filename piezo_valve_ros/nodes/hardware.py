@@ -143,6 +143,7 @@ class ValveHardwareNode(Node):
         self.clamped = 0
         self.late_commands = 0
         self.periods = 0
+        self._last_position_m = float("nan")   # the last position published [m] (repeated when unanswered)
         self._closed = False
         self.backend.open()
         self.backend.write_voltage(self.safe_voltage)
@@ -250,6 +251,7 @@ class ValveHardwareNode(Node):
         self._command_since_publish = False
         self._last_publish_wall = time.monotonic()
         y = float(rows[-1, 2])
+        self._last_position_m = y
         self.loop_timing.measured()
         if self._linked_controller is not None:
             v = self._linked_controller(y)
@@ -312,7 +314,7 @@ class ValveHardwareNode(Node):
             # commander's writer is matched on our side too (DDS matches each side on its own; an answer
             # sent before our reader knows its writer is dropped, and a repeat would be answered twice)
             self._last_publish_wall = time.monotonic()
-            self.position_pub.publish(Float64(data=float(self.backend.read_position_cached())))
+            self.position_pub.publish(Float64(data=self._last_position_m))
 
     def _publish_first_sample_when_settled(self) -> None:
         """y_0 goes out once a commander is matched both ways and has stayed so for FIRST_SAMPLE_SETTLE_S:

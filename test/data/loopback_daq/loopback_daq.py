@@ -49,7 +49,6 @@ class LoopbackBackend(ValveBackend):
             self.position += self.alpha * (target - self.position)
             rows[i] = (self.index * self.sample_period_s, self.voltage, self.position)
             self.index += 1
-        self._last_position_m = self.position
         return rows
 
     def read_samples(self):
