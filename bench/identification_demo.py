@@ -31,7 +31,7 @@ def outputs(directory):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", default="docs/identification")
+    ap.add_argument("--out", default="docs/results/identification")
     args = ap.parse_args()
     dt = 1e-4
     cfg = ValveSimConfig(dt=dt)

@@ -1,6 +1,6 @@
-"""The residual loop's judgement on the test battery, as a table (written to docs/identification/battery.md).
+"""The residual loop's judgement on the test battery, as a table (written to docs/results/identification/battery.md).
 
-    python bench/residual_battery.py [--markdown docs/identification/battery.md]
+    python bench/residual_battery.py [--markdown docs/results/identification/battery.md]
 
 Every valve of ``test/valve_battery.py`` (effects written unlike the catalogue's regressors, all with G_v
 and sensor noise; three with structure outside the catalogue; two behind a +-150 V drive), analysed twice: with a separate validation
@@ -137,7 +137,7 @@ def main():
         lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         lines += ["| " + " | ".join(r) + " |" for r in rows]
         with open(args.markdown, "w") as fh:
-            fh.write("Output of `python bench/residual_battery.py --markdown docs/identification/battery.md` "
+            fh.write("Output of `python bench/residual_battery.py --markdown docs/results/identification/battery.md` "
                      "(held-out figures at the record's rate; before = GPIM + refitted G_v; 'wiped from T s': the state before "
                      "the record is unknown, and the fit starts where the input has wiped it out; peaks / noise's: the 3rd largest 5 ms peak of the final held-out residual over what the "
                      "sensor noise gives (unexplained above 2.5); smallest margin: "

@@ -5,7 +5,7 @@ Cases: the default valve at the paper's 10 kHz and at the rig's 1 kHz (where the
 margins Table 1 was tuned with), and the slow-dynamics valve (G_v with a 60 Hz section) at 1 kHz.  Prints,
 per case, every set's average settling time and overshoot on the valve and its margins on the model, and
 whether the tuned set beats the best Table 1 set within the tuner's overshoot limit (2 %).
-    python bench/tuning_table.py [--quick] [--markdown docs/tuning_table.md]
+    python bench/tuning_table.py [--quick] [--markdown docs/results/tuning_table.md]
 ``--quick``: only the 1 kHz cases.
 """
 import argparse

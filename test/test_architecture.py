@@ -121,3 +121,15 @@ def test_nodes_never_import_a_command_line_tool():
     for module, targets in EDGES.items():
         if _short(module).startswith("nodes"):
             assert not {_short(t) for t in targets} & CLI_MODULES, (module, targets)
+
+
+def test_every_relative_link_in_the_docs_points_at_a_file():
+    import re
+    top = ROOT.parent
+    broken = []
+    for md in [top / "README.md", *sorted((top / "docs").rglob("*.md"))]:
+        for m in re.finditer(r"\]\(([^)#\s]+)(#[^)]*)?\)", md.read_text()):
+            link = m.group(1)
+            if not link.startswith(("http://", "https://", "mailto:")) and not (md.parent / link).exists():
+                broken.append(f"{md.relative_to(top)}: {link}")
+    assert broken == []
