@@ -475,3 +475,58 @@ def test_every_node_shares_the_one_control_period_declaration():
     for specs in (HARDWARE_PARAMETERS, CONTROLLER_PARAMETERS, IDENTIFICATION_PARAMETERS):
         assert [s for s in specs if s.name == "control_period_s"] == [CONTROL_PERIOD]
         assert len({s.name for s in specs}) == len(specs)   # declared once each
+
+
+def test_a_reference_the_valve_cannot_reach_is_refused_and_never_drives_the_command_to_a_rail(controller):
+    """position_reference 20 (um meant), -1, 1e-3 (mm meant) and NaN, through ROS to a running PID HC
+    controller: each refused (counted, one log line), the last good reference kept, the command never on a
+    rail; a reference just beyond the reachable range is clamped to it instead."""
+    from piezo_valve_ros.nodes.common import REFERENCE_QOS, SENSOR_QOS
+    ctl = controller(gain_set="pid_hc_5")
+    lo, hi = ctl.controller.reachable_m
+    ns = ctl.get_namespace()
+    other = rclpy.create_node("reference_sender", namespace=ns)
+    executor = make_executor()
+    executor.add_node(ctl)
+    executor.add_node(other)
+    commands = []
+    try:
+        refs = other.create_publisher(Float64, "position_reference", REFERENCE_QOS)
+        positions = other.create_publisher(Float64, "spool_position", SENSOR_QOS)
+        other.create_subscription(Float64, "voltage_command", lambda m: commands.append(m.data), COMMAND_QOS)
+        assert spin_until(executor, lambda: refs.get_subscription_count() and positions.get_subscription_count())
+
+        def run(reference, periods=150):
+            refs.publish(Float64(data=reference))
+            spin_until(executor, lambda: False, 0.05)
+            for _ in range(periods):   # the valve sits at the good reference
+                positions.publish(Float64(data=20e-6))
+                spin_until(executor, lambda: False, 0.002)
+
+        run(20e-6)
+        good = len(commands)
+        assert good > 50
+        for bad in (20.0, -1.0, 1e-3, float("nan")):
+            run(bad)
+        assert ctl.rejected_references == 4 and ctl.clamped_references == 0
+        held = commands[good:]
+        assert len(held) > 300 and 0.5 < min(held) and max(held) < 9.5   # never near a rail (0 / 10 V)
+        run(hi + 0.01 * (hi - lo))
+        assert ctl.clamped_references == 1 and ctl.rejected_references == 4
+    finally:
+        executor.remove_node(ctl)
+        executor.remove_node(other)
+        other.destroy_node()
+        executor.shutdown()
+
+
+def test_admit_reference_clamps_a_little_beyond_the_reach_and_refuses_more():
+    ctl = ValveController(ControllerConfig(strategy="pid_hc", dt=1e-3))
+    lo, hi = ctl.reachable_m
+    assert lo < -50e-6 and hi > 50e-6            # the paper's valve: about +-65 um
+    assert ctl.admit_reference(10e-6) == (10e-6, "")
+    near, why = ctl.admit_reference(hi + 0.02 * (hi - lo))
+    assert near == hi and "clamped" in why
+    for bad in (20.0, -1.0, 1e-3, hi + 0.2 * (hi - lo), float("nan"), float("inf")):
+        r, why = ctl.admit_reference(bad)
+        assert r is None and why

@@ -43,6 +43,22 @@ def test_reference_profiles_and_their_refusals(tmp_path):
         good.write_text(text)
         with pytest.raises(ValueError, match=says):
             load_profile(good)
+    # the header says the unit: a file in micrometres is read as micrometres, never as metres
+    good.write_text("time_s, position_um\n0, 0\n0.5, 20\n")
+    assert load_profile(good)[1] == pytest.approx([0.0, 20e-6], rel=1e-12)
+    good.write_text("time_s, position\n0, 0\n0.5, 20\n")
+    with pytest.raises(ValueError, match="expected 'time_s, position_m'"):
+        load_profile(good)
+
+
+@pytest.mark.parametrize("args, says", [(["step", "20"], "a position of 20 m"), (["step", "--", "-1"], "a position of 1 m"),
+                                        (["step", "1e-3"], "a position of 0.001 m"), (["step", "nan"], "finite")])
+def test_valve_command_refuses_a_reference_no_valve_reaches_before_sending(args, says):
+    """A unit mistake (20 meant as um, 1e-3 as mm) is refused with one line and exit 2, before ROS starts."""
+    exe = os.path.join(os.path.dirname(sys.executable), "valve_command")
+    proc = subprocess.run([exe] + args, env=ros_env(), capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert says in proc.stderr and "[INFO]" not in proc.stdout + proc.stderr
 
 
 def test_steps_are_found_in_a_recorded_reference_and_measured():

@@ -27,6 +27,7 @@ from ..core.sim.signals import load_profile, ramp_profile, sine_profile
 from .client import RigClient, run_in_background
 from .common import close, init_ros, split_ros_args, stop_requested
 
+MAX_REFERENCE_M = 5e-4     # refused before sending: beyond any piezo ring bender's travel (a unit mistake)
 PROFILE_HISTORY = 10_000   # references kept for readers that fall behind (the nodes keep 10)
 
 
@@ -100,6 +101,10 @@ def profile(args) -> tuple[np.ndarray, np.ndarray]:
         times, values = load_profile(args.path)
     if not np.all(np.isfinite(values)):
         raise ValueError(f"{args.command}: positions must be finite")
+    worst = float(np.max(np.abs(values)))
+    if worst > MAX_REFERENCE_M:
+        raise ValueError(f"{args.command}: a position of {worst:.6g} m: no piezo valve's spool travels more than "
+                         f"{MAX_REFERENCE_M:g} m (positions are in metres: 20 um is 2e-05); nothing sent")
     return times, values
 
 

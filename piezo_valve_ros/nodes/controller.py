@@ -139,6 +139,7 @@ class ValveControllerNode(Node):
         if not self.enabled:
             self._watch_applied_voltage(True)
         self.rejected_references = 0
+        self.clamped_references = 0
         self.get_logger().info(f"valve_controller up: strategy={config.strategy}{self._gains_text(config)} "
                                f"period={config.dt * 1e3:.3f} ms" + (f" (gain_set {p['gain_set']})" if p["gain_set"] else "")
                                + f"; {self.realtime.describe()}")
@@ -280,11 +281,14 @@ class ValveControllerNode(Node):
             self.get_logger().info("disabled: publishing no commands")
 
     def _on_reference(self, msg: Float64) -> None:
-        r = msg.data
-        if not math.isfinite(r):
+        r, why = self.controller.admit_reference(msg.data)
+        if r is None:
             self.rejected_references += 1
-            self.get_logger().warning(f"rejected non-finite position_reference {r!r}")
+            self.get_logger().warning(f"rejected {why}")
             return
+        if why:
+            self.clamped_references += 1
+            self.get_logger().warning(why)
         self.ramp.set_target(r)
 
     # ------------------------------------------------------------------ parameters

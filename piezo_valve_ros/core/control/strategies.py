@@ -56,6 +56,7 @@ __all__ = ["STRATEGIES", "PIDGains", "ControllerConfig", "ValveController", "TAB
 
 STRATEGIES = ("ol", "ol_hc", "pid", "pid_hc", "ff_pid", "ff_pid_g")
 FALLBACK_LAW = {"pid": "ol", "pid_hc": "ol_hc", "ff_pid": "ol_hc", "ff_pid_g": "ol_hc"}  # feedback -> feedforward
+REFERENCE_CLAMP_SHARE = 0.05  # a reference this share of the reachable span outside it is clamped; further: refused
 GUARD_WINDOW_S = 0.02     # commands on both rails within this long: the loop oscillates
 GUARD_ENTRIES = 3         # ... and so does a command that comes onto a rail this often ...
 GUARD_ENTRY_WINDOW_S = 0.05  # ... within this long (a lopsided limit cycle that reaches only one rail),
@@ -414,6 +415,30 @@ class ValveController:
             self.integrator_um += difference_v * self._k
 
     # ------------------------------------------------------------------ the loop
+    @property
+    def reachable_m(self) -> tuple[float, float]:
+        """(lowest, highest) position [m] the model says the valve reaches on the command range: the GPIM's
+        major loop through the saturation map."""
+        return self._loop_min_um * 1e-6, self._loop_max_um * 1e-6
+
+    def admit_reference(self, reference_m: float) -> tuple[Optional[float], str]:
+        """A position reference [m] checked against what the valve can reach: (the reference to follow,
+        "") when inside; (the nearest reachable position, why) when at most REFERENCE_CLAMP_SHARE of the
+        span outside; (None, why) when not finite or further out (a unit mistake: 20 meant as um, 1e-3 as
+        mm), which would hold the command on a rail."""
+        lo, hi = self.reachable_m
+        if not math.isfinite(reference_m):
+            return None, f"position_reference {reference_m!r} is not a finite number"
+        if lo <= reference_m <= hi:
+            return reference_m, ""
+        margin = REFERENCE_CLAMP_SHARE * (hi - lo)
+        where = f"outside the reachable range [{lo:.4g}, {hi:.4g}] m of the model in force"
+        if lo - margin <= reference_m <= hi + margin:
+            near = min(max(reference_m, lo), hi)
+            return near, f"position_reference {reference_m:.6g} m {where}: clamped to {near:.6g} m"
+        return None, (f"position_reference {reference_m:.6g} m {where} (references are in metres: "
+                      f"20 um is 2e-05): refused, the last reference stays")
+
     def step(self, reference_m: float, measured_m: float) -> float:
         """One control period: demand and measured position [m] -> command [V]."""
         c = self.config

@@ -228,11 +228,17 @@ def sine_profile(amplitude_m: float, frequency_hz: float, duration_s: float, off
     return t, offset_m + amplitude_m * np.sin(2 * np.pi * frequency_hz * t)
 
 
+PROFILE_UNITS = {"position_m": 1.0, "position_mm": 1e-3, "position_um": 1e-6}   # header name -> metres per unit
+
+
 def load_profile(path) -> tuple[np.ndarray, np.ndarray]:
-    """Rows ``time_s, position_m`` (comma or white space separated, ``#`` comments, an optional header) from
-    a text file; times from 0 or later and never decreasing.  ValueError naming the problem."""
+    """Rows ``time_s, position_m`` (comma or white space separated, ``#`` comments) from a text file, as
+    (times [s], positions [m]); an optional header names the position's unit (``position_m``,
+    ``position_mm`` or ``position_um``; without one: metres).  Times from 0 or later and never decreasing.
+    ValueError naming the problem (also a header that names no unit: the file's numbers would be guessed)."""
     rows = []
     first = True
+    scale = 1.0
     with open(path, encoding="utf8") as f:
         for number, line in enumerate(f, 1):
             text = line.split("#", 1)[0].strip()
@@ -241,8 +247,13 @@ def load_profile(path) -> tuple[np.ndarray, np.ndarray]:
             try:
                 values = [float(x) for x in text.replace(",", " ").split()]
             except ValueError:
-                if first:  # a header line
+                if first:  # a header line: it says the unit
                     first = False
+                    names = text.replace(",", " ").split()
+                    if len(names) != 2 or names[1] not in PROFILE_UNITS:
+                        raise ValueError(f"{path}:{number}: header {text!r}: expected 'time_s, position_m' "
+                                         f"(or position_mm, position_um)") from None
+                    scale = PROFILE_UNITS[names[1]]
                     continue
                 raise ValueError(f"{path}:{number}: not two numbers: {text!r}") from None
             first = False
@@ -254,4 +265,4 @@ def load_profile(path) -> tuple[np.ndarray, np.ndarray]:
     a = np.asarray(rows)
     if a[0, 0] < 0 or np.any(np.diff(a[:, 0]) < 0):
         raise ValueError(f"{path}: times must start at 0 s or later and never decrease")
-    return a[:, 0], a[:, 1]
+    return a[:, 0], a[:, 1] * scale
