@@ -530,3 +530,41 @@ def test_admit_reference_clamps_a_little_beyond_the_reach_and_refuses_more():
     for bad in (20.0, -1.0, 1e-3, hi + 0.2 * (hi - lo), float("nan"), float("inf")):
         r, why = ctl.admit_reference(bad)
         assert r is None and why
+
+
+def test_valve_command_loads_a_fitted_model_atomically_where_set_refuses_it(controller, tmp_path):
+    """A new GPIM with a different number of operators: thresholds and weights set one at a time are each
+    refused (their counts differ in between); `valve_command load` applies the whole file in one update,
+    and a file whose model is not invertible is refused whole, nothing changed."""
+    from piezo_valve_ros.core.control.compensation import CompensationModel
+    from piezo_valve_ros.core.model.hysteresis import GPIMParams
+    from piezo_valve_ros.identify import parameters_yaml
+    from piezo_valve_ros.nodes.client import run_in_background
+    ctl = controller()
+    thread, stop, executor = run_in_background([ctl])
+    exe = os.path.join(os.path.dirname(sys.executable), "valve_command")
+
+    def command(*args):
+        return subprocess.run([exe, "--namespace", ctl.get_namespace(), "--timeout", "20", *args], env=ros_env(),
+                              capture_output=True, text=True, timeout=90)
+    try:
+        new = CompensationModel(GPIMParams(a0=0.9647, a1=0.1014, alpha=0.40, rho=4.0, tau=0.9, n=9,
+                                           offset_um=-80.0).model()).to_parameters()
+        fitted = tmp_path / "fitted.yaml"
+        fitted.write_text(parameters_yaml(new, ["a model with 9 operators"]))
+        one_by_one = command("set", "controller", "gpim.thresholds:=" + str(new["gpim.thresholds"]))
+        assert one_by_one.returncode == 1 and "refused" in one_by_one.stdout
+        loaded = command("load", "controller", str(fitted))
+        assert loaded.returncode == 0 and "applied together" in loaded.stdout, loaded.stdout + loaded.stderr
+        assert list(ctl.get_parameter("gpim.weights").value) == pytest.approx(new["gpim.weights"])
+        assert ctl.controller.model.n == 9
+        broken = tmp_path / "broken.yaml"
+        broken.write_text(parameters_yaml({**new, "gpim.weights": [-1.0] * 9}, ["not invertible"]))
+        refused = command("load", "controller", str(broken))
+        assert refused.returncode == 1 and "refused, nothing changed" in refused.stdout, refused.stdout
+        assert list(ctl.get_parameter("gpim.weights").value) == pytest.approx(new["gpim.weights"])
+    finally:
+        stop.set()
+        thread.join(2.0)
+        executor.remove_node(ctl)
+        executor.shutdown()

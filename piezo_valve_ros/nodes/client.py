@@ -160,6 +160,12 @@ class RigClient(Node):
         future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
         return wait_future(future, timeout_s, f"setting {', '.join(values)}").results
 
+    def set_params_atomically(self, client: AsyncParameterClient, values: dict, timeout_s: float = 10.0):
+        """Set ``values`` on the node behind ``client`` in one update, all applied or none: the
+        SetParametersResult (its reason when refused)."""
+        future = client.set_parameters_atomically([Parameter(k, value=v) for k, v in values.items()])
+        return wait_future(future, timeout_s, f"setting {len(values)} parameters atomically").result
+
     def get_params(self, client: AsyncParameterClient, names: list[str], timeout_s: float = 10.0) -> dict:
         """Values of ``names`` on the node behind ``client`` (all of its parameters when empty)."""
         return get_parameter_values(client, names, timeout_s)

@@ -8,6 +8,7 @@ needed).  Positions in metres, times in seconds (SI, as on the topics).
     valve_command get controller strategy kp ki               # all parameters without names
     valve_command set controller gain_set:=ff_pid_1           # each answer: accepted, or refused and why
     valve_command --namespace /rig2 set hardware command_timeout_s:=0.2
+    valve_command load controller fitted.yaml                 # a whole file in one update: all or nothing
 
 Nodes are ``hardware``, ``controller``, ``identification`` (the rig's, in ``--namespace``) or any node
 name.  Values of ``set`` are read as YAML, like ``ros2 param set`` (``1`` an integer, ``1.0`` a double,
@@ -69,7 +70,36 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = sub.add_parser("set", help="set parameters of a node (NAME:=VALUE ...)")
     p.add_argument("node")
     p.add_argument("assignments", nargs="+", metavar="NAME:=VALUE")
+    p = sub.add_parser("load", help="load a ROS parameters file into a running node in one atomic update (all "
+                                    "applied or none: e.g. a fitted model from valve_identify --params-out)")
+    p.add_argument("node")
+    p.add_argument("path")
     return ap.parse_args(argv)
+
+
+def file_section(path, node: str) -> dict:
+    """The ``ros__parameters`` a ROS parameters file gives ``node`` (``hardware``, ``controller``,
+    ``identification`` or a node name): its ``/**`` section, then every section whose last name element is the
+    node's (``valve_controller``, ``/**/valve_controller``, ``/ns/valve_controller``), later ones winning.
+    ValueError (or OSError) with the reason."""
+    name = (f"valve_{node}" if node in ("hardware", "controller", "identification") else node).rstrip("/").split("/")[-1]
+    try:
+        with open(path) as f:
+            doc = load_yaml(f)
+    except YAMLError as exc:
+        raise ValueError(f"{path} is not YAML: {str(exc).splitlines()[0]}") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected a mapping of node names, got {type(doc).__name__}")
+    keys = [k for k in doc if str(k) == "/**"] + [k for k in doc if str(k).rstrip("/").split("/")[-1] == name]
+    if not keys:
+        raise ValueError(f"{path}: no section for {name} (sections: {', '.join(map(str, doc)) or 'none'})")
+    values = {}
+    for k in keys:
+        section = doc[k].get("ros__parameters") if isinstance(doc[k], dict) else None
+        if not isinstance(section, dict):
+            raise ValueError(f"{path}: section {k} has no ros__parameters mapping")
+        values.update(section)
+    return values
 
 
 def parse_assignment(text: str) -> tuple[str, object]:
@@ -117,6 +147,8 @@ def checked_request(args):
         return None
     if args.command == "set":
         return dict(parse_assignment(a) for a in args.assignments)
+    if args.command == "load":
+        return file_section(args.path, args.node)
     if args.wait_readers < 1:
         raise ValueError(f"--wait-readers must be >= 1, got {args.wait_readers}")
     return profile(args)
@@ -141,6 +173,15 @@ def run(args, client: RigClient, request, out=sys.stdout) -> int:
                 refused += 1
                 print(f"{client.node_name(args.node)}: {name} := {value!r} refused: {result.reason}", file=out)
         return 1 if refused else 0
+    if args.command == "load":
+        values = request
+        result = client.set_params_atomically(client.wait_for_node(args.node, args.timeout), values, args.timeout)
+        who = client.node_name(args.node)
+        if result.successful:
+            print(f"{who}: {len(values)} parameters from {args.path} applied together", file=out)
+            return 0
+        print(f"{who}: {args.path} refused, nothing changed: {result.reason}", file=out)
+        return 1
     times, values = request
 
     def progress(sent, total, elapsed):
