@@ -153,5 +153,22 @@ def write_outputs(outputs: dict[str, str]) -> list[str]:
     return written
 
 
+REPORT_SCHEMA = "piezo_valve_ros/identification-report"
+REPORT_SCHEMA_VERSION = 2   # 1: the keys before the schema block; 2: adds schema, fit_pct, indistinguishable
+
+
+def package_version() -> str:
+    """The installed package's version ("unknown" when run from a source tree without metadata)."""
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("piezo_valve_ros")
+    except PackageNotFoundError:
+        return "unknown"
+
+
 def report_json(analysis: Analysis) -> str:
-    return json.dumps(analysis.report, indent=2) + "\n"
+    """The report as JSON, opened by what it is: schema name and version, the package's version, when."""
+    from datetime import datetime, timezone
+    schema = {"name": REPORT_SCHEMA, "version": REPORT_SCHEMA_VERSION, "package_version": package_version(),
+              "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+    return json.dumps({"schema": schema, **analysis.report}, indent=2) + "\n"

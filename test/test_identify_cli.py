@@ -243,6 +243,11 @@ def test_report_keeps_every_key_earlier_reports_had(bags_10khz, tmp_path):
         node = report
         for part in path.split("."):
             node = node[0] if part == "[]" else node[part]
+    from piezo_valve_ros.identify import REPORT_SCHEMA, REPORT_SCHEMA_VERSION
+    schema = report["schema"]   # what the file is, for readers that come later
+    assert (schema["name"], schema["version"]) == (REPORT_SCHEMA, REPORT_SCHEMA_VERSION)
+    assert schema["package_version"] != "" and schema["created_utc"].endswith("+00:00")
+    assert 0.0 < report["final"]["validate"]["fit_pct"] <= 100.0
 
 
 def _segmented_bag(path, rows, storage, messages_per_segment=5, batch=1000):
