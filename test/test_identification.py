@@ -109,7 +109,7 @@ def test_nominal_valve_adds_nothing_and_final_is_the_baseline(held_out):
     assert report["final"]["validate"]["rms_um"] < 1.1 * report["noise_floor_um"]
     for key in ("range_um", "baseline", "effects_added", "diagnosis", "final", "unexplained"):
         assert key in report
-    assert set(report["baseline"]["validate"]) == {"rms_um", "peak_um", "peak_pct"}
+    assert set(report["baseline"]["validate"]) == {"rms_um", "peak_um", "peak_pct", "fit_pct"}
 
 
 def test_the_baseline_fits_g_v_and_says_where_its_poles_came_from():
