@@ -568,3 +568,81 @@ def test_valve_command_loads_a_fitted_model_atomically_where_set_refuses_it(cont
         thread.join(2.0)
         executor.remove_node(ctl)
         executor.shutdown()
+
+
+def test_controller_state_and_diagnostics_say_what_the_controller_is_doing(controller):
+    """~/controller_state: the latest period's reference, measurement, error, command, strategy, guard,
+    enabled (a labelled row); /diagnostics: the node's health (OK in control, the model in force, refused
+    references), both at a low rate on their own timers."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from piezo_valve_ros.nodes.common import REFERENCE_QOS, SENSOR_QOS
+    from piezo_valve_ros.nodes.controller import CONTROLLER_STATE_COLUMNS
+    ctl = controller(gain_set="pid_hc_5", state_period_s=0.05, diagnostics_period_s=0.2)
+    ns = ctl.get_namespace()
+    other = rclpy.create_node("state_reader", namespace=ns)
+    executor = make_executor()
+    executor.add_node(ctl)
+    executor.add_node(other)
+    states, health = [], []
+    try:
+        other.create_subscription(Float64MultiArray, f"{ctl.get_fully_qualified_name()}/controller_state",
+                                  states.append, 10)
+        other.create_subscription(DiagnosticArray, "/diagnostics",
+                                  lambda m: health.extend(s for s in m.status if s.name == ctl.get_fully_qualified_name()), 10)
+        refs = other.create_publisher(Float64, "position_reference", REFERENCE_QOS)
+        positions = other.create_publisher(Float64, "spool_position", SENSOR_QOS)
+        other.create_subscription(Float64, "voltage_command", lambda m: None, COMMAND_QOS)
+        assert spin_until(executor, lambda: refs.get_subscription_count() and positions.get_subscription_count())
+        refs.publish(Float64(data=20e-6))
+        refs.publish(Float64(data=1.0))            # refused: counted in the health values
+        spin_until(executor, lambda: False, 0.05)
+        for _ in range(100):
+            positions.publish(Float64(data=18e-6))
+            spin_until(executor, lambda: False, 0.003)
+        assert spin_until(executor, lambda: len(health) >= 1 and len(states) >= 2, 3.0)
+        msg = states[-1]
+        assert msg.layout.dim[1].label == ",".join(CONTROLLER_STATE_COLUMNS)
+        row = dict(zip(CONTROLLER_STATE_COLUMNS, np.asarray(msg.data)))
+        assert row["reference_m"] == pytest.approx(20e-6) and row["measured_m"] == pytest.approx(18e-6)
+        assert row["error_m"] == pytest.approx(2e-6) and 0.0 <= row["command_v"] <= 10.0
+        assert row["strategy_index"] == 3 and row["guard_active"] == 0.0 and row["enabled"] == 1.0
+        status = health[-1]
+        values = {kv.key: kv.value for kv in status.values}
+        assert status.level == DiagnosticStatus.OK and "in control" in status.message
+        assert values["strategy"] == "pid_hc" and values["references_rejected"] == "1"
+        assert "GPIM 15 operators" in values["model"]
+    finally:
+        executor.remove_node(ctl)
+        executor.remove_node(other)
+        other.destroy_node()
+        executor.shutdown()
+
+
+def test_hardware_diagnostics_report_the_watchdog(hardware):
+    """/diagnostics from the hardware: waiting for the first command (OK), then, after its commands stop,
+    the watchdog fired (ERROR, with the timeout), on the real-time clock."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    hw = hardware(command_timeout_s=0.1, diagnostics_period_s=0.1)
+    ns = hw.get_namespace()
+    other = rclpy.create_node("health_reader", namespace=ns)
+    executor = make_executor()
+    executor.add_node(hw)
+    executor.add_node(other)
+    health = []
+    try:
+        other.create_subscription(DiagnosticArray, "/diagnostics",
+                                  lambda m: health.extend(s for s in m.status if s.name == hw.get_fully_qualified_name()), 10)
+        commands = other.create_publisher(Float64, "voltage_command", COMMAND_QOS)
+        assert spin_until(executor, lambda: len(health) >= 1, 3.0)
+        assert health[-1].level == DiagnosticStatus.OK and "waiting for the first command" in health[-1].message
+        assert spin_until(executor, lambda: commands.get_subscription_count() >= 1)
+        commands.publish(Float64(data=6.0))
+        assert spin_until(executor, lambda: health[-1].level == DiagnosticStatus.ERROR, 3.0)
+        assert "watchdog" in health[-1].message and "safe voltage" in health[-1].message
+        values = {kv.key: kv.value for kv in health[-1].values}
+        assert values["watchdog"].startswith("fired") and values["clock"] == "realtime"
+    finally:
+        executor.remove_node(hw)
+        executor.remove_node(other)
+        other.destroy_node()
+        executor.shutdown()

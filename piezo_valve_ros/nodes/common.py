@@ -16,6 +16,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy, DurabilityPolicy, qos_profile_sensor_data
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 from ..samples import SAMPLES_LABEL, decode_samples
@@ -112,6 +113,40 @@ def realtime_specs() -> tuple[ParameterSpec, ...]:
                       "allow it", read_only=True),
         ParameterSpec("realtime.cpus", [], "CPUs the process may run on (e.g. [1]; empty = any)", read_only=True),
     )
+
+
+DIAGNOSTICS_PERIOD = ParameterSpec(
+    "diagnostics_period_s", 1.0, "publish this node's health on /diagnostics (diagnostic_msgs) this often [s]; "
+    "0: never", read_only=True, low=0.0, high=60.0)
+DIAGNOSTICS_LEVELS = {"OK": DiagnosticStatus.OK, "WARN": DiagnosticStatus.WARN, "ERROR": DiagnosticStatus.ERROR}
+
+
+class Diagnostics:
+    """A node's health on ``/diagnostics`` (the ROS convention: a DiagnosticArray, one DiagnosticStatus named
+    after the node) every ``period_s``; ``status()`` gives (level "OK"/"WARN"/"ERROR", one-line message, values
+    by name).  Logs one line when the level or the message's kind changes."""
+
+    def __init__(self, node: Node, period_s: float, status: Callable[[], tuple[str, str, dict]]):
+        self.node, self.status = node, status
+        self.publisher = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.last_level: Optional[str] = None
+        self.timer = node.create_timer(period_s, self.publish) if period_s > 0 else None
+
+    def publish(self) -> DiagnosticArray:
+        level, message, values = self.status()
+        msg = DiagnosticArray()
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        msg.status = [DiagnosticStatus(level=DIAGNOSTICS_LEVELS[level], name=self.node.get_fully_qualified_name(),
+                                       message=message, hardware_id="piezo_valve",
+                                       values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])]
+        self.publisher.publish(msg)
+        if level != self.last_level:
+            if level == "OK":   # rclpy ties a call site to one severity: one call per severity
+                self.node.get_logger().info(f"health {level}: {message}")
+            else:
+                self.node.get_logger().warning(f"health {level}: {message}")
+            self.last_level = level
+        return msg
 
 
 def declare_all(node: Node, specs) -> None:

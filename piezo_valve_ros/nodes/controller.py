@@ -20,6 +20,7 @@ import sys
 import time
 from typing import Any, Callable, Optional
 
+import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -30,7 +31,8 @@ from ..core.model.rate_dependence import describe_inverse, solved_each_step
 from ..core.sim.signals import ReferenceRamp
 from ..core.control.strategies import (GUARD_WINDOW_S, STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set,
                                loop_settings)
-from .common import (CONTROL_PERIOD, COMMAND_QOS, LATEST_SENSOR_QOS, SAMPLES_QOS, ParameterSpec, as_float, declare_all,
+from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, LATEST_SENSOR_QOS, SAMPLES_QOS, Diagnostics,
+                     ParameterSpec, samples_message, as_float, declare_all,
                      parameter_values, realtime_settings, realtime_specs, refuse, run_node, samples_from_message)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
@@ -101,7 +103,12 @@ CONTROLLER_PARAMETERS: tuple[ParameterSpec, ...] = tuple(
                   f"long, take control back [s] ({HANDBACK_TIMEOUT_RANGE_S[0]:g}..{HANDBACK_TIMEOUT_RANGE_S[1]:g})",
                   low=HANDBACK_TIMEOUT_RANGE_S[0], high=HANDBACK_TIMEOUT_RANGE_S[1]),
     *realtime_specs(),
+    ParameterSpec("state_period_s", 0.1, "publish ~/controller_state (the latest period's reference, measurement, "
+                  "error, command, strategy, guard) this often [s]; 0: never", read_only=True, low=0.0, high=10.0),
+    DIAGNOSTICS_PERIOD,
 )
+CONTROLLER_STATE_COLUMNS = ("time_s", "reference_m", "measured_m", "error_m", "command_v", "strategy_index",
+                            "guard_active", "enabled")   # ~/controller_state: one row; strategy_index into STRATEGIES
 
 
 class ValveControllerNode(Node):
@@ -140,6 +147,13 @@ class ValveControllerNode(Node):
             self._watch_applied_voltage(True)
         self.rejected_references = 0
         self.clamped_references = 0
+        self._last_reference_m = float("nan")
+        self._last_command_v = float("nan")
+        self.state_pub = self.create_publisher(Float64MultiArray, "~/controller_state", 10)
+        state_period = as_float("state_period_s", p["state_period_s"])
+        if state_period > 0:
+            self.create_timer(state_period, self.publish_state)
+        self.diagnostics = Diagnostics(self, as_float("diagnostics_period_s", p["diagnostics_period_s"]), self._health)
         self.get_logger().info(f"valve_controller up: strategy={config.strategy}{self._gains_text(config)} "
                                f"period={config.dt * 1e3:.3f} ms" + (f" (gain_set {p['gain_set']})" if p["gain_set"] else "")
                                + f"; {self.realtime.describe()}")
@@ -185,7 +199,9 @@ class ValveControllerNode(Node):
             return None
         ctl = self.controller
         trips = ctl.guard_trips
-        v = ctl.step(self.ramp.step(), y)
+        r = self.ramp.step()
+        v = ctl.step(r, y)
+        self._last_reference_m, self._last_command_v = r, v
         if ctl.guard_trips != trips:
             self.get_logger().warning(
                 f"oscillation guard: commands on both rails within {GUARD_WINDOW_S * 1e3:.0f} ms (the loop "
@@ -196,6 +212,40 @@ class ValveControllerNode(Node):
             self._guarding = False
             self.get_logger().info("oscillation guard: feedback back in charge (bumpless)")
         return v
+
+    # ------------------------------------------------------------------ what it is doing
+    def publish_state(self) -> np.ndarray:
+        """One row of CONTROLLER_STATE_COLUMNS on ~/controller_state (the latest period)."""
+        y = self._last_position_m if self._last_position_m is not None else float("nan")
+        ctl = self.controller
+        row = np.array([[self.get_clock().now().nanoseconds * 1e-9, self._last_reference_m, y,
+                         self._last_reference_m - y, self._last_command_v,
+                         float(STRATEGIES.index(ctl.config.strategy)), float(ctl.in_fallback), float(self.enabled)]])
+        self.state_pub.publish(samples_message(row, ",".join(CONTROLLER_STATE_COLUMNS)))
+        return row
+
+    def _health(self) -> tuple[str, str, dict]:
+        """(level, message, values) for /diagnostics: the oscillation guard, the model in force, refused and
+        clamped references."""
+        ctl = self.controller
+        comp = ctl.compensation
+        parts = [f"GPIM {comp.gpim.n} operators"] + [name for name, on in (
+            ("asymmetric", comp.gpim.b0 is not None), ("rate-dependent", comp.rate_dependent),
+            ("creep", comp.creep.active), ("saturation map", comp.output_map.active),
+            ("dynamic feedforward", comp.dynamic_feedforward)) if on]
+        lo, hi = ctl.reachable_m
+        g = ctl.config.gains
+        values = {"strategy": ctl.config.strategy, "kp": g.kp, "ki": g.ki, "kd": g.kd, "enabled": self.enabled,
+                  "model": ", ".join(parts), "reachable_m": f"{lo:.6g} .. {hi:.6g}", "guard_trips": ctl.guard_trips,
+                  "references_rejected": self.rejected_references, "references_clamped": self.clamped_references,
+                  "period_s": ctl.config.dt}
+        if self.enabled and ctl.in_fallback:
+            return "WARN", f"oscillation guard: feedforward only (trip {ctl.guard_trips})", values
+        if not self.enabled:
+            return "OK", "disabled: another node commands the valve", values
+        if self._last_position_m is None:
+            return "OK", f"{ctl.config.strategy}: waiting for spool_position", values
+        return "OK", f"{ctl.config.strategy}: in control", values
 
     def _on_position(self, msg: Float64) -> None:
         if self.command_pub.get_subscription_count() <= 1:  # our own _on_command_seen is one of them

@@ -24,7 +24,7 @@ from std_msgs.msg import Float64, Float64MultiArray
 
 from ..backends import ValveBackend, backend_class
 from ..loop_timing import LoopTiming
-from .common import (CONTROL_PERIOD, COMMAND_QOS, MAX_CONTROL_PERIOD_S, SAMPLES_QOS, SENSOR_QOS, Pacing, ParameterSpec,
+from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, MAX_CONTROL_PERIOD_S, Diagnostics, SAMPLES_QOS, SENSOR_QOS, Pacing, ParameterSpec,
                      as_float, as_int, declare, declare_all, parameter_values, realtime_settings, realtime_specs, refuse,
                      run_node, samples_message, tighten_timer_slack)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
@@ -57,7 +57,9 @@ HARDWARE_PARAMETERS: tuple[ParameterSpec, ...] = (
     *realtime_specs(),
     ParameterSpec("loop_stats_period_s", 0.0, "log the loop timing (rate, commands in time, latency) this often [s]; "
                   "0: only at shutdown", read_only=True),
+    DIAGNOSTICS_PERIOD,
 )
+IN_TIME_WARN_SHARE = 0.99   # /diagnostics: WARN when fewer commands than this share came within their period
 
 
 def samples_per_period(control_period_s: float, sample_period_s: float) -> int:
@@ -159,10 +161,32 @@ class ValveHardwareNode(Node):
             self._tick_timer = self.create_timer(self.control_period_s, self._realtime_tick)
         if stats_period > 0:
             self.create_timer(stats_period, lambda: self.get_logger().info(self._loop_line()))
+        self._health_mark = (0, 0)
+        self.diagnostics = Diagnostics(self, as_float("diagnostics_period_s", p["diagnostics_period_s"]), self._health)
         self.get_logger().info(
             f"valve_hardware up: backend={p['backend']} clock={self.clock_mode} "
             f"period={self.control_period_s * 1e3:.3f} ms ({self.samples_per_period} samples)"
             + (f"; {self.realtime.describe()}" if self.clock_mode == "realtime" else ""))
+
+    # ------------------------------------------------------------------ health
+    def _health(self) -> tuple[str, str, dict]:
+        """(level, message, values) for /diagnostics: the watchdog, commands in time since the last report
+        (real-time clock), clamps and late commands; counters only, nothing that costs the loop."""
+        t = self.loop_timing
+        periods, in_time = t.periods - self._health_mark[0], t.in_time - self._health_mark[1]
+        self._health_mark = (t.periods, t.in_time)
+        share = in_time / periods if periods else float("nan")
+        watchdog = ("fired: safe voltage applied" if self._timed_out else
+                    "armed" if self._armed else "waiting for the first command (safe voltage applied)")
+        values = {"clock": self.clock_mode, "control_period_s": self.control_period_s, "periods": t.periods,
+                  "commands_in_time_share": round(share, 4) if periods else "no periods since the last report",
+                  "commands_clamped": self.clamped, "commands_rejected": self.rejected,
+                  "late_commands": self.late_commands, "watchdog": watchdog, "safe_voltage_v": self.safe_voltage}
+        if self._timed_out:
+            return "ERROR", f"watchdog: no valid command for {self.command_timeout_s} s, safe voltage applied", values
+        if self._armed and self.clock_mode == "realtime" and periods and share < IN_TIME_WARN_SHARE:
+            return "WARN", f"{100 * share:.1f} % of the commands came within their period", values
+        return "OK", f"watchdog {watchdog}", values
 
     # ------------------------------------------------------------------ commands
     def _validate(self, v: float) -> Optional[float]:
