@@ -11,7 +11,7 @@ from typing import Any
 
 import yaml
 
-__all__ = ["YAMLError", "yaml_value", "load", "dump"]
+__all__ = ["YAMLError", "yaml_value", "load", "dump", "node_section"]
 
 YAMLError = yaml.YAMLError
 
@@ -37,3 +37,28 @@ def load(text_or_stream) -> Any:
 def dump(data: Any) -> str:
     """Python values as block-style YAML text, keys in the order given."""
     return yaml.safe_dump(data, default_flow_style=False, sort_keys=False)
+
+
+def node_section(path, node: str) -> dict:
+    """The ``ros__parameters`` a ROS parameters file gives the node called ``node`` (e.g. ``valve_controller``):
+    its ``/**`` section, then every section whose last name element is the node's (``valve_controller``,
+    ``/**/valve_controller``, ``/ns/valve_controller``), later ones winning.  ValueError (or OSError) with the
+    reason when the file is not YAML, has no such section, or a section is not a parameters mapping."""
+    name = node.rstrip("/").split("/")[-1]
+    try:
+        with open(path) as f:
+            doc = load(f)
+    except YAMLError as exc:
+        raise ValueError(f"{path} is not YAML: {str(exc).splitlines()[0]}") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected a mapping of node names, got {type(doc).__name__}")
+    keys = [k for k in doc if str(k) == "/**"] + [k for k in doc if str(k).rstrip("/").split("/")[-1] == name]
+    if not keys:
+        raise ValueError(f"{path}: no section for {name} (sections: {', '.join(map(str, doc)) or 'none'})")
+    values = {}
+    for k in keys:
+        section = doc[k].get("ros__parameters") if isinstance(doc[k], dict) else None
+        if not isinstance(section, dict):
+            raise ValueError(f"{path}: section {k} has no ros__parameters mapping")
+        values.update(section)
+    return values

@@ -284,3 +284,71 @@ def test_one_samples_decoder_for_bags_and_messages():
                                      (dims, data[:7], "7 values, its layout says 2x4")]:
         with pytest.raises(SamplesLayoutError, match=says):
             decode_samples(bad_dims, bad_data)
+
+
+@pytest.mark.slow
+def test_valve_rig_brings_up_your_backend_from_one_parameters_file(tmp_path):
+    """The path onto a real rig, with the loopback DAQ as the backend: one parameters file for hardware and
+    controller, `valve_rig --params-file` (the file's backend, clock and period; --backend on the command
+    line would win), a step with valve_command, a fitted model loaded whole with valve_command load, and
+    ~/controller_state and /diagnostics read from the graph."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from std_msgs.msg import Float64MultiArray
+    from piezo_valve_ros.core.control.compensation import CompensationModel
+    from piezo_valve_ros.core.model.hysteresis import GPIMParams
+    from piezo_valve_ros.identify import parameters_yaml
+    ns = f"/bringup{os.getpid()}"
+    params = tmp_path / "my_rig.yaml"
+    params.write_text("valve_hardware:\n  ros__parameters:\n    backend: loopback\n    clock: realtime\n"
+                      "    control_period_s: 0.001\n    loopback.gain_m_per_v: 1.2e-05\n    diagnostics_period_s: 0.2\n"
+                      "valve_controller:\n  ros__parameters:\n    gain_set: pid_1\n    control_period_s: 0.001\n"
+                      "    state_period_s: 0.05\n    diagnostics_period_s: 0.2\n")
+    fitted = tmp_path / "fitted.yaml"
+    model = CompensationModel(GPIMParams(a0=0.9647, a1=0.1014, alpha=0.40, rho=4.0, tau=0.9, n=9,
+                                         offset_um=-80.0).model()).to_parameters()
+    fitted.write_text(parameters_yaml(model, ["a refit with 9 operators"]))
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    probe = rclpy.create_node("bringup_probe", namespace=ns, context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(probe)
+    states, health = [], {}
+    probe.create_subscription(Float64MultiArray, f"{ns}/valve_controller/controller_state", states.append, 10)
+    probe.create_subscription(DiagnosticArray, "/diagnostics",
+                              lambda m: health.update({s.name: s for s in m.status if s.name.startswith(ns)}), 10)
+    log = tmp_path / "rig.log"
+    try:
+        with ProcessGroup() as procs, open(log, "w") as out:
+            procs.start("rig", [os.path.join(BIN, "valve_rig"), "--params-file", str(params), "--demo", "none",
+                                "--namespace", ns], env=plugin_env(), stdout=out, stderr=subprocess.STDOUT)
+            wait_for_text(log, "rig up", timeout_s=90)
+            got = tool("valve_command", "--namespace", ns, "get", "hardware", "backend", "clock", "control_period_s")
+            assert "backend: 'loopback'" in got.stdout and "clock: 'realtime'" in got.stdout, got.stdout
+            step = tool("valve_command", "--namespace", ns, "step", "20e-6")
+            assert step.returncode == 0, step.stdout + step.stderr
+            loaded = tool("valve_command", "--namespace", ns, "load", "controller", str(fitted))
+            assert loaded.returncode == 0 and "applied together" in loaded.stdout, loaded.stdout + loaded.stderr
+            def model_of_controller():
+                status = health.get(f"{ns}/valve_controller")
+                return {kv.key: kv.value for kv in status.values}["model"] if status is not None else ""
+            deadline = time.monotonic() + 20   # reports queued before the load are read first
+            while time.monotonic() < deadline and not (len(states) > 5 and len(health) >= 2
+                                                       and "GPIM 9 operators" in model_of_controller()):
+                executor.spin_once(timeout_sec=0.05)
+            assert len(health) >= 2, health.keys()
+            hw_health, ctl_health = health[f"{ns}/valve_hardware"], health[f"{ns}/valve_controller"]
+            # the hardware's level says how many commands came in time on this machine (WARN below 99 %):
+            # never ERROR while the controller commands; the watchdog armed
+            assert hw_health.level != b"\x02" and {kv.key: kv.value for kv in hw_health.values}["watchdog"] == "armed"
+            assert ctl_health.level == b"\x00", ctl_health.message
+            assert "GPIM 9 operators" in {kv.key: kv.value for kv in health[f"{ns}/valve_controller"].values}["model"]
+            row = np.asarray(states[-1].data)
+            assert row[1] == pytest.approx(20e-6) and abs(row[2] - 20e-6) < 1e-6   # reference, measured
+    finally:
+        executor.remove_node(probe)
+        probe.destroy_node()
+        executor.shutdown()
+        rclpy.try_shutdown(context=context)
+    assert "valve_hardware up: backend=loopback clock=realtime period=1.000 ms" in log.read_text()

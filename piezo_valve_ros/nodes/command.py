@@ -23,9 +23,9 @@ import sys
 
 import numpy as np
 
-from ..params_yaml import YAMLError, load as load_yaml
+from ..params_yaml import YAMLError, load as load_yaml, node_section
 from ..core.sim.signals import load_profile, ramp_profile, sine_profile
-from .client import RigClient, run_in_background
+from .client import RIG_NODES, RigClient, run_in_background
 from .common import close, init_ros, split_ros_args, stop_requested
 
 MAX_REFERENCE_M = 5e-4     # refused before sending: beyond any piezo ring bender's travel (a unit mistake)
@@ -77,31 +77,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     return ap.parse_args(argv)
 
 
-def file_section(path, node: str) -> dict:
-    """The ``ros__parameters`` a ROS parameters file gives ``node`` (``hardware``, ``controller``,
-    ``identification`` or a node name): its ``/**`` section, then every section whose last name element is the
-    node's (``valve_controller``, ``/**/valve_controller``, ``/ns/valve_controller``), later ones winning.
-    ValueError (or OSError) with the reason."""
-    name = (f"valve_{node}" if node in ("hardware", "controller", "identification") else node).rstrip("/").split("/")[-1]
-    try:
-        with open(path) as f:
-            doc = load_yaml(f)
-    except YAMLError as exc:
-        raise ValueError(f"{path} is not YAML: {str(exc).splitlines()[0]}") from None
-    if not isinstance(doc, dict):
-        raise ValueError(f"{path}: expected a mapping of node names, got {type(doc).__name__}")
-    keys = [k for k in doc if str(k) == "/**"] + [k for k in doc if str(k).rstrip("/").split("/")[-1] == name]
-    if not keys:
-        raise ValueError(f"{path}: no section for {name} (sections: {', '.join(map(str, doc)) or 'none'})")
-    values = {}
-    for k in keys:
-        section = doc[k].get("ros__parameters") if isinstance(doc[k], dict) else None
-        if not isinstance(section, dict):
-            raise ValueError(f"{path}: section {k} has no ros__parameters mapping")
-        values.update(section)
-    return values
-
-
 def parse_assignment(text: str) -> tuple[str, object]:
     """``name:=value`` (or ``name=value``) with the value read as YAML; ValueError when malformed."""
     sep = ":=" if ":=" in text else "="
@@ -148,7 +123,7 @@ def checked_request(args):
     if args.command == "set":
         return dict(parse_assignment(a) for a in args.assignments)
     if args.command == "load":
-        return file_section(args.path, args.node)
+        return node_section(args.path, f"valve_{args.node}" if args.node in RIG_NODES else args.node)
     if args.wait_readers < 1:
         raise ValueError(f"--wait-readers must be >= 1, got {args.wait_readers}")
     return profile(args)

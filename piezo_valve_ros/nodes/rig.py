@@ -47,8 +47,10 @@ def step_demo(client: RigClient, dt: float, hold_periods: int, after_periods: in
 
 
 # ---------------------------------------------------------------------------- main
-def parse_args(argv=None):
-    ap = argparse.ArgumentParser(prog="valve_rig", description="Simulated piezo-valve rig with a demonstration.")
+def _parser(only_given: bool = False) -> argparse.ArgumentParser:
+    """The options; with ``only_given`` a parse leaves out every option the command line does not give."""
+    ap = argparse.ArgumentParser(prog="valve_rig", description="A piezo-valve rig (simulated, or your backend) "
+                                 "with a demonstration.", argument_default=argparse.SUPPRESS if only_given else None)
     ap.add_argument("--gain-set", default="pid_hc_5", help="Table 1 gain set (default pid_hc_5), e.g. ff_pid_g_2")
     ap.add_argument("--strategy", help="strategy without Table 1 gains: ol or ol_hc")
     ap.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep")
@@ -72,16 +74,48 @@ def parse_args(argv=None):
                          "and stop the rig when it is done (exit 1 if it failed); needs --demo none")
     ap.add_argument("--bag-dir", default="identification_runs", help="where --identify writes its bags")
     ap.add_argument("--namespace", default="", help="put the rig's nodes and topics in this namespace (e.g. /valve1)")
-    return ap.parse_args(argv)
+    ap.add_argument("--backend", default="sim", help="the hardware node's backend: sim (default) or an installed one "
+                    "(entry-point group piezo_valve_ros.backends); the step demo needs one that runs in lockstep")
+    ap.add_argument("--params-file", metavar="FILE", help="a ROS parameters file with sections for valve_hardware, "
+                    "valve_controller (and valve_identification): its values replace the rig's defaults; options "
+                    "given on this command line replace its values")
+    if only_given:
+        for action in ap._actions:   # every default, also those given above, left out
+            action.default = argparse.SUPPRESS
+    return ap
+
+
+def parse_args(argv=None):
+    return _parser().parse_args(argv)
+
+
+# the nodes' parameters each option sets (an option given on the command line wins over the parameters file)
+OPTION_PARAMETERS = {"clock": {"clock"}, "control_period_s": {"control_period_s"}, "sim_seed": {"sim.seed"},
+                     "busy_poll_s": {"realtime.busy_poll_s"}, "priority": {"realtime.priority", "realtime.busy_poll_s"},
+                     "pin": {"realtime.cpus"}, "gain_set": {"gain_set", "strategy"}, "strategy": {"strategy", "gain_set"},
+                     "backend": {"backend"}}
+RIG_OWNED = {"lockstep.step_budget"}   # the demo's pacing: always the rig's
+GAIN_KEYS = {"gain_set", "strategy", "kp", "ki", "kd"}
+
+
+def merged_parameters(rig: dict, from_file: dict, given: set[str]) -> dict:
+    """A node's parameters: the rig's defaults, then the file's values, then what the command line gave."""
+    keys = set().union(*(OPTION_PARAMETERS.get(o, set()) for o in given)) | RIG_OWNED
+    if GAIN_KEYS & set(from_file) and not keys & GAIN_KEYS:
+        rig = {k: v for k, v in rig.items() if k not in GAIN_KEYS}   # the file's gains, not the default set
+    return {**{k: v for k, v in rig.items() if k not in keys}, **from_file,
+            **{k: v for k, v in rig.items() if k in keys}}
 
 
 def rig_parameters(args) -> tuple[dict, dict]:
     """The hardware's and the controller's parameters for these command-line options."""
     default_poll = 0.0 if args.priority else args.control_period_s  # a real-time priority thread must not poll
     busy_poll = default_poll if args.busy_poll_s is None else args.busy_poll_s
-    hw = {"clock": args.clock, "control_period_s": args.control_period_s, "sim.seed": args.sim_seed,
+    hw = {"backend": args.backend, "clock": args.clock, "control_period_s": args.control_period_s,
           "realtime.busy_poll_s": busy_poll if args.clock == "realtime" else 0.0,
           "lockstep.step_budget": 0 if (args.clock == "lockstep" and args.demo == "steps") else -1}
+    if args.backend == "sim":
+        hw["sim.seed"] = args.sim_seed
     ctl = {"control_period_s": args.control_period_s, "reference_ramp_s": 0.002}
     if args.clock == "realtime":
         hw["realtime.priority"] = ctl["realtime.priority"] = args.priority
@@ -99,7 +133,36 @@ def rig_parameters(args) -> tuple[dict, dict]:
 
 
 def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = parse_args(argv)
+    given = set(vars(_parser(only_given=True).parse_args(argv)))
+    hw_params, ctl_params = rig_parameters(args)
+    ident_params = {"plan": args.identify, "control_period_s": args.control_period_s, "bag_dir": args.bag_dir,
+                    "exit_when_done": True}
+    if args.params_file:
+        from ..params_yaml import node_section
+        sections = {}
+        for node in ("valve_hardware", "valve_controller", "valve_identification"):
+            try:
+                sections[node] = node_section(args.params_file, node)
+            except ValueError as exc:
+                if node != "valve_identification" and "no section" not in str(exc):
+                    print(f"valve_rig: {exc}", file=sys.stderr)
+                    return 2
+                sections[node] = {}
+            except OSError as exc:
+                print(f"valve_rig: cannot read {args.params_file}: {exc.strerror or exc}", file=sys.stderr)
+                return 2
+        hw_params = merged_parameters(hw_params, sections["valve_hardware"], given)
+        ctl_params = merged_parameters(ctl_params, sections["valve_controller"], given)
+        ident_params = {**sections["valve_identification"], **ident_params}
+        # what the file chose for the loop is what the rig runs
+        args.clock, args.control_period_s = str(hw_params["clock"]), float(hw_params["control_period_s"])
+        ctl_params["control_period_s"] = ident_params["control_period_s"] = args.control_period_s
+        if args.clock == "realtime" and not {"busy_poll_s", "priority"} & given \
+                and "realtime.busy_poll_s" not in sections["valve_hardware"]:
+            hw_params["realtime.busy_poll_s"] = 0.0 if hw_params.get("realtime.priority") else args.control_period_s
+        hw_params["lockstep.step_budget"] = 0 if (args.clock == "lockstep" and args.demo == "steps") else -1
     if args.identify and args.demo != "none":
         print("valve_rig: --identify drives the rig itself; use it with --demo none", file=sys.stderr)
         return 2
@@ -110,7 +173,6 @@ def main(argv=None) -> int:
     if (args.priority or args.pin) and args.clock != "realtime":
         print("valve_rig: --priority and --pin apply to --clock realtime", file=sys.stderr)
         return 2
-    hw_params, ctl_params = rig_parameters(args)
     rclpy.init()
     procs = ProcessGroup()
     nodes: list[Node] = []
@@ -129,15 +191,13 @@ def main(argv=None) -> int:
             procs.start("valve_controller", node_command("valve_controller", ctl_params, args.namespace))
         if args.identify:
             identification = procs.start("valve_identification", node_command(
-                "valve_identification", namespace=args.namespace, params={
-                    "plan": args.identify, "control_period_s": args.control_period_s, "bag_dir": args.bag_dir,
-                    "exit_when_done": True}))
+                "valve_identification", namespace=args.namespace, params=ident_params))
         samples_per_period = max(int(round(args.control_period_s / ValveSimConfig().dt)), 1)
         client = RigClient(namespace=args.namespace, samples_per_period=samples_per_period)
         nodes.append(client)
         thread, stop, executor = run_in_background(nodes)
         client.wait_ready()
-        label = args.strategy or args.gain_set
+        label = ctl_params.get("gain_set") or ctl_params.get("strategy") or "the parameters file's strategy"
         print(f"rig up ({'composed' if args.composed else 'separate processes'}, {args.clock}); "
               f"controller {label}", flush=True)
         if args.demo == "steps":
