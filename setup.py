@@ -35,6 +35,7 @@ setup(
     maintainer_email="dev@piezo-valve.local",
     description="Piezo ring-bender valve: GPIM hysteresis model, inverse compensation, six controllers, ROS 2 nodes.",
     license="Apache-2.0",
+    python_requires=">=3.10",
     tests_require=["pytest"],
     entry_points={
         "console_scripts": [
