@@ -102,6 +102,9 @@ def controller(ros_context):
     ({"realtime__cpus": ["a"]}, "realtime.cpus must be an integer"),
     ({"realtime__cpus": [4096]}, "no CPU 4096 on this machine"),
     ({"realtime__priority": 10, "realtime__busy_poll_s": 0.001}, "starves every other thread"),
+    ({"diagnostics_period_s": -1}, "diagnostics_period_s must lie in"),
+    ({"diagnostics_period_s": float("nan")}, "diagnostics_period_s out of range"),   # rclpy's range check
+    ({"diagnostics_period_s": "often"}, "diagnostics_period_s must be a number"),
 ])
 def test_hardware_refuses_unsafe_start_up_parameters(hardware, overrides, says):
     with pytest.raises(Exception, match=says):
@@ -210,6 +213,11 @@ def test_controller_refuses_what_it_would_not_apply(controller, name, value):
     ({"gpim__rate_widening_v": [1.0, 2.0]}, "needs 6 coefficients"),
     ({"gpim__rate_widening_v": [float("nan")] * 6}, "must be finite"),
     ({"gpim__rate_widening_v": "abc"}, "list of numbers"),
+    ({"state_period_s": -0.1}, "state_period_s out of range"),     # a double: rclpy's range check
+    ({"state_period_s": -1}, "state_period_s must lie in"),        # an integer: the node's own
+    ({"state_period_s": 11}, "state_period_s must lie in"),
+    ({"state_period_s": "fast"}, "state_period_s must be a number"),
+    ({"diagnostics_period_s": float("inf")}, "diagnostics_period_s out of range"),
 ])
 def test_controller_refuses_bad_filter_and_rate_widening_at_start_up(controller, overrides, says):
     with pytest.raises(Exception, match=says):

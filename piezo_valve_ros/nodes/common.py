@@ -121,6 +121,15 @@ DIAGNOSTICS_PERIOD = ParameterSpec(
 DIAGNOSTICS_LEVELS = {"OK": DiagnosticStatus.OK, "WARN": DiagnosticStatus.WARN, "ERROR": DiagnosticStatus.ERROR}
 
 
+def period_parameter(spec: ParameterSpec, value) -> float:
+    """A reporting period [s] within the spec's range (0: off); ValueError naming the parameter otherwise (a
+    negative, NaN or a string would otherwise switch the report off without a word)."""
+    period = as_float(spec.name, value)
+    if not spec.low <= period <= spec.high:
+        raise ValueError(f"{spec.name} must lie in [{spec.low:g}, {spec.high:g}] s (0: off), got {period}")
+    return period
+
+
 class Diagnostics:
     """A node's health on ``/diagnostics`` (the ROS convention: a DiagnosticArray, one DiagnosticStatus named
     after the node) every ``period_s``; ``status()`` gives (level "OK"/"WARN"/"ERROR", one-line message, values

@@ -31,7 +31,7 @@ from ..core.model.rate_dependence import describe_inverse, solved_each_step
 from ..core.sim.signals import ReferenceRamp
 from ..core.control.strategies import (GUARD_WINDOW_S, STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set,
                                loop_settings)
-from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, LATEST_SENSOR_QOS, SAMPLES_QOS, Diagnostics,
+from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, LATEST_SENSOR_QOS, SAMPLES_QOS, Diagnostics, period_parameter,
                      ParameterSpec, samples_message, as_float, declare_all,
                      parameter_values, realtime_settings, realtime_specs, refuse, run_node, samples_from_message)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
@@ -81,6 +81,9 @@ def settings_from_parameters(p: dict[str, Any]) -> tuple[ControllerConfig, Compe
 SOLVED_INVERSE_MIN_PERIOD_S = 5e-4   # below this period an inverse solved each step is said to risk overruns
 
 
+STATE_PERIOD = ParameterSpec(
+    "state_period_s", 0.1, "publish ~/controller_state (the latest period's reference, measurement, error, command, "
+    "strategy, guard) this often [s]; 0: never", read_only=True, low=0.0, high=10.0)
 _GAINS = ControllerConfig().gains
 CONTROLLER_PARAMETERS: tuple[ParameterSpec, ...] = tuple(
     ParameterSpec(name, default, text) for name, default, text in [
@@ -103,8 +106,7 @@ CONTROLLER_PARAMETERS: tuple[ParameterSpec, ...] = tuple(
                   f"long, take control back [s] ({HANDBACK_TIMEOUT_RANGE_S[0]:g}..{HANDBACK_TIMEOUT_RANGE_S[1]:g})",
                   low=HANDBACK_TIMEOUT_RANGE_S[0], high=HANDBACK_TIMEOUT_RANGE_S[1]),
     *realtime_specs(),
-    ParameterSpec("state_period_s", 0.1, "publish ~/controller_state (the latest period's reference, measurement, "
-                  "error, command, strategy, guard) this often [s]; 0: never", read_only=True, low=0.0, high=10.0),
+    STATE_PERIOD,
     DIAGNOSTICS_PERIOD,
 )
 CONTROLLER_STATE_COLUMNS = ("time_s", "reference_m", "measured_m", "error_m", "command_v", "strategy_index",
@@ -150,10 +152,10 @@ class ValveControllerNode(Node):
         self._last_reference_m = float("nan")
         self._last_command_v = float("nan")
         self.state_pub = self.create_publisher(Float64MultiArray, "~/controller_state", 10)
-        state_period = as_float("state_period_s", p["state_period_s"])
+        state_period = period_parameter(STATE_PERIOD, p["state_period_s"])
         if state_period > 0:
             self.create_timer(state_period, self.publish_state)
-        self.diagnostics = Diagnostics(self, as_float("diagnostics_period_s", p["diagnostics_period_s"]), self._health)
+        self.diagnostics = Diagnostics(self, period_parameter(DIAGNOSTICS_PERIOD, p["diagnostics_period_s"]), self._health)
         self.get_logger().info(f"valve_controller up: strategy={config.strategy}{self._gains_text(config)} "
                                f"period={config.dt * 1e3:.3f} ms" + (f" (gain_set {p['gain_set']})" if p["gain_set"] else "")
                                + f"; {self.realtime.describe()}")

@@ -24,7 +24,7 @@ from std_msgs.msg import Float64, Float64MultiArray
 
 from ..backends import ValveBackend, backend_class
 from ..loop_timing import LoopTiming
-from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, MAX_CONTROL_PERIOD_S, Diagnostics, SAMPLES_QOS, SENSOR_QOS, Pacing, ParameterSpec,
+from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, MAX_CONTROL_PERIOD_S, Diagnostics, period_parameter, SAMPLES_QOS, SENSOR_QOS, Pacing, ParameterSpec,
                      as_float, as_int, declare, declare_all, parameter_values, realtime_settings, realtime_specs, refuse,
                      run_node, samples_message, tighten_timer_slack)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
@@ -162,7 +162,7 @@ class ValveHardwareNode(Node):
         if stats_period > 0:
             self.create_timer(stats_period, lambda: self.get_logger().info(self._loop_line()))
         self._health_mark = (0, 0)
-        self.diagnostics = Diagnostics(self, as_float("diagnostics_period_s", p["diagnostics_period_s"]), self._health)
+        self.diagnostics = Diagnostics(self, period_parameter(DIAGNOSTICS_PERIOD, p["diagnostics_period_s"]), self._health)
         self.get_logger().info(
             f"valve_hardware up: backend={p['backend']} clock={self.clock_mode} "
             f"period={self.control_period_s * 1e3:.3f} ms ({self.samples_per_period} samples)"
