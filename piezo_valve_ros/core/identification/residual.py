@@ -615,9 +615,10 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     # the search judged nonlinear structures to first order, which can underrate a large one: effects whose
     # linear estimate shows some gain are refitted exactly on top of the confirmed set, and the best one
     # that is supported joins (then everything is confirmed again)
-    while len(current) < len(names):
+    tried: set[frozenset] = set()   # sets already put to confirm: each once (an effect added here and dropped
+    while len(current) < len(names):  # by confirm would be added again, and dropped again, forever)
         base_score = held_out(final)
-        options = exact_options(current)
+        options = [n for n in exact_options(current) if frozenset(current + [n]) not in tried]
         best = None
         for n, (_, score) in zip(options, refit_many([(current + [n], final) for n in options])):
             if _support(score, base_score, noise)[2] and (best is None or score.rms < best[1].rms):
@@ -626,6 +627,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
             break
         log(f"exact check: {best[0]} cuts the held-out RMS {base_score.rms:.4f} -> {best[1].rms:.4f} um "
             f"(the first-order search underrated it); added")
+        tried.add(frozenset(current + [best[0]]))
         final, drop_one, verdicts, current = confirm(current + [best[0]])
     # G_v's poles again through the effects found (creep's fast share bends the baseline's poles)
     polished = refit_poles_with_effects(fit, final, cache)
