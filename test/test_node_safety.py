@@ -4,6 +4,7 @@ The nodes run in this process; ``node.set_parameters`` goes through the same pre
 descriptor checks as a remote ``ros2 param set`` (rclpy's parameter service calls it), so what is refused
 here is refused over ROS too.
 """
+import contextlib
 import os
 import subprocess
 import sys
@@ -263,6 +264,23 @@ def test_command_range_update_moves_static_gain_and_demand_limits(controller):
 
 
 # ---------------------------------------------------------------------------- hand-back
+@contextlib.contextmanager
+def beside(node, name: str):
+    """An executor spinning ``node`` and a helper node ``name`` in its namespace (to publish to it and read
+    what it says); both taken down afterwards, whatever the test did."""
+    other = rclpy.create_node(name, namespace=node.get_namespace())
+    executor = make_executor()
+    executor.add_node(node)
+    executor.add_node(other)
+    try:
+        yield other, executor
+    finally:
+        executor.remove_node(node)
+        executor.remove_node(other)
+        other.destroy_node()
+        executor.shutdown()
+
+
 def spin_until(executor, condition, timeout_s=5.0) -> bool:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -279,12 +297,7 @@ def test_control_comes_back_when_the_node_that_took_over_falls_silent(controller
     from the voltage actually applied: the dead node's last command, or the hardware's safe voltage when its
     watchdog fired first (reported in samples)."""
     ctl = controller(gain_set="pid_hc_5", handback_timeout_s=0.3)
-    ns = ctl.get_namespace()
-    other = rclpy.create_node("other_commander", namespace=ns)
-    executor = make_executor()
-    executor.add_node(ctl)
-    executor.add_node(other)
-    try:
+    with beside(ctl, "other_commander") as (other, executor):
         commands = other.create_publisher(Float64, "voltage_command", COMMAND_QOS)
         samples = other.create_publisher(Float64MultiArray, "samples", SAMPLES_QOS)
         assert set_one(ctl, "enabled", False).successful
@@ -299,11 +312,6 @@ def test_control_comes_back_when_the_node_that_took_over_falls_silent(controller
         assert spin_until(executor, lambda: ctl.enabled, 3.0)
         assert ctl.get_parameter("enabled").value is True  # the parameter says what runs
         assert ctl.controller.last_command_v == pytest.approx(5.0 if hardware_timed_out else 7.6)
-    finally:
-        executor.remove_node(ctl)
-        executor.remove_node(other)
-        other.destroy_node()
-        executor.shutdown()
 
 
 def test_a_controller_disabled_by_hand_stays_disabled_without_a_commander(controller):
@@ -492,13 +500,8 @@ def test_a_reference_the_valve_cannot_reach_is_refused_and_never_drives_the_comm
     from piezo_valve_ros.nodes.common import REFERENCE_QOS, SENSOR_QOS
     ctl = controller(gain_set="pid_hc_5")
     lo, hi = ctl.controller.reachable_m
-    ns = ctl.get_namespace()
-    other = rclpy.create_node("reference_sender", namespace=ns)
-    executor = make_executor()
-    executor.add_node(ctl)
-    executor.add_node(other)
     commands = []
-    try:
+    with beside(ctl, "reference_sender") as (other, executor):
         refs = other.create_publisher(Float64, "position_reference", REFERENCE_QOS)
         positions = other.create_publisher(Float64, "spool_position", SENSOR_QOS)
         other.create_subscription(Float64, "voltage_command", lambda m: commands.append(m.data), COMMAND_QOS)
@@ -521,11 +524,6 @@ def test_a_reference_the_valve_cannot_reach_is_refused_and_never_drives_the_comm
         assert len(held) > 300 and 0.5 < min(held) and max(held) < 9.5   # never near a rail (0 / 10 V)
         run(hi + 0.01 * (hi - lo))
         assert ctl.clamped_references == 1 and ctl.rejected_references == 4
-    finally:
-        executor.remove_node(ctl)
-        executor.remove_node(other)
-        other.destroy_node()
-        executor.shutdown()
 
 
 def test_admit_reference_clamps_a_little_beyond_the_reach_and_refuses_more():
@@ -586,13 +584,8 @@ def test_controller_state_and_diagnostics_say_what_the_controller_is_doing(contr
     from piezo_valve_ros.nodes.common import REFERENCE_QOS, SENSOR_QOS
     from piezo_valve_ros.nodes.controller import CONTROLLER_STATE_COLUMNS
     ctl = controller(gain_set="pid_hc_5", state_period_s=0.05, diagnostics_period_s=0.2)
-    ns = ctl.get_namespace()
-    other = rclpy.create_node("state_reader", namespace=ns)
-    executor = make_executor()
-    executor.add_node(ctl)
-    executor.add_node(other)
     states, health = [], []
-    try:
+    with beside(ctl, "state_reader") as (other, executor):
         other.create_subscription(Float64MultiArray, f"{ctl.get_fully_qualified_name()}/controller_state",
                                   states.append, 10)
         other.create_subscription(DiagnosticArray, "/diagnostics",
@@ -619,11 +612,6 @@ def test_controller_state_and_diagnostics_say_what_the_controller_is_doing(contr
         assert status.level == DiagnosticStatus.OK and "in control" in status.message
         assert values["strategy"] == "pid_hc" and values["references_rejected"] == "1"
         assert "GPIM 15 operators" in values["model"]
-    finally:
-        executor.remove_node(ctl)
-        executor.remove_node(other)
-        other.destroy_node()
-        executor.shutdown()
 
 
 def test_hardware_diagnostics_report_the_watchdog(hardware):
@@ -631,13 +619,8 @@ def test_hardware_diagnostics_report_the_watchdog(hardware):
     the watchdog fired (ERROR, with the timeout), on the real-time clock."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
     hw = hardware(command_timeout_s=0.1, diagnostics_period_s=0.1)
-    ns = hw.get_namespace()
-    other = rclpy.create_node("health_reader", namespace=ns)
-    executor = make_executor()
-    executor.add_node(hw)
-    executor.add_node(other)
     health = []
-    try:
+    with beside(hw, "health_reader") as (other, executor):
         other.create_subscription(DiagnosticArray, "/diagnostics",
                                   lambda m: health.extend(s for s in m.status if s.name == hw.get_fully_qualified_name()), 10)
         commands = other.create_publisher(Float64, "voltage_command", COMMAND_QOS)
@@ -649,8 +632,3 @@ def test_hardware_diagnostics_report_the_watchdog(hardware):
         assert "watchdog" in health[-1].message and "safe voltage" in health[-1].message
         values = {kv.key: kv.value for kv in health[-1].values}
         assert values["watchdog"].startswith("fired") and values["clock"] == "realtime"
-    finally:
-        executor.remove_node(hw)
-        executor.remove_node(other)
-        other.destroy_node()
-        executor.shutdown()
