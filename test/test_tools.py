@@ -352,3 +352,15 @@ def test_valve_rig_brings_up_your_backend_from_one_parameters_file(tmp_path):
         executor.shutdown()
         rclpy.try_shutdown(context=context)
     assert "valve_hardware up: backend=loopback clock=realtime period=1.000 ms" in log.read_text()
+
+
+def test_valve_rig_knows_which_options_the_command_line_gave():
+    """A parameters file's values give way only to options the command line gave, even when given at their
+    default value (--clock lockstep), never to the rig's defaults."""
+    from piezo_valve_ros.nodes.rig import given_options, merged_parameters, parse_args, rig_parameters
+    assert given_options([]) == set()
+    given = given_options(["--clock", "lockstep", "--pin", "--params-file", "f.yaml"])
+    assert given == {"clock", "pin", "params_file"}
+    hw, _ = rig_parameters(parse_args(["--clock", "lockstep"]))
+    merged = merged_parameters(hw, {"clock": "realtime", "control_period_s": 1e-3}, given)
+    assert merged["clock"] == "lockstep" and merged["control_period_s"] == 1e-3

@@ -47,10 +47,9 @@ def step_demo(client: RigClient, dt: float, hold_periods: int, after_periods: in
 
 
 # ---------------------------------------------------------------------------- main
-def _parser(only_given: bool = False) -> argparse.ArgumentParser:
-    """The options; with ``only_given`` a parse leaves out every option the command line does not give."""
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="valve_rig", description="A piezo-valve rig (simulated, or your backend) "
-                                 "with a demonstration.", argument_default=argparse.SUPPRESS if only_given else None)
+                                 "with a demonstration.")
     ap.add_argument("--gain-set", default="pid_hc_5", help="Table 1 gain set (default pid_hc_5), e.g. ff_pid_g_2")
     ap.add_argument("--strategy", help="strategy without Table 1 gains: ol or ol_hc")
     ap.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep")
@@ -79,14 +78,19 @@ def _parser(only_given: bool = False) -> argparse.ArgumentParser:
     ap.add_argument("--params-file", metavar="FILE", help="a ROS parameters file with sections for valve_hardware, "
                     "valve_controller (and valve_identification): its values replace the rig's defaults; options "
                     "given on this command line replace its values")
-    if only_given:
-        for action in ap._actions:   # every default, also those given above, left out
-            action.default = argparse.SUPPRESS
     return ap
 
 
 def parse_args(argv=None):
     return _parser().parse_args(argv)
+
+
+def given_options(argv) -> set[str]:
+    """The options (by dest) the command line gives, whatever their value: argparse fills in a default only
+    where the namespace has no value yet, so each starts as a marker the command line alone replaces."""
+    ap, unset = _parser(), object()
+    marked = argparse.Namespace(**{dest: unset for dest in vars(ap.parse_args([]))})
+    return {dest for dest, value in vars(ap.parse_args(argv, namespace=marked)).items() if value is not unset}
 
 
 # the nodes' parameters each option sets (an option given on the command line wins over the parameters file)
@@ -135,7 +139,7 @@ def rig_parameters(args) -> tuple[dict, dict]:
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parse_args(argv)
-    given = set(vars(_parser(only_given=True).parse_args(argv)))
+    given = given_options(argv)
     hw_params, ctl_params = rig_parameters(args)
     ident_params = {"plan": args.identify, "control_period_s": args.control_period_s, "bag_dir": args.bag_dir,
                     "exit_when_done": True}
