@@ -326,6 +326,29 @@ def test_a_real_record_that_starts_remanent_is_judged_after_its_input_wiped_the_
     assert held_out["rms_um"] <= 0.053 and held_out["peak_pct"] <= 0.55, held_out
 
 
+SOURCE_RECORD = Path(__file__).parent / "data" / "smart_hysteresis" / "hysteresis_v_150_1hz.csv.xz"
+
+
+def test_the_whole_real_record_at_its_own_5_khz_is_fitted_to_its_noise():
+    """The source file itself, at 5 kHz: the same judgement as on the 1 kHz means (wiped start, nothing added,
+    nothing unexplained), and a held-out error at the noise the record carries at that rate.  The peak is
+    judged against the held-out measurement's own noise peak (its deviation from a 2 ms local cubic), which
+    on this record lies above 0.55 % of the range: no model reaches a lower peak, so that target cannot be
+    met at 5 kHz, and the test says so rather than pinning a figure no predictor reaches."""
+    a = np.genfromtxt(SOURCE_RECORD, delimiter=",")[:, 1:]         # the source's first column is empty
+    report = analyse(Record(a[:, 0], a[:, 2], a[:, 1])).report
+    assert report["sample_rate_hz"] == pytest.approx(5000.0, rel=1e-3)
+    start = report["baseline_fits"]["initial_state"]
+    assert start["chosen"] == "wiped" and 3.9 < start["fit_starts_at_s"] < 4.3
+    assert report["effects_added"] == [] and report["unexplained"] is False
+    held_out, structure = report["final"]["validate"], report["residual_structure"]
+    noise = report["noise_floor_um"]
+    assert 0.04 < noise < 0.06
+    assert held_out["rms_um"] <= 1.3 * noise, held_out                 # 0.058 um at 0.046 um noise
+    assert structure["held_out_noise_peak_pct"] > 0.55                 # the noise alone peaks above the target
+    assert held_out["peak_um"] <= 1.35 * structure["held_out_noise_peak_um"], (held_out, structure)
+
+
 @pytest.mark.parametrize("pre_history", sorted(PRE_HISTORIES))
 def test_a_simulated_valve_with_an_unrecorded_pre_history_adds_nothing(pre_history):
     """The nominal valve driven before the record starts (not recorded), then held at the centre: the record

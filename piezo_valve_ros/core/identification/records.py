@@ -11,15 +11,17 @@ from functools import cached_property
 from typing import Optional
 
 import numpy as np
+from scipy.signal import savgol_filter
 
 __all__ = ["IdentificationError", "Record", "analysis_record", "split_held_out",
-           "noise_floor_um", "join", "HELD_OUT_FRACTION", "ANALYSIS_RATE_HZ", "SUPPORTED_RATE_HZ",
+           "noise_floor_um", "noise_peak_um", "NOISE_PEAK_WINDOW_S", "join", "HELD_OUT_FRACTION", "ANALYSIS_RATE_HZ", "SUPPORTED_RATE_HZ",
            "MIN_SAMPLES", "read_csv", "CSV_POSITION_COLUMNS"]
 
 HELD_OUT_FRACTION = 0.3      # without a validation record, the last 30 % (in time) is held out (CONTRACT.md)
 ANALYSIS_RATE_HZ = 2000.0    # fits run on block means at most this rate (error figures are at the record's rate)
 SUPPORTED_RATE_HZ = 1000.0   # below this the valve's G_v (poles near 80 and 380 Hz) is not resolved: a warning
 MIN_SAMPLES = 200
+NOISE_PEAK_WINDOW_S = 0.002  # noise_peak_um: the local cubic spans this long (at least 5 samples)
 
 
 class IdentificationError(ValueError):
@@ -207,3 +209,15 @@ def noise_floor_um(position_um: np.ndarray) -> float:
     d2 = y[2:] - 2.0 * y[1:-1] + y[:-2]
     mad = float(np.median(np.abs(d2 - np.median(d2))))
     return 1.4826 * mad / math.sqrt(6.0)
+
+
+def noise_peak_um(position_um: np.ndarray, dt: float, window_s: float = NOISE_PEAK_WINDOW_S) -> float:
+    """Largest deviation [um] of a measured signal from its own local cubic over ``window_s`` (Savitzky-Golay;
+    at least 5 samples): the peak its sensor noise alone puts there.  A model's error cannot peak lower on
+    that signal unless the model follows the noise within the window; on a smooth record (no steps faster
+    than the window) it is the floor of the held-out peak."""
+    y = np.asarray(position_um, float)
+    window = max(5, int(round(window_s / dt)) | 1)
+    if y.size < window:
+        return float("nan")
+    return float(np.max(np.abs(y - savgol_filter(y, window, 3))))

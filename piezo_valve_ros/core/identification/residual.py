@@ -56,7 +56,7 @@ from .fitting import (BASIS_RIDGE, FitCache, fit_model, fit_paper_gpim, refit_po
                       uniform_thresholds)
 from ..model.hysteresis import GPIM
 from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, MIN_SAMPLES, SUPPORTED_RATE_HZ, IdentificationError, Record,
-                      analysis_record, noise_floor_um, split_held_out)
+                      analysis_record, noise_floor_um, noise_peak_um, split_held_out)
 from ..metrics import error_figures
 from ..model.dynamics import describe_dynamics
 from .valve_model import REST, InitialState, ValveModel, turning_points
@@ -675,6 +675,9 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     near = max(closest.items(), key=lambda kv: kv[1]) if closest else ("none", 0.0)
     peaks = _peak_structure(final_split.held_out_error(final, True), split.score_full.dt, noise, range_val)
     structure.update(peaks)
+    measured = split.score_full.position_um[split.start_full:]
+    structure["held_out_noise_peak_um"] = noise_peak_um(measured, split.score_full.dt)
+    structure["held_out_noise_peak_pct"] = 100.0 * structure["held_out_noise_peak_um"] / range_val if range_val > 0 else 0.0
     by_rms = structure["ratio_to_noise"] > UNEXPLAINED_NOISE_RATIO and structure["pct_of_range"] > MIN_STRUCTURE_PCT
     by_peak = peaks["peak_ratio"] > PEAK_NOISE_RATIO and peaks["peak_pct_of_range"] > MIN_STRUCTURE_PCT
     unexplained = by_rms or by_peak
@@ -683,7 +686,8 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
             f"{noise:.4f} um, threshold {UNEXPLAINED_NOISE_RATIO:g}x); peaks: the {_ordinal(PEAK_RANK)} largest "
             f"{1e3 * PEAK_BLOCK_S:g} ms peak {peaks['peak_um']:.3f} um at {split.score_full.rate_hz:.0f} Hz is "
             f"{peaks['peak_ratio']:.1f}x what the noise gives ({peaks['expected_noise_peak_um']:.3f} um, threshold "
-            f"{PEAK_NOISE_RATIO:g}x); lag-1 autocorrelation {structure['lag1']:.2f}; "
+            f"{PEAK_NOISE_RATIO:g}x; the held-out measurement's own noise peaks at "
+            f"{structure['held_out_noise_peak_um']:.3f} um about its local cubic); lag-1 autocorrelation {structure['lag1']:.2f}; "
             f"strongest spectral line {structure['line_hz']:.3g} Hz ({100 * structure['line_share']:.0f} % of residual "
             f"power); closest catalogue effect: {near[0]} (would cut the held-out RMS by {100 * max(near[1], 0):.1f} %)")
     log(("structure remains: " if unexplained else "residual: ") + seen)
