@@ -20,7 +20,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 from ..samples import SAMPLES_LABEL, decode_samples
-from ..core.validation import as_float, as_float_list, as_int  # noqa: F401  (the nodes' validators)
+from ..core.validation import as_float
 
 MAX_CONTROL_PERIOD_S = 0.1      # slower than 10 Hz is no control loop for this valve
 

@@ -25,9 +25,10 @@ from std_msgs.msg import Float64, Float64MultiArray
 from ..backends import ValveBackend, backend_class
 from ..loop_timing import LoopTiming
 from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, MAX_CONTROL_PERIOD_S, Diagnostics, period_parameter, SAMPLES_QOS, SENSOR_QOS, Pacing, ParameterSpec,
-                     as_float, as_int, declare, declare_all, parameter_values, realtime_settings, realtime_specs, refuse,
+                     as_float, declare, declare_all, parameter_values, realtime_settings, realtime_specs, refuse,
                      run_node, samples_message, tighten_timer_slack)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
+from ..core.validation import as_int
 
 
 MAX_COMMAND_TIMEOUT_S = 10.0    # the watchdog may not be stretched beyond this
