@@ -8,10 +8,14 @@ DOMAIN_RANGE = range(20, 100)   # ROS_DOMAIN_IDs the tests may use (Fast DDS por
 
 def _claim_domain_id() -> str:
     """A domain id no other test suite on this machine holds: the first of DOMAIN_RANGE whose lock file this
-    process can lock (the lock is held until the process ends, whatever way it ends).  ``PIEZO_TEST_DOMAIN_ID``
+    process can lock (the lock is held until the process ends, whatever way it ends); under pytest-xdist one per
+    worker.  ``PIEZO_TEST_DOMAIN_ID`` (without pytest-xdist)
     overrides; a child process of a suite inherits the id through ROS_DOMAIN_ID in its environment."""
-    if os.environ.get("PIEZO_TEST_DOMAIN_ID"):
-        return os.environ["PIEZO_TEST_DOMAIN_ID"]
+    # under pytest-xdist each worker process claims its own (the controller's claim reaches the workers
+    # through the environment, so a worker keys its claim by its name)
+    key = "PIEZO_TEST_DOMAIN_ID" + (f"_{os.environ['PYTEST_XDIST_WORKER']}" if os.environ.get("PYTEST_XDIST_WORKER") else "")
+    if os.environ.get(key):
+        return os.environ[key]
     import fcntl
     import tempfile
     for domain in DOMAIN_RANGE:
@@ -22,7 +26,7 @@ def _claim_domain_id() -> str:
             handle.close()
             continue
         _held.append(handle)
-        os.environ["PIEZO_TEST_DOMAIN_ID"] = str(domain)  # the same id for every test module of this suite
+        os.environ[key] = str(domain)  # the same id for every test module of this suite (or worker)
         return str(domain)
     raise RuntimeError(f"every test ROS domain ({DOMAIN_RANGE.start}..{DOMAIN_RANGE.stop - 1}) is in use")
 
