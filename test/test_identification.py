@@ -9,7 +9,7 @@ import pytest
 from valve_battery import (BATTERY, NOMINAL, OUTSIDE, PRE_HISTORIES, rows_after, training_voltage,
                            validation_voltage_)
 
-from piezo_valve_ros.core.identification import residual
+from piezo_valve_ros.core.identification import residual, search
 from piezo_valve_ros.core.sim.experiments import run_closed_loop
 from piezo_valve_ros.core.identification.fitting import fit_paper_gpim
 from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM, inverse_problems
@@ -228,11 +228,11 @@ def test_noise_floor_is_the_sensor_noise():
 
 
 def test_effect_support_needs_gain_size_and_no_worse_peak():
-    s = residual.Score
-    assert residual._support(s(0.5, 1.0), s(1.0, 1.0), 0.05)[2]
-    assert not residual._support(s(0.85, 1.0), s(1.0, 1.0), 0.05)[2]            # 15 % cut
-    assert not residual._support(s(0.05, 0.2), s(0.07, 0.2), 0.05)[2]           # explains less than the noise
-    assert not residual._support(s(0.5, PEAK_TOLERANCE * 1.01), s(1.0, 1.0), 0.05)[2]  # peak worse
+    s = search.Score
+    assert search.support(s(0.5, 1.0), s(1.0, 1.0), 0.05)[2]
+    assert not search.support(s(0.85, 1.0), s(1.0, 1.0), 0.05)[2]            # 15 % cut
+    assert not search.support(s(0.05, 0.2), s(0.07, 0.2), 0.05)[2]           # explains less than the noise
+    assert not search.support(s(0.5, PEAK_TOLERANCE * 1.01), s(1.0, 1.0), 0.05)[2]  # peak worse
 
 
 @pytest.mark.parametrize("bad, message", [

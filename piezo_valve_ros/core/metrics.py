@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["StepMetrics", "step_metrics", "fundamental", "BandwidthMetrics", "bandwidth_metrics",
+__all__ = ["rms", "StepMetrics", "step_metrics", "fundamental", "BandwidthMetrics", "bandwidth_metrics",
            "ErrorFigures", "error_figures"]
 
 
@@ -89,6 +89,11 @@ def bandwidth_metrics(freqs_hz: np.ndarray, response: np.ndarray) -> BandwidthMe
     phase -= 360.0 * np.round(phase[0] / 360.0)
     return BandwidthMetrics(_crossing(freqs, gain_db, -3.0), _crossing(freqs, phase, -90.0),
                             max(float(gain_db.max()), 0.0))
+
+
+def rms(e: np.ndarray) -> float:
+    """Root mean square of ``e`` (0 for an empty array)."""
+    return float(np.sqrt(np.mean(e * e))) if e.size else 0.0
 
 
 @dataclass(frozen=True)

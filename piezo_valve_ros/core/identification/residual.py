@@ -4,11 +4,11 @@ How it decides (every figure on data the fit has not seen: a validation record, 
 ``HELD_OUT_FRACTION`` of the training record, through which the model runs on with its memory):
 
 1. **Baseline capacity first.**  The operators' state at the record's first sample is rest, cycled,
-   estimated from the first rows (``_estimate_state``: the valve rested at another voltage, as in a
+   estimated from the first rows (``initial_state.estimate_state``: the valve rested at another voltage, as in a
    closed-loop record, or came back from an excursion; a validation record's own start likewise), or,
    when none fits by ``WIPE_GAIN`` and a state before the record explains the rows before the wipe
    (``WIPE_STATE_GAIN``: a slow drift shows there too, and no state explains it), unknown: the fit then
-   starts where the input has wiped it out (``Split.after_wipe``).  The
+   starts where the input has wiped it out (``split.Split.after_wipe``).  The
    baseline is the paper's model, GPIM followed by a second-order G_v with unity DC gain.  G_v's poles are fitted to the record (the paper's G_v as start, and as fallback
    when the record cannot determine them); the GPIM's number of thresholds is chosen on held-out data
    among ``CAPACITY_OPERATORS`` (and the grid of the paper's 5-parameter fit).  Only structure the best
@@ -48,18 +48,18 @@ from dataclasses import dataclass, field, replace
 from typing import Callable, Optional
 
 import numpy as np
-from scipy import linalg, optimize
 from threadpoolctl import threadpool_limits
 
 from .effects import CATALOGUE, Effect
-from .fitting import (BASIS_RIDGE, FitCache, fit_model, fit_paper_gpim, refit_poles_with_effects, with_poles,
-                      uniform_thresholds)
+from .fitting import FitCache, fit_model, fit_paper_gpim, refit_poles_with_effects, with_poles, uniform_thresholds
 from ..model.hysteresis import GPIM
-from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, MIN_SAMPLES, SUPPORTED_RATE_HZ, IdentificationError, Record,
-                      analysis_record, noise_floor_um, noise_peak_um, split_held_out)
-from ..metrics import error_figures
+from .initial_state import ESTIMATE_ROUNDS, ESTIMATE_STATE_GAIN, WIPE_STATE_GAIN, estimate_state, own_start
+from .records import ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, SUPPORTED_RATE_HZ, Record, noise_floor_um, noise_peak_um
+from .search import GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, Score, SubsetSearch, support
+from .split import WIPE_MARGIN, Split, split_records
+from ..metrics import error_figures, rms
 from ..model.dynamics import describe_dynamics
-from .valve_model import REST, InitialState, ValveModel, turning_points
+from .valve_model import REST, InitialState, ValveModel
 
 __all__ = ["analyse", "Analysis", "Split", "GAIN_THRESHOLD", "MIN_EFFECT_NOISE_RATIO", "UNEXPLAINED_NOISE_RATIO",
            "CAPACITY_OPERATORS", "HELD_OUT_FRACTION", "MID_CAPACITY"]
@@ -68,18 +68,11 @@ CAPACITY_OPERATORS = (12, 18, 27, 40, 60)   # GPIM sizes tried for the baseline
 MID_CAPACITY = 27                           # the size G_v's poles are first fitted with
 CAPACITY_TOLERANCE = 0.02                   # a smaller GPIM within 2 % of the best held-out RMS is preferred
 INITIAL_STATE_TOLERANCE = 0.02              # "cycled" replaces "rest" only if it cuts the held-out RMS by more
-WIPE_MARGIN = 0.02                          # the input has wiped the unknown initial state once it has come this
-                                            # close (share of its span) to both extremes of the fit part
-WIPE_MAX_SHARE = 0.75                       # ... which must happen in the first three quarters of the fit part
 WIPE_GAIN = 0.1                             # fitting only after the wipe must cut the held-out RMS by >= 10 %
-WIPE_STATE_GAIN = 0.5                       # ... and a state before the record must halve the RMS before the wipe
-GAIN_THRESHOLD = 0.2                        # an effect added last must cut the held-out RMS by >= 20 %
-MIN_EFFECT_NOISE_RATIO = 1.0                # ... and explain an RMS >= the sensor noise RMS
 UNEXPLAINED_NOISE_RATIO = 2.0               # structured residual RMS above this many noise RMS: unexplained
 PEAK_NOISE_RATIO = 2.5                      # held-out peaks above this many times the noise's: unexplained
 PEAK_BLOCK_S = 0.005                        # ... judged on the PEAK_RANK-th largest peak of blocks this long
 PEAK_RANK = 3
-PEAK_TOLERANCE = 1.1                        # an effect added last must not raise the held-out peak by > 10 %
 MIN_STRUCTURE_PCT = 0.01                    # ... and above this % of the range (noise-free records)
 REFIT_THREADS = min(4, os.cpu_count() or 1)  # independent refits run on this many threads (BLAS on one each)
 CONFIRM_ROUNDS = 4                          # exact drop-one rounds at most
@@ -88,242 +81,8 @@ SEPARATION_SHARE = 0.8                       # an effect that does this share of
 EXACT_CHECK_GAIN = 0.05                     # effects the linear search credits with >= 5 % are checked exactly
 
 
-# --------------------------------------------------------------------------- the records of one analysis
-@dataclass(frozen=True)
-class Split:
-    """The fit and held-out records, at the analysis rate and at the record's own rate.
-
-    ``score`` is what the model runs over to be scored from row ``start`` on: the whole training record
-    (the held-out tail continues the fit part, the operators keep their memory) or the validation record.
-    """
-
-    fit: Record
-    score: Record
-    start: int
-    t0: float             # time origin of the fit (drift terms)
-    score_t0: float
-    fit_full: Record
-    score_full: Record
-    start_full: int
-    held_out: bool
-    wiped_at_s: Optional[float] = None   # record time [s] the fit starts at when cut after the wipe (after_wipe)
-    score_history: Optional[InitialState] = None   # a validation record's own start, where estimated
-
-    def scored(self, model: ValveModel) -> ValveModel:
-        """``model`` as it runs over the score record: from the validation record's own start, where known."""
-        return model if self.score_history is None else replace(model, history=self.score_history)
-
-    def wipe_index(self, record: Optional[Record] = None) -> int:
-        """Row of the fit record (or ``record``; analysis rate) from which its input has wiped out the
-        operators' unknown state before it: it has come within ``WIPE_MARGIN`` of both its extremes."""
-        v = (self.fit if record is None else record).voltage_v
-        lo, hi = float(np.min(v)), float(np.max(v))
-        margin = WIPE_MARGIN * (hi - lo)
-        return max(int(np.argmax(v >= hi - margin)), int(np.argmax(v <= lo + margin)))
-
-    def first_rows(self, record: Record) -> Record:
-        """The rows of ``record`` (analysis rate) a start is estimated on: before its input wiped the state
-        out, at most ``ESTIMATE_WINDOW_S`` and at least ``MIN_SAMPLES``."""
-        return record.slice(0, min(max(self.wipe_index(record), MIN_SAMPLES),
-                                   max(int(ESTIMATE_WINDOW_S / record.dt), MIN_SAMPLES)))
-
-    def after_wipe(self) -> Optional[tuple["Split", InitialState]]:
-        """The split with the fit part cut where its input has wiped out the operators' unknown state before
-        the record (it has been within ``WIPE_MARGIN`` of both its extremes: every operator below that much
-        of half the span has forgotten it), with the initial state that the cut part's input path leaves
-        (``InitialState`` "remanent": exact but for the operators the record never fully moves).  None for a
-        validation record, or when the wipe comes later than ``WIPE_MAX_SHARE`` of the fit part."""
-        if not self.held_out:
-            return None
-        w = self.wipe_index()
-        if w == 0 or w > WIPE_MAX_SHARE * len(self.fit):
-            return None
-        w_full = w * (self.fit.block // max(self.fit_full.block, 1))
-        try:
-            self.fit_full.slice(w_full).check("training part after the wipe")
-        except IdentificationError:
-            return None
-        history = InitialState("remanent", turning_points(self.fit_full.voltage_v[:w_full + 1]))
-        t0 = float(self.fit.time_s[w])
-        cut = Split(self.fit.slice(w), self.score.slice(w), self.start - w, t0, t0, self.fit_full.slice(w_full),
-                    self.score_full.slice(w_full), self.start_full - w_full, True, float(self.fit_full.time_s[w_full]))
-        return cut, history
-
-    def held_out_error(self, model: ValveModel, full: bool = False) -> np.ndarray:
-        rec, start = (self.score_full, self.start_full) if full else (self.score, self.start)
-        return rec.position_um[start:] - self.scored(model).predict(rec, self.score_t0)[start:]
-
-    def fit_error(self, model: ValveModel, full: bool = False) -> np.ndarray:
-        rec = self.fit_full if full else self.fit
-        return rec.position_um - model.predict(rec, self.t0)
-
-
-def _split(train: Record, validate: Optional[Record], max_rate_hz: float) -> Split:
-    train = train.check("training record")
-    block = analysis_record(train, max_rate_hz).block
-    if validate is None:
-        cut = split_held_out(train, HELD_OUT_FRACTION, block)
-        pct = f"{100 * HELD_OUT_FRACTION:.0f} %"
-        train.slice(0, cut).check(f"training part (first {100 - 100 * HELD_OUT_FRACTION:.0f} %)")
-        train.slice(cut).check(f"held-out part (last {pct})", min_samples=50, min_reversals=1)
-        whole = analysis_record(train, max_rate_hz)
-        n_fit = cut // block
-        t0 = float(whole.time_s[0])
-        return Split(whole.slice(0, n_fit), whole, n_fit, t0, t0, train.slice(0, cut), train, cut, True)
-    validate = validate.check("validation record", min_samples=50)
-    fit = analysis_record(train, max_rate_hz)
-    score = analysis_record(validate, max_rate_hz)
-    return Split(fit, score, 0, float(fit.time_s[0]), float(score.time_s[0]), train, validate, 0, False)
-
-
-REMANENT_GRID = 201  # voltages tried when estimating a remanent state before the record ...
-ESTIMATE_SHORT_S = 0.1   # ... on its first rows this long; the best ESTIMATE_REFINED of each kind refined
-ESTIMATE_REFINED = 2
-ESTIMATE_WINDOW_S = 2.0  # ... on the rows before the wipe, at most this long (the start shows first)
-ESTIMATE_STATE_GAIN = 0.2   # an estimated start is taken when it cuts the first rows' misfit by >= 20 % (and
-                            # the held-out RMS by WIPE_GAIN); a drift's early misfit is not cut at all
-ESTIMATE_ROUNDS = 2   # estimate the start, fit, estimate again: at most this many fits
-EXCURSION_GAIN = 0.1  # "back from an excursion" replaces "rested at a voltage" only if 10 % closer to the data
-
-
-def _estimate_state(model: ValveModel, rows: Record, whole: Record, with_effects: bool = False
-                    ) -> tuple[InitialState, dict]:
-    """The state before a record, estimated on its first ``rows`` (before its input wiped it out) with
-    ``model``'s GPIM and G: rest, cycled, or remanent with one voltage e on the ``whole`` record's range and
-    half a span beyond: at rest at e and moved to the first voltage v0 (a valve that rested elsewhere, e.g. a
-    closed-loop record whose controller's first command left the rest voltage), or at rest at v0 and
-    back from an excursion to e (a valve left off its loop).  The GPIM and G alone, unless ``with_effects``
-    (a final model's creep, e.g., has settled at rest too).  Returns (the best state, figures)."""
-    v0 = float(rows.voltage_v[0])
-    lo, hi = float(np.min(whole.voltage_v)), float(np.max(whole.voltage_v))
-    half = 0.5 * max(hi - lo, 1e-9)
-    grid = [float(e) for e in np.linspace(lo - half, hi + half, REMANENT_GRID) if e != v0]
-    options = {"rest": REST, "cycled": InitialState("cycled")}
-    bare = model if with_effects else replace(model, effects=(), coefs=())
-    # the misfit is sharp in the voltage (where the valve rested sets the first samples through G): a fine
-    # grid on the first ESTIMATE_SHORT_S, then each family's best few refined on all the rows
-    short = rows.slice(0, min(len(rows), max(int(ESTIMATE_SHORT_S / rows.dt), 20)))
-
-    def rms(state: InitialState, on: Record = rows) -> float:
-        return _rms(on.position_um - replace(bare, history=state).predict(on))
-
-    scores = {name: rms(state) for name, state in options.items()}
-    step = (grid[1] - grid[0]) if len(grid) > 1 else half
-    for family, make in (("rested at", lambda e: InitialState("remanent", (e,))),
-                         ("back from", lambda e: InitialState("remanent", (v0, e)))):
-        quick = sorted(grid, key=lambda e: rms(make(e), short))[:ESTIMATE_REFINED]
-        for e in quick:
-            found = optimize.minimize_scalar(lambda x: rms(make(x)), bounds=(e - step, e + step), method="bounded",
-                                             options={"xatol": 1e-3 * half})
-            x = float(found.x) if found.x != v0 else e
-            name = f"{family} {x:.6g} V"
-            options[name], scores[name] = make(x), rms(make(x))
-    # the simpler story first: rested somewhere (G then also starts from rest there) unless an excursion
-    # explains the first rows clearly better
-    simple = min((n for n in scores if not n.startswith("back from")), key=scores.get)
-    excursion = min((n for n in scores if n.startswith("back from")), key=scores.get, default=simple)
-    best = excursion if scores[excursion] < (1 - EXCURSION_GAIN) * scores[simple] else simple
-    return options[best], {"estimate": options[best].describe(), "rms_before_wipe_um": round(scores[best], 6),
-                           "rms_before_wipe_from_rest_um": round(scores["rest"], 6), "samples_before_wipe": len(rows)}
-
-
-def _own_start(model: ValveModel, split: Split, always: bool) -> Optional[InitialState]:
-    """A validation record's own start, estimated on its first rows with ``model`` (``_estimate_state``):
-    taken ``always``, or where it halves those rows' misfit from the model's own initial state
-    (WIPE_STATE_GAIN, as a state before a wipe must: a closed-loop record whose controller's first command
-    left the rest voltage, cut 89 %; an unmodelled creep's early misfit is cut ~20 % by a wrong start).  The
-    misfit a slow effect leaves all over the record does not hide a wrong start.  None otherwise."""
-    rows = split.first_rows(split.score)
-    state, figures = _estimate_state(model, rows, split.score)
-    if always:
-        return state
-    first = _rms(rows.position_um - model.predict(rows, split.score_t0))
-    return state if figures["rms_before_wipe_um"] <= (1 - WIPE_STATE_GAIN) * first else None
-
-
 def _ordinal(k: int) -> str:
     return {1: "1st", 2: "2nd", 3: "3rd"}.get(k, f"{k}th")
-
-
-def _rms(e: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(e * e))) if e.size else 0.0
-
-
-# --------------------------------------------------------------------------- the subset search
-class _SubsetSearch:
-    """Every subset of the effects fitted from the baseline in one ridge least-squares solve each.
-
-    The columns (GPIM basis, offset, every effect's search columns, all through the baseline's G) are
-    built once for the fit rows and the held-out rows; one Gram matrix serves all subsets.
-    """
-
-    def __init__(self, baseline: ValveModel, split: Split, effects: list[Effect],
-                 each: Callable[[list[Callable[[], object]]], list] = lambda jobs: [job() for job in jobs]):
-        self.effects = effects
-        ctx_f = baseline.context(split.fit, split.t0)
-        ctx_s = split.scored(baseline).context(split.score, split.score_t0)
-        z_first = ctx_f.states[0]
-
-        def design(ctx) -> tuple[np.ndarray, list[int]]:
-            """The columns through the baseline's G, and each effect's width (``each`` runs fit and score
-            records side by side)."""
-            blocks = [ctx.states - z_first, np.ones((len(ctx.record), 1))] + [e.search_columns(ctx) for e in effects]
-            columns = np.column_stack(blocks)
-            rest = None
-            if ctx.rest_states is not None:   # G at rest before the first move: each column's rest value
-                rest = np.concatenate([ctx.rest_states - z_first, [1.0]]
-                                      + [e.rest_columns(ctx, b) for e, b in zip(effects, blocks[2:])])
-            return ctx.through_dynamics(columns, rest), [b.shape[1] for b in blocks[2:]]
-
-        (A, widths), (B, _) = each([lambda: design(ctx_f), lambda: design(ctx_s)])
-        n_basis = z_first.size + 1
-        self.groups = [np.arange(n_basis)]
-        ridge = [np.full(n_basis, BASIS_RIDGE)]
-        col = n_basis
-        for e, width in zip(effects, widths):
-            self.groups.append(np.arange(col, col + width))
-            ridge.append(np.full(width, e.ridge))
-            col += width
-        self.B = B[split.start:]
-        y = split.fit.position_um
-        self.y_score = split.score.position_um[split.start:]
-        n = A.shape[0]
-        self.scale = np.sqrt(np.einsum("ij,ij->j", A, A) / n)
-        self.scale[self.scale == 0] = 1.0
-        self.gram = (A.T @ A) / np.outer(self.scale, self.scale)
-        self.gram[np.diag_indices_from(self.gram)] += np.concatenate(ridge) * n
-        self.rhs = (A.T @ y) / self.scale
-        self._cache: dict[frozenset, float] = {}
-
-    def score(self, subset: frozenset) -> "Score":
-        if subset not in self._cache:
-            idx = np.concatenate([self.groups[0]] + [self.groups[1 + i] for i, e in enumerate(self.effects)
-                                                     if e.name in subset])
-            x = linalg.solve(self.gram[np.ix_(idx, idx)], self.rhs[idx], assume_a="pos") / self.scale[idx]
-            self._cache[subset] = Score.of(self.y_score - self.B[:, idx] @ x)
-        return self._cache[subset]
-
-
-@dataclass(frozen=True)
-class Score:
-    """Held-out error [um] at the analysis rate."""
-
-    rms: float
-    peak: float
-
-    @classmethod
-    def of(cls, error: np.ndarray) -> "Score":
-        return cls(_rms(error), float(np.max(np.abs(error))) if error.size else 0.0)
-
-
-def _support(with_: Score, without: Score, noise_um: float) -> tuple[float, float, bool]:
-    """(held-out RMS cut, explained RMS [um], supported?) of an effect added last: it must cut the held-out
-    RMS by GAIN_THRESHOLD, explain MIN_EFFECT_NOISE_RATIO times the sensor noise and not raise the peak by
-    more than PEAK_TOLERANCE."""
-    cut = 1.0 - with_.rms / without.rms if without.rms > 0 else 0.0
-    explained = math.sqrt(max(without.rms ** 2 - with_.rms ** 2, 0.0))
-    return cut, explained, (cut >= GAIN_THRESHOLD and explained >= MIN_EFFECT_NOISE_RATIO * noise_um
-                            and with_.peak <= PEAK_TOLERANCE * without.peak)
 
 
 # --------------------------------------------------------------------------- result
@@ -338,16 +97,16 @@ class Analysis:
 
 def _structure(e_score: np.ndarray, dt: float, noise_um: float, range_um: float) -> dict:
     """Size and shape of what remains in a held-out residual (analysis rate)."""
-    rms = _rms(e_score)
+    total = rms(e_score)
     noise_here = noise_floor_um(e_score)
-    structured = math.sqrt(max(rms ** 2 - noise_here ** 2, 0.0))
+    structured = math.sqrt(max(total ** 2 - noise_here ** 2, 0.0))
     ec = e_score - e_score.mean()
     r1 = float(np.dot(ec[1:], ec[:-1]) / max(np.dot(ec, ec), 1e-30))
     spectrum = np.abs(np.fft.rfft(ec * np.hanning(ec.size)))
     freqs = np.fft.rfftfreq(ec.size, dt)
     k = int(np.argmax(spectrum[1:]) + 1) if spectrum.size > 1 else 0
     share = float(spectrum[k] ** 2 / max(np.sum(spectrum[1:] ** 2), 1e-30)) if k else 0.0
-    return {"rms_um": rms, "structured_rms_um": structured, "noise_here_um": noise_here, "lag1": r1,
+    return {"rms_um": total, "structured_rms_um": structured, "noise_here_um": noise_here, "lag1": r1,
             "line_hz": float(freqs[k]) if k else 0.0, "line_share": share,
             "ratio_to_noise": structured / max(noise_um, 1e-12),
             "pct_of_range": 100.0 * structured / range_um if range_um > 0 else 0.0}
@@ -395,7 +154,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
         """Independent jobs on the pool, results in order (a job never waits for another)."""
         return [f.result() for f in [pool.submit(job) for job in jobs]]
 
-    split = _split(train_full, validate_full, max_rate_hz)
+    split = split_records(train_full, validate_full, max_rate_hz)
     fit, full = split.fit, split.fit_full
     warnings = []
     if full.undersampled:
@@ -439,14 +198,14 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
         # the validation record started on its own, whatever the training record's start: where its first
         # rows misfit, its start is estimated (as a simulation is started from the measured initial
         # conditions), and every candidate is scored from it
-        score_state = _own_start(starts["rest"], split, always=False)
+        score_state = own_start(starts["rest"], split, always=False)
         if score_state is not None:
             split = replace(split, score_history=score_state)
             start_rms = {h: held_out(m).rms for h, m in starts.items()}
     chosen_state = "cycled" if start_rms["cycled"] < (1 - INITIAL_STATE_TOLERANCE) * start_rms["rest"] else "rest"
     # a state estimated from the rows before the input wiped it (rested elsewhere, or left off the loop)
     first_rows = split.first_rows(fit)
-    estimated, estimate = _estimate_state(starts["rest"], first_rows, fit)
+    estimated, estimate = estimate_state(starts["rest"], first_rows, fit)
     if estimate["rms_before_wipe_um"] > (1 - ESTIMATE_STATE_GAIN) * estimate["rms_before_wipe_from_rest_um"]:
         estimated = REST   # it cannot be taken (below): not fitted
     for round_ in range(ESTIMATE_ROUNDS):   # weights fitted from rest are bent by the wrong start: alternate
@@ -457,7 +216,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
                     history=estimated), "fixed")
         if round_ == ESTIMATE_ROUNDS - 1:
             break
-        again, estimate_again = _estimate_state(starts["estimated"], first_rows, fit)
+        again, estimate_again = estimate_state(starts["estimated"], first_rows, fit)
         if again == estimated or again.kind != "remanent":
             estimate = estimate_again if again == estimated else estimate
             break
@@ -478,7 +237,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
             chosen_state = "estimated"
     if not split.held_out and chosen_state == "estimated":
         # a record that starts off its loop is judged with the validation record's start estimated too
-        split = replace(split, score_history=_own_start(starts["estimated"], split, always=True))
+        split = replace(split, score_history=own_start(starts["estimated"], split, always=True))
         start_rms["estimated"] = held_out(starts["estimated"]).rms
     wiped = split.after_wipe()
     if wiped is not None:  # on the poles just fitted on the whole record: only the initial state differs
@@ -489,7 +248,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
         if start_rms["wiped"] < (1 - WIPE_GAIN) * start_rms[chosen_state]:
             # a start off the loop, or a slow effect (drift, creep) that the earlier rows show most: only an
             # initial state that explains the rows before the wipe makes it the former
-            _, before_wipe = _estimate_state(starts["wiped"], split.fit.slice(0, len(split.fit) - len(cut.fit)), split.fit)
+            _, before_wipe = estimate_state(starts["wiped"], split.fit.slice(0, len(split.fit) - len(cut.fit)), split.fit)
             if before_wipe["rms_before_wipe_um"] <= (1 - WIPE_STATE_GAIN) * before_wipe["rms_before_wipe_from_rest_um"]:
                 chosen_state, split = "wiped", cut
                 fit = split.fit
@@ -528,8 +287,8 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
         jobs[label] = pool.submit(fitted_and_scored, start_model(grids[label], first), "fixed")
     capacity = []
     for label, grid in grids.items():
-        m, rms = jobs[label].result()
-        capacity.append((label, grid.size, rms, m))
+        m, held_out_rms = jobs[label].result()
+        capacity.append((label, grid.size, held_out_rms, m))
     best = min(c[2] for c in capacity)
     label, _, _, chosen = min((c for c in capacity if c[2] <= (1 + CAPACITY_TOLERANCE) * best), key=lambda c: c[1])
     baseline = fit_model(fit, chosen, poles="baseline", cache=cache)
@@ -539,13 +298,13 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     H_fit = baseline.context(fit).H
     effects = [e for e in (cls.prepare(fit, H_fit) for cls in CATALOGUE) if e is not None]
     by_name = {e.name: e for e in effects}
-    search = _SubsetSearch(baseline, split, effects, each)
+    search = SubsetSearch(baseline, split, effects, each)
     names = [e.name for e in effects]
     subsets = [frozenset(c) for r in range(len(names) + 1) for c in itertools.combinations(names, r)]
     table = []
     for s in subsets:
         sc = search.score(s)
-        checks = {e: _support(sc, search.score(s - {e}), noise) for e in s}
+        checks = {e: support(sc, search.score(s - {e}), noise) for e in s}
         table.append({"effects": [n for n in names if n in s], "held_out_rms_um": round(sc.rms, 6),
                       "held_out_peak_um": round(sc.peak, 5),
                       "supported": all(c[2] for c in checks.values())})
@@ -599,7 +358,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
             drops, verdicts = {}, {}
             for n, (without_model, without) in zip(current, dropped):
                 drops[n] = without_model
-                verdicts[n] = _support(score_model, without, noise) + (without.rms, score_model.rms)
+                verdicts[n] = support(score_model, without, noise) + (without.rms, score_model.rms)
             confirm_log.append({"effects": list(current), "held_out_rms_um": round(score_model.rms, 6),
                                 "drop_one": {n: round(v[0], 4) for n, v in verdicts.items()}})
             failing = [n for n in current if not verdicts[n][2]]
@@ -621,7 +380,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
         options = [n for n in exact_options(current) if frozenset(current + [n]) not in tried]
         best = None
         for n, (_, score) in zip(options, refit_many([(current + [n], final) for n in options])):
-            if _support(score, base_score, noise)[2] and (best is None or score.rms < best[1].rms):
+            if support(score, base_score, noise)[2] and (best is None or score.rms < best[1].rms):
                 best = (n, score)
         if best is None:
             break
@@ -647,8 +406,8 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     # is started from initial conditions estimated for it
     if split.score_history is not None and final is not baseline:
         rows = split.first_rows(split.score)
-        own, _ = _estimate_state(final, rows, split.score, with_effects=True)
-        misfit = {s: _rms(rows.position_um - replace(final, history=s).predict(rows, split.score_t0))
+        own, _ = estimate_state(final, rows, split.score, with_effects=True)
+        misfit = {s: rms(rows.position_um - replace(final, history=s).predict(rows, split.score_t0))
                   for s in (split.score_history, own)}
         final_split = replace(split, score_history=min(misfit, key=misfit.get))
     else:
@@ -717,7 +476,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
                               "evidence": _evidence(by_name[n], cut, explained, without, with_, noise, exact=True)})
         else:
             with_s, without_s = search.score(final_set | {n}), search.score(final_set)
-            cut, explained, _ = _support(with_s, without_s, noise)
+            cut, explained, _ = support(with_s, without_s, noise)
             with_, without = with_s.rms, without_s.rms
             diagnosis.append({"effect": n, "added": False, "statistic": round(cut, 4), "threshold": GAIN_THRESHOLD,
                               "margin": round(cut - GAIN_THRESHOLD, 4),
@@ -784,7 +543,7 @@ def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: f
     return Analysis(report, baseline, final, split, drop_one)
 
 
-def _alternatives(added: list[str], names: list[str], verdicts: dict, search: "_SubsetSearch",
+def _alternatives(added: list[str], names: list[str], verdicts: dict, search: "SubsetSearch",
                   refit_many: Callable) -> list[dict]:
     """Effects the record cannot tell apart: for each added effect a, each effect b outside the final set that,
     put in a's place, explains at least SEPARATION_SHARE of what a explains (its held-out RMS cut from the

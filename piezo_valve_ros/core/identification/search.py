@@ -1,0 +1,98 @@
+"""Effects judged on held-out data: every subset of the catalogue fitted from the baseline in one linear solve,
+the held-out score of a model, and the rule an effect added last must pass.  Nothing here imports ROS."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from scipy import linalg
+
+from ..metrics import rms
+from .effects import Effect
+from .fitting import BASIS_RIDGE
+from .split import Split
+from .valve_model import ValveModel
+
+__all__ = ["SubsetSearch", "Score", "support", "GAIN_THRESHOLD", "MIN_EFFECT_NOISE_RATIO", "PEAK_TOLERANCE"]
+
+GAIN_THRESHOLD = 0.2                        # an effect added last must cut the held-out RMS by >= 20 %
+MIN_EFFECT_NOISE_RATIO = 1.0                # ... and explain an RMS >= the sensor noise RMS
+PEAK_TOLERANCE = 1.1                        # ... and not raise the held-out peak by > 10 %
+
+
+class SubsetSearch:
+    """Every subset of the effects fitted from the baseline in one ridge least-squares solve each.
+
+    The columns (GPIM basis, offset, every effect's search columns, all through the baseline's G) are
+    built once for the fit rows and the held-out rows; one Gram matrix serves all subsets.
+    """
+
+    def __init__(self, baseline: ValveModel, split: Split, effects: list[Effect],
+                 each: Callable[[list[Callable[[], object]]], list] = lambda jobs: [job() for job in jobs]):
+        self.effects = effects
+        ctx_f = baseline.context(split.fit, split.t0)
+        ctx_s = split.scored(baseline).context(split.score, split.score_t0)
+        z_first = ctx_f.states[0]
+
+        def design(ctx) -> tuple[np.ndarray, list[int]]:
+            """The columns through the baseline's G, and each effect's width (``each`` runs fit and score
+            records side by side)."""
+            blocks = [ctx.states - z_first, np.ones((len(ctx.record), 1))] + [e.search_columns(ctx) for e in effects]
+            columns = np.column_stack(blocks)
+            rest = None
+            if ctx.rest_states is not None:   # G at rest before the first move: each column's rest value
+                rest = np.concatenate([ctx.rest_states - z_first, [1.0]]
+                                      + [e.rest_columns(ctx, b) for e, b in zip(effects, blocks[2:])])
+            return ctx.through_dynamics(columns, rest), [b.shape[1] for b in blocks[2:]]
+
+        (A, widths), (B, _) = each([lambda: design(ctx_f), lambda: design(ctx_s)])
+        n_basis = z_first.size + 1
+        self.groups = [np.arange(n_basis)]
+        ridge = [np.full(n_basis, BASIS_RIDGE)]
+        col = n_basis
+        for e, width in zip(effects, widths):
+            self.groups.append(np.arange(col, col + width))
+            ridge.append(np.full(width, e.ridge))
+            col += width
+        self.B = B[split.start:]
+        y = split.fit.position_um
+        self.y_score = split.score.position_um[split.start:]
+        n = A.shape[0]
+        self.scale = np.sqrt(np.einsum("ij,ij->j", A, A) / n)
+        self.scale[self.scale == 0] = 1.0
+        self.gram = (A.T @ A) / np.outer(self.scale, self.scale)
+        self.gram[np.diag_indices_from(self.gram)] += np.concatenate(ridge) * n
+        self.rhs = (A.T @ y) / self.scale
+        self._cache: dict[frozenset, float] = {}
+
+    def score(self, subset: frozenset) -> "Score":
+        if subset not in self._cache:
+            idx = np.concatenate([self.groups[0]] + [self.groups[1 + i] for i, e in enumerate(self.effects)
+                                                     if e.name in subset])
+            x = linalg.solve(self.gram[np.ix_(idx, idx)], self.rhs[idx], assume_a="pos") / self.scale[idx]
+            self._cache[subset] = Score.of(self.y_score - self.B[:, idx] @ x)
+        return self._cache[subset]
+
+
+@dataclass(frozen=True)
+class Score:
+    """Held-out error [um] at the analysis rate."""
+
+    rms: float
+    peak: float
+
+    @classmethod
+    def of(cls, error: np.ndarray) -> "Score":
+        return cls(rms(error), float(np.max(np.abs(error))) if error.size else 0.0)
+
+
+def support(with_: Score, without: Score, noise_um: float) -> tuple[float, float, bool]:
+    """(held-out RMS cut, explained RMS [um], supported?) of an effect added last: it must cut the held-out
+    RMS by GAIN_THRESHOLD, explain MIN_EFFECT_NOISE_RATIO times the sensor noise and not raise the peak by
+    more than PEAK_TOLERANCE."""
+    cut = 1.0 - with_.rms / without.rms if without.rms > 0 else 0.0
+    explained = math.sqrt(max(without.rms ** 2 - with_.rms ** 2, 0.0))
+    return cut, explained, (cut >= GAIN_THRESHOLD and explained >= MIN_EFFECT_NOISE_RATIO * noise_um
+                            and with_.peak <= PEAK_TOLERANCE * without.peak)
