@@ -143,404 +143,489 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
         raise ValueError(f"threads must be >= 1, got {threads}")
     with threadpool_limits(limits=1, user_api="blas"), \
             ThreadPoolExecutor(threads, thread_name_prefix="refit") as pool:
-        return _analyse(train_full, validate_full, max_rate_hz, log, pool)
+        return _Loop(train_full, validate_full, max_rate_hz, log, pool).run()
 
 
-def _analyse(train_full: Record, validate_full: Optional[Record], max_rate_hz: float,
-             log: Callable[[str], None], pool: ThreadPoolExecutor) -> Analysis:
-    started = time.monotonic()
+class _Loop:
+    """One run of the residual loop on one pair of records; ``run`` takes the stages of the module's
+    docstring in order and returns the :class:`Analysis`.  What a stage finds is kept on the instance for
+    the stages after it; ``split`` is replaced as the initial state is settled (a validation record's own
+    start, the cut after the wipe)."""
 
-    def each(jobs: list[Callable[[], object]]) -> list:
+    def __init__(self, train_full: Record, validate_full: Optional[Record], max_rate_hz: float,
+                 log: Callable[[str], None], pool: ThreadPoolExecutor):
+        self.started = time.monotonic()
+        self.log, self.pool = log, pool
+        self.split = split_records(train_full, validate_full, max_rate_hz)
+        split = self.split
+        self.full = full = split.fit_full
+        self.warnings: list[str] = []
+        if full.undersampled:
+            self.warnings.append(f"the record is sampled at {full.rate_hz:.0f} Hz, below the supported "
+                                 f"{SUPPORTED_RATE_HZ:.0f} Hz: G_v's poles cannot be resolved and fast effects go unseen")
+            log("warning: " + self.warnings[-1])
+        self.noise = noise_floor_um(full.position_um)
+        self.range_um = float(np.ptp(split.score_full.position_um if split.held_out else full.position_um))
+        self.range_val = (float(np.ptp(split.score_full.position_um[split.start_full:])) if not split.held_out
+                          else self.range_um)
+        held_out_text = ('last ' + format(100 * HELD_OUT_FRACTION, '.0f') + ' %' if split.held_out
+                         else 'validation record')
+        log(f"records: fit {len(full)} samples ({full.duration_s:.1f} s at {full.rate_hz:.0f} Hz), held-out "
+            f"{len(split.score_full) - split.start_full} samples ({held_out_text}); "
+            f"analysis at {split.fit.rate_hz:.0f} Hz; sensor noise {self.noise:.4f} um")
+        self.cache = FitCache()  # operator states etc. shared by every fit on the fit record
+        self.final_split: Optional[Split] = None   # set once the final model is known (stage 3)
+        self.final: Optional[ValveModel] = None
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def fit(self) -> Record:
+        return self.split.fit
+
+    def each(self, jobs: list[Callable[[], object]]) -> list:
         """Independent jobs on the pool, results in order (a job never waits for another)."""
-        return [f.result() for f in [pool.submit(job) for job in jobs]]
+        return [f.result() for f in [self.pool.submit(job) for job in jobs]]
 
-    split = split_records(train_full, validate_full, max_rate_hz)
-    fit, full = split.fit, split.fit_full
-    warnings = []
-    if full.undersampled:
-        warnings.append(f"the record is sampled at {full.rate_hz:.0f} Hz, below the supported "
-                        f"{SUPPORTED_RATE_HZ:.0f} Hz: G_v's poles cannot be resolved and fast effects go unseen")
-        log("warning: " + warnings[-1])
-    noise = noise_floor_um(full.position_um)
-    range_um = float(np.ptp(split.score_full.position_um if split.held_out else full.position_um))
-    range_val = float(np.ptp(split.score_full.position_um[split.start_full:])) if not split.held_out else range_um
-    log(f"records: fit {len(full)} samples ({full.duration_s:.1f} s at {full.rate_hz:.0f} Hz), held-out "
-        f"{len(split.score_full) - split.start_full} samples ({'last ' + format(100 * HELD_OUT_FRACTION, '.0f') + ' %' if split.held_out else 'validation record'}); "
-        f"analysis at {fit.rate_hz:.0f} Hz; sensor noise {noise:.4f} um")
+    def held_out(self, model: ValveModel) -> Score:
+        """``model``'s held-out score; the final model from its own start on a validation record (stage 3)."""
+        on = self.final_split if self.final_split is not None and model is self.final else self.split
+        return Score.of(on.held_out_error(model))
 
-    def held_out(model: ValveModel) -> Score:
-        return Score.of(split.held_out_error(model))
-
-    # ---- 1. baseline: the initial state, G_v's poles, then the GPIM's capacity on held-out data
-    def start_model(thresholds, like: Optional[ValveModel] = None, history: InitialState = REST):
-        m = ValveModel(GPIM(thresholds, np.ones(thresholds.size)), t0=split.t0, history=history)
+    def start_model(self, thresholds: np.ndarray, like: Optional[ValveModel] = None,
+                    history: InitialState = REST) -> ValveModel:
+        m = ValveModel(GPIM(thresholds, np.ones(thresholds.size)), t0=self.split.t0, history=history)
         if like is not None:
             m = replace(m, sections=like.sections, dynamics_note=like.dynamics_note, dynamics_free=like.dynamics_free,
                         history=like.history)
         return m
 
-    cache = FitCache()  # operator states etc. shared by every fit on the fit record
-
-    def fitted_and_scored(start: ValveModel, poles: str, on: Optional[Split] = None) -> tuple[ValveModel, float]:
-        on = split if on is None else on
-        m = fit_model(on.fit, start, poles=poles, cache=cache)
+    def fitted_and_scored(self, start: ValveModel, poles: str, on: Optional[Split] = None) -> tuple[ValveModel, float]:
+        on = self.split if on is None else on
+        m = fit_model(on.fit, start, poles=poles, cache=self.cache)
         return m, Score.of(on.held_out_error(m)).rms
 
-    # the operators' state at the first sample: a valve started from rest, a record cut from running operation,
-    # or unknown (a valve left off its loop by an unrecorded excitation): then the fit starts where the
-    # record's own input has wiped it out
-    candidates = {"rest": REST, "cycled": InitialState("cycled")}
-    fits = each([lambda h=h: fitted_and_scored(start_model(uniform_thresholds(fit.voltage_v, MID_CAPACITY), history=h),
-                                               "baseline") for h in candidates.values()])
-    starts = {h: m for h, (m, _) in zip(candidates, fits)}
-    start_rms = {h: r for h, (_, r) in zip(candidates, fits)}
-    if not split.held_out:
-        # the validation record started on its own, whatever the training record's start: where its first
-        # rows misfit, its start is estimated (as a simulation is started from the measured initial
-        # conditions), and every candidate is scored from it
-        score_state = own_start(starts["rest"], split, always=False)
-        if score_state is not None:
-            split = replace(split, score_history=score_state)
-            start_rms = {h: held_out(m).rms for h, m in starts.items()}
-    chosen_state = "cycled" if start_rms["cycled"] < (1 - INITIAL_STATE_TOLERANCE) * start_rms["rest"] else "rest"
-    # a state estimated from the rows before the input wiped it (rested elsewhere, or left off the loop)
-    first_rows = split.first_rows(fit)
-    estimated, estimate = estimate_state(starts["rest"], first_rows, fit)
-    if estimate["rms_before_wipe_um"] > (1 - ESTIMATE_STATE_GAIN) * estimate["rms_before_wipe_from_rest_um"]:
-        estimated = REST   # it cannot be taken (below): not fitted
-    for round_ in range(ESTIMATE_ROUNDS):   # weights fitted from rest are bent by the wrong start: alternate
-        if estimated.kind != "remanent":
-            break
-        starts["estimated"], start_rms["estimated"] = fitted_and_scored(
-            replace(start_model(uniform_thresholds(fit.voltage_v, MID_CAPACITY), starts[chosen_state]),
-                    history=estimated), "fixed")
-        if round_ == ESTIMATE_ROUNDS - 1:
-            break
-        again, estimate_again = estimate_state(starts["estimated"], first_rows, fit)
-        if again == estimated or again.kind != "remanent":
-            estimate = estimate_again if again == estimated else estimate
-            break
-        estimated, estimate = again, estimate_again
-    if "estimated" in start_rms:
-        # as for the wipe below: a clear gain, and the state must explain the start (a slow effect cannot);
-        # a valve that rested at one voltage until the record's first command moved it (a closed-loop record)
-        # is one parameter beyond rest and shows in the first rows alone: there it must halve their misfit,
-        # whatever the baseline's held-out RMS says (a baseline that lacks an effect, creep say, bends its
-        # weights to the wrong start and scores better from it; the effect fitted later needs the right one)
-        explains = estimate["rms_before_wipe_um"] / max(estimate["rms_before_wipe_from_rest_um"], 1e-12)
-        clear_gain = (start_rms["estimated"] < (1 - WIPE_GAIN) * start_rms[chosen_state]
-                      and explains <= 1 - ESTIMATE_STATE_GAIN)
-        rested_elsewhere = estimated.rested_at_v is not None and explains <= 1 - WIPE_STATE_GAIN
-        log(f"initial state: estimated {estimate['estimate']}; first rows' RMS {estimate['rms_before_wipe_um']:.4f} um "
-            f"against {estimate['rms_before_wipe_from_rest_um']:.4f} from rest")
-        if clear_gain or rested_elsewhere:
-            chosen_state = "estimated"
-    if not split.held_out and chosen_state == "estimated":
-        # a record that starts off its loop is judged with the validation record's start estimated too
-        split = replace(split, score_history=own_start(starts["estimated"], split, always=True))
-        start_rms["estimated"] = held_out(starts["estimated"]).rms
-    wiped = split.after_wipe()
-    if wiped is not None:  # on the poles just fitted on the whole record: only the initial state differs
+    def mid_capacity_start(self, like: ValveModel, history: InitialState, on: Optional[Split] = None) -> ValveModel:
+        on = self.split if on is None else on
+        return replace(self.start_model(uniform_thresholds(on.fit.voltage_v, MID_CAPACITY), like), history=history)
+
+    # ------------------------------------------------------------------ 1. the initial state
+    def choose_initial_state(self) -> None:
+        """The operators' state at the first sample: a valve started from rest, a record cut from running
+        operation, estimated from the first rows, or unknown (a valve left off its loop by an unrecorded
+        excitation): then the fit starts where the record's own input has wiped it out.  Sets ``first`` (the
+        model fitted from the chosen start), ``start_rms``, ``chosen_state`` and ``assumed``."""
+        self._rest_or_cycled()
+        self._estimated_start()
+        self._wiped_start()
+        self._describe_start()
+
+    def _rest_or_cycled(self) -> None:
+        candidates = {"rest": REST, "cycled": InitialState("cycled")}
+        fits = self.each([lambda h=h: self.fitted_and_scored(
+            self.start_model(uniform_thresholds(self.fit.voltage_v, MID_CAPACITY), history=h), "baseline")
+            for h in candidates.values()])
+        self.starts = {h: m for h, (m, _) in zip(candidates, fits)}
+        self.start_rms = {h: r for h, (_, r) in zip(candidates, fits)}
+        if not self.split.held_out:
+            # the validation record started on its own, whatever the training record's start: where its first
+            # rows misfit, its start is estimated (as a simulation is started from the measured initial
+            # conditions), and every candidate is scored from it
+            score_state = own_start(self.starts["rest"], self.split, always=False)
+            if score_state is not None:
+                self.split = replace(self.split, score_history=score_state)
+                self.start_rms = {h: self.held_out(m).rms for h, m in self.starts.items()}
+        self.chosen_state = ("cycled" if self.start_rms["cycled"] < (1 - INITIAL_STATE_TOLERANCE) * self.start_rms["rest"]
+                             else "rest")
+
+    def _estimated_start(self) -> None:
+        """A state estimated from the rows before the input wiped it (rested elsewhere, or left off the loop)."""
+        starts, start_rms = self.starts, self.start_rms
+        first_rows = self.split.first_rows(self.fit)
+        estimated, estimate = estimate_state(starts["rest"], first_rows, self.fit)
+        if estimate["rms_before_wipe_um"] > (1 - ESTIMATE_STATE_GAIN) * estimate["rms_before_wipe_from_rest_um"]:
+            estimated = REST   # it cannot be taken (below): not fitted
+        for round_ in range(ESTIMATE_ROUNDS):   # weights fitted from rest are bent by the wrong start: alternate
+            if estimated.kind != "remanent":
+                break
+            starts["estimated"], start_rms["estimated"] = self.fitted_and_scored(
+                self.mid_capacity_start(starts[self.chosen_state], estimated), "fixed")
+            if round_ == ESTIMATE_ROUNDS - 1:
+                break
+            again, estimate_again = estimate_state(starts["estimated"], first_rows, self.fit)
+            if again == estimated or again.kind != "remanent":
+                estimate = estimate_again if again == estimated else estimate
+                break
+            estimated, estimate = again, estimate_again
+        self.estimate = estimate
+        if "estimated" in start_rms:
+            # as for the wipe below: a clear gain, and the state must explain the start (a slow effect cannot);
+            # a valve that rested at one voltage until the record's first command moved it (a closed-loop record)
+            # is one parameter beyond rest and shows in the first rows alone: there it must halve their misfit,
+            # whatever the baseline's held-out RMS says (a baseline that lacks an effect, creep say, bends its
+            # weights to the wrong start and scores better from it; the effect fitted later needs the right one)
+            explains = estimate["rms_before_wipe_um"] / max(estimate["rms_before_wipe_from_rest_um"], 1e-12)
+            clear_gain = (start_rms["estimated"] < (1 - WIPE_GAIN) * start_rms[self.chosen_state]
+                          and explains <= 1 - ESTIMATE_STATE_GAIN)
+            rested_elsewhere = estimated.rested_at_v is not None and explains <= 1 - WIPE_STATE_GAIN
+            self.log(f"initial state: estimated {estimate['estimate']}; first rows' RMS "
+                     f"{estimate['rms_before_wipe_um']:.4f} um against {estimate['rms_before_wipe_from_rest_um']:.4f} from rest")
+            if clear_gain or rested_elsewhere:
+                self.chosen_state = "estimated"
+        if not self.split.held_out and self.chosen_state == "estimated":
+            # a record that starts off its loop is judged with the validation record's start estimated too
+            self.split = replace(self.split, score_history=own_start(starts["estimated"], self.split, always=True))
+            start_rms["estimated"] = self.held_out(starts["estimated"]).rms
+
+    def _wiped_start(self) -> None:
+        """Fitting only after the input has wiped out an unknown start, on the poles just fitted on the whole
+        record (only the initial state differs)."""
+        self.before_wipe = None
+        wiped = self.split.after_wipe()
+        if wiped is None:
+            return
         cut, state = wiped
-        starts["wiped"], start_rms["wiped"] = fitted_and_scored(
-            replace(start_model(uniform_thresholds(cut.fit.voltage_v, MID_CAPACITY), starts[chosen_state]),
-                    history=state, t0=cut.t0), "fixed", cut)
-        if start_rms["wiped"] < (1 - WIPE_GAIN) * start_rms[chosen_state]:
+        starts, start_rms = self.starts, self.start_rms
+        starts["wiped"], start_rms["wiped"] = self.fitted_and_scored(
+            replace(self.mid_capacity_start(starts[self.chosen_state], state, cut), t0=cut.t0), "fixed", cut)
+        if start_rms["wiped"] < (1 - WIPE_GAIN) * start_rms[self.chosen_state]:
             # a start off the loop, or a slow effect (drift, creep) that the earlier rows show most: only an
             # initial state that explains the rows before the wipe makes it the former
-            _, before_wipe = estimate_state(starts["wiped"], split.fit.slice(0, len(split.fit) - len(cut.fit)), split.fit)
+            _, before_wipe = estimate_state(starts["wiped"], self.fit.slice(0, len(self.fit) - len(cut.fit)), self.fit)
             if before_wipe["rms_before_wipe_um"] <= (1 - WIPE_STATE_GAIN) * before_wipe["rms_before_wipe_from_rest_um"]:
-                chosen_state, split = "wiped", cut
-                fit = split.fit
+                self.chosen_state, self.split, self.before_wipe = "wiped", cut, before_wipe
             else:
-                log(f"initial state: fitting from the wipe on cuts the held-out RMS {start_rms[chosen_state]:.4f} -> "
-                    f"{start_rms['wiped']:.4f} um, but no state before the record explains the rows before it "
-                    f"({before_wipe['rms_before_wipe_um']:.4f} um RMS against {before_wipe['rms_before_wipe_from_rest_um']:.4f} "
-                    f"from rest): a slow effect, not the start; the whole record is fitted")
-    first = starts[chosen_state]
-    history = first.history
-    assumed = {"assumed": history.describe(), "fit_starts_at_s": split.wiped_at_s}
-    if chosen_state == "estimated":
-        assumed["assumed"] += ": estimated from the record's rows before its input wiped the state out"
-        assumed["before_the_record"] = estimate
-    if chosen_state == "wiped":
-        assumed = {"assumed": f"unknown before the record: the fit and every decision use the record from "
-                              f"t = {split.wiped_at_s:.6g} s, where its input has come within "
-                              f"{100 * WIPE_MARGIN:g} % of both its extremes and so wiped the state out; the operators "
-                              f"start there as the record's input since its first sample left them",
-                   "fit_starts_at_s": split.wiped_at_s,
-                   "before_the_record": before_wipe}
-    if split.score_history is not None:
-        assumed["validation_record_start"] = (split.score_history.describe() + ": estimated from its first rows "
-                                              "before its input wiped the state out")
-    log("initial state: " + ", ".join(f"{h} {r:.4f}" for h, r in start_rms.items()) + " um held-out RMS; chosen "
-        + (f"{chosen_state}: the state before the record is unknown, the fit starts at t = {split.wiped_at_s:.4g} s, "
-           f"where the input has wiped it out" if chosen_state == "wiped" else chosen_state))
-    log(f"G_v: {first.dynamics_note}")
-    paper_job = pool.submit(fit_paper_gpim, fit, first.sections, history=history)
-    grids = {f"{n} operators": uniform_thresholds(fit.voltage_v, n) for n in CAPACITY_OPERATORS}
-    jobs = {label: pool.submit(fitted_and_scored, start_model(grid, first), "fixed") for label, grid in grids.items()}
-    paper = paper_job.result()
-    if paper.failed is None:
-        label = f"paper grid ({paper.params.n} operators, alpha {paper.params.alpha:.4g} V)"
-        grids[label] = paper.model.gpim.thresholds
-        jobs[label] = pool.submit(fitted_and_scored, start_model(grids[label], first), "fixed")
-    capacity = []
-    for label, grid in grids.items():
-        m, held_out_rms = jobs[label].result()
-        capacity.append((label, grid.size, held_out_rms, m))
-    best = min(c[2] for c in capacity)
-    label, _, _, chosen = min((c for c in capacity if c[2] <= (1 + CAPACITY_TOLERANCE) * best), key=lambda c: c[1])
-    baseline = fit_model(fit, chosen, poles="baseline", cache=cache)
-    log("capacity: " + ", ".join(f"{c[0]} {c[2]:.4f}" for c in capacity) + f" um held-out RMS; chosen {label}")
+                self.log(f"initial state: fitting from the wipe on cuts the held-out RMS {start_rms[self.chosen_state]:.4f} "
+                         f"-> {start_rms['wiped']:.4f} um, but no state before the record explains the rows before it "
+                         f"({before_wipe['rms_before_wipe_um']:.4f} um RMS against "
+                         f"{before_wipe['rms_before_wipe_from_rest_um']:.4f} from rest): a slow effect, not the start; "
+                         f"the whole record is fitted")
 
-    # ---- 2. every subset of the catalogue, from the baseline
-    H_fit = baseline.context(fit).H
-    effects = [e for e in (cls.prepare(fit, H_fit) for cls in CATALOGUE) if e is not None]
-    by_name = {e.name: e for e in effects}
-    search = SubsetSearch(baseline, split, effects, each)
-    names = [e.name for e in effects]
-    subsets = [frozenset(c) for r in range(len(names) + 1) for c in itertools.combinations(names, r)]
-    table = []
-    for s in subsets:
-        sc = search.score(s)
-        checks = {e: support(sc, search.score(s - {e}), noise) for e in s}
-        table.append({"effects": [n for n in names if n in s], "held_out_rms_um": round(sc.rms, 6),
-                      "held_out_peak_um": round(sc.peak, 5),
-                      "supported": all(c[2] for c in checks.values())})
-    supported = [(t["held_out_rms_um"], len(t["effects"]), frozenset(t["effects"])) for t in table if t["supported"]]
-    chosen_set = min(supported)[2]
-    log(f"search: {len(subsets)} subsets of {', '.join(names)}; best supported: "
-        f"{', '.join(n for n in names if n in chosen_set) or 'none'}")
+    def _describe_start(self) -> None:
+        split, chosen_state = self.split, self.chosen_state
+        self.first = self.starts[chosen_state]
+        assumed = {"assumed": self.first.history.describe(), "fit_starts_at_s": split.wiped_at_s}
+        if chosen_state == "estimated":
+            assumed["assumed"] += ": estimated from the record's rows before its input wiped the state out"
+            assumed["before_the_record"] = self.estimate
+        if chosen_state == "wiped":
+            assumed = {"assumed": f"unknown before the record: the fit and every decision use the record from "
+                                  f"t = {split.wiped_at_s:.6g} s, where its input has come within "
+                                  f"{100 * WIPE_MARGIN:g} % of both its extremes and so wiped the state out; the "
+                                  f"operators start there as the record's input since its first sample left them",
+                       "fit_starts_at_s": split.wiped_at_s,
+                       "before_the_record": self.before_wipe}
+        if split.score_history is not None:
+            assumed["validation_record_start"] = (split.score_history.describe() + ": estimated from its first rows "
+                                                  "before its input wiped the state out")
+        self.assumed = assumed
+        self.log("initial state: " + ", ".join(f"{h} {r:.4f}" for h, r in self.start_rms.items())
+                 + " um held-out RMS; chosen "
+                 + (f"{chosen_state}: the state before the record is unknown, the fit starts at t = "
+                    f"{split.wiped_at_s:.4g} s, where the input has wiped it out" if chosen_state == "wiped"
+                    else chosen_state))
+        self.log(f"G_v: {self.first.dynamics_note}")
 
-    # ---- 3. exact refits and drop-one checks
-    confirm_log = []
-    final, drop_one, verdicts = baseline, {}, {}
-    current = [n for n in names if n in chosen_set]
-    refits: dict[frozenset, tuple[ValveModel, Score]] = {frozenset(): (baseline, held_out(baseline))}
+    # ------------------------------------------------------------------ 1b. the GPIM's capacity
+    def choose_capacity(self) -> None:
+        """The GPIM's number of thresholds, chosen on held-out data among CAPACITY_OPERATORS and the paper's
+        5-parameter fit's grid; sets ``baseline``, ``paper``, ``capacity`` and ``capacity_label``."""
+        fit, first, pool = self.fit, self.first, self.pool
+        paper_job = pool.submit(fit_paper_gpim, fit, first.sections, history=first.history)
+        grids = {f"{n} operators": uniform_thresholds(fit.voltage_v, n) for n in CAPACITY_OPERATORS}
+        jobs = {label: pool.submit(self.fitted_and_scored, self.start_model(grid, first), "fixed")
+                for label, grid in grids.items()}
+        self.paper = paper = paper_job.result()
+        if paper.failed is None:
+            label = f"paper grid ({paper.params.n} operators, alpha {paper.params.alpha:.4g} V)"
+            grids[label] = paper.model.gpim.thresholds
+            jobs[label] = pool.submit(self.fitted_and_scored, self.start_model(grids[label], first), "fixed")
+        capacity = []
+        for label, grid in grids.items():
+            m, held_out_rms = jobs[label].result()
+            capacity.append((label, grid.size, held_out_rms, m))
+        best = min(c[2] for c in capacity)
+        label, _, _, chosen = min((c for c in capacity if c[2] <= (1 + CAPACITY_TOLERANCE) * best), key=lambda c: c[1])
+        self.baseline = fit_model(fit, chosen, poles="baseline", cache=self.cache)
+        self.capacity, self.capacity_label = capacity, label
+        self.log("capacity: " + ", ".join(f"{c[0]} {c[2]:.4f}" for c in capacity) + f" um held-out RMS; chosen {label}")
 
-    def refit_many(requests: list[tuple[list[str], Optional[ValveModel]]]) -> list[tuple[ValveModel, Score]]:
+    # ------------------------------------------------------------------ 2. every subset, one linear solve each
+    def search_subsets(self) -> None:
+        """Sets ``effects``, ``by_name``, ``names``, ``search``, ``table`` and ``chosen_set``."""
+        baseline, fit = self.baseline, self.fit
+        H_fit = baseline.context(fit).H
+        self.effects = [e for e in (cls.prepare(fit, H_fit) for cls in CATALOGUE) if e is not None]
+        self.by_name = {e.name: e for e in self.effects}
+        self.search = search = SubsetSearch(baseline, self.split, self.effects, self.each)
+        self.names = names = [e.name for e in self.effects]
+        subsets = [frozenset(c) for r in range(len(names) + 1) for c in itertools.combinations(names, r)]
+        table = []
+        for s in subsets:
+            sc = search.score(s)
+            checks = {e: support(sc, search.score(s - {e}), self.noise) for e in s}
+            table.append({"effects": [n for n in names if n in s], "held_out_rms_um": round(sc.rms, 6),
+                          "held_out_peak_um": round(sc.peak, 5),
+                          "supported": all(c[2] for c in checks.values())})
+        supported = [(t["held_out_rms_um"], len(t["effects"]), frozenset(t["effects"])) for t in table if t["supported"]]
+        self.table, self.chosen_set = table, min(supported)[2]
+        self.log(f"search: {len(subsets)} subsets of {', '.join(names)}; best supported: "
+                 f"{', '.join(n for n in names if n in self.chosen_set) or 'none'}")
+
+    # ------------------------------------------------------------------ 3. exact refits and drop-one checks
+    def refit_many(self, requests: list[tuple[list[str], Optional[ValveModel]]]) -> list[tuple[ValveModel, Score]]:
         """Exact refits of subsets with their held-out scores (cached; the missing ones on the pool).  In a
         request ``(subset, like)``, effects that ``like`` has keep the form it chose and start from the
         nonlinear structure it fitted (a warm start: drop-one refits and additions stay near it); the others
         are fitted in each of their forms from their neutral structure."""
         def job(subset: list[str], like: Optional[ValveModel]) -> tuple[ValveModel, Score]:
             chosen = {e.name: e for e in like.effects} if like is not None else {}
-            effects = [chosen.get(n, by_name[n]) for n in subset]
-            m = fit_model(fit, baseline, effects, try_forms={n for n in subset if n not in chosen}, cache=cache,
-                          warm=like)
-            return m, held_out(m)
+            effects = [chosen.get(n, self.by_name[n]) for n in subset]
+            m = fit_model(self.fit, self.baseline, effects, try_forms={n for n in subset if n not in chosen},
+                          cache=self.cache, warm=like)
+            return m, self.held_out(m)
 
         missing = {}
         for subset, like in requests:
-            if frozenset(subset) not in refits:
+            if frozenset(subset) not in self.refits:
                 missing.setdefault(frozenset(subset), (subset, like))
-        for key, result in zip(missing, each([lambda r=r: job(*r) for r in missing.values()])):
-            refits[key] = result
-        return [refits[frozenset(subset)] for subset, _ in requests]
+        for key, result in zip(missing, self.each([lambda r=r: job(*r) for r in missing.values()])):
+            self.refits[key] = result
+        return [self.refits[frozenset(subset)] for subset, _ in requests]
 
-    def exact_options(current: list[str]) -> list[str]:
+    def exact_options(self, current: list[str]) -> list[str]:
         """Effects outside ``current`` that the linear search credits with >= EXACT_CHECK_GAIN on top of it."""
-        linear_base = search.score(frozenset(current))
-        return [n for n in names if n not in current
-                and 1.0 - search.score(frozenset(current) | {n}).rms / max(linear_base.rms, 1e-30) >= EXACT_CHECK_GAIN]
+        linear_base = self.search.score(frozenset(current))
+        return [n for n in self.names if n not in current
+                and 1.0 - self.search.score(frozenset(current) | {n}).rms / max(linear_base.rms, 1e-30) >= EXACT_CHECK_GAIN]
 
-    def confirm(current: list[str]):
+    def confirm(self, current: list[str]) -> tuple[ValveModel, dict, dict, list[str]]:
         """Backward elimination with exact refits: (final model, drop-one models, verdicts, effects kept).  The
         exact checks that follow a confirmed set are refitted beside its drop-one refits (speculatively: if an
         effect is dropped they were not needed)."""
         for _ in range(CONFIRM_ROUNDS):
             if not current:
-                return baseline, {}, {}, []
-            (model, score_model), = refit_many([(current, None)])
+                return self.baseline, {}, {}, []
+            (model, score_model), = self.refit_many([(current, None)])
             requests = [([m for m in current if m != n], model) for n in current]
-            dropped = refit_many(requests + [(current + [n], model) for n in exact_options(current)])[:len(current)]
+            dropped = self.refit_many(requests + [(current + [n], model) for n in self.exact_options(current)]
+                                      )[:len(current)]
             drops, verdicts = {}, {}
             for n, (without_model, without) in zip(current, dropped):
                 drops[n] = without_model
-                verdicts[n] = support(score_model, without, noise) + (without.rms, score_model.rms)
-            confirm_log.append({"effects": list(current), "held_out_rms_um": round(score_model.rms, 6),
-                                "drop_one": {n: round(v[0], 4) for n, v in verdicts.items()}})
+                verdicts[n] = support(score_model, without, self.noise) + (without.rms, score_model.rms)
+            self.confirm_log.append({"effects": list(current), "held_out_rms_um": round(score_model.rms, 6),
+                                     "drop_one": {n: round(v[0], 4) for n, v in verdicts.items()}})
             failing = [n for n in current if not verdicts[n][2]]
             if not failing:
                 return model, drops, verdicts, current
             weakest = min(failing, key=lambda n: verdicts[n][0])
-            log(f"confirm: {weakest} not supported by the exact refit (held-out RMS cut "
-                f"{100 * verdicts[weakest][0]:.1f} %); dropped")
+            self.log(f"confirm: {weakest} not supported by the exact refit (held-out RMS cut "
+                     f"{100 * verdicts[weakest][0]:.1f} %); dropped")
             current = [n for n in current if n != weakest]
-        return baseline, {}, {}, []
+        return self.baseline, {}, {}, []
 
-    final, drop_one, verdicts, current = confirm(current)
-    # the search judged nonlinear structures to first order, which can underrate a large one: effects whose
-    # linear estimate shows some gain are refitted exactly on top of the confirmed set, and the best one
-    # that is supported joins (then everything is confirmed again)
-    tried: set[frozenset] = set()   # sets already put to confirm: each once (an effect added here and dropped
-    while len(current) < len(names):  # by confirm would be added again, and dropped again, forever)
-        base_score = held_out(final)
-        options = [n for n in exact_options(current) if frozenset(current + [n]) not in tried]
-        best = None
-        for n, (_, score) in zip(options, refit_many([(current + [n], final) for n in options])):
-            if support(score, base_score, noise)[2] and (best is None or score.rms < best[1].rms):
-                best = (n, score)
-        if best is None:
-            break
-        log(f"exact check: {best[0]} cuts the held-out RMS {base_score.rms:.4f} -> {best[1].rms:.4f} um "
-            f"(the first-order search underrated it); added")
-        tried.add(frozenset(current + [best[0]]))
-        final, drop_one, verdicts, current = confirm(current + [best[0]])
-    # G_v's poles again through the effects found (creep's fast share bends the baseline's poles)
-    polished = refit_poles_with_effects(fit, final, cache)
-    if polished is not final:
-        before, after = held_out(final).rms, held_out(polished).rms
-        if after <= before:
-            log(f"G_v: {polished.dynamics_note} with {', '.join(current)} in the model; held-out RMS "
-                f"{before:.4f} -> {after:.4f} um")
-            final = polished
-            # the drop-one models on the same poles: final minus one of them is that effect's share alone
-            drop_one = {n: with_poles(fit, m, final.sections, final.dynamics_note, cache) for n, m in drop_one.items()}
+    def extend(self) -> None:
+        """The winning subset confirmed; then effects the linear search underrated, checked exactly; then G_v's
+        poles again through the effects found.  Sets ``final``, ``drop_one``, ``verdicts``, ``current``."""
+        self.confirm_log: list[dict] = []
+        self.refits: dict[frozenset, tuple[ValveModel, Score]] = {frozenset(): (self.baseline, self.held_out(self.baseline))}
+        current = [n for n in self.names if n in self.chosen_set]
+        final, drop_one, verdicts, current = self.confirm(current)
+        # the search judged nonlinear structures to first order, which can underrate a large one: effects whose
+        # linear estimate shows some gain are refitted exactly on top of the confirmed set, and the best one
+        # that is supported joins (then everything is confirmed again)
+        tried: set[frozenset] = set()   # sets already put to confirm: each once (an effect added here and dropped
+        while len(current) < len(self.names):  # by confirm would be added again, and dropped again, forever)
+            base_score = self.held_out(final)
+            options = [n for n in self.exact_options(current) if frozenset(current + [n]) not in tried]
+            best = None
+            for n, (_, score) in zip(options, self.refit_many([(current + [n], final) for n in options])):
+                if support(score, base_score, self.noise)[2] and (best is None or score.rms < best[1].rms):
+                    best = (n, score)
+            if best is None:
+                break
+            self.log(f"exact check: {best[0]} cuts the held-out RMS {base_score.rms:.4f} -> {best[1].rms:.4f} um "
+                     f"(the first-order search underrated it); added")
+            tried.add(frozenset(current + [best[0]]))
+            final, drop_one, verdicts, current = self.confirm(current + [best[0]])
+        # G_v's poles again through the effects found (creep's fast share bends the baseline's poles)
+        polished = refit_poles_with_effects(self.fit, final, self.cache)
+        if polished is not final:
+            before, after = self.held_out(final).rms, self.held_out(polished).rms
+            if after <= before:
+                self.log(f"G_v: {polished.dynamics_note} with {', '.join(current)} in the model; held-out RMS "
+                         f"{before:.4f} -> {after:.4f} um")
+                final = polished
+                # the drop-one models on the same poles: final minus one of them is that effect's share alone
+                drop_one = {n: with_poles(self.fit, m, final.sections, final.dynamics_note, self.cache)
+                            for n, m in drop_one.items()}
+            else:
+                self.log(f"G_v: refitted with {', '.join(current)} ({polished.dynamics_note}) but the held-out RMS "
+                         f"rose {before:.4f} -> {after:.4f} um; poles kept")
+        self.final, self.drop_one, self.verdicts, self.current = final, drop_one, verdicts, current
+        self._final_split()
+
+    def _final_split(self) -> None:
+        """The validation record's start, where estimated, is estimated for the final model too (its effects,
+        creep say, were at rest before it as well): each model is scored from its own start, as a simulation
+        of it is started from initial conditions estimated for it.  The final model is never worse on held-out
+        data than the baseline."""
+        split, final = self.split, self.final
+        if split.score_history is not None and final is not self.baseline:
+            rows = split.first_rows(split.score)
+            own, _ = estimate_state(final, rows, split.score, with_effects=True)
+            misfit = {s: rms(rows.position_um - replace(final, history=s).predict(rows, split.score_t0))
+                      for s in (split.score_history, own)}
+            self.final_split = replace(split, score_history=min(misfit, key=misfit.get))
         else:
-            log(f"G_v: refitted with {', '.join(current)} ({polished.dynamics_note}) but the held-out RMS rose "
-                f"{before:.4f} -> {after:.4f} um; poles kept")
-    # the validation record's start, where estimated, is estimated for the final model too (its effects, creep
-    # say, were at rest before it as well): each model is scored from its own start, as a simulation of it
-    # is started from initial conditions estimated for it
-    if split.score_history is not None and final is not baseline:
-        rows = split.first_rows(split.score)
-        own, _ = estimate_state(final, rows, split.score, with_effects=True)
-        misfit = {s: rms(rows.position_um - replace(final, history=s).predict(rows, split.score_t0))
-                  for s in (split.score_history, own)}
-        final_split = replace(split, score_history=min(misfit, key=misfit.get))
-    else:
-        final_split = split
+            self.final_split = split
+        if self.held_out(final).rms > self.held_out(self.baseline).rms:
+            self.log("the extended model is worse on held-out data than the baseline: baseline kept")
+            self.final, self.drop_one, self.current, self.final_split = self.baseline, {}, [], split
+        self.added = [n for n in self.names if n in self.current]
+        if self.final_split.score_history != split.score_history:
+            self.assumed["validation_record_start_final_model"] = (self.final_split.score_history.describe()
+                                                                   + ": estimated the same way for the final model")
 
-    def held_out(model: ValveModel) -> Score:
-        on = final_split if model is final else split
-        return Score.of(on.held_out_error(model))
-
-    if held_out(final).rms > held_out(baseline).rms:
-        log("the extended model is worse on held-out data than the baseline: baseline kept")
-        final, drop_one, current, final_split = baseline, {}, [], split
-    added = [n for n in names if n in current]
-    if final_split.score_history != split.score_history:
-        assumed["validation_record_start_final_model"] = (final_split.score_history.describe()
-                                                          + ": estimated the same way for the final model")
-
-    # ---- 4. what remains
-    e_score = final_split.held_out_error(final)
-    structure = _structure(e_score, split.score.dt, noise, range_val)
-    final_set = frozenset(added)
-    closest = {n: 1.0 - search.score(final_set | {n}).rms / max(search.score(final_set).rms, 1e-30)
-               for n in names if n not in final_set}
-    near = max(closest.items(), key=lambda kv: kv[1]) if closest else ("none", 0.0)
-    peaks = _peak_structure(final_split.held_out_error(final, True), split.score_full.dt, noise, range_val)
-    structure.update(peaks)
-    measured = split.score_full.position_um[split.start_full:]
-    structure["held_out_noise_peak_um"] = noise_peak_um(measured, split.score_full.dt)
-    structure["held_out_noise_peak_pct"] = 100.0 * structure["held_out_noise_peak_um"] / range_val if range_val > 0 else 0.0
-    by_rms = structure["ratio_to_noise"] > UNEXPLAINED_NOISE_RATIO and structure["pct_of_range"] > MIN_STRUCTURE_PCT
-    by_peak = peaks["peak_ratio"] > PEAK_NOISE_RATIO and peaks["peak_pct_of_range"] > MIN_STRUCTURE_PCT
-    unexplained = by_rms or by_peak
-    seen = (f"held-out residual RMS {structure['rms_um']:.4f} um at {split.score.rate_hz:.0f} Hz, of which "
+    # ------------------------------------------------------------------ 4. what remains
+    def what_remains(self) -> None:
+        """Size, peaks and shape of the final held-out residual; sets ``structure``, ``unexplained``, ``seen``."""
+        split, final, noise = self.split, self.final, self.noise
+        e_score = self.final_split.held_out_error(final)
+        structure = _structure(e_score, split.score.dt, noise, self.range_val)
+        final_set = frozenset(self.added)
+        closest = {n: 1.0 - self.search.score(final_set | {n}).rms / max(self.search.score(final_set).rms, 1e-30)
+                   for n in self.names if n not in final_set}
+        near = max(closest.items(), key=lambda kv: kv[1]) if closest else ("none", 0.0)
+        peaks = _peak_structure(self.final_split.held_out_error(final, True), split.score_full.dt, noise, self.range_val)
+        structure.update(peaks)
+        measured = split.score_full.position_um[split.start_full:]
+        structure["held_out_noise_peak_um"] = noise_peak_um(measured, split.score_full.dt)
+        structure["held_out_noise_peak_pct"] = (100.0 * structure["held_out_noise_peak_um"] / self.range_val
+                                                if self.range_val > 0 else 0.0)
+        by_rms = structure["ratio_to_noise"] > UNEXPLAINED_NOISE_RATIO and structure["pct_of_range"] > MIN_STRUCTURE_PCT
+        by_peak = peaks["peak_ratio"] > PEAK_NOISE_RATIO and peaks["peak_pct_of_range"] > MIN_STRUCTURE_PCT
+        self.unexplained = by_rms or by_peak
+        self.structure = structure
+        self.seen = (
+            f"held-out residual RMS {structure['rms_um']:.4f} um at {split.score.rate_hz:.0f} Hz, of which "
             f"{structure['structured_rms_um']:.4f} um structured ({structure['ratio_to_noise']:.1f}x the sensor noise "
             f"{noise:.4f} um, threshold {UNEXPLAINED_NOISE_RATIO:g}x); peaks: the {_ordinal(PEAK_RANK)} largest "
             f"{1e3 * PEAK_BLOCK_S:g} ms peak {peaks['peak_um']:.3f} um at {split.score_full.rate_hz:.0f} Hz is "
             f"{peaks['peak_ratio']:.1f}x what the noise gives ({peaks['expected_noise_peak_um']:.3f} um, threshold "
             f"{PEAK_NOISE_RATIO:g}x; the held-out measurement's own noise peaks at "
-            f"{structure['held_out_noise_peak_um']:.3f} um about its local cubic); lag-1 autocorrelation {structure['lag1']:.2f}; "
-            f"strongest spectral line {structure['line_hz']:.3g} Hz ({100 * structure['line_share']:.0f} % of residual "
-            f"power); closest catalogue effect: {near[0]} (would cut the held-out RMS by {100 * max(near[1], 0):.1f} %)")
-    log(("structure remains: " if unexplained else "residual: ") + seen)
+            f"{structure['held_out_noise_peak_um']:.3f} um about its local cubic); lag-1 autocorrelation "
+            f"{structure['lag1']:.2f}; strongest spectral line {structure['line_hz']:.3g} Hz "
+            f"({100 * structure['line_share']:.0f} % of residual power); closest catalogue effect: {near[0]} "
+            f"(would cut the held-out RMS by {100 * max(near[1], 0):.1f} %)")
+        self.log(("structure remains: " if self.unexplained else "residual: ") + self.seen)
 
-    # ---- 5. figures at the record's own rate, report
-    def figures(model: ValveModel) -> dict:
-        on = final_split if model is final else split
-        return {"train": error_figures(split.fit_full.position_um, split.fit_full.position_um - split.fit_error(model, True),
-                                 range_um).as_dict(),
+    # ------------------------------------------------------------------ 5. figures at the record's own rate, report
+    def figures(self, model: ValveModel) -> dict:
+        split = self.split
+        on = self.final_split if model is self.final else split
+        return {"train": error_figures(split.fit_full.position_um,
+                                       split.fit_full.position_um - split.fit_error(model, True), self.range_um).as_dict(),
                 "validate": error_figures(split.score_full.position_um[split.start_full:],
-                                    split.score_full.position_um[split.start_full:] - on.held_out_error(model, True),
-                                    range_val).as_dict(),
+                                          split.score_full.position_um[split.start_full:] - on.held_out_error(model, True),
+                                          self.range_val).as_dict(),
                 "validate_analysis_rate": error_figures(split.score.position_um[split.start:],
-                                                  split.score.position_um[split.start:] - on.held_out_error(model),
-                                                  range_val).as_dict()}
+                                                        split.score.position_um[split.start:] - on.held_out_error(model),
+                                                        self.range_val).as_dict()}
 
-    unique = list({id(m): m for m in (baseline, final, paper.model)}.values())
-    figured = {id(m): f for m, f in zip(unique, each([lambda m=m: figures(m) for m in unique]))}  # once each
-
-    diagnosis = []
-    for n in names:
-        if n in verdicts and n in added:
-            cut, explained, ok, without, with_ = verdicts[n]
-            diagnosis.append({"effect": n, "added": True, "statistic": round(cut, 4), "threshold": GAIN_THRESHOLD,
+    def diagnosis(self) -> list[dict]:
+        """Each effect's decision with its statistic, threshold and margin: the added ones by their exact
+        drop-one refits, the others added last to the final set in the linear search."""
+        added, names, final_set = self.added, self.names, frozenset(self.added)
+        diagnosis = []
+        for n in names:
+            exact = n in self.verdicts and n in added
+            if exact:
+                cut, explained, _, without, with_ = self.verdicts[n]
+            else:
+                with_s, without_s = self.search.score(final_set | {n}), self.search.score(final_set)
+                cut, explained, _ = support(with_s, without_s, self.noise)
+                with_, without = with_s.rms, without_s.rms
+            diagnosis.append({"effect": n, "added": exact, "statistic": round(cut, 4), "threshold": GAIN_THRESHOLD,
                               "margin": round(cut - GAIN_THRESHOLD, 4),
                               "held_out_gain": round(cut, 4), "explained_rms_um": round(explained, 5),
-                              "evidence": _evidence(by_name[n], cut, explained, without, with_, noise, exact=True)})
-        else:
-            with_s, without_s = search.score(final_set | {n}), search.score(final_set)
-            cut, explained, _ = support(with_s, without_s, noise)
-            with_, without = with_s.rms, without_s.rms
-            diagnosis.append({"effect": n, "added": False, "statistic": round(cut, 4), "threshold": GAIN_THRESHOLD,
-                              "margin": round(cut - GAIN_THRESHOLD, 4),
-                              "held_out_gain": round(cut, 4), "explained_rms_um": round(explained, 5),
-                              "evidence": _evidence(by_name[n], cut, explained, without, with_, noise, exact=False)})
-    diagnosis.sort(key=lambda d: (not d["added"], added.index(d["effect"]) if d["added"] else names.index(d["effect"])))
-    alternatives = _alternatives(added, names, verdicts, search, refit_many)
-    for a in alternatives:
-        log(f"cannot tell apart: {a['effect']} and {a['alternative']}: {a['why']}")
-    held_out_text = (f"held-out last {100 * HELD_OUT_FRACTION:.0f} % of the training record" if split.held_out
-                     else "separate validation record")
-    report = {
-        "range_um": round(range_um, 4),
-        "baseline": {"model": baseline.name, "fit": label, **figured[id(baseline)],
-                     "G_v": describe_dynamics(baseline.dynamics, baseline.dynamics_note),
-                     "operators": baseline.gpim.n},
-        "effects_added": added,
-        "diagnosis": diagnosis,
-        "indistinguishable": alternatives,
-        "final": {"model": final.name, **figured[id(final)]},
-        "unexplained": bool(unexplained),
-        "residual": seen,
-        "residual_structure": {k: round(v, 6) for k, v in structure.items()},
-        "baseline_fits": {
-            "capacity": [{"grid": c[0], "operators": c[1], "held_out_rms_um": round(c[2], 6)} for c in capacity],
-            "chosen": label,
-            "initial_state": {"held_out_rms_um": {h: round(r, 6) for h, r in start_rms.items()}, "chosen": chosen_state,
-                              **assumed},
-            "linear": {**figured[id(baseline)], "operators": baseline.gpim.n, "invertible": True},
-            "paper_nls": {**figured[id(paper.model)],
-                          "params": {k: getattr(paper.params, k) for k in ("a0", "a1", "alpha", "rho", "tau", "n",
-                                                                           "offset_um")},
-                          "fixed": "a0 = 1, a1 = 0: the 5-parameter form has two exact invariances (a0 with "
-                                   "alpha, rho, tau; a1 with the offset)",
-                          "condition_number": paper.condition_number, "evaluations": paper.evaluations,
-                          "failed": paper.failed},
-        },
-        "search": sorted(table, key=lambda t: t["held_out_rms_um"]),
-        "confirm": confirm_log,
-        "rounds": confirm_log,  # earlier reports' name for the rounds of decisions
-        "validation": held_out_text,
-        "held_out_fraction": HELD_OUT_FRACTION if split.held_out else None,
-        "held_out_samples": len(split.score_full) - split.start_full,
-        "validate_range_um": round(range_val, 4),
-        "sample_rate_hz": round(full.rate_hz, 3),
-        "analysis_rate_hz": round(fit.rate_hz, 3),
-        "noise_floor_um": round(noise, 6),
-        "thresholds": {"held_out_gain": GAIN_THRESHOLD, "signature": GAIN_THRESHOLD,
-                       "min_effect_noise_ratio": MIN_EFFECT_NOISE_RATIO, "peak_tolerance": PEAK_TOLERANCE,
-                       "unexplained_noise_ratio": UNEXPLAINED_NOISE_RATIO, "unexplained_pct": MIN_STRUCTURE_PCT,
-                       "unexplained_peak_ratio": PEAK_NOISE_RATIO, "peak_block_s": PEAK_BLOCK_S, "peak_rank": PEAK_RANK,
-                       "capacity_tolerance": CAPACITY_TOLERANCE,
-                       "initial_state_tolerance": INITIAL_STATE_TOLERANCE, "wipe_gain": WIPE_GAIN,
-                       "wipe_state_gain": WIPE_STATE_GAIN, "wipe_margin": WIPE_MARGIN,
-                       "separation_share": SEPARATION_SHARE},
-        "warnings": warnings,
-        "final_model": final.describe(),
-        "seconds": round(time.monotonic() - started, 3),
-    }
-    b, f = report["baseline"]["validate"], report["final"]["validate"]
-    log(f"added: {', '.join(added) or 'nothing'}; held-out RMS {b['rms_um']:.4f} -> {f['rms_um']:.4f} um, peak "
-        f"{b['peak_um']:.3f} -> {f['peak_um']:.3f} um at {full.rate_hz:.0f} Hz; unexplained: {str(unexplained).lower()} "
-        f"({report['seconds']:.1f} s)")
-    return Analysis(report, baseline, final, split, drop_one)
+                              "evidence": _evidence(self.by_name[n], cut, explained, without, with_, self.noise,
+                                                    exact=exact)})
+        diagnosis.sort(key=lambda d: (not d["added"], added.index(d["effect"]) if d["added"] else names.index(d["effect"])))
+        return diagnosis
+
+    def report(self) -> dict:
+        split, baseline, final, paper = self.split, self.baseline, self.final, self.paper
+        unique = list({id(m): m for m in (baseline, final, paper.model)}.values())
+        figured = {id(m): f for m, f in zip(unique, self.each([lambda m=m: self.figures(m) for m in unique]))}  # once each
+        diagnosis = self.diagnosis()
+        alternatives = _alternatives(self.added, self.names, self.verdicts, self.search, self.refit_many)
+        for a in alternatives:
+            self.log(f"cannot tell apart: {a['effect']} and {a['alternative']}: {a['why']}")
+        held_out_text = (f"held-out last {100 * HELD_OUT_FRACTION:.0f} % of the training record" if split.held_out
+                         else "separate validation record")
+        report = {
+            "range_um": round(self.range_um, 4),
+            "baseline": {"model": baseline.name, "fit": self.capacity_label, **figured[id(baseline)],
+                         "G_v": describe_dynamics(baseline.dynamics, baseline.dynamics_note),
+                         "operators": baseline.gpim.n},
+            "effects_added": self.added,
+            "diagnosis": diagnosis,
+            "indistinguishable": alternatives,
+            "final": {"model": final.name, **figured[id(final)]},
+            "unexplained": bool(self.unexplained),
+            "residual": self.seen,
+            "residual_structure": {k: round(v, 6) for k, v in self.structure.items()},
+            "baseline_fits": {
+                "capacity": [{"grid": c[0], "operators": c[1], "held_out_rms_um": round(c[2], 6)} for c in self.capacity],
+                "chosen": self.capacity_label,
+                "initial_state": {"held_out_rms_um": {h: round(r, 6) for h, r in self.start_rms.items()},
+                                  "chosen": self.chosen_state, **self.assumed},
+                "linear": {**figured[id(baseline)], "operators": baseline.gpim.n, "invertible": True},
+                "paper_nls": {**figured[id(paper.model)],
+                              "params": {k: getattr(paper.params, k) for k in ("a0", "a1", "alpha", "rho", "tau", "n",
+                                                                               "offset_um")},
+                              "fixed": "a0 = 1, a1 = 0: the 5-parameter form has two exact invariances (a0 with "
+                                       "alpha, rho, tau; a1 with the offset)",
+                              "condition_number": paper.condition_number, "evaluations": paper.evaluations,
+                              "failed": paper.failed},
+            },
+            "search": sorted(self.table, key=lambda t: t["held_out_rms_um"]),
+            "confirm": self.confirm_log,
+            "rounds": self.confirm_log,  # earlier reports' name for the rounds of decisions
+            "validation": held_out_text,
+            "held_out_fraction": HELD_OUT_FRACTION if split.held_out else None,
+            "held_out_samples": len(split.score_full) - split.start_full,
+            "validate_range_um": round(self.range_val, 4),
+            "sample_rate_hz": round(self.full.rate_hz, 3),
+            "analysis_rate_hz": round(self.fit.rate_hz, 3),
+            "noise_floor_um": round(self.noise, 6),
+            "thresholds": {"held_out_gain": GAIN_THRESHOLD, "signature": GAIN_THRESHOLD,
+                           "min_effect_noise_ratio": MIN_EFFECT_NOISE_RATIO, "peak_tolerance": PEAK_TOLERANCE,
+                           "unexplained_noise_ratio": UNEXPLAINED_NOISE_RATIO, "unexplained_pct": MIN_STRUCTURE_PCT,
+                           "unexplained_peak_ratio": PEAK_NOISE_RATIO, "peak_block_s": PEAK_BLOCK_S,
+                           "peak_rank": PEAK_RANK, "capacity_tolerance": CAPACITY_TOLERANCE,
+                           "initial_state_tolerance": INITIAL_STATE_TOLERANCE, "wipe_gain": WIPE_GAIN,
+                           "wipe_state_gain": WIPE_STATE_GAIN, "wipe_margin": WIPE_MARGIN,
+                           "separation_share": SEPARATION_SHARE},
+            "warnings": self.warnings,
+            "final_model": final.describe(),
+            "seconds": round(time.monotonic() - self.started, 3),
+        }
+        b, f = report["baseline"]["validate"], report["final"]["validate"]
+        self.log(f"added: {', '.join(self.added) or 'nothing'}; held-out RMS {b['rms_um']:.4f} -> {f['rms_um']:.4f} um, "
+                 f"peak {b['peak_um']:.3f} -> {f['peak_um']:.3f} um at {self.full.rate_hz:.0f} Hz; unexplained: "
+                 f"{str(self.unexplained).lower()} ({report['seconds']:.1f} s)")
+        return report
+
+    def run(self) -> Analysis:
+        self.choose_initial_state()
+        self.choose_capacity()
+        self.search_subsets()
+        self.extend()
+        self.what_remains()
+        report = self.report()
+        return Analysis(report, self.baseline, self.final, self.split, self.drop_one)
 
 
 def _alternatives(added: list[str], names: list[str], verdicts: dict, search: "SubsetSearch",
