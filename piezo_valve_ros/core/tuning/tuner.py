@@ -527,128 +527,160 @@ def tune(strategy: str, model: CompensationModel, dt: float, limits: TuningLimit
     ControllerConfig's); ``starts``: gain sets tried besides the grid (default: Table 1's for the strategy).
     Raises TuningError when the strategy has no loop, the inputs are bad or no
     candidate meets ``limits``."""
-    if strategy not in TUNABLE_STRATEGIES:
-        raise TuningError(f"{strategy!r} has no feedback loop to tune; tunable: {', '.join(TUNABLE_STRATEGIES)}")
-    problems = limits.problems()
-    if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
-        problems.append(f"dt must be > 0, got {dt!r}")
-    base = replace(config or ControllerConfig(), strategy=strategy, dt=float(dt) if not problems else 1e-3)
-    plant = model if plant is None else plant
-    problems += base.problems() + model.problems(base.command_min_v, base.command_max_v, base.dt)
-    problems += [f"plant: {p}" for p in plant.problems(base.command_min_v, base.command_max_v)] if plant is not model else []
-    if problems:
-        raise TuningError("; ".join(problems))
-    v0 = base.centre_voltage_v
-    gain_range = plant_gain_range(strategy, plant, base.command_min_v, base.command_max_v)
-    log(f"tune {strategy}: plant gain {gain_range[0]:.3g}..{gain_range[1]:.3g}, period {1e3 * dt:.3g} ms; "
-        f"limits: overshoot <= {limits.max_overshoot_pct:g} %, gain margin >= {limits.min_gain_margin_db:g} dB, "
-        f"phase margin >= {limits.min_phase_margin_deg:g} deg, noise gain <= {limits.max_noise_gain:g}, "
-        f"crossover >= {limits.min_crossover_hz:g} Hz")
+    return _Tuner(strategy, model, dt, limits, config, plant, log).run(starts)
 
-    margins_cache: dict[PIDGains, LoopMargins] = {}
 
-    def margins(g: PIDGains) -> LoopMargins:
-        if g not in margins_cache:
-            margins_cache[g] = loop_margins(strategy, g, plant, dt, base.command_min_v, base.command_max_v,
-                                            base.derivative_filter_s, gain_range)
-        return margins_cache[g]
+class _Tuner:
+    """One tuning run: the checked inputs, the figures of every gain set tried (each computed once), and the
+    stages of the module docstring as methods."""
 
-    scores: dict[PIDGains, StepScore] = {}
+    def __init__(self, strategy: str, model: CompensationModel, dt: float, limits: TuningLimits,
+                 config: Optional[ControllerConfig], plant: Optional[CompensationModel], log: Callable[[str], None]):
+        if strategy not in TUNABLE_STRATEGIES:
+            raise TuningError(f"{strategy!r} has no feedback loop to tune; tunable: {', '.join(TUNABLE_STRATEGIES)}")
+        problems = limits.problems()
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+            problems.append(f"dt must be > 0, got {dt!r}")
+        base = replace(config or ControllerConfig(), strategy=strategy, dt=float(dt) if not problems else 1e-3)
+        plant = model if plant is None else plant
+        problems += base.problems() + model.problems(base.command_min_v, base.command_max_v, base.dt)
+        problems += ([f"plant: {p}" for p in plant.problems(base.command_min_v, base.command_max_v)]
+                     if plant is not model else [])
+        if problems:
+            raise TuningError("; ".join(problems))
+        self.strategy, self.model, self.plant, self.dt, self.limits, self.base, self.log = (
+            strategy, model, plant, dt, limits, base, log)
+        self.v0 = base.centre_voltage_v
+        self.gain_range = plant_gain_range(strategy, plant, base.command_min_v, base.command_max_v)
+        self.variants = dynamics_variants(plant)
+        self.margins_cache: dict[PIDGains, LoopMargins] = {}
+        self.scores: dict[PIDGains, StepScore] = {}
+        self.on_variants: dict[PIDGains, list[StepScore]] = {}
+        self.linear_cache: dict[PIDGains, tuple[float, float]] = {}
+        log(f"tune {strategy}: plant gain {self.gain_range[0]:.3g}..{self.gain_range[1]:.3g}, period "
+            f"{1e3 * dt:.3g} ms; limits: overshoot <= {limits.max_overshoot_pct:g} %, gain margin >= "
+            f"{limits.min_gain_margin_db:g} dB, phase margin >= {limits.min_phase_margin_deg:g} deg, noise gain <= "
+            f"{limits.max_noise_gain:g}, crossover >= {limits.min_crossover_hz:g} Hz")
 
-    def score(g: PIDGains) -> StepScore:
-        if g not in scores:
-            scores[g] = step_score(replace(base, gains=g), model, lambda: ModelValve(plant, dt, v0), v0,
-                                   give_up_above_pct=limits.max_overshoot_pct)
-        return scores[g]
+    # ------------------------------------------------------------------ figures of one gain set (each once)
+    def margins(self, g: PIDGains) -> LoopMargins:
+        if g not in self.margins_cache:
+            self.margins_cache[g] = loop_margins(self.strategy, g, self.plant, self.dt, self.base.command_min_v,
+                                                 self.base.command_max_v, self.base.derivative_filter_s,
+                                                 self.gain_range)
+        return self.margins_cache[g]
 
-    variants = dynamics_variants(plant)
-    on_variants: dict[PIDGains, list[StepScore]] = {}
+    def score(self, g: PIDGains) -> StepScore:
+        """The paper's steps with the controller on the model and the plant as the valve."""
+        if g not in self.scores:
+            self.scores[g] = step_score(replace(self.base, gains=g), self.model,
+                                        lambda: ModelValve(self.plant, self.dt, self.v0), self.v0,
+                                        give_up_above_pct=self.limits.max_overshoot_pct)
+        return self.scores[g]
 
-    def variant_runs(g: PIDGains) -> list[StepScore]:
-        if g not in on_variants:
-            on_variants[g] = variant_scores(replace(base, gains=g), model, variants, v0, limits.max_overshoot_pct)
-        return on_variants[g]
+    def variant_runs(self, g: PIDGains) -> list[StepScore]:
+        if g not in self.on_variants:
+            self.on_variants[g] = variant_scores(replace(self.base, gains=g), self.model, self.variants, self.v0,
+                                                 self.limits.max_overshoot_pct)
+        return self.on_variants[g]
 
-    def key(g: PIDGains) -> tuple[float, float, float]:
+    def linear(self, g: PIDGains) -> tuple[float, float]:
+        """(settling time [s], worst overshoot [%] on the plant and the dynamics variants) on the linearised loop."""
+        if g not in self.linear_cache:
+            f = self.base.derivative_filter_s
+            nominal = linear_step(self.strategy, g, self.plant, self.dt, f)
+            worst = max([nominal.overshoot_pct] + [linear_step(self.strategy, g, p, self.dt, f).overshoot_pct
+                                                   for p in self.variants])
+            self.linear_cache[g] = (nominal.band_exit_s, worst)
+        return self.linear_cache[g]
+
+    # ------------------------------------------------------------------ orders and tests
+    def key(self, g: PIDGains) -> tuple[float, float, float]:
         """What the tuner minimises: the average band exit time on the plant times (1 + OVERSHOOT_COST x its
         worst overshoot / the limit); then the time on a command limit and the overshoot."""
-        nominal = score(g)
-        factor = 1.0 + OVERSHOOT_COST * nominal.worst_overshoot_pct / max(limits.max_overshoot_pct, 1e-9)
+        nominal = self.score(g)
+        factor = 1.0 + OVERSHOOT_COST * nominal.worst_overshoot_pct / max(self.limits.max_overshoot_pct, 1e-9)
         return nominal.band_exit_s * factor, nominal.rail_time_s, nominal.worst_overshoot_pct
 
-    def feasible(g: PIDGains) -> bool:
-        if not margins(g).meets(limits) or score(g).worst_overshoot_pct > limits.max_overshoot_pct:
+    def feasible(self, g: PIDGains) -> bool:
+        """The margins, then the nominal steps (a run given up overshot), then the dynamics variants."""
+        limit = self.limits.max_overshoot_pct
+        if not self.margins(g).meets(self.limits) or self.score(g).worst_overshoot_pct > limit:
             return False
-        return all(s.worst_overshoot_pct <= limits.max_overshoot_pct for s in variant_runs(g))
+        return all(s.worst_overshoot_pct <= limit for s in self.variant_runs(g))
 
-    def better(g: PIDGains, than: Optional[PIDGains]) -> bool:
+    def better(self, g: PIDGains, than: Optional[PIDGains]) -> bool:
         """Feasible and better than ``than``; the dynamics variants are only run for a set that would win."""
-        if not margins(g).meets(limits) or (than is not None and not key(g) < key(than)):
+        if not self.margins(g).meets(self.limits) or (than is not None and not self.key(g) < self.key(than)):
             return False
-        return feasible(g)
+        return self.feasible(g)
 
-    # 1. screen the grid on the margins; 2. refine the fastest sets on the linearised loop (cheap: settling
-    # time of the paper's step there, within the overshoot limit on the plant and the dynamics variants);
-    # 3. run the real steps for the VERIFIED_RUNS fastest on the linearised loop and Table 1; 4. refine the
-    # REFINE_STARTS best of those within the limits on the real steps
-    pole = _slowest_pole(plant)
-    grid = [_gains(kp, ratio * pole, td) for ratio in ZERO_GRID_RATIO for td in DERIVATIVE_GRID_S for kp in KP_GRID]
-    passing = [g for g in grid if margins(g).meets(limits)]
-    linear_cache: dict[PIDGains, tuple[float, float]] = {}
+    def linear_rank(self, g: PIDGains) -> tuple[bool, float, float]:
+        return (self.linear(g)[1] > self.limits.max_overshoot_pct,) + self.linear(g)
 
-    def linear(g: PIDGains) -> tuple[float, float]:
-        """(settling time [s], worst overshoot [%] on the plant and the dynamics variants) on the linearised loop."""
-        if g not in linear_cache:
-            nominal = linear_step(strategy, g, plant, dt, base.derivative_filter_s)
-            worst = max([nominal.overshoot_pct] + [linear_step(strategy, g, p, dt, base.derivative_filter_s)
-                                                   .overshoot_pct for p in variants])
-            linear_cache[g] = (nominal.band_exit_s, worst)
-        return linear_cache[g]
+    def linear_better(self, budget_pct: float) -> Callable[[PIDGains, PIDGains], bool]:
+        return lambda g, than: (self.margins(g).meets(self.limits) and self.linear(g)[1] <= budget_pct
+                                and self.linear(g) < self.linear(than))
 
-    def linear_rank(g: PIDGains) -> tuple[bool, float, float]:
-        return (linear(g)[1] > limits.max_overshoot_pct,) + linear(g)
+    # ------------------------------------------------------------------ the stages
+    def linear_candidates(self) -> tuple[list[PIDGains], list[PIDGains]]:
+        """1. the grid screened on the margins; 2. the fastest sets refined on the linearised loop (cheap:
+        settling time of the paper's step there, within shares of the overshoot limit on the plant and the
+        dynamics variants).  Returns (candidates, fastest on the linearised loop first; the grid sets that
+        pass the margins)."""
+        pole = _slowest_pole(self.plant)
+        grid = [_gains(kp, ratio * pole, td) for ratio in ZERO_GRID_RATIO for td in DERIVATIVE_GRID_S for kp in KP_GRID]
+        passing = [g for g in grid if self.margins(g).meets(self.limits)]
+        ranked = sorted(passing, key=self.linear_rank)
+        refined = []
+        for share in LINEAR_BUDGET_SHARES:
+            budget = share * self.limits.max_overshoot_pct
+            refined += [_pattern_search(g, self.linear_better(budget))
+                        for g in [g for g in ranked if self.linear(g)[1] <= budget][:LINEAR_STARTS]]
+        candidates = list(dict.fromkeys(sorted(refined, key=self.linear_rank) + ranked))
+        self.log(f"tune {self.strategy}: screened {len(grid)} gain sets on the margins, {len(passing)} pass; "
+                 f"{len(refined)} refined on the linearised loop ({len(self.linear_cache)} linear runs); running the "
+                 f"paper's steps on the identified model, fastest on the linearised loop first")
+        return candidates, passing
 
-    def linear_better(budget_pct: float) -> Callable[[PIDGains, PIDGains], bool]:
-        return lambda g, than: margins(g).meets(limits) and linear(g)[1] <= budget_pct and linear(g) < linear(than)
-
-    ranked = sorted(passing, key=linear_rank)
-    refined = []
-    for share in LINEAR_BUDGET_SHARES:
-        budget = share * limits.max_overshoot_pct
-        refined += [_pattern_search(g, linear_better(budget))
-                    for g in [g for g in ranked if linear(g)[1] <= budget][:LINEAR_STARTS]]
-    candidates = list(dict.fromkeys(sorted(refined, key=linear_rank) + ranked))
-    log(f"tune {strategy}: screened {len(grid)} gain sets on the margins, {len(passing)} pass; {len(refined)} "
-        f"refined on the linearised loop ({len(linear_cache)} linear runs); running the paper's steps on the "
-        f"identified model, fastest on the linearised loop first")
-    if starts is None:
-        starts = [g for s, g in TABLE1_GAINS.values() if s == strategy]
-    # the nominal steps (cheap: a set overshooting on a step is given up) for the VERIFIED_RUNS fastest on the
-    # linearised loop and the starts; then the dynamics variants, best key first, until REFINE_STARTS sets are
-    # within the limits (further down the linear ranking when none is)
-    pool = list(dict.fromkeys(candidates[:VERIFIED_RUNS] + list(starts)))
-    within: list[PIDGains] = []
-    for g in sorted(pool, key=lambda g: key(g) if margins(g).meets(limits) else (math.inf,) * 3):
-        if feasible(g):     # the margins, then the nominal steps (a run given up overshot), then the variants
-            within.append(g)
-            if len(within) == REFINE_STARTS:
+    def within_limits(self, candidates: list[PIDGains], passing: list[PIDGains],
+                      starts: Sequence[PIDGains]) -> list[PIDGains]:
+        """3. the nominal steps (cheap: a set overshooting on a step is given up) for the VERIFIED_RUNS fastest on
+        the linearised loop and the starts; then the dynamics variants, best key first, until REFINE_STARTS sets
+        are within the limits (further down the linear ranking when none is)."""
+        limits = self.limits
+        pool = list(dict.fromkeys(candidates[:VERIFIED_RUNS] + list(starts)))
+        within: list[PIDGains] = []
+        for g in sorted(pool, key=lambda g: self.key(g) if self.margins(g).meets(limits) else (math.inf,) * 3):
+            if self.feasible(g):
+                within.append(g)
+                if len(within) == REFINE_STARTS:
+                    break
+        for i, g in enumerate(candidates[VERIFIED_RUNS:] if not within else []):
+            if self.feasible(g):
+                within.append(g)
                 break
-    for i, g in enumerate(candidates[VERIFIED_RUNS:] if not within else []):
-        if feasible(g):
-            within.append(g)
-            break
-        if (i + 1) % 20 == 0:
-            log(f"tune {strategy}: {VERIFIED_RUNS + i + 1}/{len(candidates)} sets run, none within the limits")
-    if not within:
-        if not passing and not any(margins(g).meets(limits) for g in starts):
-            raise TuningError(f"no PID gains for {strategy} meet the margins on this model ({limits})")
-        raise TuningError(f"no PID gains for {strategy} that meet the margins keep the overshoot <= "
-                          f"{limits.max_overshoot_pct:g} % on this model")
-    log(f"tune {strategy}: {len(scores)} sets run on the identified model; refining the best within the limits ("
-        + ", ".join(f"{1e3 * score(g).settling_time_s:.2f} ms" for g in within) + ")")
-    best = min((_pattern_search(g, better) for g in within), key=key)
-    result = TuningResult(strategy, best, margins(best), score(best), limits, len(margins_cache),
-                          len(scores) + sum(len(v) for v in on_variants.values()), base.derivative_filter_s,
-                          tuple(variant_runs(best)))
-    log(f"tune {strategy}: {result.summary()}")
-    return result
+            if (i + 1) % 20 == 0:
+                self.log(f"tune {self.strategy}: {VERIFIED_RUNS + i + 1}/{len(candidates)} sets run, none within "
+                         f"the limits")
+        if not within:
+            if not passing and not any(self.margins(g).meets(limits) for g in starts):
+                raise TuningError(f"no PID gains for {self.strategy} meet the margins on this model ({limits})")
+            raise TuningError(f"no PID gains for {self.strategy} that meet the margins keep the overshoot <= "
+                              f"{limits.max_overshoot_pct:g} % on this model")
+        return within
+
+    def run(self, starts: Optional[Sequence[PIDGains]] = None) -> TuningResult:
+        candidates, passing = self.linear_candidates()
+        if starts is None:
+            starts = [g for s, g in TABLE1_GAINS.values() if s == self.strategy]
+        within = self.within_limits(candidates, passing, starts)
+        self.log(f"tune {self.strategy}: {len(self.scores)} sets run on the identified model; refining the best "
+                 f"within the limits (" + ", ".join(f"{1e3 * self.score(g).settling_time_s:.2f} ms" for g in within) + ")")
+        # 4. the best of those refined within the limits on the real steps
+        best = min((_pattern_search(g, self.better) for g in within), key=self.key)
+        result = TuningResult(self.strategy, best, self.margins(best), self.score(best), self.limits,
+                              len(self.margins_cache), len(self.scores) + sum(len(v) for v in self.on_variants.values()),
+                              self.base.derivative_filter_s, tuple(self.variant_runs(best)))
+        self.log(f"tune {self.strategy}: {result.summary()}")
+        return result
