@@ -45,86 +45,109 @@ class _FigureWriter:
         self.written.append(str(path))
 
 
+class _HeldOut:
+    """The held-out data at the analysis rate and the two models' predictions of it."""
+
+    def __init__(self, analysis: Analysis):
+        self.analysis = analysis
+        split = analysis.split
+        self.record, self.start, self.t0 = split.score, split.start, split.score_t0
+        rec, start = self.record, self.start
+        self.t, self.v, self.y = rec.time_s[start:], rec.voltage_v[start:], rec.position_um[start:]
+        self.y_base, self.y_final = self.predict(analysis.baseline), self.predict(analysis.final)
+        self.label_base, self.label_final = f"baseline {analysis.baseline.name}", analysis.final.name
+
+    def predict(self, model) -> np.ndarray:
+        return model.predict(self.record, self.t0)[self.start:]
+
+
 def write_all(analysis: Analysis, directory, log: Callable[[str], None] = lambda s: None) -> list[str]:
     """Hysteresis loop, residual in time, one residual diagnostic per added effect (before: the final model
     refitted without it) and a step-and-hold stretch (when the input holds still somewhere), all on held-out
     data at the analysis rate.  Returns the paths written."""
     figures = _FigureWriter(directory)
-    plt, save, written = figures.plt, figures.save, figures.written
-    split = analysis.split
-    rec, start = split.score, split.start
-    t, v, y = rec.time_s[start:], rec.voltage_v[start:], rec.position_um[start:]
+    data = _HeldOut(analysis)
+    _loop_figure(figures, data)
+    _residual_time_figure(figures, data)
+    _diagnostic_figure(figures, data)
+    if not _step_hold_figure(figures, data):
+        log(f"no step_hold.png: the held-out input never holds still for {MIN_HOLD_SAMPLES} samples")
+    return figures.written
 
-    def predict(model):
-        return model.predict(rec, split.score_t0)[start:]
 
-    y_base, y_final = predict(analysis.baseline), predict(analysis.final)
-    report = analysis.report
-    label_b, label_f = f"baseline {analysis.baseline.name}", analysis.final.name
-
-    fig, ax = plt.subplots(figsize=(7, 5))
-    ax.plot(v, y, color="0.6", lw=0.8, label="measured")
-    ax.plot(v, y_base, lw=0.8, label=label_b)
-    ax.plot(v, y_final, lw=0.8, ls="--", label=label_f)
+def _loop_figure(figures: _FigureWriter, d: _HeldOut) -> None:
+    fig, ax = figures.plt.subplots(figsize=(7, 5))
+    ax.plot(d.v, d.y, color="0.6", lw=0.8, label="measured")
+    ax.plot(d.v, d.y_base, lw=0.8, label=d.label_base)
+    ax.plot(d.v, d.y_final, lw=0.8, ls="--", label=d.label_final)
     ax.set_xlabel("voltage [V]")
     ax.set_ylabel("spool position [um]")
     ax.set_title("Hysteresis loop, held-out data")
     ax.legend()
-    save(fig, "hysteresis_loop.png")
+    figures.save(fig, "hysteresis_loop.png")
 
-    fig, ax = plt.subplots(figsize=(9, 4))
-    ax.plot(t, y - y_base, lw=0.6, label=f"{label_b} (RMS {report['baseline']['validate']['rms_um']:.3f} um)")
-    ax.plot(t, y - y_final, lw=0.6, label=f"{label_f} (RMS {report['final']['validate']['rms_um']:.3f} um)")
+
+def _residual_time_figure(figures: _FigureWriter, d: _HeldOut) -> None:
+    report = d.analysis.report
+    fig, ax = figures.plt.subplots(figsize=(9, 4))
+    ax.plot(d.t, d.y - d.y_base, lw=0.6, label=f"{d.label_base} (RMS {report['baseline']['validate']['rms_um']:.3f} um)")
+    ax.plot(d.t, d.y - d.y_final, lw=0.6, label=f"{d.label_final} (RMS {report['final']['validate']['rms_um']:.3f} um)")
     ax.set_xlabel("time [s]")
     ax.set_ylabel("residual [um]")
     ax.set_title("Residual before and after, held-out data")
     ax.legend()
-    save(fig, "residual_time.png")
+    figures.save(fig, "residual_time.png")
 
+
+def _diagnostic_figure(figures: _FigureWriter, d: _HeldOut) -> None:
+    """Per added effect: the residual without it and with the final model against the effect's own axis."""
+    analysis = d.analysis
     added = [(e, analysis.drop_one.get(e.name, analysis.baseline)) for e in analysis.final.effects]
     panels = added or [(None, analysis.baseline)]
-    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4), squeeze=False)
-    step = max(t.size // 5000, 1)
+    fig, axes = figures.plt.subplots(1, len(panels), figsize=(5 * len(panels), 4), squeeze=False)
+    step = max(d.t.size // 5000, 1)
     for ax, (effect, without) in zip(axes[0], panels):
-        ctx = without.context(rec, split.score_t0)
+        ctx = without.context(d.record, d.t0)
         if effect is None:
-            x, xlabel, logx = ctx.H[start:], "model output [um]", False
+            x, xlabel, logx = ctx.H[d.start:], "model output [um]", False
             title = "no effect added"
         else:
             x, xlabel, logx = effect.plot_axis(ctx)
-            x, title = x[start:], effect.name
-        ax.plot(x[::step], (y - predict(without))[::step], ".", ms=2, alpha=0.5,
+            x, title = x[d.start:], effect.name
+        ax.plot(x[::step], (d.y - d.predict(without))[::step], ".", ms=2, alpha=0.5,
                 label="without it" if effect is not None else "baseline")
-        ax.plot(x[::step], (y - y_final)[::step], ".", ms=2, alpha=0.5, label="final model")
+        ax.plot(x[::step], (d.y - d.y_final)[::step], ".", ms=2, alpha=0.5, label="final model")
         if logx:
             ax.set_xscale("log")
         ax.set_xlabel(xlabel)
         ax.set_ylabel("residual [um]")
         ax.set_title(title)
         ax.legend()
-    save(fig, "residual_diagnostic.png")
+    figures.save(fig, "residual_diagnostic.png")
 
-    # step-and-hold: the longest stretches of constant input and what precedes them
+
+def _step_hold_figure(figures: _FigureWriter, d: _HeldOut) -> bool:
+    """The longest stretches of constant input and what precedes them; False when the input never holds."""
+    v = d.v
     flat = np.concatenate(([False], np.abs(np.diff(v)) <= 1e-9 * (1 + np.abs(v[1:]))))
     edges = np.flatnonzero(np.diff(np.concatenate(([0], flat.astype(int), [0]))))
     runs = edges.reshape(-1, 2) if edges.size else np.zeros((0, 2), int)
     runs = runs[runs[:, 1] - runs[:, 0] >= MIN_HOLD_SAMPLES]
     if not runs.size:
-        log(f"no step_hold.png: the held-out input never holds still for {MIN_HOLD_SAMPLES} samples")
-        return written
-    fig, ax = plt.subplots(figsize=(9, 4))
+        return False
+    fig, ax = figures.plt.subplots(figsize=(9, 4))
     long_runs = runs[np.argsort(runs[:, 1] - runs[:, 0])[::-1][:4]]
     a = max(int(long_runs[:, 0].min()) - 20, 0)
     b = int(long_runs[:, 1].max())
-    ax.plot(t[a:b], y[a:b], color="0.5", lw=0.8, label="measured")
-    ax.plot(t[a:b], y_base[a:b], lw=0.8, label=label_b)
-    ax.plot(t[a:b], y_final[a:b], lw=0.8, ls="--", label=label_f)
+    ax.plot(d.t[a:b], d.y[a:b], color="0.5", lw=0.8, label="measured")
+    ax.plot(d.t[a:b], d.y_base[a:b], lw=0.8, label=d.label_base)
+    ax.plot(d.t[a:b], d.y_final[a:b], lw=0.8, ls="--", label=d.label_final)
     ax.legend()
     ax.set_xlabel("time [s]")
     ax.set_ylabel("spool position [um]")
     ax.set_title("Step and hold, held-out data")
-    save(fig, "step_hold.png")
-    return written
+    figures.save(fig, "step_hold.png")
+    return True
 
 
 def write_run(time_s: np.ndarray, voltage_v: np.ndarray, position_m: np.ndarray, reference_m: np.ndarray,

@@ -84,6 +84,18 @@ class ValveHardwareNode(Node):
             declare(self, f"{backend_name}.{prm.name}", prm.default, f"{backend_name} backend: {prm.description}",
                     read_only=True)
         p = parameter_values(self)
+        stats_period = self._read_settings(p)
+        if backend is None:
+            values = {prm.name: p[f"{backend_name}.{prm.name}"] for prm in backend_type.PARAMETERS}
+            backend = backend_type.from_parameters(values, self.safe_voltage)
+        self._bind_backend(backend, p)
+        self._create_interfaces()
+        self._reset_counters()
+        self._start(p, stats_period)
+
+    def _read_settings(self, p: dict) -> float:
+        """The start-up parameters that do not depend on the backend, checked (ValueError with the reason);
+        returns loop_stats_period_s."""
         self.clock_mode = str(p["clock"])
         if self.clock_mode not in ("realtime", "lockstep"):
             raise ValueError(f"clock must be realtime or lockstep, got {self.clock_mode!r}")
@@ -105,9 +117,11 @@ class ValveHardwareNode(Node):
         self.busy_poll_s = as_float("realtime.busy_poll_s", p["realtime.busy_poll_s"])
         if self.busy_poll_s < 0:
             raise ValueError("realtime.busy_poll_s must be >= 0")
-        if backend is None:
-            values = {prm.name: p[f"{backend_name}.{prm.name}"] for prm in backend_type.PARAMETERS}
-            backend = backend_type.from_parameters(values, self.safe_voltage)
+        return stats_period
+
+    def _bind_backend(self, backend: ValveBackend, p: dict) -> None:
+        """The backend and what follows from its sample period: the control period in whole samples, the
+        watchdog's timeout; the real-time settings applied on the real-time clock."""
         if self.clock_mode == "lockstep" and not backend.supports_lockstep:
             raise ValueError(f"backend {p['backend']!r} cannot run in lockstep")
         self.samples_per_period = samples_per_period(as_float("control_period_s", p["control_period_s"]),
@@ -124,6 +138,7 @@ class ValveHardwareNode(Node):
             from ..realtime import apply
             apply(self.realtime)
 
+    def _create_interfaces(self) -> None:
         self.position_pub = self.create_publisher(Float64, "spool_position", SENSOR_QOS)
         self.samples_pub = self.create_publisher(Float64MultiArray, "samples", SAMPLES_QOS)
         self.clock_pub = self.create_publisher(Clock, "/clock", 10) if self.clock_mode == "lockstep" else None
@@ -132,6 +147,8 @@ class ValveHardwareNode(Node):
         self._command_sub = self.create_subscription(Float64, "voltage_command", self._on_command, COMMAND_QOS)
         self.add_on_set_parameters_callback(self._on_parameters)
 
+    def _reset_counters(self) -> None:
+        """The loop's state before the first period: no command held, the watchdog not armed, nothing counted."""
         self._tick_timer = None
         self._linked_controller: Optional[Callable[[float], Optional[float]]] = None
         self._batch = np.empty((self.samples_batch + self.samples_per_period, 3))  # rows awaiting `samples`
@@ -148,6 +165,10 @@ class ValveHardwareNode(Node):
         self.periods = 0
         self._last_position_m = float("nan")   # the last position published [m] (repeated when unanswered)
         self._closed = False
+        self._health_mark = (0, 0)
+
+    def _start(self, p: dict, stats_period: float) -> None:
+        """Open the backend at the safe voltage and start the clock's timers and the reports."""
         self.backend.open()
         self.backend.write_voltage(self.safe_voltage)
         if self.clock_mode == "lockstep":
@@ -162,7 +183,6 @@ class ValveHardwareNode(Node):
             self._tick_timer = self.create_timer(self.control_period_s, self._realtime_tick)
         if stats_period > 0:
             self.create_timer(stats_period, lambda: self.get_logger().info(self._loop_line()))
-        self._health_mark = (0, 0)
         self.diagnostics = Diagnostics(self, period_parameter(DIAGNOSTICS_PERIOD, p["diagnostics_period_s"]), self._health)
         self.get_logger().info(
             f"valve_hardware up: backend={p['backend']} clock={self.clock_mode} "

@@ -136,46 +136,95 @@ def rig_parameters(args) -> tuple[dict, dict]:
     return hw, ctl
 
 
+class UsageError(ValueError):
+    """Options or a parameters file the rig cannot run with (exit 2, one line)."""
+
+
+def apply_parameters_file(args, given: set[str], hw: dict, ctl: dict, ident: dict) -> tuple[dict, dict, dict]:
+    """The nodes' parameters with ``args.params_file``'s sections merged in (``merged_parameters``); the loop
+    the file chose (clock, control period) becomes the rig's, in ``args`` too.  UsageError when the file
+    cannot be read or a node's section is wrong."""
+    from ..params_yaml import node_section
+    sections = {}
+    for node in ("valve_hardware", "valve_controller", "valve_identification"):
+        try:
+            sections[node] = node_section(args.params_file, node)
+        except ValueError as exc:
+            if node != "valve_identification" and "no section" not in str(exc):
+                raise UsageError(str(exc)) from None
+            sections[node] = {}
+        except OSError as exc:
+            raise UsageError(f"cannot read {args.params_file}: {exc.strerror or exc}") from None
+    hw = merged_parameters(hw, sections["valve_hardware"], given)
+    ctl = merged_parameters(ctl, sections["valve_controller"], given)
+    ident = {**sections["valve_identification"], **ident}
+    # what the file chose for the loop is what the rig runs
+    args.clock, args.control_period_s = str(hw["clock"]), float(hw["control_period_s"])
+    ctl["control_period_s"] = ident["control_period_s"] = args.control_period_s
+    if args.clock == "realtime" and not {"busy_poll_s", "priority"} & given \
+            and "realtime.busy_poll_s" not in sections["valve_hardware"]:
+        hw["realtime.busy_poll_s"] = 0.0 if hw.get("realtime.priority") else args.control_period_s
+    hw["lockstep.step_budget"] = 0 if (args.clock == "lockstep" and args.demo == "steps") else -1
+    return hw, ctl, ident
+
+
+def check_options(args) -> None:
+    """UsageError for options that do not go together."""
+    if args.identify and args.demo != "none":
+        raise UsageError("--identify drives the rig itself; use it with --demo none")
+    if args.demo == "steps" and args.clock != "lockstep":
+        raise UsageError("the step demo needs --clock lockstep (use --demo none for a real-time rig)")
+    if (args.priority or args.pin) and args.clock != "realtime":
+        raise UsageError("--priority and --pin apply to --clock realtime")
+
+
+def _print_step_demo(client: RigClient, args, label: str, samples_per_period: int) -> None:
+    periods = int(round(args.hold_s / args.control_period_s))
+    t0 = time.monotonic()
+    results = step_demo(client, args.control_period_s, periods, periods)
+    wall = time.monotonic() - t0
+    print(f"\nPaper step tests under {label} (2 ms ramps, 5 % settling band):")
+    print(f"{'step [um]':>18} {'settling [ms]':>14} {'overshoot [%]':>14}")
+    for a, b, ts, os_ in results:
+        print(f"{a:7.1f} -> {b:6.1f} {ts * 1e3:14.1f} {os_:14.2f}")
+    periods_run = client.rows_count // samples_per_period
+    print(f"\n{periods_run} control periods in {wall:.1f} s wall time "
+          f"({periods_run / wall:.0f} periods/s including pauses)")
+
+
+def _run_until_stopped(args, procs: ProcessGroup, identification) -> int:
+    """Until Ctrl-C / SIGTERM, a node exits, or the identification plan ends; the exit code."""
+    if args.identify:
+        print(f"running the identification plan {args.identify}; the rig stops when it is done "
+              f"(bags and summary.json in {args.bag_dir}); Ctrl-C or SIGTERM to stop earlier", flush=True)
+    else:
+        print("running; Ctrl-C or SIGTERM to stop", flush=True)
+    while rclpy.ok():
+        time.sleep(0.2)
+        if identification is not None and identification.poll() is not None:
+            code = identification.returncode
+            print(f"valve_rig: identification plan {'done' if code == 0 else f'failed (exit {code})'}; "
+                  f"stopping the rig", file=sys.stderr if code else sys.stdout, flush=True)
+            return 0 if code == 0 else 1
+        if any(p.poll() is not None for _, p in procs.procs):
+            print("valve_rig: a node exited; stopping the rig", file=sys.stderr)
+            return 1
+    return 0
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parse_args(argv)
-    given = given_options(argv)
     hw_params, ctl_params = rig_parameters(args)
     ident_params = {"plan": args.identify, "control_period_s": args.control_period_s, "bag_dir": args.bag_dir,
                     "exit_when_done": True}
-    if args.params_file:
-        from ..params_yaml import node_section
-        sections = {}
-        for node in ("valve_hardware", "valve_controller", "valve_identification"):
-            try:
-                sections[node] = node_section(args.params_file, node)
-            except ValueError as exc:
-                if node != "valve_identification" and "no section" not in str(exc):
-                    print(f"valve_rig: {exc}", file=sys.stderr)
-                    return 2
-                sections[node] = {}
-            except OSError as exc:
-                print(f"valve_rig: cannot read {args.params_file}: {exc.strerror or exc}", file=sys.stderr)
-                return 2
-        hw_params = merged_parameters(hw_params, sections["valve_hardware"], given)
-        ctl_params = merged_parameters(ctl_params, sections["valve_controller"], given)
-        ident_params = {**sections["valve_identification"], **ident_params}
-        # what the file chose for the loop is what the rig runs
-        args.clock, args.control_period_s = str(hw_params["clock"]), float(hw_params["control_period_s"])
-        ctl_params["control_period_s"] = ident_params["control_period_s"] = args.control_period_s
-        if args.clock == "realtime" and not {"busy_poll_s", "priority"} & given \
-                and "realtime.busy_poll_s" not in sections["valve_hardware"]:
-            hw_params["realtime.busy_poll_s"] = 0.0 if hw_params.get("realtime.priority") else args.control_period_s
-        hw_params["lockstep.step_budget"] = 0 if (args.clock == "lockstep" and args.demo == "steps") else -1
-    if args.identify and args.demo != "none":
-        print("valve_rig: --identify drives the rig itself; use it with --demo none", file=sys.stderr)
-        return 2
-    if args.demo == "steps" and args.clock != "lockstep":
-        print("valve_rig: the step demo needs --clock lockstep (use --demo none for a real-time rig)",
-              file=sys.stderr)
-        return 2
-    if (args.priority or args.pin) and args.clock != "realtime":
-        print("valve_rig: --priority and --pin apply to --clock realtime", file=sys.stderr)
+    try:
+        if args.params_file:
+            hw_params, ctl_params, ident_params = apply_parameters_file(args, given_options(argv), hw_params,
+                                                                        ctl_params, ident_params)
+        check_options(args)
+    except UsageError as exc:
+        print(f"valve_rig: {exc}", file=sys.stderr)
         return 2
     rclpy.init()
     procs = ProcessGroup()
@@ -205,35 +254,9 @@ def main(argv=None) -> int:
         print(f"rig up ({'composed' if args.composed else 'separate processes'}, {args.clock}); "
               f"controller {label}", flush=True)
         if args.demo == "steps":
-            periods = int(round(args.hold_s / args.control_period_s))
-            t0 = time.monotonic()
-            results = step_demo(client, args.control_period_s, periods, periods)
-            wall = time.monotonic() - t0
-            print(f"\nPaper step tests under {label} (2 ms ramps, 5 % settling band):")
-            print(f"{'step [um]':>18} {'settling [ms]':>14} {'overshoot [%]':>14}")
-            for a, b, ts, os_ in results:
-                print(f"{a:7.1f} -> {b:6.1f} {ts * 1e3:14.1f} {os_:14.2f}")
-            periods_run = client.rows_count // samples_per_period
-            print(f"\n{periods_run} control periods in {wall:.1f} s wall time "
-                  f"({periods_run / wall:.0f} periods/s including pauses)")
+            _print_step_demo(client, args, label, samples_per_period)
         else:
-            if args.identify:
-                print(f"running the identification plan {args.identify}; the rig stops when it is done "
-                      f"(bags and summary.json in {args.bag_dir}); Ctrl-C or SIGTERM to stop earlier", flush=True)
-            else:
-                print("running; Ctrl-C or SIGTERM to stop", flush=True)
-            while rclpy.ok():
-                time.sleep(0.2)
-                if identification is not None and identification.poll() is not None:
-                    code = identification.returncode
-                    print(f"valve_rig: identification plan {'done' if code == 0 else f'failed (exit {code})'}; "
-                          f"stopping the rig", file=sys.stderr if code else sys.stdout, flush=True)
-                    code = 0 if code == 0 else 1
-                    break
-                if any(p.poll() is not None for _, p in procs.procs):
-                    print("valve_rig: a node exited; stopping the rig", file=sys.stderr)
-                    code = 1
-                    break
+            code = _run_until_stopped(args, procs, identification)
     except KeyboardInterrupt:
         pass
     except Exception as exc:  # one clear line, the processes are stopped in finally
