@@ -230,3 +230,24 @@ def test_identify_compensate_track_halves_the_ol_hc_error_on_a_saturating_valve(
     assert 0 < floor.rms_um < s[("extended", "OL HC")].rms_um, (floor, s)
     for key in e:   # the sensor adds its noise, it takes none away
         assert s[key].rms_um < e[key].rms_um and s[key].rms_um > e[key].rms_um - 0.05, (key, s[key], e[key])
+
+
+def test_a_model_is_refused_under_a_command_range_it_was_not_fitted_on():
+    """model.fitted_range_v: a model fitted on a +-150 V drive is refused by a 0-10 V controller (its thresholds
+    describe another amplifier), a 0-10 V model by a +-150 V controller (commands far beyond its record), each
+    with the reason; a range a quarter of the span beyond the fit is taken, and an unknown range is not checked."""
+    from piezo_valve_ros.core.control.compensation import FITTED_RANGE_MARGIN, MIN_FITTED_SPAN_SHARE
+    params = CompensationModel().to_parameters()
+    assert params["model.fitted_range_v"] == [0.0, 0.0]            # the paper's model: unknown, not checked
+    CompensationModel.from_parameters(params, -150.0, 150.0)
+    wide = {**params, "model.fitted_range_v": [-150.0, 150.0]}
+    with pytest.raises(ValueError, match=r"fitted on -150..150 V, 30x the command range 0..10 V: a model of another drive"):
+        CompensationModel.from_parameters(wide, 0.0, 10.0)
+    paper_drive = {**params, "model.fitted_range_v": [1.0, 9.0]}
+    CompensationModel.from_parameters(paper_drive, 0.0, 10.0)        # 1 V beyond each end: within a quarter of 8 V
+    with pytest.raises(ValueError, match=r"fitted on 1..9 V; commands -150..150 V go beyond it"):
+        CompensationModel.from_parameters(paper_drive, -150.0, 150.0)
+    assert CompensationModel.from_parameters(paper_drive).fitted_range_v == (1.0, 9.0)
+    with pytest.raises(ValueError, match="lo < hi"):
+        CompensationModel.from_parameters({**params, "model.fitted_range_v": [5.0, 1.0]})
+    assert FITTED_RANGE_MARGIN == 0.25 and MIN_FITTED_SPAN_SHARE == 0.25

@@ -13,6 +13,7 @@ import yaml
 
 from piezo_valve_ros.bagio import (FLOAT64_TYPE, BagRecorder, qos_profile, read_samples, serialize_float64,
                                    write_samples_bag)
+from piezo_valve_ros.core.control.compensation import CompensationModel
 from piezo_valve_ros.core.sim.experiments import simulate_rows
 from piezo_valve_ros.core.sim.signals import identification_voltage, validation_voltage
 from piezo_valve_ros.core.sim.simulator import ValveSimConfig
@@ -81,13 +82,20 @@ def test_foreign_rig_sqlite3_plus_minus_150_v_1khz_held_out(tmp_path):
     rows = simulate_rows(identification_voltage(1e-3, 30.0), ValveSimConfig(dt=1e-3, seed=4))
     rows[:, 1] = 30.0 * rows[:, 1] - 150.0
     write_samples_bag(tmp_path / "bag", rows, topic="/valve7/samples", storage="sqlite3")
-    out = run_cli(tmp_path / "bag", "--report", tmp_path / "r.json", "--quiet")
+    out = run_cli(tmp_path / "bag", "--report", tmp_path / "r.json", "--params-out", tmp_path / "fitted.yaml", "--quiet")
     assert out.returncode == 0, out.stderr
     assert out.stdout.startswith("range ") and "wrote " in out.stdout  # quiet: the summary, no progress
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["validation"] == "held-out last 30 % of the training record"
     assert "creep" in report["effects_added"]
     assert report["final"]["validate"]["rms_um"] < 0.5 * report["baseline"]["validate"]["rms_um"]
+    # the fitted file carries the drive it was fitted on: a 0-10 V controller refuses it, a +-150 V one takes it
+    params = yaml.safe_load((tmp_path / "fitted.yaml").read_text())["/**/valve_controller"]["ros__parameters"]
+    lo, hi = params["model.fitted_range_v"]
+    assert -151.0 < lo < -140.0 and 140.0 < hi < 151.0
+    with pytest.raises(ValueError, match="a model of another drive"):
+        CompensationModel.from_parameters(params, 0.0, 10.0)
+    CompensationModel.from_parameters(params, -150.0, 150.0)
 
 
 def _one_error_line(out, *needles):

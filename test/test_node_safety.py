@@ -541,7 +541,8 @@ def test_admit_reference_clamps_a_little_beyond_the_reach_and_refuses_more():
 def test_valve_command_loads_a_fitted_model_atomically_where_set_refuses_it(controller, tmp_path):
     """A new GPIM with a different number of operators: thresholds and weights set one at a time are each
     refused (their counts differ in between); `valve_command load` applies the whole file in one update,
-    and a file whose model is not invertible is refused whole, nothing changed."""
+    and a file whose model is not invertible, or was fitted on another drive, is refused whole, nothing
+    changed."""
     from piezo_valve_ros.core.control.compensation import CompensationModel
     from piezo_valve_ros.core.model.hysteresis import GPIMParams
     from piezo_valve_ros.identify import parameters_yaml
@@ -569,6 +570,12 @@ def test_valve_command_loads_a_fitted_model_atomically_where_set_refuses_it(cont
         refused = command("load", "controller", str(broken))
         assert refused.returncode == 1 and "refused, nothing changed" in refused.stdout, refused.stdout
         assert list(ctl.get_parameter("gpim.weights").value) == pytest.approx(new["gpim.weights"])
+        # a model fitted on a +-150 V drive, under this 0-10 V controller: refused with the reason
+        wide = tmp_path / "wide.yaml"
+        wide.write_text(parameters_yaml({**new, "model.fitted_range_v": [-150.0, 150.0]}, ["fitted at +-150 V"]))
+        refused = command("load", "controller", str(wide))
+        assert refused.returncode == 1 and "a model of another drive" in refused.stdout, refused.stdout
+        assert list(ctl.get_parameter("model.fitted_range_v").value) == [0.0, 0.0]
     finally:
         stop.set()
         thread.join(2.0)

@@ -41,6 +41,8 @@ MAX_CREEP_GAIN_SUM = 0.9     # creep gains must sum below this (the inverse divi
 FF_BANDWIDTH_RATIO = 3.0     # F's poles this factor above each of G's sections ...
 FF_NYQUIST_SHARE = 0.5       # ... and at most this share of the Nyquist frequency pi/dt
 GPIM_FORM_KEYS = ("alpha", "rho", "tau", "n")   # the paper's 5-parameter form (with a0, a1, offset_um)
+FITTED_RANGE_MARGIN = 0.25   # commands may go this share of the fitted span beyond the voltages a model was fitted on
+MIN_FITTED_SPAN_SHARE = 0.25  # ... and must span at least this share of them (else: another amplifier's model)
 
 
 @dataclass(frozen=True)
@@ -208,6 +210,25 @@ def _floats(values) -> list[float]:
     return [float(x) for x in values]
 
 
+def fitted_range_problems(fitted_range_v: tuple[float, ...], v_min: float, v_max: float) -> list[str]:
+    """Why commands ``v_min..v_max`` [V] do not suit a model fitted on ``fitted_range_v`` = (lo, hi) [V] (empty:
+    unknown, nothing checked): they go beyond it by more than FITTED_RANGE_MARGIN of its span, or span less
+    than MIN_FITTED_SPAN_SHARE of it (a model of a +-150 V drive under a 0-10 V controller)."""
+    if not fitted_range_v:
+        return []
+    if len(fitted_range_v) != 2 or not all(math.isfinite(x) for x in fitted_range_v) \
+            or not fitted_range_v[0] < fitted_range_v[1]:
+        return [f"model.fitted_range_v must be [lo, hi] with lo < hi (or [0, 0]: unknown), got {list(fitted_range_v)}"]
+    lo, hi = fitted_range_v
+    margin = FITTED_RANGE_MARGIN * (hi - lo)
+    if v_min < lo - margin or v_max > hi + margin:
+        return [f"the model was fitted on {lo:.4g}..{hi:.4g} V; commands {v_min:g}..{v_max:g} V go beyond it"]
+    if v_max - v_min < MIN_FITTED_SPAN_SHARE * (hi - lo):
+        return [f"the model was fitted on {lo:.4g}..{hi:.4g} V, {(hi - lo) / (v_max - v_min):.3g}x the command range "
+                f"{v_min:g}..{v_max:g} V: a model of another drive"]
+    return []
+
+
 @dataclass(frozen=True)
 class CompensationModel:
     """Everything ``valve_controller`` inverts: GPIM (both envelopes, thresholds widening with the input rate
@@ -220,6 +241,7 @@ class CompensationModel:
     output_map: OutputMap = OutputMap()
     dynamic_feedforward: bool = False
     rate_widening_v: tuple[float, ...] = ()
+    fitted_range_v: tuple[float, ...] = ()   # (lo, hi) [V] the model was fitted on; empty: unknown
 
     @property
     def rate_dependent(self) -> bool:
@@ -230,7 +252,7 @@ class CompensationModel:
         """Every reason the controller cannot invert this model on commands ``v_min..v_max`` [V] (empty: fine);
         with ``dt`` also the dynamic feedforward's."""
         out = (inverse_problems(self.gpim, v_min, v_max) + self.valve_model.problems() + self.creep.problems()
-               + widening_problems(self.rate_widening_v))
+               + widening_problems(self.rate_widening_v) + fitted_range_problems(self.fitted_range_v, v_min, v_max))
         map_problems = self.output_map.problems()
         if not out and not map_problems:
             lo, hi = self.gpim.output_range(v_min, v_max)
@@ -257,7 +279,8 @@ class CompensationModel:
                 # zeros rather than []: an empty list has no element type for a ROS parameter
                 "saturation.coefficients_um": _floats(self.output_map.coefficients_um) or [0.0] * TERM_COUNT,
                 "gpim.rate_widening_v": _floats(self.rate_widening_v) or [0.0] * RATE_TERM_COUNT,
-                "feedforward.dynamics": bool(self.dynamic_feedforward)}
+                "feedforward.dynamics": bool(self.dynamic_feedforward),
+                "model.fitted_range_v": _floats(self.fitted_range_v) or [0.0, 0.0]}
 
     @classmethod
     def from_parameters(cls, p: dict[str, Any], v_min: float = COMMAND_MIN_V, v_max: float = COMMAND_MAX_V,
@@ -299,11 +322,12 @@ class CompensationModel:
         coefs = get("saturation.coefficients_um", as_float_list)
         dynamic = get("feedforward.dynamics", as_bool)
         widening = get("gpim.rate_widening_v", as_float_list)
+        fitted = get("model.fitted_range_v", as_float_list)
         if problems:
             raise ValueError("; ".join(problems))
         model = cls(gpim, ContinuousTF(tuple(num), tuple(den)), CreepModel(tuple(taus), tuple(gains)),
                     OutputMap(centre, half, tuple(coefs)), dynamic,
-                    tuple(widening) if any(widening) else ())
+                    tuple(widening) if any(widening) else (), tuple(fitted) if any(fitted) else ())
         problems = model.problems(v_min, v_max, dt)
         if problems:
             raise ValueError("; ".join(problems))
@@ -339,5 +363,8 @@ MODEL_PARAMETERS: dict[str, tuple[Any, str]] = {
                                        "hinges (empty or all 0: none)"),
     "feedforward.dynamics": (False, "the feedforward also inverts G_v (W = F/G_v, F critically damped 3x faster); "
                                     "ff_pid_g then shapes its reference with F"),
+    "model.fitted_range_v": ([0.0, 0.0], "voltages [lo, hi] the model was fitted on [V] ([0, 0]: unknown); the "
+                                         "command range must lie within them (a quarter of their span beyond at most) "
+                                         "and span at least a quarter of them"),
 }
 MODEL_DEFAULTS = {name: default for name, (default, _) in MODEL_PARAMETERS.items()}

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from ..control.compensation import CompensationModel
 from ..model.dynamics import unity_dc_poles
 from ..model.hysteresis import GPIM
@@ -12,7 +14,8 @@ from .fitting import fit_model
 from .residual import Analysis
 from .valve_model import ValveModel
 
-__all__ = ["Compensation", "compensation", "baseline_compensation", "base_parameters", "controller_parameters"]
+__all__ = ["Compensation", "compensation", "baseline_compensation", "base_parameters", "controller_parameters",
+           "fitted_range"]
 
 
 @dataclass(frozen=True)
@@ -25,13 +28,20 @@ class Compensation:
     refused: dict[str, str]
 
 
-def base_parameters(model: ValveModel, dynamic_feedforward: bool) -> dict:
-    """The controller parameters of a model's GPIM and G (all its sections) with no effect compensated; every
-    model parameter written (``CompensationModel.to_parameters``), so a push replaces a whole older model."""
+def fitted_range(analysis: Analysis) -> tuple[float, float]:
+    """The voltages [V] the training record drove: the range the controller may command with the model."""
+    v = analysis.split.fit_full.voltage_v
+    return float(np.min(v)), float(np.max(v))
+
+
+def base_parameters(model: ValveModel, dynamic_feedforward: bool, fitted_range_v: tuple[float, ...] = ()) -> dict:
+    """The controller parameters of a model's GPIM and G (all its sections) with no effect compensated, and the
+    voltages [V] it was fitted on; every model parameter written (``CompensationModel.to_parameters``), so a
+    push replaces a whole older model."""
     g = model.gpim
     symmetric = GPIM(g.thresholds, g.weights, g.a0, g.a1, g.offset_um)  # the asymmetry effect adds the envelope
-    return CompensationModel(symmetric, unity_dc_poles(list(model.sections)),
-                             dynamic_feedforward=dynamic_feedforward).to_parameters()
+    return CompensationModel(symmetric, unity_dc_poles(list(model.sections)), dynamic_feedforward=dynamic_feedforward,
+                             fitted_range_v=tuple(fitted_range_v)).to_parameters()
 
 
 def compensation(analysis: Analysis, dynamic_feedforward: bool = True) -> Compensation:
@@ -44,12 +54,13 @@ def compensation(analysis: Analysis, dynamic_feedforward: bool = True) -> Compen
     ``dynamic_feedforward`` the feedforward also inverts the fitted G (``compensation.DynamicFeedforward``).
     """
     final = analysis.final
-    params = base_parameters(final, dynamic_feedforward)
+    drive = fitted_range(analysis)
+    params = base_parameters(final, dynamic_feedforward, drive)
     usable, refused = [], {}
     for e, c in zip(final.effects, final.coefs):
         try:
             trial = {**params, **e.compensation(final, c)}
-            CompensationModel.from_parameters(trial)
+            CompensationModel.from_parameters(trial, *drive)
         except NotCompensable as exc:
             refused[e.name] = str(exc)
             continue
@@ -59,19 +70,19 @@ def compensation(analysis: Analysis, dynamic_feedforward: bool = True) -> Compen
         usable.append(e)
         params = trial
     if not refused:
-        return Compensation(final, CompensationModel.from_parameters(params), refused)
+        return Compensation(final, CompensationModel.from_parameters(params, *drive), refused)
     model = fit_model(analysis.split.fit, analysis.baseline, usable, try_forms=False) if usable else analysis.baseline
-    params = base_parameters(model, dynamic_feedforward)
+    params = base_parameters(model, dynamic_feedforward, drive)
     for e, c in zip(model.effects, model.coefs):
         params.update(e.compensation(model, c))
-    return Compensation(model, CompensationModel.from_parameters(params), refused)
+    return Compensation(model, CompensationModel.from_parameters(params, *drive), refused)
 
 
 def baseline_compensation(analysis: Analysis) -> Compensation:
     """The paper's compensation of the paper's model: the baseline GPIM (G_v for ff_pid_g), no effect, no
     dynamic feedforward."""
-    base = analysis.baseline
-    return Compensation(base, CompensationModel.from_parameters(base_parameters(base, False)), {})
+    base, drive = analysis.baseline, fitted_range(analysis)
+    return Compensation(base, CompensationModel.from_parameters(base_parameters(base, False, drive), *drive), {})
 
 
 def controller_parameters(comp: Compensation) -> dict:
