@@ -10,7 +10,8 @@ from piezo_valve_ros.core.control.compensation import CompensationModel
 from piezo_valve_ros.core.evaluation import SIMULATED_EFFECTS
 from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
 from piezo_valve_ros.core.control.strategies import TABLE1_GAINS, ControllerConfig, PIDGains
-from piezo_valve_ros.core.tuning.tuner import (DERIVATIVE_STARTS_S, ModelValve, StepScore, TuningError, TuningLimits,
+from piezo_valve_ros.core.control.forward import ModelValve
+from piezo_valve_ros.core.tuning.tuner import (DERIVATIVE_STARTS_S, StepScore, TuningError, TuningLimits,
                                          _moves, dynamics_variants, linear_step, loop_margins, plant_gain_range, robust_overshoot_pct,
                                          step_score, time_scaled, tune)
 from piezo_valve_ros.identify import ParametersFileError, parameters_yaml, read_parameters_file
@@ -266,3 +267,21 @@ def test_identify_tune_and_beat_table1_on_the_default_valve(strategy, default_va
     tuned = cmp.scores["tuned"]
     assert tuned.worst_overshoot_pct <= 2.0 and cmp.robust_overshoot_pct["tuned"] <= 2.0
     assert all(tuned.settling_time_s < s.settling_time_s for n, s in cmp.scores.items() if n != "tuned")
+
+
+def test_the_model_run_over_a_block_equals_the_model_stepped_sample_by_sample():
+    """ModelValve.run (the health monitor's prediction) and .step (the tuner's valve) share one state and
+    give the same positions, in any mix, with creep and a saturation map in the model and rate dependence."""
+    from piezo_valve_ros.core.control.compensation import CreepModel
+    from piezo_valve_ros.core.model.output_map import TERM_COUNT, OutputMap
+    rng = np.random.default_rng(3)
+    v = 5.0 + 4.0 * np.sin(np.linspace(0.0, 12.0, 3000)) + 0.3 * rng.standard_normal(3000)
+    models = [PAPER, replace(PAPER, creep=CreepModel((0.05, 1.0), (0.02, 0.03)),
+                             output_map=OutputMap(-5.0, 40.0, tuple(0.2 * rng.standard_normal(TERM_COUNT)))),
+              replace(PAPER, rate_widening_v=(0.02, 0.0, 0.01, 0.0, 0.0, 0.01))]
+    for model in models:
+        stepped = ModelValve(model, DT, 5.0)
+        expected = np.array([stepped.step(x) for x in v])
+        mixed = ModelValve(model, DT, 5.0)
+        got = np.concatenate([mixed.run(v[:1000]), [mixed.step(x) for x in v[1000:1010]], mixed.run(v[1010:])])
+        assert got == pytest.approx(expected, abs=1e-12)

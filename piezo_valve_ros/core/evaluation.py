@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Callable, Optional, Sequence
 import numpy as np
 
 from .control.compensation import CompensationModel
+from .control.forward import ModelValve
 from .sim.experiments import responses, run_closed_loop, simulate_rows
 from .metrics import ErrorFigures, error_figures
 from .identification.records import Record
@@ -107,9 +108,8 @@ def tracking_test(ctl_config: ControllerConfig, compensation: CompensationModel,
 def model_tracking_test(compensation: CompensationModel, sim_config: ValveSimConfig, reference_m: np.ndarray,
                         settle_s: float = SETTLE_S) -> ErrorFigures:
     """OL HC's error (as ``tracking_test``) when the valve is exactly the model it compensates
-    (``tuning.ModelValve``: no noise, no amplifier, no effect the model lacks): what the feedforward's own
+    (``control.forward.ModelValve``: no noise, no amplifier, no effect the model lacks): what the feedforward's own
     design leaves, chiefly the lag of the dynamic feedforward's target F."""
-    from .tuning.tuner import ModelValve   # the tuner is heavy to import; the rest of this module is not
     valve = ModelValve(compensation, sim_config.dt, sim_config.initial_voltage_v)
     controller = ValveController(ControllerConfig(strategy="ol_hc", gains=PIDGains(0.0, 0.0), dt=sim_config.dt),
                                  compensation)

@@ -52,15 +52,15 @@ import numpy as np
 from scipy.signal import lfilter
 
 from ..control.compensation import CompensationModel, reference_filters
+from ..control.forward import ModelValve
 from ..model.dynamics import first_order_lag
 from ..sim.experiments import responses, run_closed_loop
 from ..metrics import StepMetrics, step_metrics
-from ..model.rate_dependence import hysteresis_stream
 from ..sim.signals import PAPER_STEPS_UM, step_reference_m
 from ..control.strategies import TABLE1_GAINS, ControllerConfig, PIDGains, ValveController, nominal_static_gain
 
 __all__ = ["TUNABLE_STRATEGIES", "TuningLimits", "LoopMargins", "StepScore", "TuningResult", "TuningError",
-           "ModelValve", "plant_gain_range", "loop_margins", "linear_step", "step_score", "dynamics_variants",
+           "plant_gain_range", "loop_margins", "linear_step", "step_score", "dynamics_variants",
            "variant_scores", "robust_overshoot_pct", "outside_limits", "tune"]
 
 TUNABLE_STRATEGIES = ("pid", "pid_hc", "ff_pid", "ff_pid_g")
@@ -214,35 +214,6 @@ class TuningResult:
 
 
 # ---------------------------------------------------------------------- the identified model as a valve
-class ModelValve:
-    """The identified model run forwards, ``step(v) -> position [m]`` once per ``dt`` (the same timing as
-    ``simulator.SimulatedValve``): the (rate-dependent) GPIM's H, then ``S = M(H) + sum g_i (lag_i[H] - H)``
-    (saturation map and creep, as ``compensation`` inverts them), then G_v.  No noise, no amplifier."""
-
-    def __init__(self, model: CompensationModel, dt: float, initial_voltage_v: float):
-        self.model, self.dt, self.initial_voltage_v = model, float(dt), float(initial_voltage_v)
-        self.reset()
-
-    def reset(self) -> None:
-        m = self.model
-        self._gpim = hysteresis_stream(m.gpim, m.rate_widening_v, self.dt, self.initial_voltage_v)
-        y0 = m.gpim.output_from_state(self._gpim.state)
-        self._creep = [(g, first_order_lag(tau, self.dt)) for tau, g in zip(m.creep.time_constants_s, m.creep.gains)
-                       if g]
-        for _, lag in self._creep:
-            lag.reset(y0)
-        self._map = m.output_map
-        self._gv = m.valve_model.discretise(self.dt)
-        self._gv.reset(self._map.value(y0))
-
-    def step(self, voltage_v: float) -> float:
-        h = self._gpim.step(voltage_v)
-        y = self._map.value(h)
-        for g, lag in self._creep:
-            y += g * (lag.step(h) - h)
-        return self._gv.step(y) * 1e-6
-
-
 # ---------------------------------------------------------------------- the linearised loop
 def _poly_mul(*polys: np.ndarray) -> np.ndarray:
     out = np.ones(1)
