@@ -5,9 +5,12 @@
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 
 from ..model.dynamics import first_order_lag
+from ..model.hysteresis import PlayOperatorBank
 from ..model.rate_dependence import hysteresis_stream
 from .compensation import CompensationModel
 
@@ -18,15 +21,20 @@ class ModelValve:
     """The identified model run forwards, ``step(v) -> position [m]`` once per ``dt`` (the same timing as
     ``simulator.SimulatedValve``) or ``run(v) -> positions [m]`` over a block: the (rate-dependent) GPIM's
     H, then ``S = M(H) + sum g_i (lag_i[H] - H)`` (saturation map and creep, as ``compensation`` inverts
-    them), then G_v.  No noise, no amplifier."""
+    them), then G_v.  No noise, no amplifier.  The operators start virgin at ``initial_voltage_v`` or in
+    ``state`` (e.g. ``GPIM.state_after`` a voltage history); creep and G_v at rest at that output."""
 
-    def __init__(self, model: CompensationModel, dt: float, initial_voltage_v: float):
+    def __init__(self, model: CompensationModel, dt: float, initial_voltage_v: float,
+                 state: Optional[np.ndarray] = None):
         self.model, self.dt, self.initial_voltage_v = model, float(dt), float(initial_voltage_v)
+        self.initial_state = None if state is None else np.array(state, float)
         self.reset()
 
     def reset(self) -> None:
         m = self.model
         self._gpim = hysteresis_stream(m.gpim, m.rate_widening_v, self.dt, self.initial_voltage_v)
+        if self.initial_state is not None:
+            self._gpim.bank = PlayOperatorBank(m.gpim.thresholds, self.initial_state)
         y0 = m.gpim.output_from_state(self._gpim.state)
         self._creep = [(g, first_order_lag(tau, self.dt)) for tau, g in zip(m.creep.time_constants_s, m.creep.gains)
                        if g]

@@ -25,16 +25,18 @@ ESTIMATE_ROUNDS = 2   # estimate the start, fit, estimate again: at most this ma
 EXCURSION_GAIN = 0.1  # "back from an excursion" replaces "rested at a voltage" only if 10 % closer to the data
 
 
-def estimate_state(model: ValveModel, rows: Record, whole: Record, with_effects: bool = False
-                    ) -> tuple[InitialState, dict]:
+def estimate_state(model: ValveModel, rows: Record, whole: Record, with_effects: bool = False,
+                   range_v: Optional[tuple[float, float]] = None) -> tuple[InitialState, dict]:
     """The state before a record, estimated on its first ``rows`` (before its input wiped it out) with
     ``model``'s GPIM and G: rest, cycled, or remanent with one voltage e on the ``whole`` record's range and
     half a span beyond: at rest at e and moved to the first voltage v0 (a valve that rested elsewhere, e.g. a
     closed-loop record whose controller's first command left the rest voltage), or at rest at v0 and
     back from an excursion to e (a valve left off its loop).  The GPIM and G alone, unless ``with_effects``
-    (a final model's creep, e.g., has settled at rest too).  Returns (the best state, figures)."""
+    (a final model's creep, e.g., has settled at rest too).  ``range_v``: the voltages [V] to search instead
+    of the whole record's (the health monitor's first rows move little; the drive's range bounds e).
+    Returns (the best state, figures)."""
     v0 = float(rows.voltage_v[0])
-    lo, hi = float(np.min(whole.voltage_v)), float(np.max(whole.voltage_v))
+    lo, hi = range_v if range_v is not None else (float(np.min(whole.voltage_v)), float(np.max(whole.voltage_v)))
     half = 0.5 * max(hi - lo, 1e-9)
     grid = [float(e) for e in np.linspace(lo - half, hi + half, REMANENT_GRID) if e != v0]
     options = {"rest": REST, "cycled": InitialState("cycled")}

@@ -92,12 +92,14 @@ class SaturationParams:
 
 @dataclass(frozen=True)
 class DriftParams:
-    """Thermal drift: offset and gain approach new values exponentially with time."""
+    """Thermal drift: offset and gain approach new values exponentially with the time since ``start_s`` [s]
+    (before it: none; a drift that sets in during operation)."""
 
     enabled: bool = False
     offset_um: float = 4.0
     gain_change: float = 0.03
     time_constant_s: float = 20.0
+    start_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -237,7 +239,9 @@ class SimulatedValve:
         d = self.config.drift
         if not d.enabled:
             return y
-        k = 1.0 - math.exp(-t / d.time_constant_s)
+        if t <= d.start_s:
+            return y
+        k = 1.0 - math.exp(-(t - d.start_s) / d.time_constant_s)
         return y * (1.0 + d.gain_change * k) + d.offset_um * k
 
     def _sensor_scalar(self, y: float) -> float:
@@ -290,7 +294,7 @@ class SimulatedValve:
         t = (self.sample_index + np.arange(n)) * c.dt
         if c.drift.enabled:
             d = c.drift
-            k = 1.0 - np.exp(-t / d.time_constant_s)
+            k = 1.0 - np.exp(-np.maximum(t - d.start_s, 0.0) / d.time_constant_s)
             y = y * (1.0 + d.gain_change * k) + d.offset_um * k
         self._spool_um = float(y[-1])
         if self._delay_line.size:
