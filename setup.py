@@ -49,6 +49,7 @@ setup(
             "valve_record = piezo_valve_ros.nodes.record:main",
             "valve_command = piezo_valve_ros.nodes.command:main",
             "valve_plot = piezo_valve_ros.plot_cli:main",
+            "valve_monitor = piezo_valve_ros.nodes.monitor:main",
         ],
         "piezo_valve_ros.backends": [
             "sim = piezo_valve_ros.backends:SimBackend",

@@ -28,6 +28,7 @@ node's ``lockstep`` clock uses.
 """
 from __future__ import annotations
 
+import math
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, replace
@@ -160,13 +161,26 @@ def sim_config_from_parameters(values: dict, initial_voltage_v: float = CENTRE_V
         creep=replace(CreepParams(), enabled=switch["creep"]),
         saturation=replace(SaturationParams(), enabled=switch["saturation"]),
         rate=replace(RateDependenceParams(), enabled=switch["rate_dependence"]),
-        drift=replace(DriftParams(), enabled=switch["drift"]),
+        drift=replace(DriftParams(), enabled=switch["drift"], **_drift_values(v)),
         sensor=replace(SensorParams(), noise_enabled=switch["noise"],
                        delay_samples=_sensor_delay_samples(as_float("sim.sensor_delay_s", v["sensor_delay_s"]), dt)),
         dynamics_enabled=switch["dynamics"],
         descending_envelope=(0.95, 0.2) if switch["asymmetry"] else None,
         initial_voltage_v=float(initial_voltage_v),
     )
+
+
+def _drift_values(v: dict) -> dict:
+    """The drift's size and onset from the sim backend's values; ValueError with the reason."""
+    out = {"offset_um": as_float("sim.drift_offset_um", v["drift_offset_um"]),
+           "gain_change": as_float("sim.drift_gain_change", v["drift_gain_change"]),
+           "time_constant_s": as_float("sim.drift_time_constant_s", v["drift_time_constant_s"]),
+           "start_s": as_float("sim.drift_start_s", v["drift_start_s"])}
+    if not (math.isfinite(out["time_constant_s"]) and out["time_constant_s"] > 0):
+        raise ValueError(f"sim.drift_time_constant_s must be > 0, got {out['time_constant_s']}")
+    if not all(math.isfinite(x) for x in out.values()) or out["start_s"] < 0:
+        raise ValueError(f"sim.drift_*: finite values and drift_start_s >= 0, got {out}")
+    return out
 
 
 def _sim_parameters() -> tuple:
@@ -180,6 +194,13 @@ def _sim_parameters() -> tuple:
             *(BackendParameter(n, d, t) for n, d, t in switches),
             BackendParameter("sensor_delay_s", 0.0, "LVDT transport delay [s] (whole samples; e.g. a "
                                                     "conditioning filter)"),
+            BackendParameter("drift_offset_um", DriftParams().offset_um, "thermal drift: offset it approaches [um]"),
+            BackendParameter("drift_gain_change", DriftParams().gain_change, "thermal drift: gain change it "
+                                                                               "approaches [-]"),
+            BackendParameter("drift_time_constant_s", DriftParams().time_constant_s, "thermal drift: time "
+                                                                                     "constant [s]"),
+            BackendParameter("drift_start_s", 0.0, "thermal drift: sets in this long after the backend opens [s] "
+                                                   "(a drift that appears during operation)"),
             *(BackendParameter(f"gpim.{k}", getattr(PAPER_GPIM, k), "the valve's own GPIM (paper units)")
               for k in _GPIM_KEYS))
 

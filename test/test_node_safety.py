@@ -461,7 +461,8 @@ def test_identification_settings_are_start_up_only(identification, name, value):
 
 
 @pytest.mark.parametrize("executable, module", [("valve_hardware", "hardware"), ("valve_controller", "controller"),
-                                                ("valve_identification", "identification")])
+                                                ("valve_identification", "identification"),
+                                                ("valve_monitor", "monitor")])
 def test_help_lists_every_parameter_of_the_one_declaration_the_node_uses(executable, module, hardware, controller):
     """Each node declares its parameters from one tuple of ParameterSpec; --help prints each with its type,
     default and range; the handbook's tables are written from the same tuples and are up to date."""
@@ -473,7 +474,7 @@ def test_help_lists_every_parameter_of_the_one_declaration_the_node_uses(executa
         assert f"  {s.name} ({s.type_name}, default {s.default!r}" in text, s.name
         if s.read_only:
             assert s.help_line().splitlines()[0] in text
-    if module != "identification":   # in-process: what the node declared is that tuple, read-only flags too
+    if module in ("hardware", "controller"):   # in-process: what the node declared is that tuple, read-only flags too
         node = {"hardware": hardware, "controller": controller}[module]()
         for s in specs:
             descriptor = node.describe_parameter(s.name)

@@ -118,7 +118,8 @@ def realtime_specs() -> tuple[ParameterSpec, ...]:
 DIAGNOSTICS_PERIOD = ParameterSpec(
     "diagnostics_period_s", 1.0, "publish this node's health on /diagnostics (diagnostic_msgs) this often [s]; "
     "0: never", read_only=True, low=0.0, high=60.0)
-DIAGNOSTICS_LEVELS = {"OK": DiagnosticStatus.OK, "WARN": DiagnosticStatus.WARN, "ERROR": DiagnosticStatus.ERROR}
+DIAGNOSTICS_LEVELS = {"OK": DiagnosticStatus.OK, "WARN": DiagnosticStatus.WARN, "ERROR": DiagnosticStatus.ERROR,
+                      "STALE": DiagnosticStatus.STALE}
 
 
 def period_parameter(spec: ParameterSpec, value) -> float:

@@ -1,0 +1,155 @@
+"""``valve_monitor``: valve health from everyday operation, without an experiment or an interruption.
+
+It listens to ``samples`` and to the controller's model parameters, runs that model on the applied voltage
+and judges its residual on sliding windows against the sensor noise (``core/monitoring/health.py``: OK,
+WARN, ERROR, or STALE when a window does not excite the valve enough to judge).  Each verdict goes to
+``/diagnostics`` (diagnostic_msgs, with the figures and what the residual resembles) and to ``~/health`` (one
+labelled row: HEALTH_COLUMNS); a change of level is logged in one line.  When the controller's model changes
+(a refit pushed), the monitor follows it.  A separate process: it costs the control loop nothing.
+
+    valve_monitor [--ros-args -p window_s:=20.0 -p controller:=valve_controller -r __ns:=/valve1]
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import numpy as np
+from rcl_interfaces.msg import ParameterEvent
+from rclpy.node import Node
+from rclpy.parameter import parameter_value_to_python
+from rclpy.parameter_client import AsyncParameterClient
+from std_msgs.msg import Float64MultiArray
+
+from ..core.control.compensation import MODEL_PARAMETERS, CompensationModel
+from ..core.monitoring.health import (ERROR_RATIO, MIN_SPAN_V, STEP_S, WARN_RATIO, WINDOW_S, Health, HealthLimits,
+                                      HealthMonitor)
+from ..samples import SamplesLayoutError
+from .common import SAMPLES_QOS, Diagnostics, ParameterSpec, as_float, declare_all, parameter_values, run_node, \
+    samples_from_message, samples_message
+
+HEALTH_COLUMNS = ("end_s", "level", "ratio_to_noise", "structured_rms_um", "residual_mean_um", "noise_um",
+                  "voltage_span_v")
+MODEL_FETCH_PERIOD_S = 1.0   # the controller's model is asked for this often until it answers (and after changes)
+
+MONITOR_PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec("controller", "valve_controller", "the controller whose model is watched (a node name, relative "
+                  "to this node's namespace, or absolute)", read_only=True),
+    ParameterSpec("window_s", WINDOW_S, "each verdict judges the last this long of operation [s]", read_only=True,
+                  low=1.0, high=3600.0),
+    ParameterSpec("step_s", STEP_S, "a verdict this often [s] (at most window_s)", read_only=True, low=0.1, high=600.0),
+    ParameterSpec("warn_ratio", WARN_RATIO, "WARN when the structured residual exceeds this many times the sensor "
+                  "noise", read_only=True, low=0.1, high=1000.0),
+    ParameterSpec("error_ratio", ERROR_RATIO, "ERROR when it exceeds this many times (> warn_ratio)", read_only=True,
+                  low=0.1, high=1000.0),
+    ParameterSpec("min_span_v", MIN_SPAN_V, "a window whose voltage spans less [V] is not judged (STALE)",
+                  read_only=True, low=0.0, high=1000.0),
+)
+
+
+class ValveMonitorNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("valve_monitor", **kwargs)
+        declare_all(self, MONITOR_PARAMETERS)
+        p = parameter_values(self)
+        self.limits = HealthLimits(*(as_float(k, p[k]) for k in ("window_s", "step_s", "warn_ratio", "error_ratio",
+                                                                 "min_span_v")))
+        problems = self.limits.problems()
+        if problems:
+            raise ValueError("; ".join(problems))
+        name = str(p["controller"])
+        ns = self.get_namespace().rstrip("/")
+        self.controller_name = name if name.startswith("/") else f"{ns}/{name}"
+        self.client = AsyncParameterClient(self, self.controller_name)
+        self.model: Optional[CompensationModel] = None
+        self.command_range_v: Optional[tuple[float, float]] = None
+        self.monitor: Optional[HealthMonitor] = None
+        self.latest: Optional[Health] = None
+        self.verdicts = 0
+        self._model_wanted, self._request, self._model_values = True, None, None
+        self._waiting_said = False
+        self.create_subscription(Float64MultiArray, "samples", self._on_samples, SAMPLES_QOS)
+        self.create_subscription(ParameterEvent, "/parameter_events", self._on_parameter_event, 10)
+        self.health_pub = self.create_publisher(Float64MultiArray, "~/health", 10)
+        self.diagnostics = Diagnostics(self, 0.0, self._status)   # published with every verdict
+        self.create_timer(MODEL_FETCH_PERIOD_S, self._fetch_model)
+        self.create_timer(self.limits.step_s, self._report_while_waiting)
+        self.get_logger().info(f"valve_monitor up: watching {self.controller_name}'s model; windows of "
+                               f"{self.limits.window_s:g} s every {self.limits.step_s:g} s; WARN at "
+                               f"{self.limits.warn_ratio:g}x, ERROR at {self.limits.error_ratio:g}x the noise")
+
+    # ------------------------------------------------------------------ the model in force
+    def _on_parameter_event(self, msg: ParameterEvent) -> None:
+        if msg.node == self.controller_name and any(
+                prm.name in MODEL_PARAMETERS or prm.name in ("command_min_v", "command_max_v")
+                for prm in list(msg.new_parameters) + list(msg.changed_parameters)):
+            self._model_wanted = True
+
+    def _fetch_model(self) -> None:
+        if not self._model_wanted or self._request is not None or not self.client.services_are_ready():
+            return
+        names = sorted(MODEL_PARAMETERS) + ["command_min_v", "command_max_v"]
+        self._model_wanted = False
+        self._request = self.client.get_parameters(names)
+        self._request.add_done_callback(lambda future: self._on_model(names, future))
+
+    def _on_model(self, names: list[str], future) -> None:
+        self._request = None
+        try:
+            values = {n: parameter_value_to_python(v) for n, v in zip(names, future.result().values)}
+            command_range = (float(values.pop("command_min_v")), float(values.pop("command_max_v")))
+            model = CompensationModel.from_parameters(values, *command_range)
+        except Exception as exc:   # a controller that does not answer or a model that cannot run: say so, ask again
+            self.get_logger().warning(f"cannot take {self.controller_name}'s model: {exc}")
+            self._model_wanted = True
+            return
+        if self.model is not None and (values, command_range) == self._model_values:
+            return
+        first = self.model is None
+        self.model, self.command_range_v, self._model_values = model, command_range, (values, command_range)
+        if self.monitor is not None:
+            self.monitor.set_model(model)
+        self.get_logger().info(("model in force taken from " if first else "the model in force changed; judged "
+                                "afresh from now on: ") + f"{self.controller_name} ({model.gpim.n} operators, "
+                               f"commands {command_range[0]:g}..{command_range[1]:g} V)")
+
+    # ------------------------------------------------------------------ samples and verdicts
+    def _on_samples(self, msg: Float64MultiArray) -> None:
+        try:
+            rows = samples_from_message(msg)
+        except SamplesLayoutError as exc:
+            self.get_logger().warning(f"rejected samples message: {exc}")
+            return
+        if self.model is None or not len(rows):
+            return
+        if self.monitor is None:
+            dt = float(np.median(np.diff(rows[:, 0]))) if len(rows) > 1 else math.nan
+            if not (math.isfinite(dt) and dt > 0):
+                self.get_logger().warning("rejected samples message: its times do not give a sample period")
+                return
+            self.monitor = HealthMonitor(self.model, dt, self.limits, self.command_range_v)
+        for health in self.monitor.add(rows):
+            self.latest, self.verdicts = health, self.verdicts + 1
+            self.health_pub.publish(samples_message(np.array([[
+                health.end_s, float(health.level), health.ratio, health.structured_rms_um, health.residual_mean_um,
+                health.noise_um, health.voltage_span_v]]), ",".join(HEALTH_COLUMNS)))
+            self.diagnostics.publish()
+
+    def _status(self) -> tuple[str, str, dict]:
+        if self.latest is None:
+            what = "the controller's model" if self.model is None else "a full window of samples"
+            return "STALE", f"waiting for {what}", {}
+        return self.latest.level.name, self.latest.message, self.latest.values()
+
+    def _report_while_waiting(self) -> None:
+        if self.latest is None:
+            self.diagnostics.publish()
+
+
+def main(args=None) -> int:
+    return run_node(ValveMonitorNode, "valve_monitor", args, specs=MONITOR_PARAMETERS)
+
+
+if __name__ == "__main__":
+    import sys
+    sys.exit(main())
