@@ -39,7 +39,10 @@ def verdicts(monitor: HealthMonitor, rows: np.ndarray, chunk: int = 100):
 
 
 def test_a_valve_that_matches_its_model_stays_ok():
-    health = verdicts(HealthMonitor(CompensationModel(), DT), operating_rows(PLAIN, 180.0))
+    monitor = HealthMonitor(CompensationModel(), DT)
+    health = verdicts(monitor, operating_rows(PLAIN, 180.0))
+    rows, points = monitor.held                                 # memory: the window and the nested extrema
+    assert rows <= 25_000 and points < 40, monitor.held
     assert len(health) == 31                                   # a window every 5 s once 20 s are held (5 s settle)
     assert all(h.level is Level.OK for h in health), [(h.end_s, h.level, h.ratio) for h in health]
     assert max(h.ratio for h in health) < 1.0
@@ -72,6 +75,22 @@ def test_a_valve_held_still_is_not_judged():
     health = verdicts(HealthMonitor(CompensationModel(), DT), operating_rows(PLAIN, 90.0, hold_after_s=30.0))
     late = [h for h in health if h.start_s > 31.0]
     assert late and all(h.level is Level.STALE and "not enough excitation" in h.message for h in late)
+
+
+def test_the_dominant_turning_points_give_the_same_state_as_the_whole_path_and_stay_few():
+    """The monitor's voltage history: the wiping-out property keeps it exact and short (every sample of a
+    noisy voltage turns; the extrema that still matter are few), for symmetric and asymmetric envelopes."""
+    from piezo_valve_ros.core.identification.valve_model import dominant_turning_points, turning_points
+    g = CompensationModel().gpim
+    asymmetric = GPIM(g.thresholds, g.weights, 1.0, 0.0, g.offset_um, 1.05, 0.3, 0.005)
+    rng = np.random.default_rng(1)
+    for model in (g, asymmetric):
+        for _ in range(300):
+            n = int(rng.integers(2, 300))
+            path = np.clip(np.cumsum(rng.standard_normal(n)) * rng.uniform(0.05, 2) + rng.uniform(0, 10), -20, 30)
+            assert np.array_equal(model.state_after(turning_points(path)), model.state_after(dominant_turning_points(path)))
+    walk = 5 + np.cumsum(rng.standard_normal(200_000)) * 0.001
+    assert len(turning_points(walk)) > 50_000 and len(dominant_turning_points(walk)) < 40
 
 
 def test_bad_limits_and_rows_are_refused_with_the_reason():

@@ -107,6 +107,28 @@ def turning_points(v: np.ndarray) -> tuple[float, ...]:
     return tuple(keep)
 
 
+def dominant_turning_points(path_v) -> tuple[float, ...]:
+    """The first value and the turning points [V] of a path that still set the operators' state, ending with
+    its last value: a pair of turning points nested in the swing before it is wiped out once the path goes
+    beyond the first of them (the wiping-out property of play operators, whatever their envelopes: the
+    operators the pair moved are all moved again), so ``GPIM.state_after`` gives the same
+    states for this as for the whole path while the list stays as short as the nested extrema are few
+    (bounded for a valve in operation, where every sample would otherwise turn)."""
+    out: list[float] = []
+    for x in turning_points(np.asarray(path_v, float)) if len(path_v) else ():
+        if out and x == out[-1]:
+            continue
+        out.append(float(x))
+        if len(out) >= 3 and (out[-3] - out[-2]) * (out[-2] - out[-1]) >= 0:
+            del out[-2]                      # not a turning point: the path went on the same way
+        # a move beyond the extremum two back wipes it and the one between out, where that pair lies within
+        # the swing before it (nested: always but right after the start, which stays)
+        while len(out) >= 4 and abs(out[-1] - out[-2]) >= abs(out[-3] - out[-2]) \
+                and abs(out[-2] - out[-3]) <= abs(out[-4] - out[-3]):
+            del out[-3:-1]
+    return tuple(out)
+
+
 @dataclass(frozen=True)
 class ValveModel:
     """GPIM (linear form) -> effect terms -> G(s).  Units: V in, um out, s.

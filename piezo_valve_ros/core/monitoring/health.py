@@ -38,7 +38,7 @@ from ..identification.initial_state import estimate_state
 from ..identification.records import ANALYSIS_RATE_HZ, IdentificationError, Record, analysis_record, noise_floor_um
 from ..identification.search import SubsetSearch
 from ..identification.split import split_records
-from ..identification.valve_model import InitialState, ValveModel, turning_points
+from ..identification.valve_model import InitialState, ValveModel, dominant_turning_points
 from ..metrics import rms
 from ..model.drive import COMMAND_MAX_V, COMMAND_MIN_V
 from ..model.dynamics import sections
@@ -149,6 +149,12 @@ class HealthMonitor:
         self.start_state = None                # that estimate (an identification.valve_model.InitialState)
         self.model = model
 
+    @property
+    def held(self) -> tuple[int, int]:
+        """(rows held, turning points of the voltage before them kept): bounded by the window and by the
+        nesting of the voltage's extrema, however long the monitor runs."""
+        return self._count + sum(len(p) for p in self._pending), len(self._history)
+
     def set_model(self, model: CompensationModel) -> None:
         """The model in force from the next row on: the rows held so far (predicted by the old one) are
         dropped, remembering where their voltage turned, and a new reference offset is measured."""
@@ -160,12 +166,12 @@ class HealthMonitor:
         """Turning points [V] of the voltage before held row ``row``."""
         if not row:
             return self._history
-        return turning_points(np.concatenate([self._history, self._rows[:row, 1]]))
+        return dominant_turning_points(np.concatenate([self._history, self._rows[:row, 1]]))
 
     def _valve_for(self, v0: float) -> ModelValve:
         """The model's forward run, its operators in the state the voltage so far leaves."""
         history = self._before(self._count)
-        state = self.model.gpim.state_after(turning_points(np.asarray(history + (v0,))))
+        state = self.model.gpim.state_after(dominant_turning_points(np.asarray(history + (v0,))))
         return ModelValve(self.model, self.dt, v0, state)
 
     def _first_valve(self, rows: np.ndarray) -> ModelValve:
@@ -205,7 +211,7 @@ class HealthMonitor:
             predicted = self._valve.run(part[:, 1]) * 1e6
             if self._warm_up:   # the prediction settles from the assumed start: not judged
                 self._warm_up = max(self._warm_up - len(part), 0)
-                self._history = turning_points(np.concatenate([self._history, part[:, 1]]))
+                self._history = dominant_turning_points(np.concatenate([self._history, part[:, 1]]))
                 continue
             self._append(np.column_stack([part[:, 0], part[:, 1], part[:, 2] * 1e6, predicted]))
             self._since_judged += len(part)
@@ -275,7 +281,7 @@ class HealthMonitor:
         if in_force > 0 and 1.0 - rms(held_out - shift) / in_force >= REFIT_SHARE:
             return f"drift: an offset of {shift:+.3f} um the model lacks", 1.0 - rms(held_out - shift) / in_force
         history = tuple(before) + (float(v[0]),)
-        start = InitialState("remanent", turning_points(np.asarray(history))) if len(history) > 1 else InitialState()
+        start = InitialState("remanent", dominant_turning_points(np.asarray(history))) if len(history) > 1 else InitialState()
         baseline = ValveModel(self.model.gpim, tuple(sections(self.model.valve_model)), t0=split.t0, history=start)
         effects = [e for e in (cls.prepare(split.fit, baseline.context(split.fit).H) for cls in CATALOGUE)
                    if e is not None]
