@@ -1,8 +1,8 @@
 """Bring up a simulated valve rig: valve_hardware + valve_controller (separate processes), and optionally
-valve_identification running a plan.
+valve_identification running a plan and valve_monitor watching the valve's health.
 
     ros2 launch piezo_valve_ros rig.launch.py [namespace:=valve1] [params:=/path/to/rig.yaml] \
-        [identify:=true plan:=train,refit,validate] [composed:=true]
+        [identify:=true plan:=train,refit,validate] [composed:=true] [monitor:=true]
 """
 import os
 
@@ -36,4 +36,7 @@ def generate_launch_description():
         Node(package="piezo_valve_ros", executable="valve_identification", name="valve_identification",
              namespace=namespace, parameters=[params, {"plan": LaunchConfiguration("plan")}], output="screen",
              condition=IfCondition(LaunchConfiguration("identify"))),
+        DeclareLaunchArgument("monitor", default_value="false", description="start valve_monitor"),
+        Node(package="piezo_valve_ros", executable="valve_monitor", name="valve_monitor", namespace=namespace,
+             parameters=[params], output="screen", condition=IfCondition(LaunchConfiguration("monitor"))),
     ])

@@ -9,10 +9,16 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable, Optional
 
+import numpy as np
+
 from .bagio import read_samples
+from .core.control.compensation import CompensationModel
+from .core.model.drive import COMMAND_MAX_V, COMMAND_MIN_V
+from .core.monitoring.health import Health, HealthLimits, HealthMonitor, Level
 from .params_yaml import YAMLError, load as load_yaml, yaml_value
 from .core.identification.records import Record, read_csv
 from .core.identification.residual import Analysis, analyse
@@ -21,7 +27,7 @@ from .core.identification.to_controller import (Compensation, base_parameters, b
 
 __all__ = ["identify_bags", "read_record", "Compensation", "compensation", "baseline_compensation", "base_parameters",
            "controller_parameters", "controller_parameters_yaml", "parameters_yaml", "read_parameters_file",
-           "ParametersFileError", "report_json", "write_atomically", "write_outputs"]
+           "ParametersFileError", "report_json", "write_atomically", "write_outputs", "monitor_record", "health_json"]
 
 CONTROLLER_NODE = "valve_controller"   # the node whose section a parameters file carries
 
@@ -63,6 +69,39 @@ def identify_bags(train_bag, validate_bag=None, topic: Optional[str] = None,
     analysis.report["source"] = {"train_bag": str(train_bag), "validate_bag": None if validate_bag is None
                                  else str(validate_bag), "topic": name}
     return analysis, name
+
+
+def monitor_record(path, params_file, topic: Optional[str] = None, limits: Optional[HealthLimits] = None,
+                   log: Callable[[str], None] = print) -> list[Health]:
+    """The health monitor (``core.monitoring.health``) over a recorded bag or CSV, with the model of a
+    controller parameters file (its ``model.fitted_range_v`` or the controller's default command range);
+    one log line per change of level.  Raises BagError, IdentificationError or ParametersFileError."""
+    params = read_parameters_file(params_file)
+    low, high = params.get("command_min_v", COMMAND_MIN_V), params.get("command_max_v", COMMAND_MAX_V)
+    try:
+        model = CompensationModel.from_parameters(params, float(low), float(high))
+    except ValueError as exc:
+        raise ParametersFileError(f"{params_file}: {exc}") from None
+    record, _ = read_record(path, topic, log)
+    rows = np.column_stack([record.time_s, record.voltage_v, record.position_um * 1e-6])
+    monitor = HealthMonitor(model, record.dt, limits or HealthLimits(), (float(low), float(high)))
+    chunk = max(int(round(0.1 / record.dt)), 1)
+    verdicts: list[Health] = []
+    for k in range(0, len(rows), chunk):
+        for h in monitor.add(rows[k:k + chunk]):
+            if not verdicts or h.level is not verdicts[-1].level:
+                log(f"{h.start_s:9.1f}..{h.end_s:9.1f} s: {h.level.name}: {h.message}")
+            verdicts.append(h)
+    return verdicts
+
+
+def health_json(verdicts: list[Health], source: str) -> str:
+    """The monitor's verdicts as JSON, with a schema block (name, version, package version, time)."""
+    schema = {"name": "piezo_valve_ros/health-report", "version": 1, "package_version": package_version(),
+              "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+    counts = {lv.name: sum(h.level is lv for h in verdicts) for lv in Level}
+    return json.dumps({"schema": schema, "source": source, "counts": counts,
+                       "verdicts": [h.as_dict() for h in verdicts]}, indent=2) + "\n"
 
 
 def parameters_yaml(values: dict, comments: list[str]) -> str:
@@ -168,7 +207,6 @@ def package_version() -> str:
 
 def report_json(analysis: Analysis) -> str:
     """The report as JSON, opened by what it is: schema name and version, the package's version, when."""
-    from datetime import datetime, timezone
     schema = {"name": REPORT_SCHEMA, "version": REPORT_SCHEMA_VERSION, "package_version": package_version(),
               "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
     return json.dumps({"schema": schema, **analysis.report}, indent=2) + "\n"

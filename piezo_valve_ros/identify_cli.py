@@ -2,6 +2,7 @@
 
     valve_identify TRAIN_BAG [--validate VAL_BAG] [--report report.json] [--params-out fitted.yaml]
                    [--plots DIR] [--topic /valve1/samples]
+    valve_identify DAY_BAG --monitor fitted.yaml [--report health.json]   # the health monitor, offline
 
 A record may also be a ``.csv`` file whose header names time_s, voltage_v and position_m or position_um.
 
@@ -18,7 +19,8 @@ import sys
 from .bagio import BagError
 from .core.identification.records import HELD_OUT_FRACTION, IdentificationError
 from .tool import run_tool
-from .identify import compensation, controller_parameters_yaml, identify_bags, report_json, write_outputs
+from .identify import (ParametersFileError, compensation, controller_parameters_yaml, health_json, identify_bags,
+                       monitor_record, report_json, write_outputs)
 
 __all__ = ["main"]
 
@@ -47,8 +49,26 @@ def main(argv=None) -> int:
     ap.add_argument("--plots", metavar="DIR", help="write PNG figures here (needs matplotlib)")
     ap.add_argument("--topic", help="samples topic to read (default: the one topic named .../samples)")
     ap.add_argument("--quiet", action="store_true", help="no progress lines (the summary is printed)")
+    ap.add_argument("--monitor", metavar="PARAMS", help="instead of identifying: judge the record's health against "
+                    "the model of this controller parameters file, as valve_monitor does live (--report writes "
+                    "the verdicts)")
     args = ap.parse_args(argv)
     log = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
+    if args.monitor:
+        if args.validate or args.params_out or args.plots:
+            ap.error("--monitor takes a record, the parameters file and --report only")
+
+        def judge() -> list[str]:
+            verdicts = monitor_record(args.train_bag, args.monitor, args.topic, log=log)
+            counts = {lv: sum(h.level.name == lv for h in verdicts) for lv in ("OK", "WARN", "ERROR", "STALE")}
+            worst = max(verdicts, key=lambda h: (h.level.name in ("WARN", "ERROR"), h.ratio), default=None)
+            lines = [f"{len(verdicts)} verdicts: " + ", ".join(f"{n} {lv}" for lv, n in counts.items())
+                     + (f"; largest structured residual {worst.ratio:.1f}x the noise at {worst.end_s:.1f} s"
+                        + (f" ({worst.resembles})" if worst.resembles else "") if worst else "")]
+            if args.report:
+                lines += [f"wrote {p}" for p in write_outputs({args.report: health_json(verdicts, str(args.train_bag))})]
+            return lines
+        return run_tool("valve_identify", judge, (BagError, IdentificationError, ParametersFileError))
 
     def work() -> list[str]:
         if args.plots:

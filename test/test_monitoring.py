@@ -190,3 +190,33 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
         probe.destroy_node()
         executor.shutdown()
         rclpy.try_shutdown(context=context)
+
+
+def test_valve_identify_monitor_judges_a_recorded_day_offline(tmp_path):
+    """`valve_identify BAG --monitor fitted.yaml --report health.json`: the monitor over a recorded bag, one
+    progress line per change of level, a summary, the verdicts as JSON with a schema block; a parameters
+    file whose model cannot run is refused in one line."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from piezo_valve_ros.bagio import write_samples_bag
+    from piezo_valve_ros.identify import parameters_yaml
+    write_samples_bag(tmp_path / "day", operating_rows(replace(PLAIN, drift=DRIFT), 120.0))
+    (tmp_path / "fitted.yaml").write_text(parameters_yaml(CompensationModel().to_parameters(), ["the paper's model"]))
+    exe = os.path.join(os.path.dirname(sys.executable), "valve_identify")
+    out = subprocess.run([exe, str(tmp_path / "day"), "--monitor", str(tmp_path / "fitted.yaml"), "--report",
+                          str(tmp_path / "health.json")], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    changes = [line for line in out.stdout.splitlines() if " s: " in line]
+    assert [c.split(": ")[1] for c in changes][:2] == ["OK", "WARN"] and "ERROR" in out.stdout, out.stdout
+    assert "verdicts: " in out.stdout and "drift: an offset" in out.stdout
+    report = json.loads((tmp_path / "health.json").read_text())
+    assert report["schema"]["name"] == "piezo_valve_ros/health-report" and report["counts"]["ERROR"] > 0
+    first_error = next(v for v in report["verdicts"] if v["level"] == "ERROR")
+    assert ONSET_S < first_error["end_s"] <= ONSET_S + 15.0
+    broken = tmp_path / "broken.yaml"
+    broken.write_text(parameters_yaml({**CompensationModel().to_parameters(), "gpim.weights": [-1.0] * 15}, ["x"]))
+    bad = subprocess.run([exe, str(tmp_path / "day"), "--monitor", str(broken)], capture_output=True, text=True,
+                         timeout=120)
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "broken.yaml" in bad.stderr
