@@ -21,7 +21,7 @@ STOP_GRACE_S = 3.0                          # each of SIGINT, SIGTERM, SIGKILL g
 PARENT_POLL_S = 0.2                         # a child checks this often whether its parent is still there ...
 PARENT_DEATH_GRACE_S = 5.0                  # ... and ends itself this long after asking for an orderly stop
 NODE_MODULES = {"valve_hardware": "hardware", "valve_controller": "controller",
-                "valve_identification": "identification", "valve_composed": "composed"}
+                "valve_identification": "identification", "valve_composed": "composed", "valve_monitor": "monitor"}
 
 
 def node_command(executable: str, params: dict, namespace: str = "") -> list[str]:

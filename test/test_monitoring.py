@@ -107,7 +107,8 @@ def test_bad_limits_and_rows_are_refused_with_the_reason():
 @pytest.mark.slow
 def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_after_a_refit(tmp_path):
     """A real-time rig (the simulated valve: G_v and noise, a 3 um drift setting in 25 s after the hardware
-    opened) under PID HC following a slow sine; valve_monitor beside it (4 s windows, a verdict a second):
+    opened) under PID HC following a slow sine; valve_monitor beside it (`valve_rig --monitor`, its section of
+    the parameters file: 4 s windows, a verdict a second):
     OK on /diagnostics before the drift, ERROR after it, named as an offset, and OK again once a refit
     (the controller's gpim.offset_um moved by the drift) is set on the controller, which it follows."""
     import os
@@ -127,7 +128,8 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
                       "    sim.creep: false\n    sim.saturation: false\n    sim.slew_limit: false\n    sim.drift: true\n"
                       "    sim.drift_offset_um: 3.0\n    sim.drift_gain_change: 0.0\n    sim.drift_time_constant_s: 1.0\n"
                       "    sim.drift_start_s: 25.0\n"
-                      "valve_controller:\n  ros__parameters:\n    gain_set: pid_hc_5\n    control_period_s: 0.001\n")
+                      "valve_controller:\n  ros__parameters:\n    gain_set: pid_hc_5\n    control_period_s: 0.001\n"
+                      "valve_monitor:\n  ros__parameters:\n    window_s: 4.0\n    step_s: 1.0\n")
     context = rclpy.Context()
     rclpy.init(context=context)
     probe = rclpy.create_node("monitor_probe", namespace=ns, context=context)
@@ -151,22 +153,19 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
         return subprocess.run([os.path.join(bin_dir, "valve_command"), "--namespace", ns, *args], env=ros_env(),
                               capture_output=True, text=True, timeout=60)
     try:
-        with ProcessGroup() as procs, open(tmp_path / "rig.log", "w") as rig_out, \
-                open(tmp_path / "monitor.log", "w") as mon_out:
+        with ProcessGroup() as procs, open(tmp_path / "rig.log", "w") as rig_out:
             procs.start("rig", [os.path.join(bin_dir, "valve_rig"), "--params-file", str(params), "--demo", "none",
-                                "--namespace", ns], env=ros_env(), stdout=rig_out, stderr=subprocess.STDOUT)
+                                "--monitor", "--namespace", ns], env=ros_env(), stdout=rig_out,
+                        stderr=subprocess.STDOUT)
             opened = time.monotonic()
-            procs.start("monitor", [os.path.join(bin_dir, "valve_monitor"), "--ros-args", "-r", f"__ns:={ns}",
-                                    "-p", "window_s:=4.0", "-p", "step_s:=1.0"],
-                        env=ros_env(), stdout=mon_out, stderr=subprocess.STDOUT)
             wait_for_text(tmp_path / "rig.log", "running; Ctrl-C", timeout_s=90)
-            wait_for_text(tmp_path / "monitor.log", "model in force taken from", timeout_s=60)
+            wait_for_text(tmp_path / "rig.log", "model in force taken from", timeout_s=60)
             procs.start("sine", [os.path.join(bin_dir, "valve_command"), "--namespace", ns, "sine", "--amplitude",
                                  "40e-6", "--frequency", "0.4", "--duration", "75"], env=ros_env(),
                         stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
             # OK while the valve matches its model (before the drift sets in 25 s after the rig came up)
             assert spin_until(lambda: any(lv == b"\x00" for lv, _, _ in levels_since(opened)), 25.0), \
-                (levels_since(opened)[-3:], (tmp_path / "monitor.log").read_text()[-2000:])
+                (levels_since(opened)[-3:], (tmp_path / "rig.log").read_text()[-2000:])
             assert time.monotonic() - opened < 24.0, "no OK verdict before the drift"
             ok_before = [x for x in levels_since(opened) if x[0] == b"\x00"]
             # ERROR after it, named as an offset the model lacks
@@ -182,7 +181,8 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
             refit_at = time.monotonic()
             assert spin_until(lambda: any(lv == b"\x00" for lv, _, _ in levels_since(refit_at)), 20.0), \
                 levels_since(refit_at)[-3:]
-        log = (tmp_path / "monitor.log").read_text()
+        log = (tmp_path / "rig.log").read_text()
+        assert "windows of 4 s every 1 s" in log                     # the file's valve_monitor section
         assert "the model in force changed" in log and "health ERROR" in log, log[-3000:]
         assert ok_before and rows and len(rows[-1]) == 7
     finally:

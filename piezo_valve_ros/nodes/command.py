@@ -9,9 +9,12 @@ needed).  Positions in metres, times in seconds (SI, as on the topics).
     valve_command set controller gain_set:=ff_pid_1           # each answer: accepted, or refused and why
     valve_command --namespace /rig2 set hardware command_timeout_s:=0.2
     valve_command load controller fitted.yaml                 # a whole file in one update: all or nothing
+    valve_command status                                      # the rig's /diagnostics and controller state
 
 Nodes are ``hardware``, ``controller``, ``identification`` (the rig's, in ``--namespace``) or any node
-name.  Values of ``set`` are read as YAML, like ``ros2 param set`` (``1`` an integer, ``1.0`` a double,
+name.  ``status`` listens for ``--listen`` seconds and prints the latest health every node of the namespace
+published on ``/diagnostics`` (hardware, controller, ``valve_monitor``) and the controller's latest
+``~/controller_state``; it exits 1 when a status is not OK or none came.  Values of ``set`` are read as YAML, like ``ros2 param set`` (``1`` an integer, ``1.0`` a double,
 ``true`` a bool, ``'1'`` a string).  Exit status: 0 done, 1 a value refused or the rig not answering,
 2 bad arguments.  The rig may run on another machine in the same ROS domain.
 """
@@ -20,6 +23,7 @@ from __future__ import annotations
 import argparse
 import re
 import sys
+import time
 
 import numpy as np
 
@@ -74,6 +78,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                                     "applied or none: e.g. a fitted model from valve_identify --params-out)")
     p.add_argument("node")
     p.add_argument("path")
+    p = sub.add_parser("status", help="print the rig's health (/diagnostics) and the controller's state")
+    p.add_argument("--listen", type=float, default=6.0, metavar="S",
+                   help="listen this long (default 6 s: valve_monitor reports every 5 s)")
     return ap.parse_args(argv)
 
 
@@ -120,6 +127,10 @@ def checked_request(args):
         raise ValueError(f"--timeout must be > 0 s, got {args.timeout}")
     if args.command == "get":
         return None
+    if args.command == "status":
+        if not (np.isfinite(args.listen) and args.listen > 0):
+            raise ValueError(f"--listen must be > 0 s, got {args.listen}")
+        return None
     if args.command == "set":
         return dict(parse_assignment(a) for a in args.assignments)
     if args.command == "load":
@@ -129,9 +140,45 @@ def checked_request(args):
     return profile(args)
 
 
+LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
+
+
+def status(args, client: RigClient, out=sys.stdout) -> int:
+    """The latest /diagnostics status of each node in the rig's namespace and the latest controller state,
+    heard for ``args.listen`` seconds; 1 when a status is not OK or none came."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from std_msgs.msg import Float64MultiArray
+    ns = client.get_namespace().rstrip("/") + "/"
+    latest, state = {}, []
+    subs = [client.create_subscription(DiagnosticArray, "/diagnostics", lambda m: latest.update(
+                {s.name: s for s in m.status if s.name.startswith(ns)}), 10),
+            client.create_subscription(Float64MultiArray, client.node_name("controller") + "/controller_state",
+                                       state.append, 10)]
+    time.sleep(args.listen)
+    for sub in subs:
+        client.destroy_subscription(sub)
+    if not latest:
+        print(f"valve_command: no node in {ns} published on /diagnostics within {args.listen:g} s", file=out)
+        return 1
+    for name in sorted(latest):
+        s = latest[name]
+        level = LEVELS.get(s.level[0] if isinstance(s.level, bytes) else s.level, str(s.level))
+        print(f"{name}: {level}: {s.message}", file=out)
+        for kv in s.values:
+            print(f"    {kv.key}: {kv.value}", file=out)
+    if state:
+        msg = state[-1]
+        labels = msg.layout.dim[1].label.split(",") if len(msg.layout.dim) == 2 else []
+        row = dict(zip(labels, msg.data))
+        print("controller state: " + ", ".join(f"{k} {v:.6g}" for k, v in row.items()), file=out)
+    return 0 if all((s.level[0] if isinstance(s.level, bytes) else s.level) == 0 for s in latest.values()) else 1
+
+
 def run(args, client: RigClient, request, out=sys.stdout) -> int:
     """Carry out one parsed command (``request`` from :func:`checked_request`) against a rig reachable
     through ``client`` (spun elsewhere)."""
+    if args.command == "status":
+        return status(args, client, out)
     if args.command == "get":
         values = client.get_params(client.wait_for_node(args.node, args.timeout), args.names, args.timeout)
         for name, value in values.items():

@@ -5,6 +5,7 @@
     valve_rig --composed            # both nodes in this process (fastest loop)
     valve_rig --composed --clock realtime --demo none   # the paper's 10 kHz loop on the wall clock
     valve_rig --demo none           # just run the rig until Ctrl-C / SIGTERM
+    valve_rig --demo none --monitor # and valve_monitor beside it (the valve's health on /diagnostics)
 
 Every process it starts is stopped on exit (Ctrl-C, SIGTERM, error): SIGINT, then SIGTERM, then
 SIGKILL, each after a grace period.
@@ -14,6 +15,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from typing import Optional
 
 import rclpy
 from rclpy.node import Node
@@ -72,6 +74,8 @@ def _parser() -> argparse.ArgumentParser:
                     help="also start valve_identification with this plan (e.g. validate,train,refit,validate) "
                          "and stop the rig when it is done (exit 1 if it failed); needs --demo none")
     ap.add_argument("--bag-dir", default="identification_runs", help="where --identify writes its bags")
+    ap.add_argument("--monitor", action="store_true", help="also start valve_monitor (the valve's health on "
+                    "/diagnostics, see the monitor handbook)")
     ap.add_argument("--namespace", default="", help="put the rig's nodes and topics in this namespace (e.g. /valve1)")
     ap.add_argument("--backend", default="sim", help="the hardware node's backend: sim (default) or an installed one "
                     "(entry-point group piezo_valve_ros.backends); the step demo needs one that runs in lockstep")
@@ -140,17 +144,18 @@ class UsageError(ValueError):
     """Options or a parameters file the rig cannot run with (exit 2, one line)."""
 
 
-def apply_parameters_file(args, given: set[str], hw: dict, ctl: dict, ident: dict) -> tuple[dict, dict, dict]:
+def apply_parameters_file(args, given: set[str], hw: dict, ctl: dict, ident: dict,
+                          monitor: Optional[dict] = None) -> tuple[dict, dict, dict]:
     """The nodes' parameters with ``args.params_file``'s sections merged in (``merged_parameters``); the loop
-    the file chose (clock, control period) becomes the rig's, in ``args`` too.  UsageError when the file
-    cannot be read or a node's section is wrong."""
+    the file chose (clock, control period) becomes the rig's, in ``args`` too; ``monitor`` takes the
+    valve_monitor section.  UsageError when the file cannot be read or a node's section is wrong."""
     from ..params_yaml import node_section
     sections = {}
-    for node in ("valve_hardware", "valve_controller", "valve_identification"):
+    for node in ("valve_hardware", "valve_controller", "valve_identification", "valve_monitor"):
         try:
             sections[node] = node_section(args.params_file, node)
         except ValueError as exc:
-            if node != "valve_identification" and "no section" not in str(exc):
+            if node not in ("valve_identification", "valve_monitor") and "no section" not in str(exc):
                 raise UsageError(str(exc)) from None
             sections[node] = {}
         except OSError as exc:
@@ -158,6 +163,8 @@ def apply_parameters_file(args, given: set[str], hw: dict, ctl: dict, ident: dic
     hw = merged_parameters(hw, sections["valve_hardware"], given)
     ctl = merged_parameters(ctl, sections["valve_controller"], given)
     ident = {**sections["valve_identification"], **ident}
+    if monitor is not None:
+        monitor.update(sections["valve_monitor"])
     # what the file chose for the loop is what the rig runs
     args.clock, args.control_period_s = str(hw["clock"]), float(hw["control_period_s"])
     ctl["control_period_s"] = ident["control_period_s"] = args.control_period_s
@@ -218,10 +225,11 @@ def main(argv=None) -> int:
     hw_params, ctl_params = rig_parameters(args)
     ident_params = {"plan": args.identify, "control_period_s": args.control_period_s, "bag_dir": args.bag_dir,
                     "exit_when_done": True}
+    monitor_params: dict = {}
     try:
         if args.params_file:
             hw_params, ctl_params, ident_params = apply_parameters_file(args, given_options(argv), hw_params,
-                                                                        ctl_params, ident_params)
+                                                                        ctl_params, ident_params, monitor_params)
         check_options(args)
     except UsageError as exc:
         print(f"valve_rig: {exc}", file=sys.stderr)
@@ -245,6 +253,8 @@ def main(argv=None) -> int:
         if args.identify:
             identification = procs.start("valve_identification", node_command(
                 "valve_identification", namespace=args.namespace, params=ident_params))
+        if args.monitor:
+            procs.start("valve_monitor", node_command("valve_monitor", monitor_params, args.namespace))
         samples_per_period = max(int(round(args.control_period_s / ValveSimConfig().dt)), 1)
         client = RigClient(namespace=args.namespace, samples_per_period=samples_per_period)
         nodes.append(client)

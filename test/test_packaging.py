@@ -1,0 +1,65 @@
+"""What a ROS install sees: the launch file starts the nodes valve_rig starts, from the same parameters, and
+every node has its console script.  Read from the files (no `launch` package here: the launch file is parsed,
+not run)."""
+import ast
+from pathlib import Path
+
+import yaml
+
+from piezo_valve_ros.nodes.rig import parse_args, rig_parameters
+from piezo_valve_ros.processes import NODE_MODULES
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _launch_nodes() -> dict[str, dict]:
+    """executable -> {"condition": (If/Unless, launch argument), "parameters": source names} of each Node(...)."""
+    tree = ast.parse((ROOT / "launch" / "rig.launch.py").read_text())
+    nodes = {}
+    for call in ast.walk(tree):
+        if isinstance(call, ast.Call) and getattr(call.func, "id", None) == "Node":
+            kw = {k.arg: k.value for k in call.keywords}
+            condition = None
+            if "condition" in kw:
+                c = kw["condition"]
+                arg = c.args[0]
+                name = arg.args[0].value if isinstance(arg, ast.Call) else arg.id
+                condition = (c.func.id, name)
+            params = [p.id if isinstance(p, ast.Name) else "dict" for p in kw["parameters"].elts]
+            nodes[kw["executable"].value] = {"condition": condition, "parameters": params}
+    return nodes
+
+
+def test_the_launch_file_starts_the_nodes_valve_rig_starts_from_the_same_parameters():
+    nodes = _launch_nodes()
+    assert set(nodes) == set(NODE_MODULES)          # every node valve_rig can start, and no other
+    assert nodes["valve_hardware"]["condition"] == ("UnlessCondition", "composed")
+    assert nodes["valve_controller"]["condition"] == ("UnlessCondition", "composed")
+    assert nodes["valve_composed"]["condition"] == ("IfCondition", "composed")
+    options = vars(parse_args([]))
+    for executable, launch_arg in (("valve_identification", "identify"), ("valve_monitor", "monitor")):
+        assert nodes[executable]["condition"] == ("IfCondition", launch_arg)
+        assert launch_arg in options                # valve_rig --identify / --monitor start the same
+    assert "composed" in options
+    assert all(n["parameters"][0] == "params" for n in nodes.values())   # one parameters file for all
+
+
+def test_the_launch_files_default_parameters_are_valve_rigs_defaults():
+    """config/rig.yaml (the launch file's default) gives each node what valve_rig gives it by default."""
+    config = yaml.safe_load((ROOT / "config" / "rig.yaml").read_text())
+    hw, ctl = rig_parameters(parse_args([]))
+    for section, rig in (("/**/valve_hardware", hw), ("/**/valve_controller", ctl)):
+        file_values = config[section]["ros__parameters"]
+        shared = set(file_values) & set(rig) - {"lockstep.step_budget", "realtime.busy_poll_s"}
+        assert shared, section
+        assert {k: file_values[k] for k in shared} == {k: rig[k] for k in shared}, section
+
+
+def test_every_node_has_a_console_script_and_an_install_path():
+    setup = (ROOT / "setup.py").read_text()
+    for executable, module in NODE_MODULES.items():
+        assert f'"{executable} = piezo_valve_ros.nodes.{module}:main"' in setup, executable
+    for installed in ('"/config", glob("config/*.yaml")', '"/launch", glob("launch/*.launch.py")',
+                      '["resource/" + package_name]', '["package.xml"]'):
+        assert installed in setup, installed
+    assert (ROOT / "resource" / "piezo_valve_ros").exists()
