@@ -109,8 +109,8 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
     """A real-time rig (the simulated valve: G_v and noise, a 3 um drift setting in 25 s after the hardware
     opened) under PID HC following a slow sine; valve_monitor beside it (`valve_rig --monitor`, its section of
     the parameters file: 4 s windows, a verdict a second):
-    OK on /diagnostics before the drift, ERROR after it, named as an offset, and OK again once a refit
-    (the controller's gpim.offset_um moved by the drift) is set on the controller, which it follows."""
+    OK on /diagnostics before the drift, ERROR after it, named as an offset; with refit_when: error it pushes
+    the offset the drift moved to the controller (gpim.offset_um), follows the new model and is OK again."""
     import os
     import subprocess
     import sys
@@ -129,7 +129,7 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
                       "    sim.drift_offset_um: 3.0\n    sim.drift_gain_change: 0.0\n    sim.drift_time_constant_s: 1.0\n"
                       "    sim.drift_start_s: 25.0\n"
                       "valve_controller:\n  ros__parameters:\n    gain_set: pid_hc_5\n    control_period_s: 0.001\n"
-                      "valve_monitor:\n  ros__parameters:\n    window_s: 4.0\n    step_s: 1.0\n")
+                      "valve_monitor:\n  ros__parameters:\n    window_s: 4.0\n    step_s: 1.0\n    refit_when: error\n")
     context = rclpy.Context()
     rclpy.init(context=context)
     probe = rclpy.create_node("monitor_probe", namespace=ns, context=context)
@@ -174,16 +174,19 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
             assert spin_until(lambda: any(v.get("resembles", "").startswith("drift: an offset of +")
                                           for lv, _, v in levels_since(opened + 25.0) if lv == b"\x02"), 10.0), \
                 levels_since(opened + 25.0)[-3:]
-            # a refit that takes the offset in: set on the controller, followed by the monitor, OK again
-            from piezo_valve_ros.core.control.compensation import MODEL_DEFAULTS
-            pushed = tool("set", "controller", f"gpim.offset_um:={MODEL_DEFAULTS['gpim.offset_um'] + 3.0}")
-            assert pushed.returncode == 0, pushed.stdout + pushed.stderr
+            # refit_when: error: the monitor pushes the offset the drift moved to the controller, follows the
+            # new model and finds the valve matching it again
             refit_at = time.monotonic()
-            assert spin_until(lambda: any(lv == b"\x00" for lv, _, _ in levels_since(refit_at)), 20.0), \
-                levels_since(refit_at)[-3:]
+            assert spin_until(lambda: any(lv == b"\x00" for lv, _, _ in levels_since(refit_at)), 30.0), \
+                (levels_since(refit_at)[-3:], (tmp_path / "rig.log").read_text()[-2000:])
+            from piezo_valve_ros.core.control.compensation import MODEL_DEFAULTS
+            got = tool("get", "controller", "gpim.offset_um")
+            moved = float(got.stdout.split(":")[1]) - MODEL_DEFAULTS["gpim.offset_um"]
+            assert 2.5 < moved < 3.2, got.stdout
         log = (tmp_path / "rig.log").read_text()
         assert "windows of 4 s every 1 s" in log                     # the file's valve_monitor section
         assert "the model in force changed" in log and "health ERROR" in log, log[-3000:]
+        assert "pushed a refit from the operating data" in log, log[-3000:]
         assert ok_before and rows and len(rows[-1]) == 7
     finally:
         executor.remove_node(probe)

@@ -7,6 +7,12 @@ WARN, ERROR, or STALE when a window does not excite the valve enough to judge). 
 labelled row: HEALTH_COLUMNS); a change of level is logged in one line.  When the controller's model changes
 (a refit pushed), the monitor follows it.  A separate process: it costs the control loop nothing.
 
+``refit_when`` (never, warn, error; default never): at that level it asks for a refit.  What the operating
+data determine, an offset the model lacks (a drift), it pushes itself: the controller's ``gpim.offset_um``
+moved by the window's mean residual, only while the controller is enabled with its oscillation guard off
+(read on ``~/controller_state``) and at most once a window.  Anything else needs a designed experiment:
+it logs the identification plan to run.
+
     valve_monitor [--ros-args -p window_s:=20.0 -p controller:=valve_controller -r __ns:=/valve1]
 """
 from __future__ import annotations
@@ -17,13 +23,13 @@ from typing import Optional
 import numpy as np
 from rcl_interfaces.msg import ParameterEvent
 from rclpy.node import Node
-from rclpy.parameter import parameter_value_to_python
+from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Float64MultiArray
 
 from ..core.control.compensation import MODEL_PARAMETERS, CompensationModel
 from ..core.monitoring.health import (ERROR_RATIO, MIN_SPAN_V, STEP_S, WARN_RATIO, WINDOW_S, Health, HealthLimits,
-                                      HealthMonitor)
+                                      HealthMonitor, Level)
 from ..samples import SamplesLayoutError
 from .common import SAMPLES_QOS, Diagnostics, ParameterSpec, as_float, declare_all, parameter_values, run_node, \
     samples_from_message, samples_message
@@ -44,7 +50,12 @@ MONITOR_PARAMETERS: tuple[ParameterSpec, ...] = (
                   low=0.1, high=1000.0),
     ParameterSpec("min_span_v", MIN_SPAN_V, "a window whose voltage spans less [V] is not judged (STALE)",
                   read_only=True, low=0.0, high=1000.0),
+    ParameterSpec("refit_when", "never", "never, warn or error: at that level push what the operating data "
+                  "determine (an offset the model lacks) to the controller, else log the identification plan "
+                  "to run", read_only=True),
 )
+REFIT_LEVELS = {"never": None, "warn": Level.WARN, "error": Level.ERROR}
+OFFSET_PREFIX = "drift: an offset"   # what the health core says when a constant explains the residual
 
 
 class ValveMonitorNode(Node):
@@ -57,6 +68,9 @@ class ValveMonitorNode(Node):
         problems = self.limits.problems()
         if problems:
             raise ValueError("; ".join(problems))
+        self.refit_at = REFIT_LEVELS.get(str(p["refit_when"]), "bad")
+        if self.refit_at == "bad":
+            raise ValueError(f"refit_when must be one of {', '.join(REFIT_LEVELS)}, got {p['refit_when']!r}")
         name = str(p["controller"])
         ns = self.get_namespace().rstrip("/")
         self.controller_name = name if name.startswith("/") else f"{ns}/{name}"
@@ -68,7 +82,11 @@ class ValveMonitorNode(Node):
         self.verdicts = 0
         self._model_wanted, self._request, self._model_values = True, None, None
         self._waiting_said = False
+        self.controller_state: dict[str, float] = {}
+        self._last_push_s = -math.inf
+        self._advised = False
         self.create_subscription(Float64MultiArray, "samples", self._on_samples, SAMPLES_QOS)
+        self.create_subscription(Float64MultiArray, f"{self.controller_name}/controller_state", self._on_state, 10)
         self.create_subscription(ParameterEvent, "/parameter_events", self._on_parameter_event, 10)
         self.health_pub = self.create_publisher(Float64MultiArray, "~/health", 10)
         self.diagnostics = Diagnostics(self, 0.0, self._status)   # published with every verdict
@@ -134,6 +152,49 @@ class ValveMonitorNode(Node):
                 health.end_s, float(health.level), health.ratio, health.structured_rms_um, health.residual_mean_um,
                 health.noise_um, health.voltage_span_v]]), ",".join(HEALTH_COLUMNS)))
             self.diagnostics.publish()
+            if self.refit_at is not None and health.level in (Level.WARN, Level.ERROR) \
+                    and health.level >= self.refit_at:
+                self._ask_for_refit(health)
+
+    # ------------------------------------------------------------------ refits
+    def _on_state(self, msg: Float64MultiArray) -> None:
+        if len(msg.layout.dim) == 2:
+            self.controller_state = dict(zip(msg.layout.dim[1].label.split(","), msg.data))
+
+    def _ask_for_refit(self, health: Health) -> None:
+        """Push the offset a drift moved, when it is safe; otherwise say which experiment would refit."""
+        if not health.resembles.startswith(OFFSET_PREFIX):
+            if not self._advised:
+                self.get_logger().warning(
+                    f"a refit is needed ({health.resembles}): the operating data do not determine it; run the "
+                    f"identification plan (valve_identification --ros-args -p plan:=validate,train,refit,validate)")
+                self._advised = True
+            return
+        state = self.controller_state
+        unsafe = ("the controller's state is not known (~/controller_state)" if not state else
+                  "the controller is disabled" if state.get("enabled", 0.0) < 0.5 else
+                  "the controller's oscillation guard is active" if state.get("guard_active", 0.0) > 0.5 else
+                  "a refit was pushed less than a window ago" if health.end_s - self._last_push_s < self.limits.window_s
+                  else "")
+        if unsafe:
+            self.get_logger().info(f"refit not pushed: {unsafe}")
+            return
+        offset = float(self.model.gpim.offset_um) + health.residual_mean_um
+        self._last_push_s = health.end_s
+        future = self.client.set_parameters([Parameter("gpim.offset_um", value=offset)])
+        future.add_done_callback(lambda f: self._pushed(f, offset, health.residual_mean_um))
+
+    def _pushed(self, future, offset: float, moved: float) -> None:
+        try:
+            result = future.result().results[0]
+        except Exception as exc:
+            self.get_logger().warning(f"refit not pushed: {exc}")
+            return
+        if result.successful:
+            self.get_logger().info(f"pushed a refit from the operating data: {self.controller_name} gpim.offset_um "
+                                   f":= {offset:.4f} um ({moved:+.4f} um, the offset a drift moved)")
+        else:
+            self.get_logger().warning(f"refit refused by {self.controller_name}: {result.reason}")
 
     def _status(self) -> tuple[str, str, dict]:
         if self.latest is None:

@@ -8,9 +8,9 @@ residual against the measured position is judged against the sensor noise measur
   loop estimates a record's start (rest, cycled, rested at another voltage, back from an excursion), and
   the prediction settles for ``step_s`` before anything is judged; what remains of the unknown state
   before the monitor started (operators the input never moves) is a constant:
-  their share of the prediction is a constant, measured as the residual's median on the first window after a
-  model came into force (the *reference offset*) and taken off every later window: the monitor watches for
-  change, not for an offset the model carried from the start;
+  their share of the prediction is a constant, measured as the residual's median on the first window judged
+  (the *reference offset*) and taken off every later window, for later models too: the monitor watches for
+  change since it started, not for an offset the model carried then;
 * structured residual = sqrt(RMS^2 - noise^2) of the residual less the reference offset; above
   ``warn_ratio`` x the noise: WARN, above ``error_ratio`` x: ERROR;
 * a window whose voltage spans less than ``min_span_v`` (a valve held still) cannot be judged: STALE;
@@ -126,7 +126,7 @@ class HealthMonitor:
     """Feed it the rows of ``samples`` (time [s], voltage [V], position [m]) as they come (``add``); it
     returns a :class:`Health` for every ``limits.step_s`` of data once a window is full.  ``set_model``
     swaps the model in force (a refit pushed to the controller): the prediction restarts from the state
-    the voltage history leaves, and a new reference offset is measured.  Memory is bounded by the window."""
+    the voltage history leaves.  Memory is bounded by the window and the voltage's nested extrema."""
 
     def __init__(self, model: CompensationModel, dt: float, limits: HealthLimits = HealthLimits(),
                  command_range_v: tuple[float, float] = (COMMAND_MIN_V, COMMAND_MAX_V)):
@@ -157,10 +157,11 @@ class HealthMonitor:
 
     def set_model(self, model: CompensationModel) -> None:
         """The model in force from the next row on: the rows held so far (predicted by the old one) are
-        dropped, remembering where their voltage turned, and a new reference offset is measured."""
+        dropped, remembering where their voltage turned.  The reference offset stays: it is what the state
+        before the monitor started left, not part of a model, and a refit that leaves an offset must show."""
         self._history = self._before(self._count)
         self._count = self._since_judged = 0
-        self.model, self._valve, self._offset, self._warm_up = model, None, None, self._step
+        self.model, self._valve, self._warm_up = model, None, self._step
 
     def _before(self, row: int) -> tuple[float, ...]:
         """Turning points [V] of the voltage before held row ``row``."""
