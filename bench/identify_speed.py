@@ -1,6 +1,6 @@
 """Identification speed: a training + validation bag pair through ``identify_bags`` (bag reading included).
 
-    python bench/identify_speed.py [--skip-straightforward] [--load]
+    python bench/identify_speed.py [--skip-straightforward] [--load] [--markdown docs/results/identify_speed.md]
 
 Target (issue 9): under 10 s per pair of 50-60 s records at 2-10 kHz.  Two valves of the package's
 simulator: the default one (creep, loop-end flattening, G_v, noise) and one with drift and an asymmetric
@@ -10,13 +10,18 @@ envelope as well (more effects, more refits).  Beside ours, in the same run:
 * straightforward, exact search: every subset of the catalogue refitted exactly instead of scored by one
   linear solve each from the baseline (on the 2 kHz pair).
 
-Ours is also timed with its refits on one thread (``analyse(threads=1)``, without bag reading).
+Ours is also timed with its refits on one thread (``analyse(threads=1)``, without bag reading).  Then the
+records users have (``analyse`` on each, no bag reading): closed-loop operation of a creeping valve under
+PI and PID HC (train + validate, and held-out tail), a +-150 V drive warming up, and the measured piezo
+record of ``test/data/smart_hysteresis`` at its own 5 kHz.
 ``--load`` repeats the measurement of ours with two busy loops running beside it (this machine has two
 cores).  Compare ratios within one run: the machine is shared.
 """
 import argparse
+import builtins
 import itertools
 import multiprocessing
+import sys
 import tempfile
 import time
 from dataclasses import replace
@@ -75,6 +80,37 @@ def _exhaustive_exact(train: Record, validate: Record) -> list:
     return scores
 
 
+def users_records():
+    """(label, train, validate or None) of the records users have (see the module docstring)."""
+    import importlib.util
+    import os
+    import sys
+    import numpy as np
+    from piezo_valve_ros.core.control.strategies import PIDGains
+    from piezo_valve_ros.core.sim.simulator import CreepParams, SensorParams
+    test_dir = Path(__file__).resolve().parent.parent / "test"
+    spec = importlib.util.spec_from_file_location("valve_battery", test_dir / "valve_battery.py")
+    vb = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = vb
+    spec.loader.exec_module(vb)
+    plain = replace(ValveSimConfig(dt=1e-3).ideal(), dynamics_enabled=True, sensor=SensorParams())
+    creep = replace(plain, creep=CreepParams(True, (0.03, 0.03, 0.03), (0.1, 1.0, 10.0)))
+    out = []
+    for strategy, gains in (("pid", PIDGains(0.5992, 237.2552, 0.0)), ("pid_hc", PIDGains(0.4823, 213.8982, 0.0))):
+        train = Record.from_rows(vb.closed_loop_rows(creep, strategy, gains, 1))
+        out.append((f"closed loop under {strategy}, creeping valve, train + validate", train,
+                    Record.from_rows(vb.closed_loop_rows(creep, strategy, gains, 2))))
+        out.append((f"closed loop under {strategy}, creeping valve, held-out tail", train, None))
+    warm = vb.WIDE[[k for k in vb.WIDE if "warming" in k][0]]
+    tv = vb.training_voltage(vb.DT)
+    out.append(("+-150 V drive warming up, train + validate", Record.from_rows(warm.rows(vb.wide_drive(tv), 1)),
+                Record.from_rows(warm.rows(vb.wide_drive(vb.validation_voltage_(vb.DT)), 2))))
+    a = np.genfromtxt(os.path.join(test_dir, "data", "smart_hysteresis", "hysteresis_v_150_1hz.csv.xz"),
+                      delimiter=",")[:, 1:]
+    out.append(("measured piezo record, whole, 5 kHz, held-out tail", Record(a[:, 0], a[:, 2], a[:, 1]), None))
+    return out
+
+
 def _burn(stop):
     while not stop.is_set():
         pass
@@ -84,7 +120,14 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--skip-straightforward", action="store_true")
     ap.add_argument("--load", action="store_true", help="also measure with two busy loops running")
+    ap.add_argument("--markdown", metavar="FILE", help="also write what is printed here")
     args = ap.parse_args()
+    lines = []
+
+    def print(text):   # noqa: A001  (printed and kept for --markdown)
+        builtins.print(text, flush=True)
+        lines.append(text)
+
     with tempfile.TemporaryDirectory() as tmp:
         for rate_hz in (10000, 2000):
             dt = 1.0 / rate_hz
@@ -126,6 +169,18 @@ def main():
                     best = min(scores, key=lambda s: s[1])
                     print(f"   straightforward, exact search {t_ex:6.2f} s  -> ours is {t_ex / t_ours:4.1f}x faster; "
                           f"{len(scores)} exact refits, lowest held-out RMS {best[1]:.3f} um with {best[0]}")
+    print("records users have (analyse, no bag reading; target < 10 s per pair):")
+    for label, train, validate in users_records():
+        n = len(train) + (len(validate) if validate is not None else 0)
+        t, a = timed(lambda: analyse(train, validate))
+        t_one, _ = timed(lambda: analyse(train, validate, threads=1))
+        r = a.report
+        print(f"   {label}: {n} samples, {t:6.2f} s ({t_one:6.2f} s on one thread); added {r['effects_added']}, "
+              f"held-out RMS {r['baseline']['validate']['rms_um']:.3f} -> {r['final']['validate']['rms_um']:.3f} um")
+    if args.markdown:
+        with open(args.markdown, "w") as fh:
+            fh.write(f"Output of `python bench/identify_speed.py {' '.join(sys.argv[1:])}` (seconds on this shared "
+                     "2-core machine; compare ratios within one run):\n\n```\n" + "\n".join(lines) + "\n```\n")
 
 
 if __name__ == "__main__":
