@@ -10,6 +10,7 @@ from valve_battery import (BATTERY, NOMINAL, OUTSIDE, PRE_HISTORIES, rows_after,
                            validation_voltage_)
 
 from piezo_valve_ros.core.identification import residual, search
+from piezo_valve_ros.core.identification.report import check_report
 from piezo_valve_ros.core.sim.experiments import run_closed_loop
 from piezo_valve_ros.core.identification.fitting import fit_paper_gpim
 from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM, inverse_problems
@@ -79,6 +80,7 @@ def test_a_record_that_cannot_separate_two_effects_says_which_and_why():
     assert rms["with_creep"] <= rms["with_drift"] < rms["without_either"]
     assert pair["share"] >= residual.SEPARATION_SHARE
     assert "drift cuts the held-out RMS" in pair["why"]
+    assert check_report(report) == []          # the typed schema, its indistinguishable entries too
 
 
 @pytest.mark.parametrize("name", ["nominal", "creep, level-dependent log kernel",
@@ -347,6 +349,7 @@ def test_the_whole_real_record_at_its_own_5_khz_is_fitted_to_its_noise():
     assert held_out["rms_um"] <= 1.3 * noise, held_out                 # 0.058 um at 0.046 um noise
     assert structure["held_out_noise_peak_pct"] > 0.55                 # the noise alone peaks above the target
     assert held_out["peak_um"] <= 1.35 * structure["held_out_noise_peak_um"], (held_out, structure)
+    assert check_report(report) == []
 
 
 @pytest.mark.parametrize("pre_history", sorted(PRE_HISTORIES))

@@ -14,6 +14,7 @@ import yaml
 from piezo_valve_ros.bagio import (FLOAT64_TYPE, BagRecorder, qos_profile, read_samples, serialize_float64,
                                    write_samples_bag)
 from piezo_valve_ros.core.control.compensation import CompensationModel
+from piezo_valve_ros.core.identification.report import check_report
 from piezo_valve_ros.core.sim.experiments import simulate_rows
 from piezo_valve_ros.core.sim.signals import identification_voltage, validation_voltage
 from piezo_valve_ros.core.sim.simulator import ValveSimConfig
@@ -86,6 +87,7 @@ def test_foreign_rig_sqlite3_plus_minus_150_v_1khz_held_out(tmp_path):
     assert out.returncode == 0, out.stderr
     assert out.stdout.startswith("range ") and "wrote " in out.stdout  # quiet: the summary, no progress
     report = json.loads((tmp_path / "r.json").read_text())
+    assert check_report(report) == []          # the written report, schema and source blocks included
     assert report["validation"] == "held-out last 30 % of the training record"
     assert "creep" in report["effects_added"]
     assert report["final"]["validate"]["rms_um"] < 0.5 * report["baseline"]["validate"]["rms_um"]

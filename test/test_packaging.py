@@ -63,3 +63,15 @@ def test_every_node_has_a_console_script_and_an_install_path():
                       '["resource/" + package_name]', '["package.xml"]'):
         assert installed in setup, installed
     assert (ROOT / "resource" / "piezo_valve_ros").exists()
+
+
+def test_the_report_page_is_written_from_the_typed_definition_and_a_bad_report_is_caught():
+    import subprocess
+    import sys
+    from piezo_valve_ros.core.identification.report import check_report
+    check = subprocess.run([sys.executable, str(ROOT / "scripts" / "report_schema.py"), "--check"],
+                           capture_output=True, text=True, timeout=60)
+    assert check.returncode == 0, check.stderr
+    problems = check_report({"range_um": "wide", "extra": 1})
+    assert "report: extra is not in the schema" in problems and "report.range_um: str, expected float" in problems
+    assert "report: baseline missing" in problems

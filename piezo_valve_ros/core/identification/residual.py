@@ -54,6 +54,7 @@ from .effects import CATALOGUE, Effect
 from .fitting import FitCache, fit_model, fit_paper_gpim, refit_poles_with_effects, with_poles, uniform_thresholds
 from ..model.hysteresis import GPIM
 from .initial_state import ESTIMATE_ROUNDS, ESTIMATE_STATE_GAIN, WIPE_STATE_GAIN, estimate_state, own_start
+from .report import IdentificationReport
 from .records import ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, SUPPORTED_RATE_HZ, Record, noise_floor_um, noise_peak_um
 from .search import GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, Score, SubsetSearch, support
 from .split import WIPE_MARGIN, Split, split_records
@@ -554,7 +555,7 @@ class _Loop:
         diagnosis.sort(key=lambda d: (not d["added"], added.index(d["effect"]) if d["added"] else names.index(d["effect"])))
         return diagnosis
 
-    def report(self) -> dict:
+    def report(self) -> IdentificationReport:
         split, baseline, final, paper = self.split, self.baseline, self.final, self.paper
         unique = list({id(m): m for m in (baseline, final, paper.model)}.values())
         figured = {id(m): f for m, f in zip(unique, self.each([lambda m=m: self.figures(m) for m in unique]))}  # once each
