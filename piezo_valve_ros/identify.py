@@ -27,7 +27,7 @@ from .core.identification.to_controller import (Compensation, base_parameters, b
 
 __all__ = ["identify_bags", "read_record", "Compensation", "compensation", "baseline_compensation", "base_parameters",
            "controller_parameters", "controller_parameters_yaml", "parameters_yaml", "read_parameters_file",
-           "ParametersFileError", "report_json", "write_atomically", "write_outputs", "monitor_record", "health_json"]
+           "ParametersFileError", "report_json", "write_atomically", "write_outputs", "monitor_record", "health_json", "summary_json"]
 
 CONTROLLER_NODE = "valve_controller"   # the node whose section a parameters file carries
 
@@ -71,6 +71,10 @@ def identify_bags(train_bag, validate_bag=None, topic: Optional[str] = None,
     return analysis, name
 
 
+HEALTH_SCHEMA = "piezo_valve_ros/health-report"
+HEALTH_SCHEMA_VERSION = 1
+
+
 def monitor_record(path, params_file, topic: Optional[str] = None, limits: Optional[HealthLimits] = None,
                    log: Callable[[str], None] = print) -> list[Health]:
     """The health monitor (``core.monitoring.health``) over a recorded bag or CSV, with the model of a
@@ -97,10 +101,9 @@ def monitor_record(path, params_file, topic: Optional[str] = None, limits: Optio
 
 def health_json(verdicts: list[Health], source: str) -> str:
     """The monitor's verdicts as JSON, with a schema block (name, version, package version, time)."""
-    schema = {"name": "piezo_valve_ros/health-report", "version": 1, "package_version": package_version(),
-              "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
     counts = {lv.name: sum(h.level is lv for h in verdicts) for lv in Level}
-    return json.dumps({"schema": schema, "source": source, "counts": counts,
+    return json.dumps({"schema": _schema_block(HEALTH_SCHEMA, HEALTH_SCHEMA_VERSION), "source": source,
+                       "counts": counts,
                        "verdicts": [h.as_dict() for h in verdicts]}, indent=2) + "\n"
 
 
@@ -205,8 +208,22 @@ def package_version() -> str:
         return "unknown"
 
 
+SUMMARY_SCHEMA = "piezo_valve_ros/identification-summary"
+SUMMARY_SCHEMA_VERSION = 1   # an object: schema and the plan's steps (before: the bare list of steps)
+
+
+def _schema_block(name: str, version: int) -> dict:
+    return {"name": name, "version": version, "package_version": package_version(),
+            "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+
+
+def summary_json(steps: list[dict]) -> str:
+    """The identification node's ``summary.json``: a schema block and the figures of each step done."""
+    return json.dumps({"schema": _schema_block(SUMMARY_SCHEMA, SUMMARY_SCHEMA_VERSION), "steps": steps},
+                      indent=2) + "\n"
+
+
 def report_json(analysis: Analysis) -> str:
     """The report as JSON, opened by what it is: schema name and version, the package's version, when."""
-    schema = {"name": REPORT_SCHEMA, "version": REPORT_SCHEMA_VERSION, "package_version": package_version(),
-              "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
-    return json.dumps({"schema": schema, **analysis.report}, indent=2) + "\n"
+    return json.dumps({"schema": _schema_block(REPORT_SCHEMA, REPORT_SCHEMA_VERSION), **analysis.report},
+                      indent=2) + "\n"

@@ -34,7 +34,9 @@ def test_identification_refits_pushes_and_cuts_the_ol_hc_error(tmp_path):
     finally:
         group.stop()
     log = open(tmp_path / "identification.log").read()
-    summary = json.loads((bags / "summary.json").read_text())
+    written = json.loads((bags / "summary.json").read_text())
+    assert written["schema"]["name"] == "piezo_valve_ros/identification-summary" and written["schema"]["version"] == 1
+    summary = written["steps"]
     assert [s["step"] for s in summary] == ["validate", "train", "refit", "tune", "validate"]
     before, after = summary[0], summary[4]
     assert after["rms_um"] < 0.25 * before["rms_um"], (before, after)

@@ -27,7 +27,6 @@ each step did and measured.
 """
 from __future__ import annotations
 
-import json
 import math
 import sys
 import threading
@@ -49,7 +48,7 @@ from ..core.metrics import error_figures
 from ..core.sim.signals import rig_training_voltage, validation_reference_m
 from ..core.control.strategies import LOOP_SETTINGS, loop_settings
 from ..core.tuning.tuner import OVERSHOOT_LIMIT_PCT, TUNABLE_STRATEGIES, TuningError, TuningLimits, tune
-from ..identify import (compensation, controller_parameters, controller_parameters_yaml, identify_bags, report_json,
+from ..identify import (summary_json, compensation, controller_parameters, controller_parameters_yaml, identify_bags, report_json,
                         write_atomically)
 from .client import get_parameter_values, wait_future, wait_until_answering
 from .recording import RigRecorder
@@ -346,7 +345,7 @@ class ValveIdentificationNode(Node):
             for step in self.plan:
                 result = getattr(self, f"_step_{step}")()
                 self.summary.append(result)
-                write_atomically(self.bag_dir / "summary.json", json.dumps(self.summary, indent=2) + "\n")
+                write_atomically(self.bag_dir / "summary.json", summary_json(self.summary))
             self.get_logger().info("plan done")
         except Exception as exc:
             self.failed = True
