@@ -12,6 +12,7 @@ import; a thin face over ``bagio.read_run``, ``core.runs`` and ``plots.write_run
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -40,11 +41,30 @@ def summary_lines(rows: np.ndarray, reference_m: np.ndarray, topic: str) -> list
     return out
 
 
+def run_figures(rows: np.ndarray, reference_m: np.ndarray, topic: str, steps) -> dict:
+    """The run's extent, tracking error and steps as plain values (``--json``); SI but positions in um."""
+    t, v, y = rows[:, 0], rows[:, 1], rows[:, 2]
+    known = np.isfinite(reference_m)
+    tracking = None
+    if known.any():
+        f = error_figures(y[known] * 1e6, reference_m[known] * 1e6, float(np.ptp(reference_m[known])) * 1e6)
+        tracking = {**f.as_dict(), "share_of_run": float(known.mean())}
+    return {"topic": topic, "samples": int(t.size),
+            "rate_hz": 1.0 / float(np.median(np.diff(t))) if t.size > 1 else None,
+            "duration_s": float(t[-1] - t[0]), "command_v": [float(v.min()), float(v.max())],
+            "position_um": [float(y.min() * 1e6), float(y.max() * 1e6)], "tracking": tracking,
+            "steps": [{"at_s": float(s.time_s - t[0]), "start_um": float(s.start_um), "end_um": float(s.end_um),
+                       "settling_time_s": float(s.settling_time_s) if s.settling_time_s < s.hold_s - 1e-9 else None,
+                       "hold_s": float(s.hold_s), "overshoot_pct": float(s.overshoot_pct)} for s in steps]}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="valve_plot", description=__doc__.split("\n\n")[0])
     ap.add_argument("bag", help="bag directory (valve_record, valve_identification, ros2 bag record)")
     ap.add_argument("--out", help="directory for the PNGs (default: BAG_plots next to the bag)")
     ap.add_argument("--topic", help="samples topic (default: the one named .../samples)")
+    ap.add_argument("--json", action="store_true", help="print the figures as one JSON object (the PNGs are "
+                    "still written where matplotlib is installed)")
     args = ap.parse_args(argv)
     try:
         rows, ref_t, ref_m, topic = read_run(args.bag, args.topic)
@@ -52,9 +72,19 @@ def main(argv=None) -> int:
         print(f"valve_plot: {exc}", file=sys.stderr)
         return 2
     reference = reference_on_samples(rows[:, 0], ref_t, ref_m)
+    steps = find_steps(rows[:, 0], rows[:, 2], reference)
+    if args.json:
+        out = Path(args.out) if args.out else Path(str(Path(args.bag).resolve()) + "_plots")
+        try:
+            from .plots import write_run
+            written = write_run(rows[:, 0], rows[:, 1], rows[:, 2], reference, out,
+                                title=f"{Path(args.bag).name} ({topic})")
+        except RuntimeError:  # no matplotlib: the numbers without figures
+            written = []
+        print(json.dumps({**run_figures(rows, reference, topic, steps), "figures": written}))
+        return 0
     for line in summary_lines(rows, reference, topic):
         print(line)
-    steps = find_steps(rows[:, 0], rows[:, 2], reference)
     if steps:
         print(f"steps (a change >= {STEP_MIN_JUMP_M * 1e6:g} um held >= {STEP_MIN_HOLD_S * 1e3:g} ms; "
               "settling in the 5 % band, from the moment the reference changed):")

@@ -15,6 +15,7 @@ gains meet the limits, 1 anything else.
 from __future__ import annotations
 
 import argparse
+import json
 from dataclasses import replace
 import sys
 
@@ -57,8 +58,9 @@ def main(argv=None) -> int:
     ap.add_argument("--compare", action="store_true", help="also show Table 1's sets for the strategy on the model")
     ap.add_argument("--params-out", metavar="FILE", help="write the parameters with the tuned gains here")
     ap.add_argument("--quiet", action="store_true", help="no progress lines")
+    ap.add_argument("--json", action="store_true", help="print the result as one JSON object (no progress lines)")
     args = ap.parse_args(argv)
-    log = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
+    log = (lambda s: None) if args.quiet or args.json else (lambda s: print(s, flush=True))
 
     def work() -> list[str]:
         params = read_parameters_file(args.params_file)
@@ -88,6 +90,8 @@ def main(argv=None) -> int:
             values = {**params, "control_period_s": float(dt), **result.parameters()}
             comments = [f"Tuned by valve_tune from {args.params_file}: {result.summary()}"]
             written = write_outputs({args.params_out: parameters_yaml(values, comments)})
+        if args.json:
+            return [json.dumps({**result.as_dict(), "control_period_s": float(dt), "written": written})]
         return lines + [f"wrote {path}" for path in written]
     return run_tool("valve_tune", work, (ParametersFileError, TuningError, ValueError))
 

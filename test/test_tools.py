@@ -1,4 +1,5 @@
 """The everyday tools around a running rig: valve_record, valve_command, valve_plot (issue 12)."""
+import json
 import os
 import signal
 import subprocess
@@ -188,6 +189,11 @@ def test_record_command_and_identify_a_running_rig(tmp_path):
     step_rows = [line for line in plot.stdout.splitlines() if "-10.00 ->    5.00" in line]
     assert len(step_rows) == 1, plot.stdout  # the last step, found in the recorded reference
     assert sorted(os.listdir(tmp_path / "plots")) == ["hysteresis_loop.png", "run_time.png"]
+    as_json = tool("valve_plot", str(bag), "--out", str(tmp_path / "plots_json"), "--json", timeout_s=300)
+    figures = json.loads(as_json.stdout)
+    assert figures["topic"] == f"{ns}/samples" and figures["samples"] == rows.shape[0]
+    assert [(round(s["start_um"], 2), round(s["end_um"], 2)) for s in figures["steps"]][-1] == (-10.0, 5.0)
+    assert figures["tracking"]["rms_um"] > 0 and len(figures["figures"]) == 2
     no_mpl = subprocess.run([sys.executable, "-c", "import sys; sys.modules['matplotlib'] = None; "
                              "from piezo_valve_ros.plot_cli import main; sys.exit(main(sys.argv[1:]))",
                              str(bag), "--out", str(tmp_path / "none")], capture_output=True, text=True, timeout=300)
@@ -369,3 +375,17 @@ def test_valve_rig_knows_which_options_the_command_line_gave():
     hw, _ = rig_parameters(parse_args(["--clock", "lockstep"]))
     merged = merged_parameters(hw, {"clock": "realtime", "control_period_s": 1e-3}, given)
     assert merged["clock"] == "lockstep" and merged["control_period_s"] == 1e-3
+
+
+def test_valve_record_summary_says_what_went_into_the_bag(tmp_path):
+    """valve_record's closing summary (the line, and the object --json prints): duration, messages per topic,
+    size, samples rows and rows dropped between the first and the last."""
+    from piezo_valve_ros.bagio import write_samples_bag
+    from piezo_valve_ros.nodes.record import parse_args, summary, summary_line
+    rows = np.column_stack([np.arange(1000) * 1e-3, np.full(1000, 5.0), np.zeros(1000)])
+    rows = np.delete(rows, [500, 501], axis=0)                    # two rows lost
+    write_samples_bag(tmp_path / "bag", rows, topic="/v/samples")
+    s = summary(tmp_path / "bag", 2.5, {"/v/samples": 1})
+    assert (s["samples_rows"], s["dropped"], s["messages"], s["duration_s"]) == (998, 2, {"/v/samples": 1}, 2.5)
+    assert s["bytes"] > 0 and "samples rows 998, dropped 2" in summary_line(tmp_path / "bag", 2.5, {"/v/samples": 1})
+    assert parse_args(["out", "--json"]).json

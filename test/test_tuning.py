@@ -1,5 +1,6 @@
 """The PID tuner (core/tuning/tuner.py) and valve_tune: margins that mean what they say, gains that meet the limits
 on the model and hold on the simulated valve, clear refusals."""
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -167,6 +168,12 @@ def test_valve_tune_writes_a_parameters_file_the_controller_takes(tmp_path, caps
     assert config.gains == PIDGains(params["kp"], params["ki"], params["kd"]) and config.dt == 2e-3
     assert config.derivative_filter_s == 1e-3
     assert model.gpim.n == PAPER.gpim.n
+    # --json: the same result as one object, nothing else on stdout
+    assert valve_tune([str(src), "--strategy", "pid_hc", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert (result["kp"], result["ki"], result["kd"]) == (params["kp"], params["ki"], params["kd"])
+    assert result["margins"]["phase_margin_deg"] >= 45.0 and result["on_the_model"]["overshoot_pct"] <= 2.0
+    assert result["control_period_s"] == 2e-3 and result["written"] == []
 
 
 def test_valve_tune_fails_with_one_line_and_writes_nothing(tmp_path, capsys):

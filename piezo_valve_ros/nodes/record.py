@@ -13,6 +13,7 @@ messages per topic, size on disk, and the rows of ``samples`` missing between th
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -35,6 +36,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: Ctrl-C)")
     ap.add_argument("--namespace", default="", help="the rig's namespace (default: the root)")
     ap.add_argument("--storage", default="mcap", choices=sorted(STORAGES), help="storage plugin (default mcap)")
+    ap.add_argument("--json", action="store_true", help="end with one JSON object instead of the summary line")
     return ap.parse_args(argv)
 
 
@@ -54,19 +56,25 @@ def bag_size_bytes(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
 
-def summary_line(path: Path, elapsed_s: float, counts: dict[str, int]) -> str:
-    """The closing line: what went into the bag."""
+def summary(path: Path, elapsed_s: float, counts: dict[str, int]) -> dict:
+    """What went into the bag: duration [s], messages per topic, size [bytes], samples rows, rows dropped."""
     rows = None
     if any(t.endswith("/samples") and n for t, n in counts.items()):
         try:
             rows, _ = read_samples(path)
         except BagError:
             pass
-    dropped = dropped_sample_rows(rows[:, 0]) if rows is not None and rows.size else 0
+    return {"bag": str(path), "duration_s": round(elapsed_s, 3), "messages": dict(counts),
+            "bytes": bag_size_bytes(path), "samples_rows": 0 if rows is None else int(rows.shape[0]),
+            "dropped": dropped_sample_rows(rows[:, 0]) if rows is not None and rows.size else 0}
+
+
+def summary_line(path: Path, elapsed_s: float, counts: dict[str, int]) -> str:
+    """The closing line: what went into the bag."""
+    s = summary(path, elapsed_s, counts)
     per_topic = ", ".join(f"{t} {n}" for t, n in counts.items())
     return (f"valve_record: {path}: {elapsed_s:.1f} s, {sum(counts.values())} messages ({per_topic or 'none'}), "
-            f"{bag_size_bytes(path) / 1e6:.2f} MB, samples rows {0 if rows is None else rows.shape[0]}, "
-            f"dropped {dropped}")
+            f"{s['bytes'] / 1e6:.2f} MB, samples rows {s['samples_rows']}, dropped {s['dropped']}")
 
 
 def main(argv=None) -> int:
@@ -108,7 +116,7 @@ def main(argv=None) -> int:
         counts = recorder.stop()
         elapsed = time.monotonic() - started
         close([node], executor)
-    print(summary_line(out, elapsed, counts), flush=True)
+    print(json.dumps(summary(out, elapsed, counts)) if args.json else summary_line(out, elapsed, counts), flush=True)
     return 0
 
 

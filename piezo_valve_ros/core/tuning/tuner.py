@@ -204,6 +204,24 @@ class TuningResult:
         return {"strategy": self.strategy, "kp": float(self.gains.kp), "ki": float(self.gains.ki),
                 "kd": float(self.gains.kd), "gain_set": "", "derivative_filter_s": float(self.derivative_filter_s)}
 
+    def as_dict(self) -> dict:
+        """The result as plain values (``valve_tune --json``): gains, margins (null for an infinite gain
+        margin), the steps on the model and on the dynamics variants."""
+        s, m = self.score, self.margins
+        finite = lambda x: float(x) if math.isfinite(x) else None  # noqa: E731
+        return {"strategy": self.strategy, "kp": float(self.gains.kp), "ki": float(self.gains.ki),
+                "kd": float(self.gains.kd), "derivative_filter_s": float(self.derivative_filter_s),
+                "margins": {"stable": bool(m.stable), "gain_margin_db": finite(m.gain_margin_db),
+                            "phase_margin_deg": finite(m.phase_margin_deg), "crossover_hz": finite(m.crossover_hz),
+                            "noise_gain": finite(m.noise_gain)},
+                "on_the_model": {"settling_time_s": finite(s.settling_time_s), "overshoot_pct": finite(s.overshoot_pct),
+                                 "worst_overshoot_pct": finite(s.worst_overshoot_pct), "rail_time_s": finite(s.rail_time_s)},
+                "worst_settling_time_s_with_G_v_off": finite(self.worst_settling_time_s),
+                "limits": {k: float(getattr(self.limits, k)) for k in ("max_overshoot_pct", "min_gain_margin_db",
+                                                                      "min_phase_margin_deg", "max_noise_gain",
+                                                                      "min_crossover_hz")},
+                "screened": int(self.screened), "simulated": int(self.simulated)}
+
     def summary(self) -> str:
         s = self.score
         return (f"{self.strategy}: kp {self.gains.kp:.4g}, ki {self.gains.ki:.4g} 1/s, kd {self.gains.kd:.3g} s; "
