@@ -51,7 +51,7 @@ def test_slew_limit_bounds_electrode_rate():
     # 10 V input = 200 V electrode takes 200 V / (500 V/ms) = 0.4 ms = 4 samples at 10 kHz
     assert limit_v_per_sample == pytest.approx(2.5)
     assert y[0] < y[2] < y[4]
-    assert sim2._electrode_v == pytest.approx(100.0)
+    assert sim2.electrode_v == pytest.approx(100.0)
     fast = SimulatedValve(replace(ValveSimConfig().ideal(), initial_voltage_v=0.0)).run(np.full(100, 10.0))
     assert fast[2] > y[2]  # without the limit the first sample already sees the full step
 

@@ -10,8 +10,9 @@ Signal chain (each stage has its own switch and parameters)::
       -> G_v(s) (exact ZOH)  -> thermal drift (offset and gain, exponential in time)
       -> LVDT noise and quantisation -> position [m]
 
-``step`` (per sample) and ``run`` (a whole record, vectorised) give the same result, and a
-run repeats bit for bit from ``seed``.  Default effects: slew limit, creep, flattening,
+Each stage is a small class with ``step`` (per sample) and ``run`` (a whole record, vectorised) on one
+state; ``SimulatedValve`` chains the stages that are switched on, so ``step`` and ``run`` go through the
+same chain and give the same result, and a run repeats bit for bit from ``seed``.  Default effects: slew limit, creep, flattening,
 noise, quantisation.  Off by default (for identification work): asymmetry, rate
 dependence, drift.
 """
@@ -150,184 +151,39 @@ class ValveSimConfig:
         return m
 
 
-class SimulatedValve:
-    """The valve as a sampled system: ``step(v) -> position [m]`` once per ``dt``."""
+class _Amplifier:
+    """Input clip, gain and offset, current (slew) limit; out: the input-equivalent voltage [V] the bender sees."""
 
-    def __init__(self, config: ValveSimConfig = ValveSimConfig()):
-        if not (config.dt > 0 and math.isfinite(config.dt)):
-            raise ValueError(f"dt must be a positive finite time, got {config.dt}")
-        self.config = config
-        self.hysteresis = config.hysteresis_model()
-        self.reset()
-
-    # ------------------------------------------------------------------ state
-    def reset(self) -> None:
-        c = self.config
-        v0 = float(np.clip(c.initial_voltage_v, c.amplifier.input_min_v, c.amplifier.input_max_v))
-        self.time_s = 0.0
-        self.sample_index = 0
-        self._rng = np.random.default_rng(c.seed)
-        self._noise = np.empty(0)
-        self._noise_pos = 0
-        self._electrode_v = c.amplifier.gain * v0 + c.amplifier.output_offset_v
-        self._gpim = self.hysteresis.stream(v0=v0)
-        y0 = self._gpim.model.output_from_state(self._gpim.state)
-        self._creep = [first_order_lag(tau, c.dt) for tau in c.creep.time_constants_s]
-        for f in self._creep:
-            f.reset(y0)
-        self._rate = first_order_lag(c.rate.time_constant_s, c.dt)
-        self._rate.reset(y0)
-        self._gv = c.valve_model.discretise(c.dt)
-        self._gv.reset(self._static(y0))
+    def __init__(self, p: AmplifierParams, dt: float, v0: float):
+        self.p, self.limit = p, p.slew_v_per_s * dt
+        self.electrode_v = p.gain * v0 + p.output_offset_v
         self.last_voltage_v = v0
-        d = int(c.sensor.delay_samples)
-        if d < 0:
-            raise ValueError(f"sensor delay_samples must be >= 0, got {d}")
-        self._delay_line = np.full(d, self._static(y0))  # the spool's last d positions, oldest first
-        self._delay_pos = 0
-        self._spool_um = self._static(y0)
 
-    def _static(self, y_um: float) -> float:
-        s = self.config.saturation
-        if not s.enabled:
-            return y_um
-        return s.centre_um + s.scale_um * math.tanh((y_um - s.centre_um) / s.scale_um)
-
-    def _noise_block(self) -> np.ndarray:
-        return self._rng.standard_normal(NOISE_BLOCK)
-
-    # ------------------------------------------------------------------ per sample
-    def step(self, voltage_v: float) -> float:
-        """Apply ``voltage_v`` [V, amplifier input] for one sample; return the measured position [m]."""
-        c = self.config
-        amp = c.amplifier
-        if not math.isfinite(voltage_v):
-            raise ValueError(f"non-finite voltage command {voltage_v!r}")
-        v = min(max(voltage_v, amp.input_min_v), amp.input_max_v)
+    def step(self, v: float, k: int) -> float:
+        p = self.p
+        v = min(max(v, p.input_min_v), p.input_max_v)
         self.last_voltage_v = v
-        target = amp.gain * v + amp.output_offset_v
-        if amp.enabled:
-            limit = amp.slew_v_per_s * c.dt
-            delta = min(max(target - self._electrode_v, -limit), limit)
-            self._electrode_v += delta
+        target = p.gain * v + p.output_offset_v
+        if p.enabled:
+            self.electrode_v += min(max(target - self.electrode_v, -self.limit), self.limit)
         else:
-            self._electrode_v = target
-        v_eff = (self._electrode_v - amp.output_offset_v) / amp.gain
-        y = self._gpim.step(v_eff)
-        if c.creep.enabled:
-            y_h = y
-            for gain, f in zip(c.creep.gains, self._creep):
-                y += gain * (f.step(y_h) - y_h)
-        if c.rate.enabled:
-            y += c.rate.share * (self._rate.step(y) - y)
-        y = self._static(y)
-        if c.dynamics_enabled:
-            y = self._gv.step(y)
-        t = self.time_s
-        y = self._drift_scalar(y, t)
-        self._spool_um = y
-        if self._delay_line.size:
-            line, k = self._delay_line, self._delay_pos
-            y, line[k] = float(line[k]), y
-            self._delay_pos = (k + 1) % line.size
-        y = self._sensor_scalar(y)
-        self.sample_index += 1
-        self.time_s = self.sample_index * c.dt
-        return y * 1e-6
+            self.electrode_v = target
+        return (self.electrode_v - p.output_offset_v) / p.gain
 
-    def _drift_scalar(self, y: float, t: float) -> float:
-        d = self.config.drift
-        if not d.enabled:
-            return y
-        if t <= d.start_s:
-            return y
-        k = 1.0 - math.exp(-(t - d.start_s) / d.time_constant_s)
-        return y * (1.0 + d.gain_change * k) + d.offset_um * k
-
-    def _sensor_scalar(self, y: float) -> float:
-        s = self.config.sensor
-        if s.noise_enabled:
-            if self._noise_pos >= self._noise.size:
-                self._noise = self._noise_block()
-                self._noise_pos = 0
-            y += s.noise_rms_um * float(self._noise[self._noise_pos])
-            self._noise_pos += 1
-        if s.quantisation_enabled:
-            y = s.quantum_um * round(y / s.quantum_um)
-        return y
-
-    # ------------------------------------------------------------------ batch
-    def run(self, voltages_v: np.ndarray) -> np.ndarray:
-        """Apply a whole record of commands (one per sample); returns positions [m].
-
-        Same result as calling ``step`` for each sample, state carried over either way.
-        """
-        c = self.config
-        amp = c.amplifier
-        v = np.asarray(voltages_v, dtype=float)
-        if v.ndim != 1:
-            raise ValueError("voltages must be a 1-D array")
-        if not np.all(np.isfinite(v)):
-            raise ValueError("non-finite voltage command in record")
-        n = v.size
-        if n == 0:
-            return np.zeros(0)
-        v = np.clip(v, amp.input_min_v, amp.input_max_v)
+    def run(self, v: np.ndarray, k0: int) -> np.ndarray:
+        p = self.p
+        v = np.clip(v, p.input_min_v, p.input_max_v)
         self.last_voltage_v = float(v[-1])
-        target = amp.gain * v + amp.output_offset_v
-        electrode = self._slew_limit(target) if amp.enabled else target
-        self._electrode_v = float(electrode[-1])
-        v_eff = (electrode - amp.output_offset_v) / amp.gain
-        y = self._gpim.run(v_eff)
-        if c.creep.enabled:
-            y_h = y
-            y = y_h.copy()
-            for gain, f in zip(c.creep.gains, self._creep):
-                y += gain * (f.run(y_h) - y_h)
-        if c.rate.enabled:
-            y = y + c.rate.share * (self._rate.run(y) - y)
-        if c.saturation.enabled:
-            s = c.saturation
-            y = s.centre_um + s.scale_um * np.tanh((y - s.centre_um) / s.scale_um)
-        if c.dynamics_enabled:
-            y = self._gv.run(y)
-        t = (self.sample_index + np.arange(n)) * c.dt
-        if c.drift.enabled:
-            d = c.drift
-            k = 1.0 - np.exp(-np.maximum(t - d.start_s, 0.0) / d.time_constant_s)
-            y = y * (1.0 + d.gain_change * k) + d.offset_um * k
-        self._spool_um = float(y[-1])
-        if self._delay_line.size:
-            line = np.roll(self._delay_line, -self._delay_pos)  # oldest first
-            both = np.concatenate((line, y))
-            y, self._delay_line, self._delay_pos = both[:n], both[n:].copy(), 0
-        s = c.sensor
-        if s.noise_enabled:
-            y = y + s.noise_rms_um * self._take_noise(n)
-        if s.quantisation_enabled:
-            y = s.quantum_um * np.round(y / s.quantum_um)
-        self.sample_index += n
-        self.time_s = self.sample_index * c.dt
-        return y * 1e-6
-
-    def _take_noise(self, n: int) -> np.ndarray:
-        parts = []
-        need = n
-        while need > 0:
-            if self._noise_pos >= self._noise.size:
-                self._noise = self._noise_block()
-                self._noise_pos = 0
-            take = min(need, self._noise.size - self._noise_pos)
-            parts.append(self._noise[self._noise_pos:self._noise_pos + take])
-            self._noise_pos += take
-            need -= take
-        return np.concatenate(parts)
+        target = p.gain * v + p.output_offset_v
+        electrode = self._slew_limit(target) if p.enabled else target
+        self.electrode_v = float(electrode[-1])
+        return (electrode - p.output_offset_v) / p.gain
 
     def _slew_limit(self, target: np.ndarray) -> np.ndarray:
         """Rate limiter u_k = u_{k-1} + clip(target_k - u_{k-1}, +-S dt), loop only where it binds."""
-        limit = self.config.amplifier.slew_v_per_s * self.config.dt
+        limit = self.limit
         out = target.copy()
-        prev = self._electrode_v
+        prev = self.electrode_v
         k = 0
         n = target.size
         while k < n:
@@ -348,13 +204,269 @@ class SimulatedValve:
                     break
         return out
 
+
+class _Hysteresis:
+    """The GPIM [um] of the input-equivalent voltage (its operators' state carried)."""
+
+    def __init__(self, model: GPIM, v0: float):
+        self.stream = model.stream(v0=v0)
+
+    def step(self, v: float, k: int) -> float:
+        return self.stream.step(v)
+
+    def run(self, v: np.ndarray, k0: int) -> np.ndarray:
+        return self.stream.run(v)
+
+
+class _Creep:
+    """y + sum g_i (lag_i[y] - y): slow first-order elements, unity DC gain."""
+
+    def __init__(self, p: CreepParams, dt: float, y0: float):
+        self.gains = p.gains
+        self.lags = [first_order_lag(tau, dt) for tau in p.time_constants_s]
+        for f in self.lags:
+            f.reset(y0)
+
+    def step(self, y: float, k: int) -> float:
+        y_h = y
+        for gain, f in zip(self.gains, self.lags):
+            y += gain * (f.step(y_h) - y_h)
+        return y
+
+    def run(self, y_h: np.ndarray, k0: int) -> np.ndarray:
+        y = y_h.copy()
+        for gain, f in zip(self.gains, self.lags):
+            y += gain * (f.run(y_h) - y_h)
+        return y
+
+
+class _RateDependence:
+    """Part of the output through a fast lag: a loop that widens with the input rate."""
+
+    def __init__(self, p: RateDependenceParams, dt: float, y0: float):
+        self.share = p.share
+        self.lag = first_order_lag(p.time_constant_s, dt)
+        self.lag.reset(y0)
+
+    def step(self, y: float, k: int) -> float:
+        return y + self.share * (self.lag.step(y) - y)
+
+    def run(self, y: np.ndarray, k0: int) -> np.ndarray:
+        return y + self.share * (self.lag.run(y) - y)
+
+
+class _Saturation:
+    """Loop-end flattening s tanh((y - c) / s) + c."""
+
+    def __init__(self, p: SaturationParams):
+        self.p = p
+
+    def step(self, y: float, k: int) -> float:
+        p = self.p
+        return p.centre_um + p.scale_um * math.tanh((y - p.centre_um) / p.scale_um)
+
+    def run(self, y: np.ndarray, k0: int) -> np.ndarray:
+        p = self.p
+        return p.centre_um + p.scale_um * np.tanh((y - p.centre_um) / p.scale_um)
+
+
+class _Dynamics:
+    """G_v(s), exact ZOH."""
+
+    def __init__(self, tf: ContinuousTF, dt: float, y0: float):
+        self.filter = tf.discretise(dt)
+        self.filter.reset(y0)
+
+    def step(self, y: float, k: int) -> float:
+        return self.filter.step(y)
+
+    def run(self, y: np.ndarray, k0: int) -> np.ndarray:
+        return self.filter.run(y)
+
+
+class _Drift:
+    """Offset and gain approaching new values exponentially from ``start_s`` (time = sample index x dt)."""
+
+    def __init__(self, p: DriftParams, dt: float):
+        self.p, self.dt = p, dt
+
+    def step(self, y: float, k: int) -> float:
+        p, t = self.p, k * self.dt
+        if t <= p.start_s:
+            return y
+        w = 1.0 - math.exp(-(t - p.start_s) / p.time_constant_s)
+        return y * (1.0 + p.gain_change * w) + p.offset_um * w
+
+    def run(self, y: np.ndarray, k0: int) -> np.ndarray:
+        p = self.p
+        t = (k0 + np.arange(y.size)) * self.dt
+        w = 1.0 - np.exp(-np.maximum(t - p.start_s, 0.0) / p.time_constant_s)
+        return y * (1.0 + p.gain_change * w) + p.offset_um * w
+
+
+class _Spool:
+    """Not a filter: remembers the spool's true position [um], before the sensor."""
+
+    def __init__(self, y0: float):
+        self.y_um = y0
+
+    def step(self, y: float, k: int) -> float:
+        self.y_um = y
+        return y
+
+    def run(self, y: np.ndarray, k0: int) -> np.ndarray:
+        self.y_um = float(y[-1])
+        return y
+
+
+class _SensorDelay:
+    """The position read at sample k is the spool's at sample k - delay_samples."""
+
+    def __init__(self, delay_samples: int, y0: float):
+        self.line = np.full(delay_samples, y0)  # the spool's last d positions, oldest first
+        self.pos = 0
+
+    def step(self, y: float, k: int) -> float:
+        line, i = self.line, self.pos
+        y, line[i] = float(line[i]), y
+        self.pos = (i + 1) % line.size
+        return y
+
+    def run(self, y: np.ndarray, k0: int) -> np.ndarray:
+        n = y.size
+        both = np.concatenate((np.roll(self.line, -self.pos), y))
+        self.line, self.pos = both[n:].copy(), 0
+        return both[:n]
+
+
+class _Sensor:
+    """LVDT noise (drawn in fixed blocks, so step and run consume the generator alike) and quantisation."""
+
+    def __init__(self, p: SensorParams, seed: int):
+        self.p = p
+        self.rng = np.random.default_rng(seed)
+        self.noise = np.empty(0)
+        self.pos = 0
+
+    def step(self, y: float, k: int) -> float:
+        p = self.p
+        if p.noise_enabled:
+            if self.pos >= self.noise.size:
+                self.noise, self.pos = self.rng.standard_normal(NOISE_BLOCK), 0
+            y += p.noise_rms_um * float(self.noise[self.pos])
+            self.pos += 1
+        if p.quantisation_enabled:
+            y = p.quantum_um * round(y / p.quantum_um)
+        return y
+
+    def run(self, y: np.ndarray, k0: int) -> np.ndarray:
+        p = self.p
+        if p.noise_enabled:
+            y = y + p.noise_rms_um * self._take(y.size)
+        if p.quantisation_enabled:
+            y = p.quantum_um * np.round(y / p.quantum_um)
+        return y
+
+    def _take(self, n: int) -> np.ndarray:
+        parts, need = [], n
+        while need > 0:
+            if self.pos >= self.noise.size:
+                self.noise, self.pos = self.rng.standard_normal(NOISE_BLOCK), 0
+            take = min(need, self.noise.size - self.pos)
+            parts.append(self.noise[self.pos:self.pos + take])
+            self.pos += take
+            need -= take
+        return np.concatenate(parts)
+
+
+class SimulatedValve:
+    """The valve as a sampled system: ``step(v) -> position [m]`` once per ``dt``, or ``run(v)`` over a whole
+    record.  Both go through one chain of stages (the module docstring's), each with its ``step`` and ``run``
+    on one state; a stage that is switched off is not in the chain."""
+
+    def __init__(self, config: ValveSimConfig = ValveSimConfig()):
+        if not (config.dt > 0 and math.isfinite(config.dt)):
+            raise ValueError(f"dt must be a positive finite time, got {config.dt}")
+        self.config = config
+        self.hysteresis = config.hysteresis_model()
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        c = self.config
+        d = int(c.sensor.delay_samples)
+        if d < 0:
+            raise ValueError(f"sensor delay_samples must be >= 0, got {d}")
+        v0 = float(np.clip(c.initial_voltage_v, c.amplifier.input_min_v, c.amplifier.input_max_v))
+        self.time_s = 0.0
+        self.sample_index = 0
+        self._amplifier = _Amplifier(c.amplifier, c.dt, v0)
+        self._hysteresis = _Hysteresis(self.hysteresis, v0)
+        y0 = self.hysteresis.output_from_state(self._hysteresis.stream.state)
+        saturation = _Saturation(c.saturation) if c.saturation.enabled else None
+        y_static = saturation.step(y0, 0) if saturation else y0
+        self._spool = _Spool(y_static)
+        stages = [self._amplifier, self._hysteresis,
+                  _Creep(c.creep, c.dt, y0) if c.creep.enabled else None,
+                  _RateDependence(c.rate, c.dt, y0) if c.rate.enabled else None,
+                  saturation,
+                  _Dynamics(c.valve_model, c.dt, y_static) if c.dynamics_enabled else None,
+                  _Drift(c.drift, c.dt) if c.drift.enabled else None,
+                  self._spool,
+                  _SensorDelay(d, y_static) if d else None,
+                  _Sensor(c.sensor, c.seed)]
+        self._stages = [st for st in stages if st is not None]
+
+    @property
+    def electrode_v(self) -> float:
+        """The amplifier's output [V] after the last sample (its slew limit follows the command)."""
+        return self._amplifier.electrode_v
+
+    @property
+    def last_voltage_v(self) -> float:
+        """The last command applied [V, amplifier input, after its clip]."""
+        return self._amplifier.last_voltage_v
+
+    # ------------------------------------------------------------------ per sample
+    def step(self, voltage_v: float) -> float:
+        """Apply ``voltage_v`` [V, amplifier input] for one sample; return the measured position [m]."""
+        if not math.isfinite(voltage_v):
+            raise ValueError(f"non-finite voltage command {voltage_v!r}")
+        k, x = self.sample_index, voltage_v
+        for stage in self._stages:
+            x = stage.step(x, k)
+        self.sample_index = k + 1
+        self.time_s = self.sample_index * self.config.dt
+        return x * 1e-6
+
+    # ------------------------------------------------------------------ batch
+    def run(self, voltages_v: np.ndarray) -> np.ndarray:
+        """Apply a whole record of commands (one per sample); returns positions [m].
+
+        Same result as calling ``step`` for each sample, state carried over either way.
+        """
+        v = np.asarray(voltages_v, dtype=float)
+        if v.ndim != 1:
+            raise ValueError("voltages must be a 1-D array")
+        if not np.all(np.isfinite(v)):
+            raise ValueError("non-finite voltage command in record")
+        if v.size == 0:
+            return np.zeros(0)
+        k0, x = self.sample_index, v
+        for stage in self._stages:
+            x = stage.run(x, k0)
+        self.sample_index = k0 + v.size
+        self.time_s = self.sample_index * self.config.dt
+        return x * 1e-6
+
     # ------------------------------------------------------------------ helpers
     @property
     def spool_position_m(self) -> float:
         """The spool's true position [m] after the last sample: what the sensor reads before its delay,
         noise and quantisation (a simulator's privilege, for judging tracking beneath the noise floor)."""
-        return self._spool_um * 1e-6
+        return self._spool.y_um * 1e-6
 
     def position_um(self) -> float:
         """Noise-free present hysteresis output [um] (for diagnostics)."""
-        return self._gpim.model.output_from_state(self._gpim.state)
+        stream = self._hysteresis.stream
+        return stream.model.output_from_state(stream.state)
