@@ -353,8 +353,8 @@ def test_valve_rig_brings_up_your_backend_from_one_parameters_file(tmp_path):
             row = np.asarray(states[-1].data)
             assert row[1] == pytest.approx(20e-6) and abs(row[2] - 20e-6) < 1e-6   # reference, measured
             # the same, read by a user: valve_command status
-            shown = tool("valve_command", "--namespace", ns, "status", "--listen", "1.5")
-            assert f"{ns}/valve_hardware: " in shown.stdout and f"{ns}/valve_controller: OK: " in shown.stdout, shown
+            shown = tool("valve_command", "--namespace", ns, "status", "--listen", "10")
+            assert f"{ns}/valve_hardware: " in shown.stdout and f"{ns}/valve_controller: OK: " in shown.stdout, shown.stdout
             assert "    watchdog: armed" in shown.stdout and "controller state: time_s " in shown.stdout, shown.stdout
             assert "reference_m 2e-05" in shown.stdout, shown.stdout
     finally:

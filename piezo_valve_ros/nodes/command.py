@@ -12,7 +12,7 @@ needed).  Positions in metres, times in seconds (SI, as on the topics).
     valve_command status                                      # the rig's /diagnostics and controller state
 
 Nodes are ``hardware``, ``controller``, ``identification`` (the rig's, in ``--namespace``) or any node
-name.  ``status`` listens for ``--listen`` seconds and prints the latest health every node of the namespace
+name.  ``status`` listens (until each node has reported, ``--listen`` seconds at most) and prints the latest health every node of the namespace
 published on ``/diagnostics`` (hardware, controller, ``valve_monitor``) and the controller's latest
 ``~/controller_state``; it exits 1 when a status is not OK or none came.  Values of ``set`` are read as YAML, like ``ros2 param set`` (``1`` an integer, ``1.0`` a double,
 ``true`` a bool, ``'1'`` a string).  Exit status: 0 done, 1 a value refused or the rig not answering,
@@ -80,7 +80,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("path")
     p = sub.add_parser("status", help="print the rig's health (/diagnostics) and the controller's state")
     p.add_argument("--listen", type=float, default=6.0, metavar="S",
-                   help="listen this long (default 6 s: valve_monitor reports every 5 s)")
+                   help="listen at most this long for every node to report (default 6 s: valve_monitor reports "
+                        "every 5 s)")
     return ap.parse_args(argv)
 
 
@@ -141,11 +142,14 @@ def checked_request(args):
 
 
 LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
+STATUS_DISCOVERY_S = 1.5   # status: the namespace's nodes have stayed the same this long: all are found
+REPORTING_NODES = {"valve_hardware", "valve_controller", "valve_monitor"}   # they publish on /diagnostics
 
 
 def status(args, client: RigClient, out=sys.stdout) -> int:
     """The latest /diagnostics status of each node in the rig's namespace and the latest controller state,
-    heard for ``args.listen`` seconds; 1 when a status is not OK or none came."""
+    heard until every such node (the hardware and the controller always) has reported, at most ``args.listen``
+    seconds; 1 when a status is not OK or one did not come."""
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import Float64MultiArray
     ns = client.get_namespace().rstrip("/") + "/"
@@ -154,12 +158,33 @@ def status(args, client: RigClient, out=sys.stdout) -> int:
                 {s.name: s for s in m.status if s.name.startswith(ns)}), 10),
             client.create_subscription(Float64MultiArray, client.node_name("controller") + "/controller_state",
                                        state.append, 10)]
-    time.sleep(args.listen)
+    # until every node of the namespace that publishes /diagnostics has been heard (and the controller's
+    # state, when it publishes one), or --listen has passed: a new reader hears nothing before discovery
+    started = changed = time.monotonic()
+    known: tuple = ()
+    rig = {client.node_name("hardware"), client.node_name("controller")}   # a rig has both, found or not yet
+    while time.monotonic() - started < args.listen:
+        time.sleep(0.05)
+        # the package's reporting nodes in the namespace (a node is seen before its publishers are)
+        nodes = {f"{space.rstrip('/')}/{name}" for name, space in client.get_node_names_and_namespaces()
+                 if name in REPORTING_NODES}
+        publishers = {f"{i.node_namespace.rstrip('/')}/{i.node_name}"
+                      for i in client.get_publishers_info_by_topic("/diagnostics")}
+        expected = {p for p in nodes | publishers if p.startswith(ns)} | rig
+        state_publishers = client.count_publishers(client.node_name("controller") + "/controller_state")
+        if (sorted(expected), state_publishers) != known:     # discovery still finding nodes
+            known, changed = (sorted(expected), state_publishers), time.monotonic()
+        settled = time.monotonic() - changed >= STATUS_DISCOVERY_S
+        if settled and expected and expected <= set(latest) and (state or not state_publishers):
+            break
     for sub in subs:
         client.destroy_subscription(sub)
     if not latest:
         print(f"valve_command: no node in {ns} published on /diagnostics within {args.listen:g} s", file=out)
         return 1
+    silent = sorted(rig - set(latest))
+    for name in silent:
+        print(f"{name}: no status within {args.listen:g} s", file=out)
     for name in sorted(latest):
         s = latest[name]
         level = LEVELS.get(s.level[0] if isinstance(s.level, bytes) else s.level, str(s.level))
@@ -171,7 +196,8 @@ def status(args, client: RigClient, out=sys.stdout) -> int:
         labels = msg.layout.dim[1].label.split(",") if len(msg.layout.dim) == 2 else []
         row = dict(zip(labels, msg.data))
         print("controller state: " + ", ".join(f"{k} {v:.6g}" for k, v in row.items()), file=out)
-    return 0 if all((s.level[0] if isinstance(s.level, bytes) else s.level) == 0 for s in latest.values()) else 1
+    return 0 if not silent and all((s.level[0] if isinstance(s.level, bytes) else s.level) == 0
+                                   for s in latest.values()) else 1
 
 
 def run(args, client: RigClient, request, out=sys.stdout) -> int:
