@@ -5,7 +5,6 @@
 ``--check`` writes nothing and exits 1 when the file differs from what the declarations give (the tests
 run it, so the tables cannot drift from the code).
 """
-import argparse
 import sys
 from pathlib import Path
 
@@ -38,18 +37,8 @@ def tables() -> str:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--check", action="store_true", help="only compare with the file")
-    args = ap.parse_args()
-    text = tables()
-    if args.check:
-        if not OUT.exists() or OUT.read_text() != text:
-            print(f"{OUT} is out of date: run python scripts/parameter_tables.py", file=sys.stderr)
-            return 1
-        return 0
-    OUT.write_text(text)
-    print(f"wrote {OUT}")
-    return 0
+    from generated_page import main_for   # beside this script
+    return main_for(OUT, tables, "parameter_tables.py", __doc__.split("\n\n")[0])
 
 
 if __name__ == "__main__":

@@ -5,7 +5,6 @@
 
 ``--check`` writes nothing and exits 1 when the file differs from what the definition gives (the tests run it).
 """
-import argparse
 import sys
 from pathlib import Path
 
@@ -29,18 +28,8 @@ def page() -> str:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--check", action="store_true", help="exit 1 when the page is out of date")
-    args = ap.parse_args()
-    text = page()
-    if args.check:
-        if not OUT.exists() or OUT.read_text() != text:
-            print(f"{OUT} is out of date: run python scripts/report_schema.py", file=sys.stderr)
-            return 1
-        return 0
-    OUT.write_text(text)
-    print(f"wrote {OUT}")
-    return 0
+    from generated_page import main_for   # beside this script
+    return main_for(OUT, page, "report_schema.py", __doc__.split("\n\n")[0])
 
 
 if __name__ == "__main__":

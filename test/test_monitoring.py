@@ -223,3 +223,34 @@ def test_valve_identify_monitor_judges_a_recorded_day_offline(tmp_path):
     bad = subprocess.run([exe, str(tmp_path / "day"), "--monitor", str(broken)], capture_output=True, text=True,
                          timeout=120)
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "broken.yaml" in bad.stderr
+
+
+@pytest.mark.parametrize("override, says", [("refit_when:=sometimes", "refit_when must be one of never, warn, error"),
+                                            ("window_s:=-1.0", "window_s"), ("step_s:=nan", "step_s"),
+                                            ("error_ratio:=1.5", "error_ratio (1.5) must exceed warn_ratio"),
+                                            ("window_s:=abc", "window_s")])
+def test_valve_monitor_refuses_bad_start_up_parameters_in_one_line(override, says):
+    """Every valve_monitor parameter is read-only: a bad value at start-up ends the node with one line (exit
+    2), never a node that runs on something else."""
+    import os
+    import subprocess
+    import sys
+    from ros_helpers import ros_env
+    exe = os.path.join(os.path.dirname(sys.executable), "valve_monitor")
+    out = subprocess.run([exe, "--ros-args", "-p", override], env=ros_env(), capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 2, (out.stdout, out.stderr)
+    lines = [line for line in out.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("valve_monitor: ") and says in lines[0], out.stderr
+
+
+def test_the_sim_backends_drift_parameters_are_checked():
+    from piezo_valve_ros.backends import sim_config_from_parameters
+    config = sim_config_from_parameters({"drift": True, "drift_start_s": 30.0, "drift_offset_um": 2.0})
+    assert config.drift.enabled and config.drift.start_s == 30.0 and config.drift.offset_um == 2.0
+    for (name, value), says in ((("drift_time_constant_s", 0.0), "drift_time_constant_s must be > 0"),
+                                (("drift_start_s", -1.0), "sim.drift_start_s must be >= 0"),
+                                (("drift_offset_um", float("nan")), "sim.drift_offset_um must be finite"),
+                                (("drift_gain_change", "much"), "sim.drift_gain_change")):
+        with pytest.raises(ValueError, match=says):
+            sim_config_from_parameters({name: value})
