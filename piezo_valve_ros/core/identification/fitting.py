@@ -75,6 +75,7 @@ def solve_gram(gram: np.ndarray, rhs: np.ndarray, n_rows: int, lower: np.ndarray
         R = np.triu(factor[0])
         d = linalg.solve_triangular(R, rhs, trans="T", check_finite=False)
         x = optimize.lsq_linear(R, d, bounds=(lo, np.inf), method="bvls", lsmr_tol="auto").x
+        x = np.maximum(x, lo)   # BVLS may leave a bound broken by rounding (-3e-19): a weight must not be < 0
     return x / scale
 
 
