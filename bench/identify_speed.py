@@ -14,14 +14,11 @@ Ours is also timed with its refits on one thread (``analyse(threads=1)``, withou
 records users have (``analyse`` on each, no bag reading): closed-loop operation of a creeping valve under
 PI and PID HC (train + validate, and held-out tail), a +-150 V drive warming up, and the measured piezo
 record of ``test/data/smart_hysteresis`` at its own 5 kHz.
-``--load`` repeats the measurement of ours with two busy loops running beside it (this machine has two
-cores).  Compare ratios within one run: the machine is shared.
+``--load`` repeats the measurement of ours (bag pairs and users' records) with two busy loops running beside
+it (this machine has two cores).  Compare ratios within one run: the machine is shared.
 """
 import argparse
-import builtins
 import itertools
-import multiprocessing
-import sys
 import tempfile
 import time
 from dataclasses import replace
@@ -37,6 +34,8 @@ from piezo_valve_ros.core.sim.signals import identification_voltage, validation_
 from piezo_valve_ros.core.sim.simulator import DriftParams, ValveSimConfig
 from piezo_valve_ros.identify import identify_bags
 from threadpoolctl import threadpool_limits
+
+from harness import Lines, loaded
 
 VALVES = {
     "default valve": ValveSimConfig(),
@@ -111,9 +110,9 @@ def users_records():
     return out
 
 
-def _burn(stop):
-    while not stop.is_set():
-        pass
+def timed_under_load(fn):
+    """``timed(fn)`` with two busy loops running beside it (this machine has two cores)."""
+    return loaded(lambda: timed(fn))
 
 
 def main():
@@ -122,11 +121,7 @@ def main():
     ap.add_argument("--load", action="store_true", help="also measure with two busy loops running")
     ap.add_argument("--markdown", metavar="FILE", help="also write what is printed here")
     args = ap.parse_args()
-    lines = []
-
-    def print(text):   # noqa: A001  (printed and kept for --markdown)
-        builtins.print(text, flush=True)
-        lines.append(text)
+    print = Lines()   # noqa: A001  (printed and kept for --markdown)
 
     with tempfile.TemporaryDirectory() as tmp:
         for rate_hz in (10000, 2000):
@@ -147,16 +142,7 @@ def main():
                 same = one.report["effects_added"] == r["effects_added"]
                 print(f"   ours, refits on one thread    {t_one:6.2f} s  ({t_one / t_ours:.1f}x; same effects: {same})")
                 if args.load:
-                    stop = multiprocessing.Event()
-                    burners = [multiprocessing.Process(target=_burn, args=(stop,)) for _ in range(2)]
-                    for b in burners:
-                        b.start()
-                    try:
-                        t_load, _ = timed(lambda: identify_bags(train, val, log=lambda s: None))
-                    finally:
-                        stop.set()
-                        for b in burners:
-                            b.join()
+                    t_load, _ = timed_under_load(lambda: identify_bags(train, val, log=lambda s: None))
                     print(f"   ours, two busy loops beside   {t_load:6.2f} s  ({t_load / t_ours:.1f}x the quiet run)")
                 if args.skip_straightforward:
                     continue
@@ -177,10 +163,13 @@ def main():
         r = a.report
         print(f"   {label}: {n} samples, {t:6.2f} s ({t_one:6.2f} s on one thread); added {r['effects_added']}, "
               f"held-out RMS {r['baseline']['validate']['rms_um']:.3f} -> {r['final']['validate']['rms_um']:.3f} um")
+        if args.load:
+            t_load, loaded = timed_under_load(lambda: analyse(train, validate))
+            print(f"      two busy loops beside {t_load:6.2f} s ({t_load / t:.1f}x the quiet run; same effects: "
+                  f"{loaded.report['effects_added'] == r['effects_added']})")
     if args.markdown:
-        with open(args.markdown, "w") as fh:
-            fh.write(f"Output of `python bench/identify_speed.py {' '.join(sys.argv[1:])}` (seconds on this shared "
-                     "2-core machine; compare ratios within one run):\n\n```\n" + "\n".join(lines) + "\n```\n")
+        print.write_markdown(args.markdown, "bench/identify_speed.py",
+                             " (seconds on this shared 2-core machine; compare ratios within one run)")
 
 
 if __name__ == "__main__":

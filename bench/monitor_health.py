@@ -23,6 +23,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "test"))
 
 from valve_battery import staircase_and_sines_um  # noqa: E402  (test helpers: the operating reference)
+from harness import loaded  # noqa: E402
 from piezo_valve_ros.core.control.compensation import CompensationModel  # noqa: E402
 from piezo_valve_ros.core.control.strategies import ControllerConfig, PIDGains, ValveController  # noqa: E402
 from piezo_valve_ros.core.monitoring.health import HealthLimits, HealthMonitor, Level  # noqa: E402
@@ -62,26 +63,6 @@ def monitored(rows: np.ndarray, dt: float, chunk_s: float = 0.1) -> tuple[list, 
         cpu += time.process_time() - t0
         wall += time.perf_counter() - w0
     return verdicts, cpu, monitor.held, wall
-
-
-def _burn(stop):
-    while not stop.is_set():
-        pass
-
-
-def loaded(fn):
-    """``fn()`` with two busy loops running beside it (this machine has two cores)."""
-    import multiprocessing
-    stop = multiprocessing.Event()
-    burners = [multiprocessing.Process(target=_burn, args=(stop,)) for _ in range(2)]
-    for b in burners:
-        b.start()
-    try:
-        return fn()
-    finally:
-        stop.set()
-        for b in burners:
-            b.join()
 
 
 def main() -> int:

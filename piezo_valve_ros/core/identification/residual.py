@@ -11,7 +11,8 @@ How it decides (every figure on data the fit has not seen: a validation record, 
    starts where the input has wiped it out (``split.Split.after_wipe``).  The
    baseline is the paper's model, GPIM followed by a second-order G_v with unity DC gain.  G_v's poles are fitted to the record (the paper's G_v as start, and as fallback
    when the record cannot determine them); the GPIM's number of thresholds is chosen on held-out data
-   among ``CAPACITY_OPERATORS`` (and the grid of the paper's 5-parameter fit).  Only structure the best
+   among ``CAPACITY_OPERATORS`` (and the grid of the paper's 5-parameter fit; then ``CAPACITY_EXTENSION`` while
+   the largest keeps winning).  Only structure the best
    baseline cannot fit may be blamed on an effect.
 2. **Effects, alone and in combination.**  Every subset of the catalogue is fitted from the baseline in
    one linear solve each (the effects' search columns, their nonlinear structures to first order) and
@@ -63,9 +64,11 @@ from ..model.dynamics import describe_dynamics
 from .valve_model import REST, InitialState, ValveModel
 
 __all__ = ["analyse", "Analysis", "Split", "GAIN_THRESHOLD", "MIN_EFFECT_NOISE_RATIO", "UNEXPLAINED_NOISE_RATIO",
-           "CAPACITY_OPERATORS", "HELD_OUT_FRACTION", "MID_CAPACITY"]
+           "CAPACITY_OPERATORS", "CAPACITY_EXTENSION", "HELD_OUT_FRACTION", "MID_CAPACITY"]
 
 CAPACITY_OPERATORS = (12, 18, 27, 40, 60)   # GPIM sizes tried for the baseline
+CAPACITY_EXTENSION = (90, 135)              # ... then these, one at a time, while the largest so far is the best
+                                            # by more than CAPACITY_TOLERANCE over the size below it
 MID_CAPACITY = 27                           # the size G_v's poles are first fitted with
 CAPACITY_TOLERANCE = 0.02                   # a smaller GPIM within 2 % of the best held-out RMS is preferred
 INITIAL_STATE_TOLERANCE = 0.02              # "cycled" replaces "rest" only if it cuts the held-out RMS by more
@@ -344,6 +347,15 @@ class _Loop:
         for label, grid in grids.items():
             m, held_out_rms = jobs[label].result()
             capacity.append((label, grid.size, held_out_rms, m))
+        ladder = [c for c in capacity if c[0].endswith(" operators")]
+        for n in CAPACITY_EXTENSION:   # a record with fine loop structure (a measured one) may want more
+            largest, below = ladder[-1], ladder[-2]
+            if not (largest[2] < (1 - CAPACITY_TOLERANCE) * below[2] and largest[2] <= min(c[2] for c in capacity)):
+                break
+            grid = uniform_thresholds(fit.voltage_v, n)
+            m, held_out_rms = self.fitted_and_scored(self.start_model(grid, first), "fixed")
+            ladder.append((f"{n} operators", grid.size, held_out_rms, m))
+            capacity.append(ladder[-1])
         best = min(c[2] for c in capacity)
         label, _, _, chosen = min((c for c in capacity if c[2] <= (1 + CAPACITY_TOLERANCE) * best), key=lambda c: c[1])
         self.baseline = fit_model(fit, chosen, poles="baseline", cache=self.cache)
