@@ -64,7 +64,8 @@ def main(argv=None) -> int:
         print(f"    ({time.perf_counter() - t0:.0f} s)", flush=True)
     if args.markdown:
         with open(args.markdown, "w") as f:
-            f.write("\n".join(lines) + "\n")
+            f.write(f"Written by `python bench/compensation_table.py {' '.join(sys.argv[1:])}`.\n\n"
+                    + "\n".join(lines) + "\n")
     return 0
 
 

@@ -1,8 +1,13 @@
 """Per-sample controller cost (each strategy, inverse included), inverse GPIM step cost and batch GPIM speed.
 
 Prints figures; compare as ratios within one run (the machine is shared).
-    python bench/core_speed.py
+    python bench/core_speed.py [--load] [--markdown docs/results/core_speed.md]
+
+Models of the paper's size (15 operators) and of the largest size identification tries (135 operators, as
+it may choose on a measured record).  ``--load`` repeats every figure with two busy loops running beside.
 """
+import argparse
+import contextlib
 import time
 
 import numpy as np
@@ -13,9 +18,20 @@ from piezo_valve_ros.core.model.rate_dependence import hysteresis_inverse, hyste
 from piezo_valve_ros.core.sim.signals import training_voltage
 from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
 from piezo_valve_ros.core.control.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController
+from piezo_valve_ros.core.identification.residual import CAPACITY_EXTENSION
+
+from harness import Lines, busy_loops
+
+print = Lines()   # noqa: A001  (printed and kept for --markdown)
 
 
 RATE_WIDENING_V = (-0.006, -0.37, 1.79, -0.028, 0.44, -1.25)   # as identified on the simulated rate valve
+
+
+def finer(model: GPIM, n: int) -> GPIM:
+    """``model`` with ``n`` operators over the same threshold span and the same loop (weights spread)."""
+    r = np.linspace(0.0, model.thresholds[-1], n)
+    return GPIM(r, np.interp(r, model.thresholds, model.weights) * model.n / n, model.a0, model.a1, model.offset_um)
 
 
 def best_of(fn, repeats=3):
@@ -31,17 +47,20 @@ def controller_cost(n=50_000):
     t = np.arange(n) * 1e-4
     ref = 40e-6 * np.sin(2 * np.pi * 5 * t)
     meas = SimulatedValve(ValveSimConfig()).run(5 + ref * 1e6 / 13.5)
-    print(f"controller step cost over {n} samples at 10 kHz (inverse GPIM n=15 included), best of 3:")
+    print(f"controller step cost over {n} samples at 10 kHz (inverse GPIM included), best of 3:")
     rate_model = CompensationModel(rate_widening_v=RATE_WIDENING_V)
-    cases = [(s, CompensationModel()) for s in STRATEGIES] + [(s, rate_model) for s in ("ol_hc", "pid_hc")]
-    for s, model in cases:
+    large = CompensationModel(gpim=finer(PAPER_GPIM.model(), max(CAPACITY_EXTENSION)))
+    cases = ([(s, CompensationModel(), "") for s in STRATEGIES]
+             + [(s, rate_model, " rate") for s in ("ol_hc", "pid_hc")]
+             + [(s, large, f" n={large.gpim.n}") for s in ("ol_hc", "pid_hc")])
+    for s, model, label in cases:
         def loop():
             ctl = ValveController(ControllerConfig(strategy=s, gains=PIDGains(1.1987, 474.509)), model)
             step = ctl.step
             for r, y in zip(ref.tolist(), meas.tolist()):
                 step(r, y)
         sec = best_of(loop)
-        name = s + (" rate" if model is rate_model else "")
+        name = s + label
         print(f"  {name:14s} {sec / n * 1e6:6.2f} us/sample  (target < 20 us; max rate {n / sec / 1e3:5.1f} kHz)")
 
 
@@ -55,10 +74,11 @@ def inverse_cost(n=20_000, dt=5e-4):
              "dead band": (GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, m.a0 * 1.03, m.a1 + 0.08), ()),
              "crossing": (crossing, ()),
              "rate": (m, RATE_WIDENING_V),
-             "rate+cross": (crossing, RATE_WIDENING_V)}
+             "rate+cross": (crossing, RATE_WIDENING_V),
+             f"n={max(CAPACITY_EXTENSION)}": (finer(m, max(CAPACITY_EXTENSION)), ())}
     walk = np.cumsum(np.random.default_rng(1).normal(0.0, 0.05, n))
     v = 5.0 + 4.5 * np.tanh((walk - walk.mean()) / (3.0 * walk.std()))
-    print(f"inverse GPIM step (n=15), {n} samples, best of 3:")
+    print(f"inverse GPIM step (n=15 unless named), {n} samples, best of 3:")
     base = None
     for name, (model, widening) in cases.items():
         forward = hysteresis_stream(model, widening, dt, 5.0)
@@ -96,7 +116,22 @@ def gpim_batch():
     print(f"batch GPIM on a noisy command (every sample a reversal): {sec_noisy:.3f} s")
 
 
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--load", action="store_true", help="also measure with two busy loops running beside")
+    ap.add_argument("--markdown", metavar="FILE", help="also write what is printed here")
+    args = ap.parse_args()
+    runs = [("quiet", contextlib.nullcontext)] + ([("two busy loops beside", busy_loops)] if args.load else [])
+    for title, context in runs:
+        print(f"--- {title}")
+        with context():
+            controller_cost()
+            inverse_cost()
+            gpim_batch()
+    if args.markdown:
+        print.write_markdown(args.markdown, "bench/core_speed.py",
+                             " (this shared 2-core machine; compare ratios within one run)")
+
+
 if __name__ == "__main__":
-    controller_cost()
-    inverse_cost()
-    gpim_batch()
+    main()

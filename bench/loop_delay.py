@@ -1,6 +1,6 @@
 """What a busy computer does to the loop, and what the oscillation guard makes of it (no ROS; deterministic).
 
-    python bench/loop_delay.py
+    python bench/loop_delay.py [--markdown docs/results/loop_delay.md]
 
 A 1 kHz loop on the simulated valve tracks a 2 Hz, 30 um sine; for 0.8 s in the middle of a 3 s run every
 measurement reaches the controller ``d`` periods late (two processes on a loaded machine: the position and
@@ -18,6 +18,8 @@ import numpy as np
 from piezo_valve_ros.core.sim.experiments import run_delayed_loop
 from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
 from piezo_valve_ros.core.control.strategies import ControllerConfig, ValveController, gain_set
+
+from harness import Lines
 
 EPISODE_S = (1.0, 1.8)
 FAR_OFF_UM = 10.0   # a tracking error beyond this is counted [um] (the sine's amplitude is 30 um)
@@ -50,7 +52,9 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sets", default="pid_hc_5,pid_1,ff_pid_1", help="Table 1 gain sets")
     ap.add_argument("--delays", default="0,1,2,3,4,6", help="extra delay during the episode [periods]")
+    ap.add_argument("--markdown", metavar="FILE", help="also write what is printed here")
     args = ap.parse_args(argv)
+    print = Lines()   # noqa: A001  (printed and kept for --markdown)
     print(f"1 kHz loop, 2 Hz 30 um sine, delay episode {EPISODE_S[0]}-{EPISODE_S[1]} s; figures over the episode "
           f"and 0.5 s after it")
     far = f"> {FAR_OFF_UM:g} um"
@@ -62,6 +66,8 @@ def main(argv=None) -> None:
             e1, f1, r1, trips = run(ValveController, name, d)
             print(f"{name:10s} {d:5d}   {e0:17.2f} um {100 * f0:7.1f} % {100 * r0:7.1f} %   "
                   f"{e1:15.2f} um {100 * f1:7.1f} % {100 * r1:7.1f} % {trips:6d}")
+    if args.markdown:
+        print.write_markdown(args.markdown, "bench/loop_delay.py", " (deterministic: no ROS, simulated time)")
 
 
 if __name__ == "__main__":

@@ -222,5 +222,6 @@ if __name__ == "__main__":
     print(f"\n{time.perf_counter() - t0:.0f} s")
     if args.markdown:
         with open(args.markdown, "w") as f:
-            f.write("\n".join(lines) + "\n")
+            f.write(f"Written by `python bench/paper_tables.py {' '.join(sys.argv[1:])}`.\n\n"
+                    + "\n".join(lines) + "\n")
     sys.exit(0 if ok else 1)

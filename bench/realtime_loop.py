@@ -3,6 +3,8 @@
     python bench/realtime_loop.py                 # everything (about 3 min)
     python bench/realtime_loop.py --seconds 10 --json loop.json
     python bench/realtime_loop.py --conditions --only-conditions   # section 6 alone (about 3 min)
+    python bench/realtime_loop.py --conditions --json docs/results/realtime_loop.json \
+        --markdown docs/results/realtime_loop.md   # the results page
 
 Sections (figures from this run; the machine is shared, so compare them with each other):
   1. cost per period without DDS: hardware tick (sim backend + publishing) and controller callback
@@ -42,6 +44,10 @@ from std_msgs.msg import Float64
 from piezo_valve_ros.nodes.common import (COMMAND_QOS, SENSOR_QOS, claim_pacing, make_executor,
                                           spin_loop)
 from piezo_valve_ros.processes import ProcessGroup, node_command
+
+from harness import Lines
+
+print = Lines()   # noqa: A001  (printed and kept for --markdown)
 
 ECHO = """
 import sys, rclpy
@@ -267,6 +273,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3,
                     help="runs of each target case (2 kHz across processes, lockstep, composed 10 kHz)")
     ap.add_argument("--json", help="write all figures to this file")
+    ap.add_argument("--markdown", metavar="FILE", help="also write what is printed here")
     ap.add_argument("--conditions", action="store_true", help="also run section 6 (load, pinning, switch interval)")
     ap.add_argument("--only-conditions", action="store_true", help="run section 6 alone")
     args = ap.parse_args(argv)
@@ -342,6 +349,9 @@ def main(argv=None) -> int:
         if args.json:
             with open(args.json, "w") as f:
                 json.dump(results, f, indent=2)
+        if args.markdown:
+            print.write_markdown(args.markdown, "bench/realtime_loop.py",
+                                 " (this shared 2-core machine; compare figures within one run)")
     return 0
 
 
