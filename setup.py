@@ -20,6 +20,7 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(exclude=["test", "bench"]),
+    package_data={package_name: ["fast_ack_profile.xml"]},   # read by Fast DDS from the installed package
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
@@ -28,7 +29,7 @@ setup(
     ],
     install_requires=["setuptools", "numpy", "scipy", "rosbags>=0.11,<0.12", "threadpoolctl", "PyYAML"],
     extras_require={"plots": ["matplotlib"], "test": ["pytest"]},
-    zip_safe=True,
+    zip_safe=False,   # Fast DDS reads fast_ack_profile.xml as a file
     # install_scripts is in setup.cfg (the ROS convention); develop's script_dir only where setuptools has it
     options={"develop": {"script_dir": script_dir}} if _develop_takes_script_dir() else {},
     maintainer="piezo_valve_ros developers",

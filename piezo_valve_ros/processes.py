@@ -14,6 +14,7 @@ import subprocess
 import sys
 import time
 
+from .dds import without_fast_acknowledgements
 from .params_yaml import yaml_value
 
 PARENT_PID_ENV = "PIEZO_VALVE_PARENT_PID"   # set by ProcessGroup: the pid the child must not outlive
@@ -79,7 +80,7 @@ class ProcessGroup:
         self.procs: list[tuple[str, subprocess.Popen]] = []
 
     def start(self, name: str, cmd: list[str], env: dict | None = None, **kwargs) -> subprocess.Popen:
-        env = dict(os.environ if env is None else env)
+        env = without_fast_acknowledgements(dict(os.environ if env is None else env))   # nodes: DDS defaults
         env[PARENT_PID_ENV] = str(os.getpid())
         proc = subprocess.Popen(cmd, env=env, **kwargs)
         self.procs.append((name, proc))

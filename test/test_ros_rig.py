@@ -286,6 +286,40 @@ def test_step_demo_counts_control_periods_not_sample_rows():
     assert len(table) == 3 and all(ts >= 2.0 for _, _, ts, _ in table), out.stdout  # at least one period
     periods = int(out.stdout.split(" control periods in ")[0].split()[-1])
     assert periods == 2 + 3 * 2 * 100, out.stdout  # the start-up period, the first command, hold + after x 3
+    # six references, each acknowledged by the controller before the next period (what orders them in
+    # lockstep): within ms with the fast-acknowledgement profile, up to Fast DDS's 3 s heartbeat without it
+    wall_s = float(out.stdout.split(" s wall time")[0].split()[-1])
+    assert wall_s < 6 * 1.5, out.stdout
+
+
+def test_fast_acknowledgements_are_chosen_for_tools_and_not_passed_to_nodes():
+    """The profile is chosen where nothing else is (Fast DDS, no profiles file of the user's), and dropped
+    from the environment of the nodes a launcher starts; its writers' heartbeat is 20 ms."""
+    import xml.etree.ElementTree as ET
+    from piezo_valve_ros.dds import (FAST_ACK_PROFILE, HEARTBEAT_PERIOD_S, use_fast_acknowledgements,
+                                     without_fast_acknowledgements)
+    from piezo_valve_ros.processes import ProcessGroup
+    env = {}
+    assert use_fast_acknowledgements(env) and env == {"FASTRTPS_DEFAULT_PROFILES_FILE": str(FAST_ACK_PROFILE)}
+    assert use_fast_acknowledgements(env)                                   # chosen twice: still ours
+    assert without_fast_acknowledgements(env) == {}
+    mine = {"FASTRTPS_DEFAULT_PROFILES_FILE": "/etc/my_profiles.xml"}
+    assert not use_fast_acknowledgements(mine) and mine == {"FASTRTPS_DEFAULT_PROFILES_FILE": "/etc/my_profiles.xml"}
+    assert without_fast_acknowledgements(dict(mine)) == mine                # the user's file stays
+    assert not use_fast_acknowledgements(cyclone := {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"})
+    assert "FASTRTPS_DEFAULT_PROFILES_FILE" not in cyclone
+    ns = {"p": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+    writer = ET.parse(FAST_ACK_PROFILE).getroot().find("p:data_writer", ns)
+    assert writer.get("is_default_profile") == "true"
+    period = writer.find("p:times/p:heartbeatPeriod", ns)
+    assert int(period.find("p:sec", ns).text) + 1e-9 * int(period.find("p:nanosec", ns).text) == HEARTBEAT_PERIOD_S
+    # a node started by a launcher runs on the middleware's defaults
+    with ProcessGroup() as procs:
+        child = procs.start("env", [sys.executable, "-c", "import os; print(os.environ.get("
+                                    "'FASTRTPS_DEFAULT_PROFILES_FILE', 'none'))"],
+                            env={**os.environ, "FASTRTPS_DEFAULT_PROFILES_FILE": str(FAST_ACK_PROFILE)},
+                            stdout=subprocess.PIPE, text=True)
+        assert child.communicate(timeout=30)[0].strip() == "none"
 
 
 def test_composed_realtime_rig_runs_and_stops_on_sigint(tmp_path):

@@ -27,6 +27,7 @@ import time
 
 import numpy as np
 
+from ..dds import use_fast_acknowledgements
 from ..params_yaml import YAMLError, load as load_yaml, node_section
 from ..core.sim.signals import load_profile, ramp_profile, sine_profile
 from .client import RIG_NODES, RigClient, run_in_background
@@ -256,6 +257,7 @@ def main(argv=None) -> int:
     except (ValueError, OSError) as exc:
         print(f"valve_command: {exc}", file=sys.stderr)
         return 2
+    use_fast_acknowledgements()   # a reference's acknowledgement within ms, not at the next 3 s heartbeat
     init_ros(["valve_command"] + ros_args)
     client = RigClient(args.namespace, with_samples=False, name="valve_command", reference_history=PROFILE_HISTORY)
     thread, stop, executor = run_in_background([client])

@@ -21,6 +21,7 @@ import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from ..dds import use_fast_acknowledgements
 from ..core.metrics import step_metrics
 from ..core.sim.signals import PAPER_STEPS_UM
 from ..core.sim.simulator import ValveSimConfig
@@ -234,6 +235,7 @@ def main(argv=None) -> int:
     except UsageError as exc:
         print(f"valve_rig: {exc}", file=sys.stderr)
         return 2
+    use_fast_acknowledgements()   # the step demo's references acknowledged within ms (its nodes: DDS defaults)
     rclpy.init()
     procs = ProcessGroup()
     nodes: list[Node] = []
