@@ -11,7 +11,8 @@ from functools import cached_property
 from typing import Optional
 
 import numpy as np
-from scipy.signal import savgol_filter
+
+from ..model.dynamics import scipy_signal
 
 __all__ = ["IdentificationError", "Record", "analysis_record", "split_held_out",
            "noise_floor_um", "noise_peak_um", "NOISE_PEAK_WINDOW_S", "join", "HELD_OUT_FRACTION", "ANALYSIS_RATE_HZ", "SUPPORTED_RATE_HZ",
@@ -220,4 +221,4 @@ def noise_peak_um(position_um: np.ndarray, dt: float, window_s: float = NOISE_PE
     window = max(5, int(round(window_s / dt)) | 1)
     if y.size < window:
         return float("nan")
-    return float(np.max(np.abs(y - savgol_filter(y, window, 3))))
+    return float(np.max(np.abs(y - scipy_signal().savgol_filter(y, window, 3))))

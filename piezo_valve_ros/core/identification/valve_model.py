@@ -16,9 +16,9 @@ from functools import cached_property
 from typing import Optional, Protocol
 
 import numpy as np
-from scipy import signal
 
-from ..model.dynamics import PAPER_SECTION, ContinuousTF, describe_dynamics, discretise, unity_dc_poles
+from ..model.dynamics import (PAPER_SECTION, ContinuousTF, describe_dynamics, discretise, scipy_signal,
+                              steady_state, unity_dc_poles)
 from ..model.hysteresis import GPIM, last_contact, play_batch
 from ..model.rate_dependence import rate_terms
 from .records import Record
@@ -356,7 +356,7 @@ class Context:
     def free_response(self) -> np.ndarray:
         """(N,) G's output from rest at 1 with its input at 0 from the first sample on (1 - step response)."""
         b, a = self.filter
-        return 1.0 - signal.lfilter(b, a, np.ones(len(self.record)))
+        return 1.0 - scipy_signal().lfilter(b, a, np.ones(len(self.record)))
 
     @property
     def rest_states(self) -> Optional[np.ndarray]:
@@ -382,11 +382,11 @@ def filter_at_rest(b: np.ndarray, a: np.ndarray, x: np.ndarray) -> np.ndarray:
     filtered as contiguous rows of the transpose (about twice as fast as strided columns)."""
     x = np.asarray(x, float)
     if x.ndim == 1:
-        return signal.lfilter(b, a, x, zi=signal.lfilter_zi(b, a) * x[0])[0]
+        return scipy_signal().lfilter(b, a, x, zi=steady_state(b, a) * x[0])[0]
     return filter_rows_at_rest(b, a, np.ascontiguousarray(x.T)).T
 
 
 def filter_rows_at_rest(b: np.ndarray, a: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """lfilter of each row of ``rows`` (k, N), started at rest at its first sample; (k, N)."""
-    zi = signal.lfilter_zi(b, a)
-    return signal.lfilter(b, a, rows, axis=1, zi=rows[:, :1] * zi[None, :])[0]
+    zi = steady_state(b, a)
+    return scipy_signal().lfilter(b, a, rows, axis=1, zi=rows[:, :1] * zi[None, :])[0]

@@ -10,10 +10,31 @@ from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import numpy as np
-from scipy import signal
 
-__all__ = ["ContinuousTF", "DiscreteFilter", "PAPER_VALVE_MODEL", "PAPER_SECTION", "first_order_lag", "lag_bank", "discretise",
+__all__ = ["scipy_signal", "steady_state", "ContinuousTF", "DiscreteFilter", "PAPER_VALVE_MODEL", "PAPER_SECTION", "first_order_lag", "lag_bank", "discretise",
            "second_order", "unity_dc_poles", "sections", "describe_dynamics"]
+
+
+def scipy_signal():
+    """scipy.signal, imported on first use: the import takes most of a node's start-up (0.6 s of CPU), and
+    the nodes' per-sample paths never need it."""
+    from scipy import signal
+    return signal
+
+
+def steady_state(b, a) -> np.ndarray:
+    """Transposed-direct-form-II state of the filter b(z)/a(z) that has seen a unit input forever
+    (scipy.signal.lfilter_zi written out: b and a normalised by a[0] and padded to one length, then
+    (I - A') z = b[1:] - a[1:] b[0], A the companion matrix of a)."""
+    b, a = np.atleast_1d(np.asarray(b, float)), np.atleast_1d(np.asarray(a, float))
+    order = max(a.size, b.size)
+    b = np.concatenate((b, np.zeros(order - b.size))) / a[0]
+    a = np.concatenate((a, np.zeros(order - a.size))) / a[0]
+    n = order - 1
+    companion = np.zeros((n, n))
+    companion[0, :] = -a[1:]
+    companion[1:, :-1] += np.eye(n - 1)
+    return np.linalg.solve(np.eye(n) - companion.T, b[1:] - a[1:] * b[0])
 
 
 @dataclass(frozen=True)
@@ -49,7 +70,7 @@ class ContinuousTF:
         return DiscreteFilter(*discretise(self, dt))
 
     def frequency_response(self, freqs_hz: np.ndarray) -> np.ndarray:
-        _, h = signal.freqs(self.num, self.den, worN=2 * np.pi * np.asarray(freqs_hz, float))
+        _, h = scipy_signal().freqs(self.num, self.den, worN=2 * np.pi * np.asarray(freqs_hz, float))
         return h
 
 
@@ -81,7 +102,7 @@ def discretise(tf: ContinuousTF, dt: float, method: str = "zoh", delay_s: float 
     # cancel catastrophically: only well separated poles take the closed form
     distinct = poles.size > 0 and bool(np.min(gaps) > DISTINCT_POLE_GAP * np.max(np.abs(poles)))
     if num.size >= den.size or not distinct or np.any(poles == 0):
-        b, a, _ = signal.cont2discrete((num, den), dt, method=method)
+        b, a, _ = scipy_signal().cont2discrete((num, den), dt, method=method)
         return np.atleast_1d(np.squeeze(b)), np.asarray(a, float)
     residues = np.polyval(num, poles) / np.polyval(np.polyder(den), poles)
     E = np.exp(poles * dt)
@@ -121,12 +142,13 @@ def lag_bank(x: np.ndarray, time_constants_s: Sequence[float], dt: float,
     shape (N, k), each column contiguous (a transposed view: the filters write whole rows)."""
     out = np.empty((len(time_constants_s), x.size))
     x = np.asarray(x, float)
+    lfilter = scipy_signal().lfilter
     start = float(x[0]) if initial is None else float(initial)
     for i, tau in enumerate(time_constants_s):
         # first_order_lag's ZOH filter written out (b = [0, 1 - a], a = [1, -a], a = exp(-dt/tau); at rest
         # at ``start`` its one state is ``start``): this runs thousands of times per analysis
         pole = math.exp(-dt / float(tau))
-        out[i] = signal.lfilter([0.0, 1.0 - pole], [1.0, -pole], x, zi=[start])[0]
+        out[i] = lfilter([0.0, 1.0 - pole], [1.0, -pole], x, zi=[start])[0]
     return out.T
 
 
@@ -194,7 +216,7 @@ class DiscreteFilter:
         """State of a filter that has seen ``steady_input`` forever."""
         if self.order == 0:
             return
-        zi = signal.lfilter_zi(self.b, self.a) * steady_input
+        zi = steady_state(self.b, self.a) * steady_input
         self.state = [float(x) for x in zi]
 
     def step(self, u: float) -> float:
@@ -210,6 +232,6 @@ class DiscreteFilter:
         u = np.asarray(u, float)
         if self.order == 0:
             return self.b[0] * u
-        y, zf = signal.lfilter(self.b, self.a, u, zi=np.asarray(self.state))
+        y, zf = scipy_signal().lfilter(self.b, self.a, u, zi=np.asarray(self.state))
         self.state = [float(x) for x in zf]
         return y

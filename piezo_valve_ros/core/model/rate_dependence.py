@@ -22,9 +22,9 @@ import math
 from typing import Optional, Sequence
 
 import numpy as np
-from scipy import signal
 
 from .drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
+from .dynamics import scipy_signal
 from .hysteresis import GPIM, MonotoneInverseGPIM, PlayOperatorBank, inverse_gpim
 
 __all__ = ["RATE_FILTERS_S", "RATE_SCALES_V_S", "TERM_COUNT", "MAX_WIDENING_V", "rate_terms", "RateWidening",
@@ -54,7 +54,7 @@ def rate_terms(v: np.ndarray, dt: float, v_before: Optional[float] = None) -> np
     cols = []
     for tau in RATE_FILTERS_S:
         a = _lag_pole(tau, dt)
-        rho = signal.lfilter([0.0, 1.0 - a], [1.0, -a], rate)   # rho_k = a rho_{k-1} + (1 - a) rate_{k-1}
+        rho = scipy_signal().lfilter([0.0, 1.0 - a], [1.0, -a], rate)   # rho_k = a rho_{k-1} + (1 - a) rate_{k-1}
         cols += [rho / (rho + s) for s in RATE_SCALES_V_S]
     return np.column_stack(cols)
 

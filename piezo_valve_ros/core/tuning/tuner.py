@@ -49,11 +49,10 @@ from dataclasses import dataclass, replace
 from typing import Callable, Optional, Sequence
 
 import numpy as np
-from scipy.signal import lfilter
 
 from ..control.compensation import CompensationModel, reference_filters
 from ..control.forward import ModelValve
-from ..model.dynamics import first_order_lag
+from ..model.dynamics import first_order_lag, scipy_signal
 from ..sim.experiments import responses, run_closed_loop
 from ..metrics import StepMetrics, step_metrics
 from ..sim.signals import PAPER_STEPS_UM, step_reference_m
@@ -374,6 +373,7 @@ def linear_step(strategy: str, gains: PIDGains, model: CompensationModel, dt: fl
     pnum, pden = _plant_polynomials(model, dt)
     loop_num, loop_den = plant_gain * _poly_mul(cnum, pnum), _poly_mul(cden, pden)
     char = _poly_add(loop_den, loop_num)
+    lfilter = scipy_signal().lfilter
     if strategy in ("ff_pid", "ff_pid_g"):
         shaping, inverse = reference_filters(model, dt)
         u_ff = ref if inverse is None else lfilter(inverse.b, inverse.a, ref)
