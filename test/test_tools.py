@@ -136,7 +136,7 @@ def test_record_command_and_identify_a_running_rig(tmp_path):
     with ProcessGroup() as procs:
         rig_log = open(tmp_path / "rig.log", "w")
         procs.start("rig", [os.path.join(BIN, "valve_rig"), "--demo", "none", "--clock", "realtime",
-                            "--control-period-s", "0.001", "--namespace", ns],
+                            "--control-period-s", "0.001", "--busy-poll-s", "0", "--namespace", ns],   # a core free
                     env=ros_env(), stdout=rig_log, stderr=subprocess.STDOUT)
         wait_for_text(tmp_path / "rig.log", "running; Ctrl-C", timeout_s=60)
         rec_log = open(tmp_path / "record.log", "w")
@@ -308,7 +308,7 @@ def test_valve_rig_brings_up_your_backend_from_one_parameters_file(tmp_path):
     ns = f"/bringup{os.getpid()}"
     params = tmp_path / "my_rig.yaml"
     params.write_text("valve_hardware:\n  ros__parameters:\n    backend: loopback\n    clock: realtime\n"
-                      "    control_period_s: 0.001\n    loopback.gain_m_per_v: 1.2e-05\n    diagnostics_period_s: 0.2\n"
+                      "    realtime.busy_poll_s: 0.0\n    control_period_s: 0.001\n    loopback.gain_m_per_v: 1.2e-05\n    diagnostics_period_s: 0.2\n"
                       "valve_controller:\n  ros__parameters:\n    gain_set: pid_1\n    control_period_s: 0.001\n"
                       "    state_period_s: 0.05\n    diagnostics_period_s: 0.2\n")
     fitted = tmp_path / "fitted.yaml"
