@@ -329,6 +329,22 @@ def test_a_real_record_that_starts_remanent_is_judged_after_its_input_wiped_the_
     assert held_out["rms_um"] <= 0.053 and held_out["peak_pct"] <= 0.55, held_out
 
 
+@pytest.mark.parametrize("end_s", [7.0, 7.5])
+def test_a_shorter_cut_of_the_real_record_is_judged_the_same(end_s):
+    """The whole record's 1 kHz means cut at 7.0 or 7.5 s: the sine wipes the remanent start out late in the
+    fit part (78-89 % of it).  Judged from where it did, as the whole record is: nothing added, nothing
+    unexplained, and the held-out error within the issue's bound, as the whole record's.  (Fitted from an
+    estimated start instead, the misfit of the
+    first cycle bent the weights, and dynamics + asymmetry or creep + saturation were "justified" against
+    that poor baseline.)"""
+    full = read_csv(FULL_REAL_RECORD)
+    report = analyse(full.slice(0, int(np.sum(full.time_s <= end_s)))).report
+    assert report["baseline_fits"]["initial_state"]["chosen"] == "wiped"
+    assert report["effects_added"] == [] and report["unexplained"] is False
+    held_out = report["final"]["validate"]
+    assert held_out["rms_um"] <= 0.053 and held_out["peak_pct"] <= 0.55, held_out
+
+
 SOURCE_RECORD = Path(__file__).parent / "data" / "smart_hysteresis" / "hysteresis_v_150_1hz.csv.xz"
 
 

@@ -15,7 +15,8 @@ __all__ = ["Split", "split_records", "WIPE_MARGIN", "WIPE_MAX_SHARE", "ESTIMATE_
 
 WIPE_MARGIN = 0.02                          # the input has wiped the unknown initial state once it has come this
                                             # close (share of its span) to both extremes of the fit part
-WIPE_MAX_SHARE = 0.75                       # ... which must happen in the first three quarters of the fit part
+WIPE_MAX_SHARE = 0.9                        # ... which must happen before the last tenth of the fit part (held-out
+                                            # data then decide whether fitting after it pays, WIPE_GAIN)
 ESTIMATE_WINDOW_S = 2.0  # ... on the rows before the wipe, at most this long (the start shows first)
 
 
