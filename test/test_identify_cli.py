@@ -168,6 +168,13 @@ def test_bad_csv_records_end_with_one_clear_line(tmp_path):
     cases = {"no_position.csv": ("time_s,voltage_v\n0,1\n", ("lacks position_m or position_um",)),
              "bad_row.csv": ("time_s,voltage_v,position_m\n0,1,2e-6\n0.001,x,3e-6\n", ("data row 3",)),
              "header_only.csv": ("time_s,voltage_v,position_um\n", ("a header but no samples",))}
+    # the measured record with its position's sign flipped (a sensor mounted the other way round): a GPIM
+    # cannot fit a falling valve, so it is refused with what to do, not fitted into a model of wrong effects
+    lines = open(REAL_CSV).read().splitlines()
+    flipped = [lines[0]] + [",".join([t, str(-float(p)), v]) for t, p, v in (ln.split(",") for ln in lines[1:])]
+    (tmp_path / "flipped.csv").write_text("\n".join(flipped) + "\n")
+    _one_error_line(run_cli(tmp_path / "flipped.csv"), "training record: the position falls as the voltage rises",
+                    "flip the sign")
     for name, (text, needles) in cases.items():
         (tmp_path / name).write_text(text)
         _one_error_line(run_cli(tmp_path / name), name, *needles)

@@ -15,7 +15,7 @@ import numpy as np
 from ..model.dynamics import scipy_signal
 
 __all__ = ["IdentificationError", "Record", "analysis_record", "split_held_out",
-           "noise_floor_um", "noise_peak_um", "NOISE_PEAK_WINDOW_S", "join", "HELD_OUT_FRACTION", "ANALYSIS_RATE_HZ", "SUPPORTED_RATE_HZ",
+           "noise_floor_um", "noise_peak_um", "NOISE_PEAK_WINDOW_S", "FALLING_CORRELATION", "join", "HELD_OUT_FRACTION", "ANALYSIS_RATE_HZ", "SUPPORTED_RATE_HZ",
            "MIN_SAMPLES", "read_csv", "CSV_POSITION_COLUMNS"]
 
 HELD_OUT_FRACTION = 0.3      # without a validation record, the last 30 % (in time) is held out (CONTRACT.md)
@@ -23,6 +23,7 @@ ANALYSIS_RATE_HZ = 2000.0    # fits run on block means at most this rate (error 
 SUPPORTED_RATE_HZ = 1000.0   # below this the valve's G_v (poles near 80 and 380 Hz) is not resolved: a warning
 MIN_SAMPLES = 200
 NOISE_PEAK_WINDOW_S = 0.002  # noise_peak_um: the local cubic spans this long (at least 5 samples)
+FALLING_CORRELATION = -0.5   # position and voltage correlated below this: the position falls as the drive rises
 
 
 class IdentificationError(ValueError):
@@ -127,6 +128,19 @@ class Record:
             raise IdentificationError(f"{what}: the voltage reverses direction {reversals} time(s); it needs {need}")
         if self.range_um <= 0:
             raise IdentificationError(f"{what}: the position is constant: nothing to fit")
+        return self
+
+    def check_rising(self, what: str = "record") -> "Record":
+        """Raise IdentificationError when the position falls as the voltage rises over the record (their
+        correlation below ``FALLING_CORRELATION``): a GPIM with nonnegative weights cannot fit that valve.
+        For a whole training record, where the excitation dominates (in a short stretch of closed-loop
+        operation a controller countering a drift moves the two apart)."""
+        correlation = float(np.corrcoef(self.voltage_v, self.position_um)[0, 1])
+        if correlation < FALLING_CORRELATION:
+            raise IdentificationError(
+                f"{what}: the position falls as the voltage rises (correlation {correlation:+.2f}); the GPIM "
+                "describes a valve whose position rises with its drive: flip the sign of the position (the "
+                "sensor's mounting, or the backend's gain) or of the drive (an inverting amplifier) and record again")
         return self
 
 

@@ -90,7 +90,7 @@ class Split:
 
 
 def split_records(train: Record, validate: Optional[Record], max_rate_hz: float) -> Split:
-    train = train.check("training record")
+    train = train.check("training record").check_rising("training record")
     block = analysis_record(train, max_rate_hz).block
     if validate is None:
         cut = split_held_out(train, HELD_OUT_FRACTION, block)
