@@ -54,19 +54,29 @@ def row(case, declared, report):
             or "-", f"{report['seconds']:.1f}")
 
 
+PROFILE_SMOOTHING_S = 0.003   # a cycle's mean at each phase is smoothed over this long
+
+
+def phase_profile(values, phase, n: int, dt: float):
+    """Mean of ``values`` at each of ``n`` phases (``phase``: each value's index into them), smoothed over
+    PROFILE_SMOOTHING_S around the cycle; shape (n,)."""
+    import numpy as np
+    from scipy.ndimage import uniform_filter1d
+    total, count = np.zeros(n), np.zeros(n)
+    np.add.at(total, phase, values)
+    np.add.at(count, phase, 1)
+    return uniform_filter1d(total / np.maximum(count, 1), max(int(round(PROFILE_SMOOTHING_S / dt)), 1), mode="wrap")
+
+
 def periodic_floor(record: Record, fit_from_s: float, held_out_from_s: float, period_s: float = 1.0):
     """Held-out (RMS [um], peak [% of the record's range]) of the training cycles' mean at each phase
     (smoothed over 3 ms), for a periodic record: the floor of any model that repeats its training cycles."""
     import numpy as np
-    from scipy.ndimage import uniform_filter1d
     t, y = record.time_s, record.position_um
     n = int(round(period_s / record.dt))
     phase = np.round(np.mod(t - t[0], period_s) / record.dt).astype(int) % n
     train, held = (t >= fit_from_s) & (t < held_out_from_s), t >= held_out_from_s
-    total, count = np.zeros(n), np.zeros(n)
-    np.add.at(total, phase[train], y[train])
-    np.add.at(count, phase[train], 1)
-    profile = uniform_filter1d(total / np.maximum(count, 1), max(int(round(0.003 / record.dt)), 1), mode="wrap")
+    profile = phase_profile(y[train], phase[train], n, record.dt)
     e = y[held] - profile[phase[held]]
     return float(np.sqrt(np.mean(e * e))), 100.0 * float(np.max(np.abs(e))) / float(np.ptp(y))
 
@@ -78,14 +88,10 @@ def repeating_part(error_um, dt: float, period_s: float = 1.0):
     voltage: -1 for an error a PI model's odd-symmetric branches could carry, +1 for one of the same sign on
     both branches at the same distance from the last reversal."""
     import numpy as np
-    from scipy.ndimage import uniform_filter1d
     e = np.asarray(error_um, float)
     n = int(round(period_s / dt))
     phase = np.arange(e.size) % n
-    total, count = np.zeros(n), np.zeros(n)
-    np.add.at(total, phase, e)
-    np.add.at(count, phase, 1)
-    profile = uniform_filter1d(total / np.maximum(count, 1), max(int(round(0.003 / dt)), 1), mode="wrap")
+    profile = phase_profile(e, phase, n, dt)
     part = profile[phase]
     return (float(np.sqrt(np.mean(part * part))), float(np.sqrt(np.mean((e - part) ** 2))),
             float(np.corrcoef(profile, np.roll(profile, -(n // 2)))[0, 1]))
