@@ -44,6 +44,7 @@ Nothing here imports ROS: ``valve_tune`` and the identification node's ``tune`` 
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 from typing import Callable, Optional, Sequence
@@ -52,7 +53,7 @@ import numpy as np
 
 from ..control.compensation import CompensationModel, reference_filters
 from ..control.forward import ModelValve
-from ..model.dynamics import first_order_lag, scipy_signal
+from ..model.dynamics import ContinuousTF, first_order_lag, scipy_signal
 from ..sim.experiments import responses, run_closed_loop
 from ..metrics import StepMetrics, step_metrics
 from ..sim.signals import PAPER_STEPS_UM, step_reference_m
@@ -257,10 +258,18 @@ def _pid_polynomials(gains: PIDGains, dt: float, derivative_filter_s: float) -> 
     return num, den
 
 
+@functools.lru_cache(maxsize=64)
+def _discrete_plant(valve_model: ContinuousTF, dt: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """z^-1 G_v(z) at unit gain, (num, den) in powers of z^-1 (each G_v and period discretised once: the
+    tuner asks for the same few thousands of times)."""
+    g = valve_model.discretise(dt)
+    return (0.0,) + tuple(float(x) for x in g.b), tuple(float(x) for x in g.a)     # one period of delay
+
+
 def _plant_polynomials(model: CompensationModel, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """z^-1 G_v(z) at unit gain, (num, den) in powers of z^-1."""
-    g = model.valve_model.discretise(dt)
-    return np.concatenate(([0.0], g.b)), g.a.copy()     # one period of delay
+    num, den = _discrete_plant(model.valve_model, float(dt))
+    return np.array(num), np.array(den)
 
 
 def _creep_response(model: CompensationModel, dt: float, zinv: np.ndarray) -> np.ndarray:
@@ -297,31 +306,99 @@ def plant_gain_range(strategy: str, model: CompensationModel, command_min_v: flo
     return max(low, 1e-3 * high), high
 
 
-def _margins_one(L: np.ndarray, w: np.ndarray) -> tuple[float, float, float]:
-    """(gain margin dB, phase margin deg, lowest crossover rad/s) of a loop response L(w), w ascending."""
-    mag = np.abs(L)
-    phase = np.unwrap(np.angle(L))
-    phase -= 2 * np.pi * np.round((phase[0] + np.pi / 2) / (2 * np.pi))  # the integrator: about -90 deg at w[0]
-    logmag = np.log(mag)
-    cross = np.flatnonzero((logmag[:-1] >= 0) & (logmag[1:] < 0) | (logmag[:-1] < 0) & (logmag[1:] >= 0))
-    pm, wc = math.inf, math.nan
-    for i in cross:
-        f = logmag[i] / (logmag[i] - logmag[i + 1])
-        ph = phase[i] + f * (phase[i + 1] - phase[i])
-        pm = min(pm, math.degrees(ph) + 180.0)
-        wi = w[i] * (w[i + 1] / w[i]) ** f
-        wc = wi if math.isnan(wc) else min(wc, wi)
-    gm = math.inf
-    # phase crossings of -180 deg (and -540, ...)
-    shifted = (phase + np.pi) / (2 * np.pi)
-    k = np.floor(shifted)
-    pcross = np.flatnonzero(np.diff(k) != 0)
-    for i in pcross:
-        level = 2 * np.pi * max(k[i], k[i + 1]) - np.pi
-        f = (phase[i] - level) / (phase[i] - phase[i + 1])
-        lm = logmag[i] + f * (logmag[i + 1] - logmag[i])
-        gm = min(gm, -20.0 * lm / math.log(10.0))
-    return gm, pm, wc
+def _rows_polyval(coefs: np.ndarray, x) -> np.ndarray:
+    """np.polyval for each row of ``coefs`` (N, m; highest power first) at ``x``: Horner's scheme exactly as
+    numpy runs it, N polynomials at once."""
+    y = np.zeros((coefs.shape[0],) + np.shape(x), np.result_type(coefs, x))
+    for j in range(coefs.shape[1]):
+        y = y * x + coefs[:, j].reshape((-1,) + (1,) * np.ndim(x))
+    return y
+
+
+def _margins_rows(L: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(gain margin dB, phase margin deg, lowest crossover rad/s) of each row of loop responses L (N, len(w)),
+    w ascending [rad/s]; inf where the magnitude (phase) never crosses 0 dB (-180 deg), nan crossover where
+    the magnitude never crosses."""
+    logmag = np.log(np.abs(L))
+    phase = np.unwrap(np.angle(L), axis=1)
+    phase -= 2 * np.pi * np.round((phase[:, :1] + np.pi / 2) / (2 * np.pi))  # the integrator: -90 deg at w[0]
+    lo, hi = logmag[:, :-1], logmag[:, 1:]
+    cross = (lo >= 0) & (hi < 0) | (lo < 0) & (hi >= 0)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        f = lo / (lo - hi)
+        ph = phase[:, :-1] + f * (phase[:, 1:] - phase[:, :-1])
+        pm = np.where(cross, np.degrees(ph) + 180.0, np.inf).min(axis=1)
+        wc = np.where(cross, w[:-1] * (w[1:] / w[:-1]) ** f, np.inf).min(axis=1)
+        # phase crossings of -180 deg (and -540, ...)
+        k = np.floor((phase + np.pi) / (2 * np.pi))
+        pcross = np.diff(k, axis=1) != 0
+        level = 2 * np.pi * np.maximum(k[:, :-1], k[:, 1:]) - np.pi
+        fp = (phase[:, :-1] - level) / (phase[:, :-1] - phase[:, 1:])
+        lm = lo + fp * (hi - lo)
+        gm = np.where(pcross, -20.0 * lm / math.log(10.0), np.inf).min(axis=1)
+    return gm, pm, np.where(np.isinf(wc), np.nan, wc)
+
+
+MARGIN_BATCH = 256             # gain sets whose loop responses are evaluated in one array (memory: ~10 MB)
+
+
+class _LoopPlant:
+    """The plant the PID of ``strategy`` sees (``z^-1 G_v(z)`` with the creep lags, over its gain range),
+    evaluated once on the margin frequencies; :meth:`margins` then rates any number of gain sets."""
+
+    def __init__(self, strategy: str, model: CompensationModel, dt: float, command_min_v: float,
+                 command_max_v: float, derivative_filter_s: float, gain_range: Optional[tuple[float, float]] = None):
+        if strategy not in TUNABLE_STRATEGIES:
+            raise TuningError(f"{strategy} has no feedback loop; tunable: {', '.join(TUNABLE_STRATEGIES)}")
+        lo, hi = gain_range or plant_gain_range(strategy, model, command_min_v, command_max_v)
+        self.plant_gains = np.geomspace(lo, hi, GAIN_POINTS) if hi > lo else np.array([hi])
+        self.dt = dt
+        self.alpha = dt / (derivative_filter_s + dt)
+        self.pnum, self.pden = _plant_polynomials(model, dt)
+        self.w = np.geomspace(1e-3 * _slowest_pole(model), math.pi / dt, FREQUENCY_POINTS)
+        self.zinv = np.exp(-1j * self.w * dt)
+        self.p_resp = (np.polyval(self.pnum[::-1], self.zinv) / np.polyval(self.pden[::-1], self.zinv)
+                       * _creep_response(model, dt, self.zinv))
+        self.cden = _poly_mul(np.array([1.0, -1.0]), np.array([1.0, -(1.0 - self.alpha)]))
+
+    def pid_numerators(self, gains: Sequence[PIDGains]) -> np.ndarray:
+        """The PID numerators of :func:`_pid_polynomials` for each set (N, 3), in powers of z^-1."""
+        kp, ki, kd = (np.array([getattr(g, name) for g in gains], float)[:, None] for name in ("kp", "ki", "kd"))
+        filt = np.array([1.0, -(1.0 - self.alpha), 0.0])
+        return kp * self.cden + (ki * self.dt) * filt + (self.alpha * kd / self.dt) * np.array([1.0, -2.0, 1.0])
+
+    def margins(self, gains: Sequence[PIDGains]) -> list[LoopMargins]:
+        """:class:`LoopMargins` of each gain set, worst case over the plant gains."""
+        out: list[LoopMargins] = []
+        for first in range(0, len(gains), MARGIN_BATCH):
+            out += self._margins_batch(gains[first:first + MARGIN_BATCH])
+        return out
+
+    def _margins_batch(self, gains: Sequence[PIDGains]) -> list[LoopMargins]:
+        cnum = self.pid_numerators(gains)
+        c_resp = _rows_polyval(cnum[:, ::-1], self.zinv) / np.polyval(self.cden[::-1], self.zinv)
+        noise = np.abs(_rows_polyval(cnum[:, ::-1], -1.0) / np.polyval(self.cden[::-1], -1.0))
+        # closed-loop poles of the loop without the creep lags (slow, a few % of the gain: in the margins)
+        open_num = np.stack([np.convolve(row, self.pnum) for row in cnum])
+        open_den = _poly_mul(self.cden, self.pden)
+        size = max(open_num.shape[1], open_den.size)
+        open_num = np.pad(open_num, ((0, 0), (0, size - open_num.shape[1])))
+        open_den = np.pad(open_den, (0, size - open_den.size))
+        stable = np.ones(len(gains), bool)
+        gm = np.full(len(gains), np.inf)
+        pm = np.full(len(gains), np.inf)
+        wc = np.full(len(gains), np.nan)
+        companion = np.zeros((len(gains), size - 1, size - 1))
+        companion[:, 1:, :-1] = np.eye(size - 2)
+        for g in self.plant_gains:
+            char = open_den + g * open_num                      # char[:, 0] = 1: monic in z
+            companion[:, 0, :] = -char[:, 1:] / char[:, :1]
+            stable &= ~np.any(np.abs(np.linalg.eigvals(companion)) >= 1.0, axis=1)
+            gm_g, pm_g, wc_g = _margins_rows(g * c_resp * self.p_resp, self.w)
+            gm, pm, wc = np.minimum(gm, gm_g), np.minimum(pm, pm_g), np.fmin(wc, wc_g)
+        return [LoopMargins(True, float(a), float(b), float(c) / (2 * math.pi), float(n)) if ok
+                else LoopMargins(False, -math.inf, -math.inf, math.nan, float(n))
+                for ok, a, b, c, n in zip(stable, gm, pm, wc, noise)]
 
 
 def loop_margins(strategy: str, gains: PIDGains, model: CompensationModel, dt: float,
@@ -331,30 +408,8 @@ def loop_margins(strategy: str, gains: PIDGains, model: CompensationModel, dt: f
                  gain_range: Optional[tuple[float, float]] = None) -> LoopMargins:
     """Margins of ``strategy`` with ``gains`` on ``model`` sampled every ``dt`` [s], worst case over the plant
     gain range (see :func:`plant_gain_range`)."""
-    if strategy not in TUNABLE_STRATEGIES:
-        raise TuningError(f"{strategy} has no feedback loop; tunable: {', '.join(TUNABLE_STRATEGIES)}")
-    lo, hi = gain_range or plant_gain_range(strategy, model, command_min_v, command_max_v)
-    cnum, cden = _pid_polynomials(gains, dt, derivative_filter_s)
-    pnum, pden = _plant_polynomials(model, dt)
-    w = np.geomspace(1e-3 * _slowest_pole(model), math.pi / dt, FREQUENCY_POINTS)
-    zinv = np.exp(-1j * w * dt)
-    c_resp = np.polyval(cnum[::-1], zinv) / np.polyval(cden[::-1], zinv)
-    p_resp = np.polyval(pnum[::-1], zinv) / np.polyval(pden[::-1], zinv) * _creep_response(model, dt, zinv)
-    noise = float(abs(np.polyval(cnum[::-1], -1.0) / np.polyval(cden[::-1], -1.0)))
-    stable, gm, pm, wc = True, math.inf, math.inf, math.nan
-    for g in np.geomspace(lo, hi, GAIN_POINTS) if hi > lo else [hi]:
-        # closed-loop poles of the loop without the creep lags (slow, a few % of the gain: in the margins)
-        char = _poly_add(_poly_mul(cden, pden), g * _poly_mul(cnum, pnum))
-        char = np.trim_zeros(char, "b")
-        if np.any(np.abs(np.roots(char)) >= 1.0):
-            stable = False
-            break
-        gm_g, pm_g, wc_g = _margins_one(g * c_resp * p_resp, w)
-        gm, pm = min(gm, gm_g), min(pm, pm_g)
-        wc = wc_g if math.isnan(wc) else min(wc, wc_g)
-    if not stable:
-        return LoopMargins(False, -math.inf, -math.inf, math.nan, noise)
-    return LoopMargins(True, gm, pm, wc / (2 * math.pi), noise)
+    return _LoopPlant(strategy, model, dt, command_min_v, command_max_v, derivative_filter_s,
+                      gain_range).margins([gains])[0]
 
 
 def linear_step(strategy: str, gains: PIDGains, model: CompensationModel, dt: float,
@@ -492,15 +547,19 @@ def _moves(g: PIDGains, step: float) -> list[PIDGains]:
 
 
 def _pattern_search(start: PIDGains, better: Callable[[PIDGains, PIDGains], bool], rounds: int = REFINE_ROUNDS,
-                    first_step: float = REFINE_START_STEP) -> PIDGains:
+                    first_step: float = REFINE_START_STEP,
+                    prepare: Callable[[list[PIDGains]], object] = lambda trials: None) -> PIDGains:
     """Compass search from ``start`` over :func:`_moves`: take any trial ``better`` than the present set, halve
-    the step when none is, ``rounds`` times."""
+    the step when none is, ``rounds`` times.  ``prepare`` sees each round's trials before they are judged (to
+    compute what they share at once)."""
     best, step = start, first_step
     for _ in range(rounds):
         improved = True
         while improved:
             improved = False
-            for trial in _moves(best, step):
+            trials = _moves(best, step)
+            prepare(trials)
+            for trial in trials:
                 if better(trial, best):
                     best, improved = trial, True
         step /= 2
@@ -541,6 +600,8 @@ class _Tuner:
             strategy, model, plant, dt, limits, base, log)
         self.v0 = base.centre_voltage_v
         self.gain_range = plant_gain_range(strategy, plant, base.command_min_v, base.command_max_v)
+        self.loop = _LoopPlant(strategy, plant, dt, base.command_min_v, base.command_max_v,
+                               base.derivative_filter_s, self.gain_range)
         self.variants = dynamics_variants(plant)
         self.margins_cache: dict[PIDGains, LoopMargins] = {}
         self.scores: dict[PIDGains, StepScore] = {}
@@ -553,11 +614,13 @@ class _Tuner:
 
     # ------------------------------------------------------------------ figures of one gain set (each once)
     def margins(self, g: PIDGains) -> LoopMargins:
-        if g not in self.margins_cache:
-            self.margins_cache[g] = loop_margins(self.strategy, g, self.plant, self.dt, self.base.command_min_v,
-                                                 self.base.command_max_v, self.base.derivative_filter_s,
-                                                 self.gain_range)
-        return self.margins_cache[g]
+        return self.margins_of([g])[0]
+
+    def margins_of(self, gains: Sequence[PIDGains]) -> list[LoopMargins]:
+        """The margins of each set, those not yet known computed together."""
+        new = list(dict.fromkeys(g for g in gains if g not in self.margins_cache))
+        self.margins_cache.update(zip(new, self.loop.margins(new)))
+        return [self.margins_cache[g] for g in gains]
 
     def score(self, g: PIDGains) -> StepScore:
         """The paper's steps with the controller on the model and the plant as the valve."""
@@ -619,12 +682,12 @@ class _Tuner:
         pass the margins)."""
         pole = _slowest_pole(self.plant)
         grid = [_gains(kp, ratio * pole, td) for ratio in ZERO_GRID_RATIO for td in DERIVATIVE_GRID_S for kp in KP_GRID]
-        passing = [g for g in grid if self.margins(g).meets(self.limits)]
+        passing = [g for g, m in zip(grid, self.margins_of(grid)) if m.meets(self.limits)]
         ranked = sorted(passing, key=self.linear_rank)
         refined = []
         for share in LINEAR_BUDGET_SHARES:
             budget = share * self.limits.max_overshoot_pct
-            refined += [_pattern_search(g, self.linear_better(budget))
+            refined += [_pattern_search(g, self.linear_better(budget), prepare=self.margins_of)
                         for g in [g for g in ranked if self.linear(g)[1] <= budget][:LINEAR_STARTS]]
         candidates = list(dict.fromkeys(sorted(refined, key=self.linear_rank) + ranked))
         self.log(f"tune {self.strategy}: screened {len(grid)} gain sets on the margins, {len(passing)} pass; "
@@ -667,7 +730,7 @@ class _Tuner:
         self.log(f"tune {self.strategy}: {len(self.scores)} sets run on the identified model; refining the best "
                  f"within the limits (" + ", ".join(f"{1e3 * self.score(g).settling_time_s:.2f} ms" for g in within) + ")")
         # 4. the best of those refined within the limits on the real steps
-        best = min((_pattern_search(g, self.better) for g in within), key=self.key)
+        best = min((_pattern_search(g, self.better, prepare=self.margins_of) for g in within), key=self.key)
         result = TuningResult(self.strategy, best, self.margins(best), self.score(best), self.limits,
                               len(self.margins_cache), len(self.scores) + sum(len(v) for v in self.on_variants.values()),
                               self.base.derivative_filter_s, tuple(self.variant_runs(best)))
