@@ -4,7 +4,10 @@ import sys
 # the package is installed editable (scripts/setup_venv.sh); the tests' own helpers live beside them
 sys.path.insert(0, os.path.dirname(__file__))
 
-from ros_helpers import ros_env  # noqa: E402  (found through the path set just above)
+import pytest  # noqa: E402
+
+import shared  # noqa: E402  (found through the path set just above)
+from ros_helpers import ros_env  # noqa: E402
 
 # nodes created in the test process join the suite's private DDS domain, on this machine only
 os.environ.update({k: ros_env()[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
@@ -12,3 +15,17 @@ os.environ.update({k: ros_env()[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DIS
 # ... and a reference a test publishes is acknowledged within milliseconds, as in valve_command and valve_rig
 from piezo_valve_ros.dds import use_fast_acknowledgements  # noqa: E402
 use_fast_acknowledgements()
+
+
+_SHARED_DIR = pytest.StashKey[str]()
+
+
+def pytest_configure(config):
+    """The controlling process makes the directory where workers share what tests only read (shared.py)."""
+    if not hasattr(config, "workerinput") and shared.SHARED_DIR_ENV not in os.environ:
+        config.stash[_SHARED_DIR] = shared.create_shared_directory()
+
+
+def pytest_unconfigure(config):
+    if _SHARED_DIR in config.stash:
+        shared.remove_shared_directory(config.stash[_SHARED_DIR])

@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from shared import computed_once
 from valve_battery import (BATTERY, NOMINAL, OUTSIDE, PRE_HISTORIES, rows_after, training_voltage,
                            validation_voltage_)
 
@@ -24,7 +25,6 @@ from piezo_valve_ros.core.control.strategies import ControllerConfig, PIDGains, 
 
 DT = 5e-4
 TRAIN_V, VALID_V = training_voltage(DT), validation_voltage_(DT)
-_cache = {}
 
 
 def records(name: str):
@@ -33,11 +33,11 @@ def records(name: str):
 
 
 def analysis_of(name: str, held_out: bool = False):
-    key = (name, held_out)
-    if key not in _cache:
+    """The battery valve ``name`` analysed (on its validation record, or on a held-out tail), once per test run."""
+    def compute():
         train, validate = records(name)
-        _cache[key] = analyse(train, None if held_out else validate)
-    return _cache[key]
+        return analyse(train, None if held_out else validate)
+    return computed_once(f"test_identification.analysis_of({name!r}, held_out={held_out})", compute)
 
 
 def assert_every_name_is_supported(report):
@@ -382,9 +382,8 @@ def test_a_simulated_valve_with_an_unrecorded_pre_history_adds_nothing(pre_histo
     the range) the start is judged unknown, and the state before the record is estimated near 10 V."""
     rows = rows_after(NOMINAL, PRE_HISTORIES[pre_history], TRAIN_V, 11)
     remanent = analyse(Record.from_rows(rows)).report
-    if "from_rest" not in _cache:
-        _cache["from_rest"] = analyse(Record.from_rows(NOMINAL.rows(TRAIN_V, 11))).report
-    from_rest = _cache["from_rest"]
+    from_rest = computed_once("test_identification.from_rest",
+                              lambda: analyse(Record.from_rows(NOMINAL.rows(TRAIN_V, 11))).report)
     assert from_rest["baseline_fits"]["initial_state"]["chosen"] == "rest"
     assert remanent["effects_added"] == [] and remanent["unexplained"] is False
     assert remanent["final"]["validate"]["rms_um"] <= 1.5 * from_rest["final"]["validate"]["rms_um"]

@@ -10,6 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import yaml
+from shared import directory_made_once
 
 from piezo_valve_ros.bagio import (FLOAT64_TYPE, BagRecorder, qos_profile, read_samples, serialize_float64,
                                    write_samples_bag)
@@ -28,22 +29,35 @@ def run_cli(*args, timeout=300):
                           capture_output=True, text=True, timeout=timeout, env=env)
 
 
-@pytest.fixture(scope="module")
-def bags_10khz(tmp_path_factory):
-    """Training and validation bags of the default simulated valve at the paper's 10 kHz."""
-    d = tmp_path_factory.mktemp("bags")
-    cfg = ValveSimConfig(dt=1e-4)
-    write_samples_bag(d / "train", simulate_rows(identification_voltage(1e-4, 20.0), replace(cfg, seed=1)),
-                      topic="/rig_a/valve1/samples")
-    write_samples_bag(d / "validate", simulate_rows(validation_voltage(1e-4, 20.0), replace(cfg, seed=2)),
-                      topic="/rig_a/valve1/samples")
-    return d
+@pytest.fixture
+def bags_10khz():
+    """Training and validation bags of the default simulated valve at the paper's 10 kHz (written once per run;
+    the tests only read them)."""
+    def write(d):
+        cfg = ValveSimConfig(dt=1e-4)
+        write_samples_bag(d / "train", simulate_rows(identification_voltage(1e-4, 20.0), replace(cfg, seed=1)),
+                          topic="/rig_a/valve1/samples")
+        write_samples_bag(d / "validate", simulate_rows(validation_voltage(1e-4, 20.0), replace(cfg, seed=2)),
+                          topic="/rig_a/valve1/samples")
+    return directory_made_once("test_identify_cli.bags_10khz", write)
+
+
+@pytest.fixture
+def identified_10khz(bags_10khz):
+    """valve_identify on the 10 kHz bags with a validation bag and every output: (the outputs' directory, the
+    run's returncode, stdout and stderr).  Run once per test run; the tests only read it."""
+    def run(d):
+        out = run_cli(bags_10khz / "train", "--validate", bags_10khz / "validate", "--report", d / "report.json",
+                      "--params-out", d / "fitted.yaml", "--plots", d / "plots")
+        (d / "run.json").write_text(json.dumps({"returncode": out.returncode, "stdout": out.stdout,
+                                                "stderr": out.stderr}))
+    d = directory_made_once("test_identify_cli.identified_10khz", run)
+    return d, subprocess.CompletedProcess([], **json.loads((d / "run.json").read_text()))
 
 
 @pytest.mark.slow
-def test_report_parameters_and_plots_from_10khz_bags(bags_10khz, tmp_path):
-    out = run_cli(bags_10khz / "train", "--validate", bags_10khz / "validate", "--report", tmp_path / "report.json",
-                  "--params-out", tmp_path / "fitted.yaml", "--plots", tmp_path / "plots")
+def test_report_parameters_and_plots_from_10khz_bags(identified_10khz):
+    tmp_path, out = identified_10khz
     assert out.returncode == 0, out.stderr
     report = json.loads((tmp_path / "report.json").read_text())
     # the default simulated valve: creep is undeclared; its G_v is the baseline's own (no "dynamics")
@@ -251,11 +265,10 @@ final_model.gpim.a0 final_model.gpim.a1 final_model.gpim.offset_um seconds sourc
 source.topic""".split()
 
 
-def test_report_keeps_every_key_earlier_reports_had(bags_10khz, tmp_path):
-    out = run_cli(bags_10khz / "train", "--validate", bags_10khz / "validate", "--report", tmp_path / "r.json",
-                  "--quiet")
+def test_report_keeps_every_key_earlier_reports_had(identified_10khz):
+    outputs, out = identified_10khz
     assert out.returncode == 0, out.stderr
-    report = json.loads((tmp_path / "r.json").read_text())
+    report = json.loads((outputs / "report.json").read_text())
     for path in EARLIER_REPORT_KEYS:
         node = report
         for part in path.split("."):

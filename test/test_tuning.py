@@ -6,6 +6,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import yaml
+from shared import computed_once
 
 from piezo_valve_ros.core.control.compensation import CompensationModel
 from piezo_valve_ros.core.evaluation import SIMULATED_EFFECTS
@@ -253,12 +254,14 @@ def test_the_comparison_says_why_a_faster_table1_set_is_not_the_tuners_choice():
                                            "tuned on)")
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def default_valve_identified():
+    """The default simulated valve at 1 kHz and the controller's model of it from identification (once per run)."""
     from piezo_valve_ros.core.evaluation import simulated_analysis
     from piezo_valve_ros.identify import compensation
     sim = ValveSimConfig(dt=DT)
-    return sim, compensation(simulated_analysis(sim, log=lambda s: None)).controller_model
+    return sim, computed_once("test_tuning.default_valve_identified",
+                              lambda: compensation(simulated_analysis(sim, log=lambda s: None)).controller_model)
 
 
 @pytest.mark.slow
