@@ -1,13 +1,15 @@
 """End to end through ROS: rig (lockstep) + identification node as separate processes."""
 import json
 import os
+import signal
 import subprocess
+import sys
 
 import numpy as np
 import pytest
 import yaml
 
-from ros_helpers import ros_env, start
+from ros_helpers import ros_env, start, wait_for_text
 
 from piezo_valve_ros.bagio import read_samples
 from piezo_valve_ros.processes import ProcessGroup, node_command
@@ -69,6 +71,42 @@ def test_identification_refits_pushes_and_cuts_the_ol_hc_error(tmp_path):
     assert f"refit: added: {', '.join(refit['effects_added']) or 'nothing'}; held-out RMS" in log
     assert "tracking error RMS" in log
     assert "s elapsed, about " in log and " s left" in log  # the long experiments say how far they are
+    # the lockstep rig stood still while the node refitted and tuned: the second validation's samples go on
+    # from the training run's within a few periods of simulated time (free-running, the rig ran ~10^4 periods)
+    assert "lockstep rig: paused while no experiment runs" in log
+    validation_rows, _ = read_samples(summary[4]["bag"])
+    assert 0.0 < validation_rows[0, 0] - rows[-1, 0] < 0.05, (rows[-1, 0], validation_rows[0, 0])
+
+
+def _step_budget(ns: str) -> str:
+    """The lockstep hardware's ``lockstep.step_budget`` as valve_command prints it."""
+    got = subprocess.run([os.path.join(os.path.dirname(sys.executable), "valve_command"), "--namespace", ns, "get",
+                          "hardware", "lockstep.step_budget"], env=ros_env(), capture_output=True, text=True,
+                         timeout=60)
+    assert got.returncode == 0, got.stdout + got.stderr
+    return got.stdout.strip()
+
+
+@pytest.mark.slow
+def test_an_identification_node_stopped_during_a_refit_leaves_the_lockstep_rig_running(tmp_path):
+    """The node pauses a free-running lockstep rig while it refits and tunes; Ctrl-C then releases it."""
+    ns = f"/release{os.getpid()}"
+    group = ProcessGroup()
+    try:
+        start(group, "hardware", node_command("valve_hardware", {"clock": "lockstep", "control_period_s": PERIOD},
+                                              ns), str(tmp_path))
+        start(group, "controller", node_command("valve_controller", {"control_period_s": PERIOD}, ns), str(tmp_path))
+        ident = {"plan": "train,refit,tune", "time_scale": 0.1, "training_s": 20.0, "control_period_s": PERIOD,
+                 "bag_dir": str(tmp_path / "runs")}
+        proc = start(group, "identification", node_command("valve_identification", ident, ns), str(tmp_path))
+        log = tmp_path / "identification.log"
+        wait_for_text(log, "refit: analysing", timeout_s=120)
+        assert _step_budget(ns) == "lockstep.step_budget: 0"     # paused while it analyses
+        proc.send_signal(signal.SIGINT)
+        proc.wait(60)
+        assert _step_budget(ns) == "lockstep.step_budget: -1", open(log).read()
+    finally:
+        group.stop()
 
 
 def test_refit_without_data_fails_cleanly_and_keeps_the_parameters_file(tmp_path):

@@ -21,6 +21,12 @@ The ``plan`` (comma-separated, run in order once the rig answers) is made of:
 ``validate``  the controller (switched to ``validation_strategy``, default ``ol_hc``) tracks the paper's
               validation demand (eq. 12) sent on ``position_reference``; the tracking error is logged.
 
+On a free-running lockstep rig (the hardware's ``clock`` lockstep, ``lockstep.step_budget`` -1) the rig is
+paused (budget 0) while no experiment runs: refit and tune take no simulated time and get the CPU the
+lockstep loop would spin on.  It is resumed for each experiment and when the plan ends or the node stops.
+A rig on the wall clock, one paced by someone else (budget >= 0) or a hardware node that does not answer is
+left alone.
+
 Every experiment is recorded to its own crash-safe rosbag2 bag under ``bag_dir`` (``samples``,
 ``voltage_command``, ``spool_position``, ``position_reference``).  ``bag_dir/summary.json`` lists what
 each step did and measured.
@@ -58,6 +64,8 @@ from ..core.model.drive import CENTRE_VOLTAGE_V
 
 STEPS = ("train", "refit", "tune", "validate")
 PROGRESS_PERIOD_S = 5.0   # default: a running experiment logs its progress this often [s]
+HARDWARE_ANSWER_S = 2.0   # the hardware node's parameter services answer within this or are taken to be absent [s]
+LOCKSTEP_BUDGET = "lockstep.step_budget"
 
 
 class _Player:
@@ -98,6 +106,8 @@ IDENTIFICATION_PARAMETERS: tuple[ParameterSpec, ...] = (CONTROL_PERIOD,) + tuple
         ("params_out", "", "parameters file written by refit (default: <bag_dir>/fitted.yaml)"),
         ("push", True, "push refitted parameters to the controller"),
         ("controller", "valve_controller", "name of the controller node (relative to this namespace)"),
+        ("hardware", "valve_hardware", "name of the hardware node (relative to this namespace): a free-running "
+                                       "lockstep rig is paused while no experiment runs"),
         ("exit_when_done", False, "shut down after the plan"),
         ("progress_period_s", PROGRESS_PERIOD_S, "a running experiment logs its progress this often [s]"),
     ])
@@ -149,6 +159,10 @@ class ValveIdentificationNode(Node):
         self.create_subscription(Float64, "spool_position", self._on_position, SENSOR_QOS)
         self.controller_name = str(p["controller"])
         self.controller = AsyncParameterClient(self, self.controller_name)
+        self.hardware_name = str(p["hardware"])
+        self.hardware = AsyncParameterClient(self, self.hardware_name)
+        self._paces_lockstep = False   # this node pauses the lockstep rig between experiments
+        self._rig_paused = False
         self.summary: list[dict] = []
         self.finished = threading.Event()
         self.failed = False
@@ -164,6 +178,11 @@ class ValveIdentificationNode(Node):
     def _stop_recording(self) -> dict:
         return self.recorder.stop()
 
+    def stop(self) -> None:
+        """When the node stops (Ctrl-C, SIGTERM, the plan's end): the open bag closed, a paused rig released."""
+        self._stop_recording()
+        self.release_rig()
+
     # ------------------------------------------------------------------ experiment playback
     def _on_position(self, msg: Float64) -> None:
         player = self._player
@@ -174,6 +193,14 @@ class ValveIdentificationNode(Node):
         player.next()
 
     def _play(self, player: _Player, what: str) -> None:
+        """Run an experiment: the rig resumed for it (when this node paces a lockstep rig) and paused after."""
+        self._pause_rig(False)
+        try:
+            self._play_on_running_rig(player, what)
+        finally:
+            self._pause_rig(True)
+
+    def _play_on_running_rig(self, player: _Player, what: str) -> None:
         expected_s = player.values.size * self.period_s
         self._player = player
         player.next()  # the first value goes out at once (in lockstep it also advances the rig)
@@ -208,6 +235,46 @@ class ValveIdentificationNode(Node):
         results = [results] if atomically else results
         bad = [r.reason for r in results if not r.successful]
         return (not bad), "; ".join(bad)
+
+    # ------------------------------------------------------------------ lockstep pacing
+    def _take_lockstep_pacing(self) -> None:
+        """Pause the rig between experiments when it is a free-running lockstep rig (see the module docstring)."""
+        if not wait_until_answering(self.hardware, HARDWARE_ANSWER_S):
+            self.get_logger().info(f"the hardware node {self.hardware_name!r} does not answer parameter requests: "
+                                   "the rig is not paused between experiments")
+            return
+        values = get_parameter_values(self.hardware, ["clock", LOCKSTEP_BUDGET])
+        if values["clock"] != "lockstep" or values[LOCKSTEP_BUDGET] != -1:
+            return
+        self._paces_lockstep = True
+        self._pause_rig(True)
+        self.get_logger().info("lockstep rig: paused while no experiment runs (refit and tune take no simulated "
+                               "time); resumed for each experiment and at the end")
+
+    def _set_step_budget(self, budget: int, timeout_s: float = 10.0) -> None:
+        answer = wait_future(self.hardware.set_parameters([Parameter(LOCKSTEP_BUDGET, value=budget)]), timeout_s,
+                             f"{self.hardware_name} {LOCKSTEP_BUDGET}")
+        result = answer.results[0]
+        if not result.successful:
+            raise RuntimeError(f"{self.hardware_name} refused {LOCKSTEP_BUDGET} := {budget}: {result.reason}")
+
+    def _pause_rig(self, paused: bool) -> None:
+        if self._paces_lockstep and paused != self._rig_paused:
+            self._set_step_budget(0 if paused else -1)
+            self._rig_paused = paused
+
+    def release_rig(self) -> None:
+        """Leave a paused lockstep rig running, also after the spin loop ended (Ctrl-C): the request is answered
+        through this node's executor, spun here for at most HARDWARE_ANSWER_S."""
+        if not self._rig_paused:
+            return
+        self._rig_paused = False
+        future = self.hardware.set_parameters([Parameter(LOCKSTEP_BUDGET, value=-1)])
+        if self.executor is not None and self.context.ok():
+            self.executor.spin_until_future_complete(future, timeout_sec=HARDWARE_ANSWER_S)
+        if not future.done() or not future.result().results[0].successful:
+            self.get_logger().warning(f"the lockstep rig may still be paused: set {self.hardware_name} "
+                                      f"{LOCKSTEP_BUDGET}:=-1")
 
     # ------------------------------------------------------------------ steps
     def _step_train(self) -> dict:
@@ -342,6 +409,7 @@ class ValveIdentificationNode(Node):
                                    f"{self.controller_name!r} not found)")
             while self.count_subscribers("voltage_command") == 0 and rclpy.ok():
                 time.sleep(0.05)  # the hardware is not up yet
+            self._take_lockstep_pacing()
             for step in self.plan:
                 result = getattr(self, f"_step_{step}")()
                 self.summary.append(result)
@@ -353,6 +421,11 @@ class ValveIdentificationNode(Node):
         finally:
             self._player = None
             self._stop_recording()
+            try:
+                self._pause_rig(False)
+            except (RuntimeError, TimeoutError) as exc:
+                self.get_logger().warning(f"the lockstep rig may still be paused ({exc}): set {self.hardware_name} "
+                                          f"{LOCKSTEP_BUDGET}:=-1")
             self.finished.set()
             if self.exit_when_done:
                 self.context.try_shutdown()
@@ -365,7 +438,7 @@ def main(args=None) -> int:
     def factory():
         made.append(ValveIdentificationNode())
         return made[0]
-    code = run_node(factory, "valve_identification", args, on_exit_of=lambda n: n._stop_recording,
+    code = run_node(factory, "valve_identification", args, on_exit_of=lambda n: n.stop,
                     specs=IDENTIFICATION_PARAMETERS)
     return code or (1 if made and made[0].failed else 0)
 
