@@ -53,6 +53,20 @@ def test_the_gain_margin_is_where_the_loop_starts_to_oscillate():
     assert _guard_trips(above, PAPER, DT) > 0
 
 
+def test_margins_of_many_gain_sets_at_once_equal_each_set_alone():
+    """The tuner rates its grid in batches: a stable PI, an unstable set, one with derivative action and one
+    that never crosses 0 dB, together and each alone, on a plant-gain range (pid) and at unit gain (pid_hc)."""
+    from piezo_valve_ros.core.tuning.tuner import _LoopPlant
+    sets = [PIDGains(0.4, 200.0, 0.0), PIDGains(3.0, 2000.0, 0.0), PIDGains(0.6, 290.0, 1e-4),
+            PIDGains(1e-4, 1e-3, 0.0)]
+    for strategy in ("pid", "pid_hc"):
+        together = _LoopPlant(strategy, PAPER, DT, 0.0, 10.0, ControllerConfig.derivative_filter_s).margins(sets)
+        alone = [loop_margins(strategy, g, PAPER, DT) for g in sets]
+        np.testing.assert_equal([vars(m) for m in together], [vars(m) for m in alone])   # nan == nan here
+        assert [m.stable for m in together] == [True, False, True, True]
+        assert np.isnan(together[3].crossover_hz) and together[3].phase_margin_deg == np.inf
+
+
 def test_margins_cover_the_hysteresis_slope_range_and_the_delay():
     lo, hi = plant_gain_range("pid", PAPER, 0.0, 10.0)
     assert 0.3 < lo < 0.5 and 1.1 < hi < 1.3   # one operator after a reversal .. all of them (paper GPIM)

@@ -73,6 +73,7 @@ MIN_CROSSOVER_HZ = 5.0         # default: the slowest gain crossover [Hz] over t
 #                                slowest set, FF PID 6, crosses at 7.9 Hz on the paper's model)
 GAIN_POINTS = 5                # plant gains checked across the slope range (pid, ff_pid, ff_pid_g)
 FREQUENCY_POINTS = 600         # frequencies of the margin computation, log-spaced up to Nyquist
+MARGIN_BATCH = 256             # gain sets whose loop responses are evaluated in one array (~12 MB)
 KP_GRID = np.geomspace(0.005, 20.0, 49)    # proportional gains screened [-] (x1.19)
 ZERO_GRID_RATIO = np.geomspace(0.05, 4.0, 19)  # PI zero ki/kp as a share of the plant's slowest pole [-] (x1.28)
 DERIVATIVE_GRID_S = (0.0, 1e-4, 2e-4, 3e-4, 4e-4)  # kd/kp screened [s] (0: PI, as all of Table 1)
@@ -338,8 +339,6 @@ def _margins_rows(L: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray,
         gm = np.where(pcross, -20.0 * lm / math.log(10.0), np.inf).min(axis=1)
     return gm, pm, np.where(np.isinf(wc), np.nan, wc)
 
-
-MARGIN_BATCH = 256             # gain sets whose loop responses are evaluated in one array (memory: ~10 MB)
 
 
 class _LoopPlant:
