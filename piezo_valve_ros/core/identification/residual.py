@@ -437,30 +437,58 @@ class _Loop:
             current = [n for n in current if n != weakest]
         return self.baseline, {}, {}, []
 
+    def exact_addition(self, current: list[str], final: ValveModel, tried: set[frozenset]) -> Optional[list[str]]:
+        """The search judged nonlinear structures to first order, which can underrate a large one: effects whose
+        linear estimate shows some gain are refitted exactly on top of the confirmed set; the set with the best
+        one that is supported (None: none is)."""
+        if len(current) == len(self.names):
+            return None
+        base_score = self.held_out(final)
+        options = [n for n in self.exact_options(current) if frozenset(current + [n]) not in tried]
+        best = None
+        for n, (_, score) in zip(options, self.refit_many([(current + [n], final) for n in options])):
+            if support(score, base_score, self.noise)[2] and (best is None or score.rms < best[1].rms):
+                best = (n, score)
+        if best is None:
+            return None
+        self.log(f"exact check: {best[0]} cuts the held-out RMS {base_score.rms:.4f} -> {best[1].rms:.4f} um "
+                 f"(the first-order search underrated it); added")
+        return current + [best[0]]
+
+    def better_swap(self, current: list[str], verdicts: dict, tried: set[frozenset]) -> Optional[list[str]]:
+        """An effect the record cannot tell apart from an added one (see :func:`_alternatives`) that, put in its
+        place, leaves the lower held-out RMS by the exact refits: the set with the two swapped, to be confirmed
+        (None: every added effect is the better of its pair).  The search's first-order ranking chose the
+        added one; the exact refits decide."""
+        best = None
+        for alt in _alternatives(current, self.names, verdicts, self.search, self.refit_many):
+            a, b, rms = alt["effect"], alt["alternative"], alt["held_out_rms_um"]
+            swapped = [n for n in self.names if n in (set(current) - {a}) | {b}]
+            if rms["with_" + b] < rms["with_" + a] and frozenset(swapped) not in tried \
+                    and (best is None or rms["with_" + b] < best[3]):
+                best = (a, b, swapped, rms["with_" + b], rms["with_" + a])
+        if best is None:
+            return None
+        a, b, swapped, with_b, with_a = best
+        self.log(f"swap: {b} in {a}'s place leaves a held-out RMS of {with_b:.4f} um against {with_a:.4f} um with "
+                 f"{a} (the first-order search ranked {a} first); {a} replaced by {b}")
+        return swapped
+
     def extend(self) -> None:
-        """The winning subset confirmed; then effects the linear search underrated, checked exactly; then G_v's
-        poles again through the effects found.  Sets ``final``, ``drop_one``, ``verdicts``, ``current``."""
+        """The winning subset confirmed; then effects the linear search underrated, checked exactly, and effects
+        that do better in an added one's place, swapped in (each change confirmed again); then G_v's poles again
+        through the effects found.  Sets ``final``, ``drop_one``, ``verdicts``, ``current``."""
         self.confirm_log: list[dict] = []
         self.refits: dict[frozenset, tuple[ValveModel, Score]] = {frozenset(): (self.baseline, self.held_out(self.baseline))}
         current = [n for n in self.names if n in self.chosen_set]
         final, drop_one, verdicts, current = self.confirm(current)
-        # the search judged nonlinear structures to first order, which can underrate a large one: effects whose
-        # linear estimate shows some gain are refitted exactly on top of the confirmed set, and the best one
-        # that is supported joins (then everything is confirmed again)
         tried: set[frozenset] = set()   # sets already put to confirm: each once (an effect added here and dropped
-        while len(current) < len(self.names):  # by confirm would be added again, and dropped again, forever)
-            base_score = self.held_out(final)
-            options = [n for n in self.exact_options(current) if frozenset(current + [n]) not in tried]
-            best = None
-            for n, (_, score) in zip(options, self.refit_many([(current + [n], final) for n in options])):
-                if support(score, base_score, self.noise)[2] and (best is None or score.rms < best[1].rms):
-                    best = (n, score)
-            if best is None:
+        while True:                     # by confirm would be added again, and dropped again, forever)
+            changed = self.exact_addition(current, final, tried) or self.better_swap(current, verdicts, tried)
+            if changed is None:
                 break
-            self.log(f"exact check: {best[0]} cuts the held-out RMS {base_score.rms:.4f} -> {best[1].rms:.4f} um "
-                     f"(the first-order search underrated it); added")
-            tried.add(frozenset(current + [best[0]]))
-            final, drop_one, verdicts, current = self.confirm(current + [best[0]])
+            tried.add(frozenset(changed))
+            final, drop_one, verdicts, current = self.confirm(changed)
         # G_v's poles again through the effects found (creep's fast share bends the baseline's poles)
         polished = refit_poles_with_effects(self.fit, final, self.cache)
         if polished is not final:
