@@ -57,7 +57,8 @@ from ..model.hysteresis import GPIM
 from .initial_state import ESTIMATE_ROUNDS, ESTIMATE_STATE_GAIN, WIPE_STATE_GAIN, estimate_state, own_start
 from .report import IdentificationReport
 from .records import ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, SUPPORTED_RATE_HZ, Record, noise_floor_um, noise_peak_um
-from .search import GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, Score, SubsetSearch, support
+from .search import (GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, Score, SubsetSearch, support,
+                     unsupported_because)
 from .split import WIPE_MARGIN, Split, split_records
 from ..metrics import error_figures, rms
 from ..model.dynamics import describe_dynamics
@@ -422,9 +423,9 @@ class _Loop:
             requests = [([m for m in current if m != n], model) for n in current]
             dropped = self.refit_many(requests + [(current + [n], model) for n in self.exact_options(current)]
                                       )[:len(current)]
-            drops, verdicts = {}, {}
+            drops, verdicts, withouts = {}, {}, {}
             for n, (without_model, without) in zip(current, dropped):
-                drops[n] = without_model
+                drops[n], withouts[n] = without_model, without
                 verdicts[n] = support(score_model, without, self.noise) + (without.rms, score_model.rms)
             self.confirm_log.append({"effects": list(current), "held_out_rms_um": round(score_model.rms, 6),
                                      "drop_one": {n: round(v[0], 4) for n, v in verdicts.items()}})
@@ -432,8 +433,8 @@ class _Loop:
             if not failing:
                 return model, drops, verdicts, current
             weakest = min(failing, key=lambda n: verdicts[n][0])
-            self.log(f"confirm: {weakest} not supported by the exact refit (held-out RMS cut "
-                     f"{100 * verdicts[weakest][0]:.1f} %); dropped")
+            self.log(f"confirm: {weakest} not supported by the exact refit "
+                     f"({unsupported_because(score_model, withouts[weakest], self.noise)}); dropped")
             current = [n for n in current if n != weakest]
         return self.baseline, {}, {}, []
 
@@ -488,7 +489,13 @@ class _Loop:
             if changed is None:
                 break
             tried.add(frozenset(changed))
-            final, drop_one, verdicts, current = self.confirm(changed)
+            confirmed = self.confirm(changed)
+            before, after = self.held_out(final).rms, self.held_out(confirmed[0]).rms
+            if current and after >= before:   # confirm dropped its way to a set that does worse: keep the last one
+                self.log(f"confirm: {', '.join(confirmed[3]) or 'nothing'} left of {', '.join(changed)}, held-out RMS "
+                         f"{after:.4f} um against {before:.4f} um with {', '.join(current)}; kept {', '.join(current)}")
+                continue
+            final, drop_one, verdicts, current = confirmed
         # G_v's poles again through the effects found (creep's fast share bends the baseline's poles)
         polished = refit_poles_with_effects(self.fit, final, self.cache)
         if polished is not final:

@@ -88,6 +88,19 @@ class Score:
         return cls(rms(error), float(np.max(np.abs(error))) if error.size else 0.0)
 
 
+def unsupported_because(with_: Score, without: Score, noise_um: float) -> str:
+    """Why :func:`support` refuses an effect added last (empty when it does not)."""
+    cut, explained, _ = support(with_, without, noise_um)
+    why = []
+    if cut < GAIN_THRESHOLD:
+        why.append(f"held-out RMS cut {100 * cut:.1f} % < {100 * GAIN_THRESHOLD:.0f} %")
+    if explained < MIN_EFFECT_NOISE_RATIO * noise_um:
+        why.append(f"explains {explained:.4f} um < {MIN_EFFECT_NOISE_RATIO:g}x the sensor noise {noise_um:.4f} um")
+    if with_.peak > PEAK_TOLERANCE * without.peak:
+        why.append(f"raises the held-out peak {without.peak:.3f} -> {with_.peak:.3f} um (> {PEAK_TOLERANCE:g}x)")
+    return "; ".join(why)
+
+
 def support(with_: Score, without: Score, noise_um: float) -> tuple[float, float, bool]:
     """(held-out RMS cut, explained RMS [um], supported?) of an effect added last: it must cut the held-out
     RMS by GAIN_THRESHOLD, explain MIN_EFFECT_NOISE_RATIO times the sensor noise and not raise the peak by
