@@ -76,6 +76,7 @@ class Capacity(TypedDict):
     grid: str
     operators: int
     held_out_rms_um: float
+    held_out_rms_about_trend_um: float
 
 
 class SearchRow(TypedDict):
@@ -94,6 +95,7 @@ class ConfirmRound(TypedDict):
 class BaselineFits(TypedDict):
     capacity: list[Capacity]
     chosen: str
+    chosen_on: str
     initial_state: dict
     linear: dict
     paper_nls: dict

@@ -72,6 +72,10 @@ CAPACITY_EXTENSION = (90, 135)              # ... then these, one at a time, whi
                                             # by more than CAPACITY_TOLERANCE over the size below it
 MID_CAPACITY = 27                           # the size G_v's poles are first fitted with
 CAPACITY_TOLERANCE = 0.02                   # a smaller GPIM within 2 % of the best held-out RMS is preferred
+TREND_DOMINANCE = 0.5                        # when the best size's held-out error about its quadratic trend is
+                                            # below this share of its RMS, a trend (a drift) swamps what the
+                                            # sizes differ in, and they are compared about their trends
+CAPACITY_TREND_DEGREE = 2                   # ... of this degree in time
 INITIAL_STATE_TOLERANCE = 0.02              # "cycled" replaces "rest" only if it cuts the held-out RMS by more
 WIPE_GAIN = 0.1                             # fitting only after the wipe must cut the held-out RMS by >= 10 %
 UNEXPLAINED_NOISE_RATIO = 2.0               # structured residual RMS above this many noise RMS: unexplained
@@ -333,35 +337,49 @@ class _Loop:
     # ------------------------------------------------------------------ 1b. the GPIM's capacity
     def choose_capacity(self) -> None:
         """The GPIM's number of thresholds, chosen on held-out data among CAPACITY_OPERATORS and the paper's
-        5-parameter fit's grid; sets ``baseline``, ``paper``, ``capacity`` and ``capacity_label``."""
+        5-parameter fit's grid; sets ``baseline``, ``paper``, ``capacity``, ``capacity_label`` and
+        ``capacity_score``.  The sizes are compared on their held-out RMS, or, where a slow trend dominates it
+        (TREND_DOMINANCE: a drift the baseline cannot follow, which would make every size look alike and the
+        smallest win), on their held-out error about its trend."""
         fit, first, pool = self.fit, self.first, self.pool
         paper_job = pool.submit(fit_paper_gpim, fit, first.sections, history=first.history)
         grids = {f"{n} operators": uniform_thresholds(fit.voltage_v, n) for n in CAPACITY_OPERATORS}
-        jobs = {label: pool.submit(self.fitted_and_scored, self.start_model(grid, first), "fixed")
-                for label, grid in grids.items()}
+        jobs = {label: pool.submit(self.capacity_fit, grid) for label, grid in grids.items()}
         self.paper = paper = paper_job.result()
         if paper.failed is None:
             label = f"paper grid ({paper.params.n} operators, alpha {paper.params.alpha:.4g} V)"
             grids[label] = paper.model.gpim.thresholds
-            jobs[label] = pool.submit(self.fitted_and_scored, self.start_model(grids[label], first), "fixed")
-        capacity = []
-        for label, grid in grids.items():
-            m, held_out_rms = jobs[label].result()
-            capacity.append((label, grid.size, held_out_rms, m))
+            jobs[label] = pool.submit(self.capacity_fit, grids[label])
+        fits = {label: job.result() for label, job in jobs.items()}
+        about_trend = (min(f[2] for f in fits.values())
+                       < TREND_DOMINANCE * min(f[1] for f in fits.values()))
+        pick = 2 if about_trend else 1
+        capacity = [(label, grids[label].size, f[pick], f[0], f[1], f[2]) for label, f in fits.items()]
         ladder = [c for c in capacity if c[0].endswith(" operators")]
         for n in CAPACITY_EXTENSION:   # a record with fine loop structure (a measured one) may want more
             largest, below = ladder[-1], ladder[-2]
             if not (largest[2] < (1 - CAPACITY_TOLERANCE) * below[2] and largest[2] <= min(c[2] for c in capacity)):
                 break
             grid = uniform_thresholds(fit.voltage_v, n)
-            m, held_out_rms = self.fitted_and_scored(self.start_model(grid, first), "fixed")
-            ladder.append((f"{n} operators", grid.size, held_out_rms, m))
+            f = self.capacity_fit(grid)
+            ladder.append((f"{n} operators", grid.size, f[pick], f[0], f[1], f[2]))
             capacity.append(ladder[-1])
         best = min(c[2] for c in capacity)
-        label, _, _, chosen = min((c for c in capacity if c[2] <= (1 + CAPACITY_TOLERANCE) * best), key=lambda c: c[1])
+        label, _, _, chosen, _, _ = min((c for c in capacity if c[2] <= (1 + CAPACITY_TOLERANCE) * best),
+                                        key=lambda c: c[1])
         self.baseline = fit_model(fit, chosen, poles="baseline", cache=self.cache)
         self.capacity, self.capacity_label = capacity, label
-        self.log("capacity: " + ", ".join(f"{c[0]} {c[2]:.4f}" for c in capacity) + f" um held-out RMS; chosen {label}")
+        self.capacity_score = "held-out RMS about its trend" if about_trend else "held-out RMS"
+        self.log("capacity: " + ", ".join(f"{c[0]} {c[2]:.4f}" for c in capacity) + f" um {self.capacity_score}"
+                 + (" (a trend dominates the held-out error; as it is: " + ", ".join(f"{c[4]:.4f}" for c in capacity)
+                    + " um)" if about_trend else "") + f"; chosen {label}")
+
+    def capacity_fit(self, thresholds: np.ndarray) -> tuple[ValveModel, float, float]:
+        """A GPIM on ``thresholds`` fitted from the chosen start (G_v fixed): (model, held-out RMS, held-out RMS
+        about its polynomial trend of degree CAPACITY_TREND_DEGREE) [um]."""
+        m = fit_model(self.fit, self.start_model(thresholds, self.first), poles="fixed", cache=self.cache)
+        error = self.split.held_out_error(m)
+        return m, rms(error), rms(_detrended(error))
 
     # ------------------------------------------------------------------ 2. every subset, one linear solve each
     def search_subsets(self) -> None:
@@ -625,8 +643,10 @@ class _Loop:
             "residual": self.seen,
             "residual_structure": {k: round(v, 6) for k, v in self.structure.items()},
             "baseline_fits": {
-                "capacity": [{"grid": c[0], "operators": c[1], "held_out_rms_um": round(c[2], 6)} for c in self.capacity],
+                "capacity": [{"grid": c[0], "operators": c[1], "held_out_rms_um": round(c[4], 6),
+                              "held_out_rms_about_trend_um": round(c[5], 6)} for c in self.capacity],
                 "chosen": self.capacity_label,
+                "chosen_on": self.capacity_score,
                 "initial_state": {"held_out_rms_um": {h: round(r, 6) for h, r in self.start_rms.items()},
                                   "chosen": self.chosen_state, **self.assumed},
                 "linear": {**figured[id(baseline)], "operators": baseline.gpim.n, "invertible": True},
@@ -674,6 +694,14 @@ class _Loop:
         self.what_remains()
         report = self.report()
         return Analysis(report, self.baseline, self.final, self.split, self.drop_one)
+
+
+def _detrended(error: np.ndarray) -> np.ndarray:
+    """``error`` minus its least-squares polynomial in time (sample index) of degree CAPACITY_TREND_DEGREE."""
+    t = np.linspace(-1.0, 1.0, error.size)
+    basis = np.vander(t, CAPACITY_TREND_DEGREE + 1)
+    coefs, *_ = np.linalg.lstsq(basis, error, rcond=None)
+    return error - basis @ coefs
 
 
 def _alternatives(added: list[str], names: list[str], verdicts: dict, search: "SubsetSearch",
