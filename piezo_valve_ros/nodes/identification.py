@@ -243,7 +243,11 @@ class ValveIdentificationNode(Node):
             self.get_logger().info(f"the hardware node {self.hardware_name!r} does not answer parameter requests: "
                                    "the rig is not paused between experiments")
             return
-        values = get_parameter_values(self.hardware, ["clock", LOCKSTEP_BUDGET])
+        try:
+            values = get_parameter_values(self.hardware, ["clock", LOCKSTEP_BUDGET], HARDWARE_ANSWER_S)
+        except TimeoutError as exc:
+            self.get_logger().info(f"the rig is not paused between experiments ({exc})")
+            return
         if values["clock"] != "lockstep" or values[LOCKSTEP_BUDGET] != -1:
             return
         self._paces_lockstep = True
