@@ -58,6 +58,14 @@ def run_figures(rows: np.ndarray, reference_m: np.ndarray, topic: str, steps) ->
                        "hold_s": float(s.hold_s), "overshoot_pct": float(s.overshoot_pct)} for s in steps]}
 
 
+def default_figures_dir(bag: str) -> Path:
+    """BAG_plots beside the bag, named as the user named the bag (relative stays relative)."""
+    path = Path(bag)
+    if path.name in ("", ".", ".."):
+        path = path.resolve()
+    return path.with_name(path.name + "_plots")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="valve_plot", description=__doc__.split("\n\n")[0])
     ap.add_argument("bag", help="bag directory (valve_record, valve_identification, ros2 bag record)")
@@ -73,8 +81,8 @@ def main(argv=None) -> int:
         return 2
     reference = reference_on_samples(rows[:, 0], ref_t, ref_m)
     steps = find_steps(rows[:, 0], rows[:, 2], reference)
+    out = Path(args.out) if args.out else default_figures_dir(args.bag)
     if args.json:
-        out = Path(args.out) if args.out else Path(str(Path(args.bag).resolve()) + "_plots")
         try:
             from .plots import write_run
             written = write_run(rows[:, 0], rows[:, 1], rows[:, 2], reference, out,
@@ -96,7 +104,6 @@ def main(argv=None) -> int:
                   f"{s.overshoot_pct:14.2f}")
     elif np.isfinite(reference).any():
         print("no steps in the reference")
-    out = Path(args.out) if args.out else Path(str(Path(args.bag).resolve()) + "_plots")
     try:
         from .plots import write_run
         written = write_run(rows[:, 0], rows[:, 1], rows[:, 2], reference, out, title=f"{Path(args.bag).name} ({topic})")

@@ -25,6 +25,15 @@ def tool(name: str, *args: str, timeout_s: float = 60.0) -> subprocess.Completed
 
 
 # ---------------------------------------------------------------------------- no ROS
+def test_valve_plot_puts_its_figures_beside_the_bag_named_as_the_user_named_it():
+    from pathlib import Path
+    from piezo_valve_ros.plot_cli import default_figures_dir
+    assert default_figures_dir("run1") == Path("run1_plots") == default_figures_dir("run1/")
+    assert default_figures_dir("/data/day2/run1") == Path("/data/day2/run1_plots")
+    assert default_figures_dir(".") == Path(os.getcwd() + "_plots")
+    assert default_figures_dir("x/..") == Path(os.getcwd() + "_plots")   # resolved: x/.. is this directory
+
+
 def test_reference_profiles_and_their_refusals(tmp_path):
     t, y = ramp_profile(0.0, 30e-6, 2.0, rate_hz=10.0)
     assert t[0] == 0 and t[-1] == 2.0 and y[-1] == pytest.approx(30e-6) and t.size == 21
