@@ -553,6 +553,19 @@ def test_the_loop_swaps_in_the_better_of_two_effects_and_ends_at_the_best_set_it
     assert_every_name_is_supported(report)
 
 
+def test_held_out_data_beyond_the_training_range_are_warned_of():
+    """The nominal valve trained on the paper's signal squeezed into 2.5-7.5 V and judged on the full-range
+    validation record: the fit cannot know the valve outside 2.5-7.5 V, and the report warns so; trained on
+    the full range, the same validation record gives no warning."""
+    squeezed = 5.0 + 0.5 * (TRAIN_V - 5.0)
+    validate = Record.from_rows(NOMINAL.rows(VALID_V, 2))
+    report = analyse(Record.from_rows(NOMINAL.rows(squeezed, 1)), validate).report
+    warned = [w for w in report["warnings"] if "beyond the fit part's" in w]
+    assert len(warned) == 1 and warned[0].startswith("the validation record drives the valve to "), report["warnings"]
+    assert check_report(report) == []
+    assert analysis_of("nominal").report["warnings"] == []
+
+
 def test_an_effects_refit_is_settled_not_one_solve_deep():
     """Creep's columns are lags of the GPIM's output, which the weights being solved make: a refit solves
     until the weights agree with the columns (``fitting._settled``), so one more solve leaves them put.  A

@@ -78,6 +78,8 @@ TREND_DOMINANCE = 0.5                        # when the best size's held-out err
 CAPACITY_TREND_DEGREE = 2                   # ... of this degree in time
 INITIAL_STATE_TOLERANCE = 0.02              # "cycled" replaces "rest" only if it cuts the held-out RMS by more
 WIPE_GAIN = 0.1                             # fitting only after the wipe must cut the held-out RMS by >= 10 %
+HELD_OUT_RANGE_MARGIN = 0.05                # held-out data driven beyond the fit part's voltage range by more
+                                            # than this share of it: warned (the fit cannot know that range)
 UNEXPLAINED_NOISE_RATIO = 2.0               # structured residual RMS above this many noise RMS: unexplained
 PEAK_NOISE_RATIO = 2.5                      # held-out peaks above this many times the noise's: unexplained
 PEAK_BLOCK_S = 0.005                        # ... judged on the PEAK_RANK-th largest peak of blocks this long
@@ -686,8 +688,27 @@ class _Loop:
                  f"{str(self.unexplained).lower()} ({report['seconds']:.1f} s)")
         return report
 
+    def check_held_out_range(self) -> None:
+        """Warn when the held-out data drive the valve beyond the fit part's voltage range: the operators that
+        only the held-out part moves (and whatever the valve does there) are not identified by the fit, and the
+        held-out error there is extrapolation, which no effect explains."""
+        fit_v, held_v = self.split.fit.voltage_v, self.split.score.voltage_v[self.split.start:]
+        lo, hi = float(np.min(fit_v)), float(np.max(fit_v))
+        margin = HELD_OUT_RANGE_MARGIN * (hi - lo)
+        below, above = float(np.min(held_v)), float(np.max(held_v))
+        beyond = max(lo - below, above - hi)
+        if beyond > margin:
+            where = "the validation record" if not self.split.held_out else "the held-out part"
+            self.warnings.append(f"{where} drives the valve to {below:.4g} .. {above:.4g} V, {beyond:.3g} V beyond the fit "
+                                 f"part's {lo:.4g} .. {hi:.4g} V ({100 * beyond / (hi - lo):.0f} % of its range): the fit "
+                                 f"cannot know the valve there, and the held-out error from there is extrapolation, "
+                                 f"which no effect explains (a training record should span every voltage the valve "
+                                 f"will see)")
+            self.log("warning: " + self.warnings[-1])
+
     def run(self) -> Analysis:
         self.choose_initial_state()
+        self.check_held_out_range()
         self.choose_capacity()
         self.search_subsets()
         self.extend()
