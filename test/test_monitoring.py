@@ -105,6 +105,7 @@ def test_bad_limits_and_rows_are_refused_with_the_reason():
 
 
 @pytest.mark.slow
+@pytest.mark.wall_clock(seconds=40)
 def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_after_a_refit(tmp_path):
     """A real-time rig (the simulated valve: G_v and noise, a 3 um drift setting in 25 s after the hardware
     opened) under PID HC following a slow sine; valve_monitor beside it (`valve_rig --monitor`, its section of

@@ -19,6 +19,7 @@ PERTURBED = {"sim.gpim.rho": 6.6, "sim.gpim.tau": 1.0, "sim.gpim.offset_um": -75
 
 
 @pytest.mark.slow
+@pytest.mark.wall_clock(seconds=20)
 def test_identification_refits_pushes_and_cuts_the_ol_hc_error(tmp_path):
     ns = f"/ident{os.getpid()}"
     group = ProcessGroup()
@@ -88,6 +89,7 @@ def _step_budget(ns: str) -> str:
 
 
 @pytest.mark.slow
+@pytest.mark.wall_clock(seconds=8)
 def test_an_identification_node_stopped_during_a_refit_leaves_the_lockstep_rig_running(tmp_path):
     """The node pauses a free-running lockstep rig while it refits and tunes; Ctrl-C then releases it."""
     ns = f"/release{os.getpid()}"

@@ -136,6 +136,7 @@ def test_tools_refuse_bad_arguments_before_touching_ros(tmp_path):
 
 # ---------------------------------------------------------------------------- through a running rig
 @pytest.mark.slow
+@pytest.mark.wall_clock(seconds=40)
 def test_record_command_and_identify_a_running_rig(tmp_path):
     """A real-time rig in its own namespace; valve_record records while valve_command sends a step and a
     sine and changes parameters; the bag holds what was sent and what the valve did, and valve_identify
@@ -242,6 +243,7 @@ def plugin_env() -> dict:
 
 
 @pytest.mark.slow
+@pytest.mark.wall_clock(seconds=10)
 def test_an_out_of_tree_backend_runs_the_rig(tmp_path):
     """A backend installed by another package (found through the entry-point group piezo_valve_ros.backends)
     runs the rig with no change to this package: its parameters are declared under its name and checked by
@@ -304,6 +306,7 @@ def test_one_samples_decoder_for_bags_and_messages():
 
 
 @pytest.mark.slow
+@pytest.mark.wall_clock(seconds=10)
 def test_valve_rig_brings_up_your_backend_from_one_parameters_file(tmp_path):
     """The path onto a real rig, with the loopback DAQ as the backend: one parameters file for hardware and
     controller, `valve_rig --params-file` (the file's backend, clock and period; --backend on the command
