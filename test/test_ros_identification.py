@@ -105,7 +105,9 @@ def test_an_identification_node_stopped_during_a_refit_leaves_the_lockstep_rig_r
         wait_for_text(log, "refit: analysing", timeout_s=120)
         proc.send_signal(signal.SIGINT)                         # Ctrl-C while it analyses (the rig paused)
         proc.wait(60)
-        assert "plan done" not in open(log).read()               # it stopped in the middle of the plan
+        said = open(log).read()
+        assert "lockstep rig: paused while no experiment runs" in said, said
+        assert "plan done" not in said                             # it stopped in the middle of the plan
         assert _step_budget(ns) == "lockstep.step_budget: -1", open(log).read()
         hardware_log = open(tmp_path / "hardware.log").read()
         paced = [line.split("]: ")[1] for line in hardware_log.splitlines() if "]: lockstep: " in line]

@@ -64,7 +64,8 @@ from ..core.model.drive import CENTRE_VOLTAGE_V
 
 STEPS = ("train", "refit", "tune", "validate")
 PROGRESS_PERIOD_S = 5.0   # default: a running experiment logs its progress this often [s]
-HARDWARE_ANSWER_S = 2.0   # the hardware node's parameter services answer within this or are taken to be absent [s]
+HARDWARE_ANSWER_S = 10.0  # the hardware node's parameter services answer within this or are taken to be absent [s]
+RELEASE_ANSWER_S = 2.0    # on the way out, a paused rig's release is waited for this long [s]
 LOCKSTEP_BUDGET = "lockstep.step_budget"
 
 
@@ -269,13 +270,13 @@ class ValveIdentificationNode(Node):
 
     def release_rig(self) -> None:
         """Leave a paused lockstep rig running, also after the spin loop ended (Ctrl-C): the request is answered
-        through this node's executor, spun here for at most HARDWARE_ANSWER_S."""
+        through this node's executor, spun here for at most RELEASE_ANSWER_S."""
         if not self._rig_paused:
             return
         self._rig_paused = False
         future = self.hardware.set_parameters([Parameter(LOCKSTEP_BUDGET, value=-1)])
         if self.executor is not None and self.context.ok():
-            self.executor.spin_until_future_complete(future, timeout_sec=HARDWARE_ANSWER_S)
+            self.executor.spin_until_future_complete(future, timeout_sec=RELEASE_ANSWER_S)
         if not future.done() or not future.result().results[0].successful:
             self.get_logger().warning(f"the lockstep rig may still be paused: set {self.hardware_name} "
                                       f"{LOCKSTEP_BUDGET}:=-1")
