@@ -441,15 +441,18 @@ def identification(ros_context, tmp_path):
     ({"tune_max_overshoot_pct": float("nan")}, "tune_max_overshoot_pct must be finite"),
     ({"tune_max_overshoot_pct": "abc"}, "tune_max_overshoot_pct must be a number"),
     ({"plan": "train,tune"}, "tune needs a refit step before it"),
+    ({"hardware": ""}, "hardware must name a node"),
+    ({"hardware": "the rig!"}, "hardware 'the rig!' is not a node name"),
+    ({"controller": ""}, "controller must name a node"),
 ])
-def test_identification_refuses_bad_tune_settings_at_start_up(identification, overrides, says):
+def test_identification_refuses_bad_settings_at_start_up(identification, overrides, says):
     with pytest.raises(ValueError, match=says):
         identification(**overrides)
 
 
 @pytest.mark.parametrize("name, value", [("tune_strategy", "pid"), ("tune_max_overshoot_pct", 0.0),
                                          ("tune_max_overshoot_pct", float("nan")), ("plan", "train"),
-                                         ("control_period_s", 1e-4)])
+                                         ("control_period_s", 1e-4), ("hardware", "other_hardware")])
 def test_identification_settings_are_start_up_only(identification, name, value):
     """Read at start-up by the plan: a run-time change is refused with the reason, never stored and ignored."""
     node = identification(tune_max_overshoot_pct=0.0)   # 0 %: a valid (strict) limit

@@ -4,6 +4,7 @@ import os
 import signal
 import subprocess
 import sys
+from typing import Optional
 
 import numpy as np
 import pytest
@@ -18,16 +19,22 @@ PERIOD = 1e-3  # 1 kHz control, 10 kHz sampling
 PERTURBED = {"sim.gpim.rho": 6.6, "sim.gpim.tau": 1.0, "sim.gpim.offset_um": -75.0}  # not the paper's valve
 
 
+def _lockstep_rig(group: ProcessGroup, ns: str, log_dir, hardware: Optional[dict] = None,
+                  controller: Optional[dict] = None) -> None:
+    """Hardware (lockstep) and controller at PERIOD in ``ns``, each with the given extra parameters."""
+    start(group, "hardware", node_command("valve_hardware", {"clock": "lockstep", "control_period_s": PERIOD,
+                                                             **(hardware or {})}, ns), str(log_dir))
+    start(group, "controller", node_command("valve_controller", {"control_period_s": PERIOD, **(controller or {})}, ns),
+          str(log_dir))
+
+
 @pytest.mark.slow
 @pytest.mark.wall_clock(seconds=20)
 def test_identification_refits_pushes_and_cuts_the_ol_hc_error(tmp_path):
     ns = f"/ident{os.getpid()}"
     group = ProcessGroup()
     try:
-        hw = {"clock": "lockstep", "control_period_s": PERIOD, "sim.seed": 7, **PERTURBED}
-        start(group, "hardware", node_command("valve_hardware", hw, ns), str(tmp_path))
-        start(group, "controller", node_command("valve_controller", {"control_period_s": PERIOD, "strategy": "ol_hc",
-                                                                     "gain_set": ""}, ns), str(tmp_path))
+        _lockstep_rig(group, ns, tmp_path, {"sim.seed": 7, **PERTURBED}, {"strategy": "ol_hc", "gain_set": ""})
         bags = tmp_path / "runs"
         ident = {"plan": "validate,train,refit,tune,validate", "time_scale": 0.25, "validation_s": 20.0,
                  "control_period_s": PERIOD, "bag_dir": str(bags), "exit_when_done": True,
@@ -95,9 +102,7 @@ def test_an_identification_node_stopped_during_a_refit_leaves_the_lockstep_rig_r
     ns = f"/release{os.getpid()}"
     group = ProcessGroup()
     try:
-        start(group, "hardware", node_command("valve_hardware", {"clock": "lockstep", "control_period_s": PERIOD},
-                                              ns), str(tmp_path))
-        start(group, "controller", node_command("valve_controller", {"control_period_s": PERIOD}, ns), str(tmp_path))
+        _lockstep_rig(group, ns, tmp_path)
         ident = {"plan": "train,refit,tune", "time_scale": 0.1, "training_s": 20.0, "control_period_s": PERIOD,
                  "bag_dir": str(tmp_path / "runs")}
         proc = start(group, "identification", node_command("valve_identification", ident, ns), str(tmp_path))

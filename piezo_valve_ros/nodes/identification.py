@@ -45,6 +45,7 @@ import numpy as np
 import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.exceptions import InvalidServiceNameException
 from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Float64
 
@@ -158,10 +159,8 @@ class ValveIdentificationNode(Node):
         self.recorder = RigRecorder(self, self.storage)
         self._player: Optional[_Player] = None
         self.create_subscription(Float64, "spool_position", self._on_position, SENSOR_QOS)
-        self.controller_name = str(p["controller"])
-        self.controller = AsyncParameterClient(self, self.controller_name)
-        self.hardware_name = str(p["hardware"])
-        self.hardware = AsyncParameterClient(self, self.hardware_name)
+        self.controller_name, self.controller = self._parameter_client("controller", p["controller"])
+        self.hardware_name, self.hardware = self._parameter_client("hardware", p["hardware"])
         self._paces_lockstep = False   # this node pauses the lockstep rig between experiments
         self._rig_paused = False
         self.summary: list[dict] = []
@@ -170,6 +169,16 @@ class ValveIdentificationNode(Node):
         self._worker = threading.Thread(target=self._run_plan, daemon=True)
         self._worker.start()
         self.get_logger().info(f"valve_identification up: plan {', '.join(self.plan) or '(none)'}; bags in {self.bag_dir}")
+
+    def _parameter_client(self, parameter: str, value) -> tuple[str, AsyncParameterClient]:
+        """(name, client) of the node the ``parameter`` names (ValueError naming the parameter if it names none)."""
+        name = str(value)
+        if not name:
+            raise ValueError(f"{parameter} must name a node (relative to this namespace, or absolute), got ''")
+        try:
+            return name, AsyncParameterClient(self, name)
+        except InvalidServiceNameException as exc:
+            raise ValueError(f"{parameter} {name!r} is not a node name: {exc}") from None
 
     # ------------------------------------------------------------------ recording
     def _start_recording(self, label: str) -> Path:
