@@ -72,7 +72,7 @@ CAPACITY_EXTENSION = (90, 135)              # ... then these, one at a time, whi
                                             # by more than CAPACITY_TOLERANCE over the size below it
 MID_CAPACITY = 27                           # the size G_v's poles are first fitted with
 CAPACITY_TOLERANCE = 0.02                   # a smaller GPIM within 2 % of the best held-out RMS is preferred
-TREND_DOMINANCE = 0.5                        # when the best size's held-out error about its quadratic trend is
+TREND_DOMINANCE = 0.5                       # when the best size's held-out error about its quadratic trend is
                                             # below this share of its RMS, a trend (a drift) swamps what the
                                             # sizes differ in, and they are compared about their trends
 CAPACITY_TREND_DEGREE = 2                   # ... of this degree in time
@@ -155,6 +155,21 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
     with threadpool_limits(limits=1, user_api="blas"), \
             ThreadPoolExecutor(threads, thread_name_prefix="refit") as pool:
         return _Loop(train_full, validate_full, max_rate_hz, log, pool).run()
+
+
+@dataclass(frozen=True)
+class CapacityFit:
+    """One GPIM size of the capacity choice: its label, operators, fitted model, and held-out RMS as it is and
+    about its polynomial trend of degree CAPACITY_TREND_DEGREE [um]."""
+    label: str
+    operators: int
+    model: ValveModel
+    held_out_um: float
+    about_trend_um: float
+
+    def score(self, about_trend: bool) -> float:
+        """What the sizes are compared on [um]."""
+        return self.about_trend_um if about_trend else self.held_out_um
 
 
 class _Loop:
@@ -353,35 +368,35 @@ class _Loop:
             grids[label] = paper.model.gpim.thresholds
             jobs[label] = pool.submit(self.capacity_fit, grids[label])
         fits = {label: job.result() for label, job in jobs.items()}
-        about_trend = (min(f[2] for f in fits.values())
-                       < TREND_DOMINANCE * min(f[1] for f in fits.values()))
-        pick = 2 if about_trend else 1
-        capacity = [(label, grids[label].size, f[pick], f[0], f[1], f[2]) for label, f in fits.items()]
-        ladder = [c for c in capacity if c[0].endswith(" operators")]
+        about_trend = (min(f.about_trend_um for f in fits.values())
+                       < TREND_DOMINANCE * min(f.held_out_um for f in fits.values()))
+        capacity = [replace(f, label=label) for label, f in fits.items()]
+
+        def score(c: CapacityFit) -> float:
+            return c.score(about_trend)
+        ladder = [c for c in capacity if c.label.endswith(" operators")]
         for n in CAPACITY_EXTENSION:   # a record with fine loop structure (a measured one) may want more
             largest, below = ladder[-1], ladder[-2]
-            if not (largest[2] < (1 - CAPACITY_TOLERANCE) * below[2] and largest[2] <= min(c[2] for c in capacity)):
+            if not (score(largest) < (1 - CAPACITY_TOLERANCE) * score(below)
+                    and score(largest) <= min(score(c) for c in capacity)):
                 break
-            grid = uniform_thresholds(fit.voltage_v, n)
-            f = self.capacity_fit(grid)
-            ladder.append((f"{n} operators", grid.size, f[pick], f[0], f[1], f[2]))
+            ladder.append(replace(self.capacity_fit(uniform_thresholds(fit.voltage_v, n)), label=f"{n} operators"))
             capacity.append(ladder[-1])
-        best = min(c[2] for c in capacity)
-        label, _, _, chosen, _, _ = min((c for c in capacity if c[2] <= (1 + CAPACITY_TOLERANCE) * best),
-                                        key=lambda c: c[1])
-        self.baseline = fit_model(fit, chosen, poles="baseline", cache=self.cache)
+        best = min(score(c) for c in capacity)
+        chosen = min((c for c in capacity if score(c) <= (1 + CAPACITY_TOLERANCE) * best), key=lambda c: c.operators)
+        label = chosen.label
+        self.baseline = fit_model(fit, chosen.model, poles="baseline", cache=self.cache)
         self.capacity, self.capacity_label = capacity, label
         self.capacity_score = "held-out RMS about its trend" if about_trend else "held-out RMS"
-        self.log("capacity: " + ", ".join(f"{c[0]} {c[2]:.4f}" for c in capacity) + f" um {self.capacity_score}"
-                 + (" (a trend dominates the held-out error; as it is: " + ", ".join(f"{c[4]:.4f}" for c in capacity)
+        self.log("capacity: " + ", ".join(f"{c.label} {score(c):.4f}" for c in capacity) + f" um {self.capacity_score}"
+                 + (" (a trend dominates the held-out error; as it is: " + ", ".join(f"{c.held_out_um:.4f}" for c in capacity)
                     + " um)" if about_trend else "") + f"; chosen {label}")
 
-    def capacity_fit(self, thresholds: np.ndarray) -> tuple[ValveModel, float, float]:
-        """A GPIM on ``thresholds`` fitted from the chosen start (G_v fixed): (model, held-out RMS, held-out RMS
-        about its polynomial trend of degree CAPACITY_TREND_DEGREE) [um]."""
+    def capacity_fit(self, thresholds: np.ndarray) -> "CapacityFit":
+        """A GPIM on ``thresholds`` fitted from the chosen start (G_v fixed), with its held-out figures."""
         m = fit_model(self.fit, self.start_model(thresholds, self.first), poles="fixed", cache=self.cache)
         error = self.split.held_out_error(m)
-        return m, rms(error), rms(_detrended(error))
+        return CapacityFit("", thresholds.size, m, rms(error), rms(_detrended(error)))
 
     # ------------------------------------------------------------------ 2. every subset, one linear solve each
     def search_subsets(self) -> None:
@@ -483,11 +498,11 @@ class _Loop:
         added one; the exact refits decide."""
         best = None
         for alt in _alternatives(current, self.names, verdicts, self.search, self.refit_many):
-            a, b, rms = alt["effect"], alt["alternative"], alt["held_out_rms_um"]
+            a, b, held = alt["effect"], alt["alternative"], alt["held_out_rms_um"]
             swapped = [n for n in self.names if n in (set(current) - {a}) | {b}]
-            if rms["with_" + b] < rms["with_" + a] and frozenset(swapped) not in tried \
-                    and (best is None or rms["with_" + b] < best[3]):
-                best = (a, b, swapped, rms["with_" + b], rms["with_" + a])
+            if held["with_" + b] < held["with_" + a] and frozenset(swapped) not in tried \
+                    and (best is None or held["with_" + b] < best[3]):
+                best = (a, b, swapped, held["with_" + b], held["with_" + a])
         if best is None:
             return None
         a, b, swapped, with_b, with_a = best
@@ -645,8 +660,8 @@ class _Loop:
             "residual": self.seen,
             "residual_structure": {k: round(v, 6) for k, v in self.structure.items()},
             "baseline_fits": {
-                "capacity": [{"grid": c[0], "operators": c[1], "held_out_rms_um": round(c[4], 6),
-                              "held_out_rms_about_trend_um": round(c[5], 6)} for c in self.capacity],
+                "capacity": [{"grid": c.label, "operators": c.operators, "held_out_rms_um": round(c.held_out_um, 6),
+                              "held_out_rms_about_trend_um": round(c.about_trend_um, 6)} for c in self.capacity],
                 "chosen": self.capacity_label,
                 "chosen_on": self.capacity_score,
                 "initial_state": {"held_out_rms_um": {h: round(r, 6) for h, r in self.start_rms.items()},
