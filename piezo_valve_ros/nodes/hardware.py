@@ -408,9 +408,10 @@ class ValveHardwareNode(Node):
             return refuse(self, str(exc))
         self.command_timeout_s = timeout
         if budget != self.step_budget:
-            if -1 in (budget, self.step_budget):   # free-running <-> paced (a pacer's grants are not logged)
-                self.get_logger().info("lockstep: free-running" if budget == -1 else f"lockstep: paced, {budget} "
-                                       "period(s) granted" if budget else "lockstep: paused")
+            if budget == -1:                       # free-running <-> paced (a pacer's grants are not logged)
+                self.get_logger().info("lockstep: free-running")
+            elif self.step_budget == -1:
+                self.get_logger().info(f"lockstep: paced, {budget} period(s) granted" if budget else "lockstep: paused")
             self.step_budget = budget
             if budget == 0:
                 self._flush_samples()  # paused: everything so far goes out

@@ -265,9 +265,12 @@ class ValveIdentificationNode(Node):
         self.get_logger().info("lockstep rig: paused while no experiment runs (refit and tune take no simulated "
                                "time); resumed for each experiment and at the end")
 
+    def _step_budget_request(self, budget: int):
+        """The hardware's ``lockstep.step_budget`` set to ``budget``: the future of the request."""
+        return self.hardware.set_parameters([Parameter(LOCKSTEP_BUDGET, value=budget)])
+
     def _set_step_budget(self, budget: int, timeout_s: float = 10.0) -> None:
-        answer = wait_future(self.hardware.set_parameters([Parameter(LOCKSTEP_BUDGET, value=budget)]), timeout_s,
-                             f"{self.hardware_name} {LOCKSTEP_BUDGET}")
+        answer = wait_future(self._step_budget_request(budget), timeout_s, f"{self.hardware_name} {LOCKSTEP_BUDGET}")
         result = answer.results[0]
         if not result.successful:
             raise RuntimeError(f"{self.hardware_name} refused {LOCKSTEP_BUDGET} := {budget}: {result.reason}")
@@ -283,7 +286,7 @@ class ValveIdentificationNode(Node):
         if not self._rig_paused:
             return
         self._rig_paused = False
-        future = self.hardware.set_parameters([Parameter(LOCKSTEP_BUDGET, value=-1)])
+        future = self._step_budget_request(-1)
         if self.executor is not None and self.context.ok():
             self.executor.spin_until_future_complete(future, timeout_sec=RELEASE_ANSWER_S)
         if not future.done() or not future.result().results[0].successful:

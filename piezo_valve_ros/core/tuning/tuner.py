@@ -246,17 +246,22 @@ def _poly_add(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     return np.pad(p, (0, n - p.size)) + np.pad(q, (0, n - q.size))
 
 
-def _pid_polynomials(gains: PIDGains, dt: float, derivative_filter_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """The controller's discrete PID (``ValveController.step``) as (num, den) in powers of z^-1:
-    kp + ki dt / (1 - z^-1) + (alpha kd / dt) (1 - z^-1) / (1 - (1 - alpha) z^-1), alpha = dt / (T_f + dt)."""
+def _pid_polynomials_of(gains: Sequence[PIDGains], dt: float, derivative_filter_s: float
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """The controller's discrete PID (``ValveController.step``) for each gain set as (num (N, 3), den (3,)) in
+    powers of z^-1: kp + ki dt / (1 - z^-1) + (alpha kd / dt) (1 - z^-1) / (1 - (1 - alpha) z^-1),
+    alpha = dt / (T_f + dt); the denominator is the same for every set."""
     alpha = dt / (derivative_filter_s + dt)
-    integ = np.array([1.0, -1.0])
-    filt = np.array([1.0, -(1.0 - alpha)])
-    den = _poly_mul(integ, filt)
-    num = gains.kp * den
-    num = _poly_add(num, gains.ki * dt * filt)
-    num = _poly_add(num, (alpha * gains.kd / dt) * _poly_mul(integ, integ))
+    den = _poly_mul(np.array([1.0, -1.0]), np.array([1.0, -(1.0 - alpha)]))
+    kp, ki, kd = (np.array([getattr(g, name) for g in gains], float)[:, None] for name in ("kp", "ki", "kd"))
+    num = kp * den + (ki * dt) * np.array([1.0, -(1.0 - alpha), 0.0]) + (alpha * kd / dt) * np.array([1.0, -2.0, 1.0])
     return num, den
+
+
+def _pid_polynomials(gains: PIDGains, dt: float, derivative_filter_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_pid_polynomials_of` for one gain set: (num, den) in powers of z^-1."""
+    num, den = _pid_polynomials_of([gains], dt, derivative_filter_s)
+    return num[0], den
 
 
 @functools.lru_cache(maxsize=64)
@@ -351,20 +356,12 @@ class _LoopPlant:
             raise TuningError(f"{strategy} has no feedback loop; tunable: {', '.join(TUNABLE_STRATEGIES)}")
         lo, hi = gain_range or plant_gain_range(strategy, model, command_min_v, command_max_v)
         self.plant_gains = np.geomspace(lo, hi, GAIN_POINTS) if hi > lo else np.array([hi])
-        self.dt = dt
-        self.alpha = dt / (derivative_filter_s + dt)
+        self.dt, self.derivative_filter_s = dt, derivative_filter_s
         self.pnum, self.pden = _plant_polynomials(model, dt)
         self.w = np.geomspace(1e-3 * _slowest_pole(model), math.pi / dt, FREQUENCY_POINTS)
         self.zinv = np.exp(-1j * self.w * dt)
         self.p_resp = (np.polyval(self.pnum[::-1], self.zinv) / np.polyval(self.pden[::-1], self.zinv)
                        * _creep_response(model, dt, self.zinv))
-        self.cden = _poly_mul(np.array([1.0, -1.0]), np.array([1.0, -(1.0 - self.alpha)]))
-
-    def pid_numerators(self, gains: Sequence[PIDGains]) -> np.ndarray:
-        """The PID numerators of :func:`_pid_polynomials` for each set (N, 3), in powers of z^-1."""
-        kp, ki, kd = (np.array([getattr(g, name) for g in gains], float)[:, None] for name in ("kp", "ki", "kd"))
-        filt = np.array([1.0, -(1.0 - self.alpha), 0.0])
-        return kp * self.cden + (ki * self.dt) * filt + (self.alpha * kd / self.dt) * np.array([1.0, -2.0, 1.0])
 
     def margins(self, gains: Sequence[PIDGains]) -> list[LoopMargins]:
         """:class:`LoopMargins` of each gain set, worst case over the plant gains."""
@@ -374,12 +371,12 @@ class _LoopPlant:
         return out
 
     def _margins_batch(self, gains: Sequence[PIDGains]) -> list[LoopMargins]:
-        cnum = self.pid_numerators(gains)
-        c_resp = _rows_polyval(cnum[:, ::-1], self.zinv) / np.polyval(self.cden[::-1], self.zinv)
-        noise = np.abs(_rows_polyval(cnum[:, ::-1], -1.0) / np.polyval(self.cden[::-1], -1.0))
+        cnum, cden = _pid_polynomials_of(gains, self.dt, self.derivative_filter_s)
+        c_resp = _rows_polyval(cnum[:, ::-1], self.zinv) / np.polyval(cden[::-1], self.zinv)
+        noise = np.abs(_rows_polyval(cnum[:, ::-1], -1.0) / np.polyval(cden[::-1], -1.0))
         # closed-loop poles of the loop without the creep lags (slow, a few % of the gain: in the margins)
         open_num = np.stack([np.convolve(row, self.pnum) for row in cnum])
-        open_den = _poly_mul(self.cden, self.pden)
+        open_den = _poly_mul(cden, self.pden)
         size = max(open_num.shape[1], open_den.size)
         open_num = np.pad(open_num, ((0, 0), (0, size - open_num.shape[1])))
         open_den = np.pad(open_den, (0, size - open_den.size))
