@@ -31,19 +31,26 @@ def _lockstep_rig(group: ProcessGroup, ns: str, log_dir, hardware: Optional[dict
 @pytest.mark.slow
 @pytest.mark.wall_clock(seconds=20)
 def test_identification_refits_pushes_and_cuts_the_ol_hc_error(tmp_path):
+    """``valve_rig --demo none --identify PLAN`` on a lockstep rig with its default gain set (PID HC 2 at 1 ms, which
+    the validate step replaces by OL HC in the same request that clears it), a valve that is not the paper's."""
     ns = f"/ident{os.getpid()}"
+    bags = tmp_path / "runs"
+    params = tmp_path / "rig.yaml"
+    params.write_text(yaml.safe_dump({
+        "valve_hardware": {"ros__parameters": {"sim.seed": 7, **PERTURBED}},
+        "valve_identification": {"ros__parameters": {"time_scale": 0.25, "validation_s": 20.0,
+                                                     "progress_period_s": 0.5}}}))  # seconds on a fast machine
+    rig = [os.path.join(os.path.dirname(sys.executable), "valve_rig"), "--demo", "none", "--control-period-s",
+           str(PERIOD), "--identify", "validate,train,refit,tune,validate", "--bag-dir", str(bags),
+           "--params-file", str(params), "--namespace", ns]
     group = ProcessGroup()
     try:
-        _lockstep_rig(group, ns, tmp_path, {"sim.seed": 7, **PERTURBED}, {"strategy": "ol_hc", "gain_set": ""})
-        bags = tmp_path / "runs"
-        ident = {"plan": "validate,train,refit,tune,validate", "time_scale": 0.25, "validation_s": 20.0,
-                 "control_period_s": PERIOD, "bag_dir": str(bags), "exit_when_done": True,
-                 "progress_period_s": 0.5}   # the experiments may take only seconds on a fast machine
-        proc = start(group, "identification", node_command("valve_identification", ident, ns), str(tmp_path))
-        assert proc.wait(240) == 0, open(tmp_path / "identification.log").read()
+        proc = start(group, "rig", rig, str(tmp_path))
+        assert proc.wait(240) == 0, open(tmp_path / "rig.log").read()
     finally:
         group.stop()
-    log = open(tmp_path / "identification.log").read()
+    assert "controller pid_hc_2" in open(tmp_path / "rig.log").read()
+    log = open(tmp_path / "rig.log").read()
     written = json.loads((bags / "summary.json").read_text())
     assert written["schema"]["name"] == "piezo_valve_ros/identification-summary" and written["schema"]["version"] == 1
     summary = written["steps"]
@@ -57,7 +64,7 @@ def test_identification_refits_pushes_and_cuts_the_ol_hc_error(tmp_path):
     # (a 5 V ramp falls into one control period and meets the amplifier's slew limit); the point here is that
     # the refitted model reaches the controller and cuts its error, and that summary, report and log agree
     assert refit["final_validate"]["rms_um"] <= refit["baseline_validate"]["rms_um"]
-    assert "new model parameters in use" in open(tmp_path / "controller.log").read()
+    assert "new model parameters in use" in log
     # the parameters file is a valid controller parameters file, with what was pushed
     params = yaml.safe_load(open(refit["params_out"]).read())["/**/valve_controller"]["ros__parameters"]
     assert len(params["gpim.weights"]) >= 10
@@ -68,7 +75,7 @@ def test_identification_refits_pushes_and_cuts_the_ol_hc_error(tmp_path):
     assert tuned["phase_margin_deg"] >= 45.0 and tuned["model_overshoot_pct"] <= 2.0
     assert (params["strategy"], params["kp"], params["ki"], params["kd"]) == \
         ("pid_hc", tuned["kp"], tuned["ki"], tuned["kd"]) and params["gain_set"] == ""
-    assert f"strategy=pid_hc kp={tuned['kp']} ki={tuned['ki']}" in open(tmp_path / "controller.log").read()
+    assert f"strategy=pid_hc kp={tuned['kp']} ki={tuned['ki']}" in log
     # the training bag holds the full-rate samples of the whole experiment, and its report
     rows, topic = read_samples(summary[1]["bag"])
     assert topic == f"{ns}/samples"
@@ -150,3 +157,22 @@ def test_bad_plan_is_rejected_with_one_line(tmp_path):
                                           f"/bad{os.getpid()}"), env=ros_env(), capture_output=True, text=True,
                              timeout=60)
         assert out.returncode == 2 and says in out.stderr, (bad, out.stderr)
+
+
+@pytest.mark.slow
+@pytest.mark.wall_clock(seconds=6)
+def test_a_standalone_identification_node_whose_plan_fails_exits_1(tmp_path):
+    """Without exit_when_done the node stays after a plan that ran; one that stopped on an error has nothing left to
+    do and ends with exit 1 (it used to sit there after 'plan stopped').  Here the validate step's request goes to
+    a node that refuses it: the hardware, named as the controller."""
+    ns = f"/planfail{os.getpid()}"
+    group = ProcessGroup()
+    try:
+        _lockstep_rig(group, ns, tmp_path)
+        ident = {"plan": "validate", "controller": "valve_hardware", "control_period_s": PERIOD,
+                 "bag_dir": str(tmp_path / "runs")}
+        proc = start(group, "identification", node_command("valve_identification", ident, ns), str(tmp_path))
+        assert proc.wait(90) == 1, open(tmp_path / "identification.log").read()
+    finally:
+        group.stop()
+    assert "plan stopped: cannot set the controller up for validation" in open(tmp_path / "identification.log").read()

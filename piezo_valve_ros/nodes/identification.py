@@ -92,6 +92,8 @@ class _Player:
             self.record(value)
 
 
+VALIDATION_LEAD_S = 0.5    # the validation demand is eased in from 0 over this long [s]
+
 # the plan's settings: start-up only
 IDENTIFICATION_PARAMETERS: tuple[ParameterSpec, ...] = (CONTROL_PERIOD,) + tuple(
     ParameterSpec(name, default, text, read_only=True) for name, default, text in [
@@ -110,7 +112,7 @@ IDENTIFICATION_PARAMETERS: tuple[ParameterSpec, ...] = (CONTROL_PERIOD,) + tuple
         ("controller", "valve_controller", "name of the controller node (relative to this namespace)"),
         ("hardware", "valve_hardware", "name of the hardware node (relative to this namespace): a free-running "
                                        "lockstep rig is paused while no experiment runs"),
-        ("exit_when_done", False, "shut down after the plan"),
+        ("exit_when_done", False, "shut down after the plan (a failed plan always shuts the node down, exit 1)"),
         ("progress_period_s", PROGRESS_PERIOD_S, "a running experiment logs its progress this often [s]"),
     ])
 
@@ -293,6 +295,15 @@ class ValveIdentificationNode(Node):
             self.get_logger().warning(f"the lockstep rig may still be paused: set {self.hardware_name} "
                                       f"{LOCKSTEP_BUDGET}:=-1")
 
+    def _plan_length(self) -> str:
+        """One line: how long the plan's experiments run in the rig's time, and what that means on a lockstep rig."""
+        train_s = rig_training_voltage(self.period_s, self.training_s, self.time_scale).size * self.period_s
+        validate_s = self.validation_s * self.time_scale + VALIDATION_LEAD_S
+        seconds = sum(train_s if step == "train" else validate_s if step == "validate" else 0.0 for step in self.plan)
+        return (f"plan: {seconds:.0f} s of experiments in the rig's time (train {train_s:.0f} s, validate "
+                f"{validate_s:.0f} s each); on the wall clock as long, on a lockstep rig at its own pace (the "
+                "progress lines say how far); refit and tune take seconds to a minute each")
+
     # ------------------------------------------------------------------ steps
     def _step_train(self) -> dict:
         values = rig_training_voltage(self.period_s, self.training_s, self.time_scale)
@@ -386,11 +397,13 @@ class ValveIdentificationNode(Node):
                 "model_overshoot_pct": s.worst_overshoot_pct, "pushed": pushed, "reason": reason}
 
     def _step_validate(self) -> dict:
-        ok, reason = self._set_controller({"enabled": True, "strategy": self.validation_strategy, "gain_set": ""})
+        # one atomic request: an active gain_set refuses a strategy unless the same update clears it
+        ok, reason = self._set_controller({"enabled": True, "strategy": self.validation_strategy, "gain_set": ""},
+                                          atomically=True)
         if not ok:
             raise RuntimeError(f"cannot set the controller up for validation: {reason}")
         ref = validation_reference_m(self.period_s / self.time_scale, self.validation_s, self.validation_amplitude_m * 1e6)
-        lead = max(int(0.5 / self.period_s), 1)  # ease in from 0 (the validation demand starts off 0)
+        lead = max(int(VALIDATION_LEAD_S / self.period_s), 1)  # ease in from 0 (the validation demand starts off 0)
         ref = np.concatenate((ref[0] * np.linspace(0.0, 1.0, lead), ref))
         bag = self._start_recording("validate")
         sent: list[float] = []
@@ -427,6 +440,7 @@ class ValveIdentificationNode(Node):
             while self.count_subscribers("voltage_command") == 0 and rclpy.ok():
                 time.sleep(0.05)  # the hardware is not up yet
             self._take_lockstep_pacing()
+            self.get_logger().info(self._plan_length())
             for step in self.plan:
                 result = getattr(self, f"_step_{step}")()
                 self.summary.append(result)
@@ -444,7 +458,7 @@ class ValveIdentificationNode(Node):
                 self.get_logger().warning(f"the lockstep rig may still be paused ({exc}): set {self.hardware_name} "
                                           f"{LOCKSTEP_BUDGET}:=-1")
             self.finished.set()
-            if self.exit_when_done:
+            if self.exit_when_done or self.failed:   # a failed plan has nothing left to do: exit 1
                 self.context.try_shutdown()
 
 
