@@ -86,6 +86,10 @@ class ProcessGroup:
         self.procs.append((name, proc))
         return proc
 
+    def exited(self) -> list[tuple[str, int]]:
+        """(name, exit code) of every process that has ended."""
+        return [(name, p.returncode) for name, p in self.procs if p.poll() is not None]
+
     def stop(self, grace_s: float = STOP_GRACE_S) -> None:
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
             alive = [p for _, p in self.procs if p.poll() is None]

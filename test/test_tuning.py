@@ -309,3 +309,23 @@ def test_the_model_run_over_a_block_equals_the_model_stepped_sample_by_sample():
         mixed = ModelValve(model, DT, 5.0)
         got = np.concatenate([mixed.run(v[:1000]), [mixed.step(x) for x in v[1000:1010]], mixed.run(v[1010:])])
         assert got == pytest.approx(expected, abs=1e-12)
+
+
+def test_every_default_gain_set_keeps_the_tuners_margins_at_its_period_and_loses_them_beyond():
+    """The rig's and the controller node's default gains (``default_gain_set``) are ones the tuner calls safe at the
+    period they run at: each PID HC set of SAFE_PERIOD_S keeps gain margin >= 6 dB and phase margin >= 45 deg on
+    the paper's model up to its safe period, and at 1.5x that period it does not (the table is not needlessly
+    cautious); the default at 1 ms is not pid_hc_5 (0.3 dB there)."""
+    from piezo_valve_ros.core.control.strategies import SAFE_PERIOD_S, default_gain_set, gain_set
+    from piezo_valve_ros.core.tuning.tuner import MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG
+
+    def safe(name, dt):
+        m = loop_margins(*gain_set(name), PAPER, dt)
+        return m.stable and m.gain_margin_db >= MIN_GAIN_MARGIN_DB and m.phase_margin_deg >= MIN_PHASE_MARGIN_DEG
+    for name, period in SAFE_PERIOD_S.items():
+        assert safe(name, period), name
+        assert not safe(name, 1.5 * period), name
+    for dt in (1e-4, 2.5e-4, 5e-4, 7e-4, 1e-3, 2e-3):
+        assert safe(default_gain_set(dt), dt)
+    assert default_gain_set(1e-4) == "pid_hc_5" and default_gain_set(1e-3) == "pid_hc_2"
+    assert default_gain_set(3e-3) is None

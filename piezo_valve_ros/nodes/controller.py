@@ -29,8 +29,8 @@ from std_msgs.msg import Float64, Float64MultiArray
 from ..core.control.compensation import MODEL_PARAMETERS, CompensationModel
 from ..core.model.rate_dependence import describe_inverse, solved_each_step
 from ..core.sim.signals import ReferenceRamp
-from ..core.control.strategies import (GUARD_WINDOW_S, STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set,
-                               loop_settings)
+from ..core.control.strategies import (GUARD_WINDOW_S, SAFE_PERIOD_S, STRATEGIES, TABLE1_GAINS, ControllerConfig,
+                                       PIDGains, ValveController, default_gain_set, gain_set, loop_settings)
 from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, LATEST_SENSOR_QOS, SAMPLES_QOS, Diagnostics, period_parameter,
                      ParameterSpec, samples_message, as_float, declare_all,
                      parameter_values, realtime_settings, realtime_specs, refuse, run_node, samples_from_message)
@@ -84,12 +84,14 @@ SOLVED_INVERSE_MIN_PERIOD_S = 5e-4   # below this period an inverse solved each 
 STATE_PERIOD = ParameterSpec(
     "state_period_s", 0.1, "publish ~/controller_state (the latest period's reference, measurement, error, command, "
     "strategy, guard) this often [s]; 0: never", read_only=True, low=0.0, high=10.0)
-_GAINS = ControllerConfig().gains
+DEFAULT_GAIN_SET = default_gain_set(CONTROL_PERIOD.default)   # the node's default gains are safe at its default period
+_GAINS = TABLE1_GAINS[DEFAULT_GAIN_SET][1]
 CONTROLLER_PARAMETERS: tuple[ParameterSpec, ...] = tuple(
     ParameterSpec(name, default, text) for name, default, text in [
         ("strategy", "pid_hc", f"one of {', '.join(STRATEGIES)}"),
         ("gain_set", "", "Table 1 gain set name: sets strategy/kp/ki/kd (which read back its values); '' = none"),
-        ("kp", _GAINS.kp, "proportional gain (normalised, um/um)"), ("ki", _GAINS.ki, "integral gain [1/s]"),
+        ("kp", _GAINS.kp, f"proportional gain (normalised, um/um; default: {DEFAULT_GAIN_SET}'s, safe at the default "
+                          "control period)"), ("ki", _GAINS.ki, "integral gain [1/s]"),
         ("kd", _GAINS.kd, "derivative gain [s] (the paper uses 0)"),
         ("derivative_filter_s", ControllerConfig.derivative_filter_s,
          f"time constant of the D term's first-order filter [s] ({DERIVATIVE_FILTER_RANGE_S[0]:g}.."
@@ -159,6 +161,17 @@ class ValveControllerNode(Node):
         self.get_logger().info(f"valve_controller up: strategy={config.strategy}{self._gains_text(config)} "
                                f"period={config.dt * 1e3:.3f} ms" + (f" (gain_set {p['gain_set']})" if p["gain_set"] else "")
                                + f"; {self.realtime.describe()}")
+        self._check_gain_set_period(str(p["gain_set"] or ""), config.dt)
+
+    def _check_gain_set_period(self, name: str, dt: float) -> None:
+        """Say so when a Table 1 set runs at a period longer than the one its margins hold at (SAFE_PERIOD_S)."""
+        safe = SAFE_PERIOD_S.get(name.strip().lower().replace(" ", "_"))
+        if safe is not None and dt > safe * (1 + 1e-9):
+            better = default_gain_set(dt)
+            self.get_logger().warning(
+                f"gain_set {name} at {dt * 1e3:g} ms: its margins hold only up to {safe * 1e3:g} ms (Table 1 was tuned at "
+                f"0.1 ms); at this period it may swing rail to rail. Use {better or 'ol_hc (no Table 1 set is safe)'}, "
+                "or gains from valve_tune for this period")
 
     def _check_inverse_cost(self, ctl: ValveController) -> None:
         """Say so when the model's inverse is solved each step at a period too short for it to be sure."""

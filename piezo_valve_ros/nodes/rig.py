@@ -24,6 +24,7 @@ from rclpy.parameter import Parameter
 from ..dds import use_fast_acknowledgements
 from ..core.metrics import step_metrics
 from ..core.sim.signals import PAPER_STEPS_UM
+from ..core.control.strategies import NO_SAFE_SET_STRATEGY, default_gain_set
 from ..core.sim.simulator import ValveSimConfig
 from ..processes import ProcessGroup, node_command
 from .client import RigClient, run_in_background
@@ -53,7 +54,9 @@ def step_demo(client: RigClient, dt: float, hold_periods: int, after_periods: in
 def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="valve_rig", description="A piezo-valve rig (simulated, or your backend) "
                                  "with a demonstration.")
-    ap.add_argument("--gain-set", default="pid_hc_5", help="Table 1 gain set (default pid_hc_5), e.g. ff_pid_g_2")
+    ap.add_argument("--gain-set", help="Table 1 gain set, e.g. ff_pid_g_2 (default: the fastest PID HC set whose "
+                    "margins hold at the control period: pid_hc_5 at the paper's 0.1 ms, pid_hc_2 at 1 ms; beyond "
+                    "2 ms none is safe and the rig runs ol_hc)")
     ap.add_argument("--strategy", help="strategy without Table 1 gains: ol or ol_hc")
     ap.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep")
     ap.add_argument("--control-period-s", type=float, default=1e-4,
@@ -134,11 +137,18 @@ def rig_parameters(args) -> tuple[dict, dict]:
             # separate processes: one CPU each; composed: one process, one CPU (the last, away from CPU 0's chores)
             hw["realtime.cpus"] = [cpus[-1]] if args.composed else [cpus[0]]
             ctl["realtime.cpus"] = [cpus[-1]]
-    if args.strategy:
-        ctl.update({"strategy": args.strategy, "gain_set": ""})
-    else:
-        ctl["gain_set"] = args.gain_set
+    ctl.update(rig_gains(args))
     return hw, ctl
+
+
+def rig_gains(args) -> dict:
+    """The controller's strategy or gain set: the command line's, else the default for the control period."""
+    if args.strategy:
+        return {"strategy": args.strategy, "gain_set": ""}
+    if args.gain_set:
+        return {"gain_set": args.gain_set}
+    name = default_gain_set(args.control_period_s)
+    return {"gain_set": name} if name else {"strategy": NO_SAFE_SET_STRATEGY, "gain_set": ""}
 
 
 class UsageError(ValueError):
@@ -162,6 +172,10 @@ def apply_parameters_file(args, given: set[str], hw: dict, ctl: dict, ident: dic
         except OSError as exc:
             raise UsageError(f"cannot read {args.params_file}: {exc.strerror or exc}") from None
     hw = merged_parameters(hw, sections["valve_hardware"], given)
+    if hw["backend"] != "sim" and "sim_seed" not in given and "sim.seed" not in sections["valve_hardware"]:
+        hw.pop("sim.seed", None)   # the rig's default seed is the sim backend's: another backend refuses it
+    args.control_period_s = float(hw["control_period_s"])   # the default gains are for the period the rig runs at
+    ctl = {**{k: v for k, v in ctl.items() if k not in GAIN_KEYS}, **rig_gains(args)}
     ctl = merged_parameters(ctl, sections["valve_controller"], given)
     ident = {**sections["valve_identification"], **ident}
     if monitor is not None:
@@ -198,6 +212,32 @@ def _print_step_demo(client: RigClient, args, label: str, samples_per_period: in
     periods_run = client.rows_count // samples_per_period
     print(f"\n{periods_run} control periods in {wall:.1f} s wall time "
           f"({periods_run / wall:.0f} periods/s including pauses)")
+
+
+READY_TIMEOUT_S = 30.0      # the rig's nodes must answer within this long ...
+READY_CHECK_S = 0.5         # ... and a node that exits meanwhile is noticed within about this long
+
+
+class StartUpError(RuntimeError):
+    """A node of the rig ended while the rig came up (one line; the node said why on stderr)."""
+
+
+def wait_until_up(client: RigClient, procs: ProcessGroup, timeout_s: float = READY_TIMEOUT_S) -> None:
+    """Wait until the rig answers (``RigClient.wait_ready``); StartUpError as soon as one of ``procs`` ends
+    (a node that refused its parameters exits at once: the rig must not wait for it), TimeoutError after
+    ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        ended = procs.exited()
+        if ended:
+            raise StartUpError("; ".join(f"{name} exited with code {code} while the rig came up (its reason is the "
+                                         f"line it printed above)" for name, code in ended))
+        try:
+            client.wait_ready(READY_CHECK_S)
+            return
+        except TimeoutError:
+            if time.monotonic() > deadline:
+                raise
 
 
 def _run_until_stopped(args, procs: ProcessGroup, identification) -> int:
@@ -261,7 +301,7 @@ def main(argv=None) -> int:
         client = RigClient(namespace=args.namespace, samples_per_period=samples_per_period)
         nodes.append(client)
         thread, stop, executor = run_in_background(nodes)
-        client.wait_ready()
+        wait_until_up(client, procs)
         label = ctl_params.get("gain_set") or ctl_params.get("strategy") or "the parameters file's strategy"
         print(f"rig up ({'composed' if args.composed else 'separate processes'}, {args.clock}); "
               f"controller {label}", flush=True)

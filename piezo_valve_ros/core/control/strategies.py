@@ -51,6 +51,7 @@ from ..model.rate_dependence import hysteresis_inverse, swap_inverse, take_over_
 from ..model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 __all__ = ["STRATEGIES", "PIDGains", "ControllerConfig", "ValveController", "TABLE1_GAINS", "gain_set",
+           "SAFE_PERIOD_S", "default_gain_set", "NO_SAFE_SET_STRATEGY",
            "LOOP_SETTINGS", "loop_settings",
            "nominal_static_gain"]
 
@@ -105,6 +106,26 @@ def gain_set(name: str) -> tuple[str, PIDGains]:
     if key not in TABLE1_GAINS:
         raise KeyError(f"unknown gain set {name!r}; known: {', '.join(TABLE1_GAINS)}")
     return TABLE1_GAINS[key]
+
+
+# The longest control period [s] at which each PID HC set of Table 1 keeps the tuner's default margins (gain margin
+# >= 6 dB, phase margin >= 45 deg, worst case over the plant-gain range, one period of loop delay) on the paper's
+# model (test_tuning checks every entry there and that 1.5x the period breaks it).  Table 1 was tuned at 10 kHz;
+# at longer periods the faster sets lose their margins (pid_hc_5 at 1 ms: 0.3 dB).
+SAFE_PERIOD_S = {"pid_hc_5": 4e-4, "pid_hc_6": 4e-4, "pid_hc_4": 5e-4, "pid_hc_3": 7e-4, "pid_hc_2": 1.5e-3,
+                 "pid_hc_1": 2e-3}
+FASTEST_FIRST = ("pid_hc_5", "pid_hc_6", "pid_hc_4", "pid_hc_3", "pid_hc_2", "pid_hc_1")  # Table 1's settling
+NO_SAFE_SET_STRATEGY = "ol_hc"   # beyond every set's safe period: open loop with the inverse (no loop to destabilise)
+
+
+def default_gain_set(period_s: float) -> Optional[str]:
+    """The fastest Table 1 PID HC set (by the paper's average settling time) that is safe at ``period_s`` [s]
+    (``SAFE_PERIOD_S``); None when none is (a rig then runs ``NO_SAFE_SET_STRATEGY`` until gains are tuned
+    for its period)."""
+    for name in FASTEST_FIRST:
+        if period_s <= SAFE_PERIOD_S[name] * (1 + 1e-9):
+            return name
+    return None
 
 
 def nominal_static_gain(model: GPIM, v_min: float = COMMAND_MIN_V, v_max: float = COMMAND_MAX_V) -> float:
