@@ -39,11 +39,12 @@ def dump(data: Any) -> str:
     return yaml.safe_dump(data, default_flow_style=False, sort_keys=False)
 
 
-def node_section(path, node: str) -> dict:
+def node_section(path, node: str, wildcard: bool = True) -> dict:
     """The ``ros__parameters`` a ROS parameters file gives the node called ``node`` (e.g. ``valve_controller``):
-    its ``/**`` section, then every section whose last name element is the node's (``valve_controller``,
-    ``/**/valve_controller``, ``/ns/valve_controller``), later ones winning.  ValueError (or OSError) with the
-    reason when the file is not YAML, has no such section, or a section is not a parameters mapping."""
+    its ``/**`` section (unless not ``wildcard``: what the file names for this node alone), then every section
+    whose last name element is the node's (``valve_controller``, ``/**/valve_controller``,
+    ``/ns/valve_controller``), later ones winning.  ValueError (or OSError) with the reason when the file is not
+    YAML, has no such section, or a section is not a parameters mapping."""
     name = node.rstrip("/").split("/")[-1]
     try:
         with open(path) as f:
@@ -52,7 +53,8 @@ def node_section(path, node: str) -> dict:
         raise ValueError(f"{path} is not YAML: {str(exc).splitlines()[0]}") from None
     if not isinstance(doc, dict):
         raise ValueError(f"{path}: expected a mapping of node names, got {type(doc).__name__}")
-    keys = [k for k in doc if str(k) == "/**"] + [k for k in doc if str(k).rstrip("/").split("/")[-1] == name]
+    keys = ([k for k in doc if str(k) == "/**"] if wildcard else []) + [
+        k for k in doc if str(k).rstrip("/").split("/")[-1] == name]
     if not keys:
         raise ValueError(f"{path}: no section for {name} (sections: {', '.join(map(str, doc)) or 'none'})")
     values = {}

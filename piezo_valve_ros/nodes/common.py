@@ -298,12 +298,52 @@ class _StopRequest:
 _STOP_REQUESTED = _StopRequest
 
 
+_ROS_ARGV: list[str] = []   # the process's command line as init_ros saw it (given_parameter_names)
+
+
+def given_parameter_names(node_name: str, argv=None) -> tuple[set[str], set[str]]:
+    """The parameter names a process's command line gives a node by name, as (for this node alone, for every node
+    of the process): ``-p``/``--param NODE:NAME:=VALUE`` for this node and the sections of ``--params-file`` files
+    for this node alone, then ``-p NAME:=VALUE`` (every node of the process takes it; a file's ``/**`` sections,
+    which serve every node of every process, are left out).  rclpy ignores a name a node does not declare without
+    a word: the nodes refuse it (a misspelt parameter)."""
+    from ..params_yaml import node_section
+    tokens = list(_ROS_ARGV if argv is None else argv)
+    own: set[str] = set()
+    shared: set[str] = set()
+    in_ros = False
+    k = 0
+    while k < len(tokens):
+        token = tokens[k]
+        if token == "--ros-args":
+            in_ros = True
+        elif token == "--":
+            in_ros = False
+        elif in_ros and token in ("-p", "--param") and k + 1 < len(tokens):
+            k += 1
+            node, _, name = tokens[k].split(":=", 1)[0].rpartition(":")
+            if not node:
+                shared.add(name)
+            elif node.rstrip("/").split("/")[-1] == node_name:
+                own.add(name)
+        elif in_ros and token == "--params-file" and k + 1 < len(tokens):
+            k += 1
+            try:
+                own |= set(node_section(tokens[k], node_name, wildcard=False))
+            except (OSError, ValueError):
+                pass   # rclpy reports an unreadable file itself; a file without a section for this node gives none
+        k += 1
+    return own, shared
+
+
 def init_ros(args=None) -> None:
     """``rclpy.init`` for a node process, with signal handling of our own: Ctrl-C/SIGTERM only ask the spin
     loop to stop (within its 0.1 s wait), so no callback is interrupted half-way (rclpy's handler raises
     into whatever callback runs, which the executor reports as a FATAL exception) and the shutdown path
     (safe voltage, flushing the samples) runs with the ROS context still valid."""
     import signal
+    import sys
+    _ROS_ARGV[:] = list(sys.argv if args is None else args)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     _STOP_REQUESTED.requested = False
     if threading.current_thread() is threading.main_thread():

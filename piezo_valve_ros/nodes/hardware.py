@@ -22,10 +22,11 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64, Float64MultiArray
 
-from ..backends import ValveBackend, backend_class
+from ..backends import ValveBackend, available_backends, backend_class
 from ..loop_timing import LoopTiming
 from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, MAX_CONTROL_PERIOD_S, Diagnostics, period_parameter, SAMPLES_QOS, SENSOR_QOS, Pacing, ParameterSpec,
-                     as_float, declare, declare_all, parameter_values, realtime_settings, realtime_specs, refuse,
+                     as_float, declare, declare_all, given_parameter_names, parameter_values, realtime_settings,
+                     realtime_specs, refuse,
                      run_node, samples_message, tighten_timer_slack)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 from ..core.validation import as_int
@@ -75,6 +76,8 @@ def samples_per_period(control_period_s: float, sample_period_s: float) -> int:
 
 
 class ValveHardwareNode(Node):
+    STANDALONE = False   # the node has its process to itself (main): every name its command line gives is its own
+
     def __init__(self, backend: Optional[ValveBackend] = None, **kwargs):
         super().__init__("valve_hardware", **kwargs)
         declare_all(self, HARDWARE_PARAMETERS)
@@ -83,6 +86,7 @@ class ValveHardwareNode(Node):
         for prm in backend_type.PARAMETERS:  # each backend's own parameters, under its name
             declare(self, f"{backend_name}.{prm.name}", prm.default, f"{backend_name} backend: {prm.description}",
                     read_only=True)
+        self._refuse_unknown(backend_name, backend_type, kwargs.get("parameter_overrides") or ())
         p = parameter_values(self)
         stats_period = self._read_settings(p)
         if backend is None:
@@ -92,6 +96,21 @@ class ValveHardwareNode(Node):
         self._create_interfaces()
         self._reset_counters()
         self._start(p, stats_period)
+
+    def _refuse_unknown(self, backend_name: str, backend_type, overrides) -> None:
+        """ValueError naming every parameter the command line (or ``overrides``) gives this node that it does not
+        declare: rclpy would ignore it, so a misspelt backend parameter would leave its default in force.  Names
+        the command line gives every node of the process count when this node has the process to itself
+        (``valve_hardware``), else only backend parameters (``valve_composed``: the controller takes the rest)."""
+        own, shared = given_parameter_names(self.get_name())
+        if not self.STANDALONE:
+            shared = {n for n in shared if "." in n and n.split(".", 1)[0] in (backend_name, *available_backends())}
+        given = own | shared | {prm.name for prm in overrides}
+        unknown = sorted(n for n in given if not self.has_parameter(n))
+        if unknown:
+            own = ", ".join(f"{backend_name}.{prm.name}" for prm in backend_type.PARAMETERS) or "none"
+            raise ValueError(f"unknown parameter(s) {', '.join(unknown)} (the {backend_name} backend's own: {own}; "
+                             "every parameter: valve_hardware --help)")
 
     def _read_settings(self, p: dict) -> float:
         """The start-up parameters that do not depend on the backend, checked (ValueError with the reason);
@@ -445,8 +464,12 @@ class ValveHardwareNode(Node):
                 print(f"[INFO] [valve_hardware]: {line}", file=sys.stderr, flush=True)
 
 
+class _StandaloneHardwareNode(ValveHardwareNode):
+    STANDALONE = True
+
+
 def main(args=None) -> int:
-    return run_node(ValveHardwareNode, "valve_hardware", args, on_exit_of=lambda n: n.shutdown_safely,
+    return run_node(_StandaloneHardwareNode, "valve_hardware", args, on_exit_of=lambda n: n.shutdown_safely,
                     specs=HARDWARE_PARAMETERS)
 
 
