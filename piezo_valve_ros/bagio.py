@@ -340,24 +340,37 @@ def read_run(path, topic: Optional[str] = None) -> tuple[np.ndarray, np.ndarray,
     on the ``position_reference`` topic of the same namespace as (times [s] on the samples' time axis,
     positions [m]); its samples topic's name.
 
-    References carry only their receive time; they are put on the samples' axis by the median offset
-    between each ``samples`` message's receive time and its last row's time (within a few milliseconds:
-    the batching latency).  No reference topic or no messages: empty arrays.
+    References carry only their receive time.  They are put on the samples' axis through messages that pair a
+    receive time with a sample time (``core.runs.receive_to_sample_time``): each ``spool_position`` message
+    (the hardware publishes the sample's own position value, found among the rows), each lockstep ``/clock``
+    message, and each ``samples`` message's last row.  Piecewise, so the map follows a lockstep rig whose
+    simulated time runs at a varying share of the wall clock.  No reference topic or no messages: empty arrays.
     """
+    from .core.runs import receive_to_sample_time
     rows, name = read_samples(path, topic)
     namespace = name.rsplit("/", 1)[0]
-    ref_topic = f"{namespace}/position_reference"
-    offsets, stamps, values = [], [], []
+    ref_topic, position_topic, clock_topic = (f"{namespace}/position_reference", f"{namespace}/spool_position",
+                                              "/clock")
+    pair_stamps, pair_times, stamps, values, positions = [], [], [], [], []
+    sample_period = float(np.median(np.diff(rows[:, 0]))) if rows.shape[0] > 1 else 0.0
     try:
         with Reader(Path(path)) as reader:
             samples = [c for c in reader.connections if c.topic == name]
-            refs = [c for c in reader.connections if c.topic == ref_topic and c.msgtype == FLOAT64_TYPE]
+            others = [c for c in reader.connections if (c.topic in (ref_topic, position_topic) and c.msgtype == FLOAT64_TYPE)
+                      or (c.topic == clock_topic and c.msgtype == CLOCK_TYPE)]
             decode = _SamplesDecoder(name)
-            for conn, stamp, raw in reader.messages(connections=samples + refs):
+            for conn, stamp, raw in reader.messages(connections=samples + others):
                 if conn.topic == name:
                     block = decode(raw, conn.msgtype)
                     if block.size:
-                        offsets.append(stamp * 1e-9 - block[-1, 0])
+                        pair_stamps.append(stamp * 1e-9)
+                        pair_times.append(block[-1, 0])
+                elif conn.topic == clock_topic:
+                    clock = TYPESTORE.deserialize_cdr(raw, CLOCK_TYPE).clock
+                    pair_stamps.append(stamp * 1e-9)
+                    pair_times.append(clock.sec + clock.nanosec * 1e-9 - sample_period)  # /clock: the next sample's
+                elif conn.topic == position_topic:
+                    positions.append((stamp * 1e-9, TYPESTORE.deserialize_cdr(raw, FLOAT64_TYPE).data))
                 else:
                     stamps.append(stamp * 1e-9)
                     values.append(TYPESTORE.deserialize_cdr(raw, FLOAT64_TYPE).data)
@@ -365,7 +378,16 @@ def read_run(path, topic: Optional[str] = None) -> tuple[np.ndarray, np.ndarray,
         raise
     except Exception as exc:
         raise BagError(f"cannot read the references in {path}: {_first_line(exc)}") from None
-    if not values or not offsets:
+    if not values or not pair_stamps:
         return rows, np.zeros(0), np.zeros(0), name
+    if positions:   # a published position is a sample's own value: the sample it was published for
+        unique, first, counts = np.unique(rows[:, 2], return_index=True, return_counts=True)
+        at = dict(zip(unique[counts == 1].tolist(), rows[first[counts == 1], 0].tolist()))
+        for stamp, value in positions:
+            if value in at:
+                pair_stamps.append(stamp)
+                pair_times.append(at[value])
     order = np.argsort(stamps, kind="stable")
-    return rows, np.asarray(stamps)[order] - float(np.median(offsets)), np.asarray(values, float)[order], name
+    to_sample_time = receive_to_sample_time(np.asarray(pair_stamps), np.asarray(pair_times))
+    return rows, to_sample_time(np.asarray(stamps)[order]), np.asarray(values, float)[order], name
+

@@ -20,9 +20,14 @@ import numpy as np
 
 from .bagio import BagError, read_run
 from .core.metrics import error_figures
-from .core.runs import STEP_MIN_HOLD_S, STEP_MIN_JUMP_M, find_steps, reference_on_samples
+from .core.runs import STEP_MIN_HOLD_S, STEP_MIN_JUMP_M, align_jumps, find_steps, reference_on_samples
 
 __all__ = ["main"]
+
+
+def reference_moves(reference_m: np.ndarray) -> bool:
+    """Whether a reference changes at all: a fit (NRMSE) and a peak as a share of its range need it to."""
+    return bool(np.ptp(reference_m) > 0)
 
 
 def summary_lines(rows: np.ndarray, reference_m: np.ndarray, topic: str) -> list[str]:
@@ -34,8 +39,10 @@ def summary_lines(rows: np.ndarray, reference_m: np.ndarray, topic: str) -> list
     known = np.isfinite(reference_m)
     if known.any():
         f = error_figures(y[known] * 1e6, reference_m[known] * 1e6, float(np.ptp(reference_m[known])) * 1e6)
+        fit = (f"fit {f.fit_pct:.1f} % (NRMSE)" if reference_moves(reference_m[known])
+               else "no fit figure (the reference is constant: nothing to fit)")
         out.append(f"tracking error over {known.mean() * 100:.0f} % of the run (where a reference was in force): "
-                   f"RMS {f.rms_um:.3f} um, peak {f.peak_um:.3f} um, fit {f.fit_pct:.1f} % (NRMSE)")
+                   f"RMS {f.rms_um:.3f} um, peak {f.peak_um:.3f} um, {fit}")
     else:
         out.append("no position_reference in the bag: no tracking error, no steps")
     return out
@@ -49,6 +56,8 @@ def run_figures(rows: np.ndarray, reference_m: np.ndarray, topic: str, steps) ->
     if known.any():
         f = error_figures(y[known] * 1e6, reference_m[known] * 1e6, float(np.ptp(reference_m[known])) * 1e6)
         tracking = {**f.as_dict(), "share_of_run": float(known.mean())}
+        if not reference_moves(reference_m[known]):
+            tracking["fit_pct"] = tracking["peak_pct"] = None   # shares of a range the reference does not have
     return {"topic": topic, "samples": int(t.size),
             "rate_hz": 1.0 / float(np.median(np.diff(t))) if t.size > 1 else None,
             "duration_s": float(t[-1] - t[0]), "command_v": [float(v.min()), float(v.max())],
@@ -79,7 +88,7 @@ def main(argv=None) -> int:
     except BagError as exc:
         print(f"valve_plot: {exc}", file=sys.stderr)
         return 2
-    reference = reference_on_samples(rows[:, 0], ref_t, ref_m)
+    reference = reference_on_samples(rows[:, 0], align_jumps(rows[:, 0], rows[:, 1], ref_t, ref_m), ref_m)
     steps = find_steps(rows[:, 0], rows[:, 2], reference)
     out = Path(args.out) if args.out else default_figures_dir(args.bag)
     if args.json:

@@ -10,6 +10,9 @@ from .metrics import step_metrics
 
 STEP_MIN_JUMP_M = 1e-6      # a reference change of at least 1 um ...
 STEP_MIN_HOLD_S = 0.05      # ... held at least this long after it (and before the next change) is a step
+ALIGN_WINDOW_S = 1.0        # a jump of the reference is moved to the command's reaction within this of its receive time
+ALIGN_MIN_RATIO = 10.0      # ... a command change this many times the window's median change (a clear reaction)
+BURST_S = 0.02              # ... and the references received within this of it move with it
 
 
 @dataclass(frozen=True)
@@ -23,6 +26,56 @@ class RunStep:
     settling_time_s: float
     overshoot_pct: float
     hold_s: float
+
+
+def receive_to_sample_time(stamps_s: np.ndarray, sample_times_s: np.ndarray):
+    """A map from receive times [s] (a recorder's clock) onto the samples' time axis [s], from pairs of a message's
+    receive time and the sample time it carried: piecewise linear between the pairs (so it follows a rig whose
+    simulated time runs at a varying share of the wall clock, as a lockstep rig's does), the nearest pair's offset
+    beyond them.  Pairs are taken in receive order, and the sample times made non-decreasing (a message that
+    arrived late does not fold the axis back).  Returns a function of an array of receive times."""
+    stamps = np.asarray(stamps_s, float)
+    order = np.argsort(stamps, kind="stable")
+    stamps = stamps[order]
+    times = np.maximum.accumulate(np.asarray(sample_times_s, float)[order])
+    if stamps.size == 0:
+        raise ValueError("no message pairs a receive time with a sample time")
+
+    def to_sample_time(received_s) -> np.ndarray:
+        r = np.asarray(received_s, float)
+        out = np.interp(r, stamps, times)
+        out = np.where(r < stamps[0], times[0] + (r - stamps[0]), out)
+        return np.where(r > stamps[-1], times[-1] + (r - stamps[-1]), out)
+    return to_sample_time
+
+
+def align_jumps(time_s: np.ndarray, command_v: np.ndarray, ref_time_s: np.ndarray, ref_m: np.ndarray,
+                min_jump_m: float = STEP_MIN_JUMP_M, window_s: float = ALIGN_WINDOW_S) -> np.ndarray:
+    """Reference times [s] with each jump of the reference (a change of at least ``min_jump_m``) moved to the sample
+    where the command reacted to it: the first sample within ``window_s`` of its time whose command change is at
+    least half the largest there and ``ALIGN_MIN_RATIO`` times the window's median change; the references after
+    it that came in the same burst (received within ``BURST_S``) move with it.  Receive times place a reference within
+    the recorder's delivery delay, which on a loaded machine, on a lockstep rig whose time runs in bursts, reaches
+    tenths of a second of the rig's time; the command shows when the controller applied it.  A jump with no clear
+    reaction (a strategy without proportional action, a rail) keeps its time."""
+    t = np.asarray(time_s, float)
+    v = np.asarray(command_v, float)
+    received = np.asarray(ref_time_s, float)
+    values = np.asarray(ref_m, float)
+    change = np.abs(np.diff(v, prepend=v[:1]))
+    jumps = np.flatnonzero(np.abs(np.diff(values, prepend=np.nan)) >= min_jump_m)
+    shift = np.zeros(received.size)
+    for j, end in zip(jumps, np.append(jumps[1:], received.size)):
+        lo, hi = np.searchsorted(t, received[j] - window_s), np.searchsorted(t, received[j] + window_s)
+        if hi - lo < 3:
+            continue
+        window = change[lo:hi]
+        largest = float(np.max(window))
+        if largest <= 0 or largest < ALIGN_MIN_RATIO * float(np.median(window)):
+            continue
+        burst = j + np.flatnonzero(received[j:end] <= received[j] + BURST_S)
+        shift[burst] = t[lo + int(np.argmax(window >= 0.5 * largest))] - received[j]
+    return np.maximum.accumulate(received + shift)
 
 
 def reference_on_samples(time_s: np.ndarray, ref_time_s: np.ndarray, ref_m: np.ndarray) -> np.ndarray:
