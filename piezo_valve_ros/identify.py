@@ -16,8 +16,8 @@ from typing import Callable, Optional
 import numpy as np
 
 from .bagio import read_samples
-from .core.control.compensation import CompensationModel
-from .core.model.drive import COMMAND_MAX_V, COMMAND_MIN_V
+from .core.control.compensation import CompensationModel, command_range_for
+from .core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 from .core.monitoring.health import Health, HealthLimits, HealthMonitor, Level
 from .params_yaml import YAMLError, load as load_yaml, yaml_value
 from .core.identification.records import Record, read_csv
@@ -26,7 +26,7 @@ from .core.identification.to_controller import (Compensation, base_parameters, b
                                                  controller_parameters)
 
 __all__ = ["identify_bags", "read_record", "Compensation", "compensation", "baseline_compensation", "base_parameters",
-           "controller_parameters", "controller_parameters_yaml", "parameters_yaml", "read_parameters_file",
+           "controller_parameters", "controller_parameters_yaml", "command_range_note", "parameters_yaml", "read_parameters_file",
            "ParametersFileError", "report_json", "write_atomically", "write_outputs", "monitor_record", "health_json", "summary_json"]
 
 CONTROLLER_NODE = "valve_controller"   # the node whose section a parameters file carries
@@ -88,7 +88,11 @@ def monitor_record(path, params_file, topic: Optional[str] = None, limits: Optio
         raise ParametersFileError(f"{params_file}: {exc}") from None
     record, _ = read_record(path, topic, log)
     rows = np.column_stack([record.time_s, record.voltage_v, record.position_um * 1e-6])
-    monitor = HealthMonitor(model, record.dt, limits or HealthLimits(), (float(low), float(high)))
+    limits = limits or HealthLimits()
+    monitor = HealthMonitor(model, record.dt, limits, (float(low), float(high)))
+    if record.duration_s < limits.window_s:
+        log(f"no verdict possible: the record spans {record.duration_s:.1f} s, shorter than one window of "
+            f"{limits.window_s:g} s (valve_identify --window-s sets a shorter one)")
     chunk = max(int(round(0.1 / record.dt)), 1)
     verdicts: list[Health] = []
     for k in range(0, len(rows), chunk):
@@ -115,16 +119,38 @@ def parameters_yaml(values: dict, comments: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def command_range_note(comp: Compensation) -> tuple[dict, str]:
+    """The command range a controller may use with this model (``compensation.command_range_for``) as parameters,
+    and one line that says why, when it is not the whole 0..10 V drive ({} and '' when it is)."""
+    fitted = comp.controller_model.fitted_range_v
+    allowed = command_range_for(fitted, COMMAND_MIN_V, COMMAND_MAX_V, CENTRE_VOLTAGE_V)
+    if allowed == (COMMAND_MIN_V, COMMAND_MAX_V) or not fitted:
+        return {}, ""
+    lo, hi = fitted
+    if allowed is None:
+        return {}, (f"the record drove the valve over {lo:.3g}..{hi:.3g} V only: too narrow to control it with this "
+                    f"model (the controller and valve_tune refuse it for commands {COMMAND_MIN_V:g}..{COMMAND_MAX_V:g} V); "
+                    f"record a training run across the range the valve will see (valve_identification's train step, or "
+                    f"valve_command sine --amplitude 50e-6 --frequency 0.5 --duration 10)")
+    return ({"command_min_v": round(allowed[0], 4), "command_max_v": round(allowed[1], 4)},
+            f"the record drove the valve over {lo:.3g}..{hi:.3g} V: commands limited to {allowed[0]:.3g}..{allowed[1]:.3g} V "
+            f"(a model is trusted a quarter of its span beyond it); a training run across {COMMAND_MIN_V:g}..{COMMAND_MAX_V:g} V "
+            f"gives a model for the whole drive")
+
+
 def controller_parameters_yaml(comp: Compensation, source: str, report: dict, extra: Optional[dict] = None,
                                extra_comments: Optional[list[str]] = None) -> str:
     """A ROS parameters file for ``valve_controller`` with the compensation model (and ``extra`` parameters,
-    e.g. tuned gains), and comments that say what it is and what was left out."""
+    e.g. tuned gains), and comments that say what it is and what was left out.  Where the record drove only part
+    of the 0..10 V drive, the file limits the commands to what the model knows (``command_range_note``)."""
     comments = [f"Fitted by valve_identify from {source}",
                 f"final model {report['final']['model']}; held-out RMS {report['baseline']['validate']['rms_um']:.4f} "
                 f"um (baseline {report['baseline']['model']}) -> {report['final']['validate']['rms_um']:.4f} um",
                 f"compensation model: {comp.model.name}"]
-    comments += [f"not compensated: {why}" for why in comp.refused.values()] + list(extra_comments or [])
-    return parameters_yaml({**controller_parameters(comp), **(extra or {})}, comments)
+    limits, note = command_range_note(comp)
+    comments += [f"not compensated: {why}" for why in comp.refused.values()] + ([note] if note else [])
+    comments += list(extra_comments or [])
+    return parameters_yaml({**controller_parameters(comp), **limits, **(extra or {})}, comments)
 
 
 def read_parameters_file(path: str | os.PathLike) -> dict:

@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 
 from .bagio import BagError
 from .core.identification.records import HELD_OUT_FRACTION, IdentificationError
+from .core.monitoring.health import WINDOW_S, HealthLimits
 from .tool import run_tool
-from .identify import (ParametersFileError, compensation, controller_parameters_yaml, health_json, identify_bags,
-                       monitor_record, report_json, write_outputs)
+from .identify import (ParametersFileError, command_range_note, compensation, controller_parameters_yaml, health_json,
+                       identify_bags, monitor_record, report_json, write_outputs)
 
 __all__ = ["main"]
 
@@ -52,14 +54,21 @@ def main(argv=None) -> int:
     ap.add_argument("--monitor", metavar="PARAMS", help="instead of identifying: judge the record's health against "
                     "the model of this controller parameters file, as valve_monitor does live (--report writes "
                     "the verdicts)")
+    ap.add_argument("--window-s", type=float, default=WINDOW_S, help=f"with --monitor: each verdict judges this "
+                    f"long of the record [s] (default {WINDOW_S:g}, as valve_monitor's window_s)")
     args = ap.parse_args(argv)
     log = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
+    if args.window_s != WINDOW_S and not args.monitor:
+        ap.error("--window-s applies to --monitor")
     if args.monitor:
         if args.validate or args.params_out or args.plots:
             ap.error("--monitor takes a record, the parameters file and --report only")
+        limits = replace(HealthLimits(), window_s=args.window_s, step_s=min(HealthLimits().step_s, args.window_s))
+        if limits.problems():
+            ap.error("; ".join(limits.problems()))
 
         def judge() -> list[str]:
-            verdicts = monitor_record(args.train_bag, args.monitor, args.topic, log=log)
+            verdicts = monitor_record(args.train_bag, args.monitor, args.topic, limits, log=log)
             counts = {lv: sum(h.level.name == lv for h in verdicts) for lv in ("OK", "WARN", "ERROR", "STALE")}
             worst = max(verdicts, key=lambda h: (h.level.name in ("WARN", "ERROR"), h.ratio), default=None)
             lines = [f"{len(verdicts)} verdicts: " + ", ".join(f"{n} {lv}" for lv, n in counts.items())
@@ -76,15 +85,18 @@ def main(argv=None) -> int:
             plots.require()
         analysis, name = identify_bags(args.train_bag, args.validate, args.topic, log)
         report = analysis.report
-        outputs = {}
+        outputs, notes = {}, []
         if args.params_out:
-            outputs[args.params_out] = controller_parameters_yaml(compensation(analysis), str(args.train_bag), report)
+            comp = compensation(analysis)
+            outputs[args.params_out] = controller_parameters_yaml(comp, str(args.train_bag), report)
+            note = command_range_note(comp)[1]
+            notes = [f"note: {note}"] if note else []
         if args.report:
             outputs[args.report] = report_json(analysis)
         written = write_outputs(outputs)
         if args.plots:
             written += plots.write_all(analysis, args.plots, log)
-        return [_summary(report)] + [f"wrote {path}" for path in written]
+        return [_summary(report)] + notes + [f"wrote {path}" for path in written]
     return run_tool("valve_identify", work, (BagError, IdentificationError))
 
 if __name__ == "__main__":

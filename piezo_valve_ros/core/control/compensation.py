@@ -222,11 +222,30 @@ def fitted_range_problems(fitted_range_v: tuple[float, ...], v_min: float, v_max
     lo, hi = fitted_range_v
     margin = FITTED_RANGE_MARGIN * (hi - lo)
     if v_min < lo - margin or v_max > hi + margin:
-        return [f"the model was fitted on {lo:.4g}..{hi:.4g} V; commands {v_min:g}..{v_max:g} V go beyond it"]
+        return [f"the model was fitted on {lo:.4g}..{hi:.4g} V; commands {v_min:g}..{v_max:g} V go beyond it (more than "
+                f"{FITTED_RANGE_MARGIN:g} of its span): limit command_min_v/command_max_v to "
+                f"{lo - margin:.4g}..{hi + margin:.4g} V in the parameters file, or identify the valve on a record that "
+                f"drives it across the range it will be commanded over"]
     if v_max - v_min < MIN_FITTED_SPAN_SHARE * (hi - lo):
         return [f"the model was fitted on {lo:.4g}..{hi:.4g} V, {(hi - lo) / (v_max - v_min):.3g}x the command range "
                 f"{v_min:g}..{v_max:g} V: a model of another drive"]
     return []
+
+
+def command_range_for(fitted_range_v: tuple[float, ...], v_min: float, v_max: float,
+                      centre_v: float) -> Optional[tuple[float, float]]:
+    """The part of the command range ``v_min..v_max`` [V] a model fitted on ``fitted_range_v`` = (lo, hi) may
+    command (``fitted_range_problems``: at most FITTED_RANGE_MARGIN of its span beyond it): the range itself when
+    it suits the model, a narrower one when the model knows only part of it, None when that part leaves out the
+    centre voltage ``centre_v`` (too narrow a record to control the valve with)."""
+    if not fitted_range_problems(fitted_range_v, v_min, v_max):
+        return v_min, v_max
+    lo, hi = fitted_range_v
+    margin = FITTED_RANGE_MARGIN * (hi - lo)
+    narrowed = max(v_min, lo - margin), min(v_max, hi + margin)
+    if not narrowed[0] <= centre_v <= narrowed[1] or fitted_range_problems(fitted_range_v, *narrowed):
+        return None
+    return narrowed
 
 
 @dataclass(frozen=True)
