@@ -87,6 +87,40 @@ def test_steps_are_found_in_a_recorded_reference_and_measured():
     assert s.settling_time_s == pytest.approx(3 * tau, abs=2e-4) and s.overshoot_pct == 0.0
 
 
+def test_references_are_put_on_the_samples_time_axis_where_simulated_time_runs_at_its_own_pace(tmp_path):
+    """A lockstep rig's time runs at a varying share of the wall clock (here 0.25x, then 2x): a reference is placed by
+    the messages around it that pair a receive time with a sample time, not by one constant offset (which put a
+    tour's step seconds away from where it happened and reported a tracking error of 5-11 um)."""
+    from piezo_valve_ros.bagio import BagRecorder, CLOCK_TYPE, SAMPLES_TYPE, qos_profile, serialize_float64, \
+        serialize_samples, read_run
+    from piezo_valve_ros.core.runs import find_steps, reference_on_samples, receive_to_sample_time
+    dt = 1e-3
+    t = np.arange(4000) * dt
+    wall = np.where(t < 2.0, 4.0 * t, 8.0 + 0.5 * (t - 2.0)) + 1000.0   # receive time [s] of each sample
+    ref = np.where(t < 1.5, 0.0, np.where(t < 3.0, 20e-6, -20e-6))
+    y = np.where(t < 1.5, 0.0, ref)                                    # the valve follows at once
+    rows = np.column_stack((t, 5.0 + y * 1e5, y + 1e-9 * np.arange(t.size)))   # distinct positions
+    bag = tmp_path / "run"
+    topics = {"/samples": (SAMPLES_TYPE, qos_profile(True, 10)), "/spool_position": (FLOAT64_TYPE, qos_profile(False, 1)),
+              "/position_reference": (FLOAT64_TYPE, qos_profile(True, 10))}
+    recorder = BagRecorder(bag, topics, "mcap")
+    for k in range(0, t.size, 100):                                    # batches of 100 rows, as the hardware sends
+        for j in range(k, k + 100):
+            recorder.write("/spool_position", int(wall[j] * 1e9), serialize_float64(rows[j, 2]))
+        recorder.write("/samples", int((wall[k + 99] + 1e-4) * 1e9), serialize_samples(rows[k:k + 100]))
+    for at in (0.5, 1.5, 3.0):                                         # 0, then a step up and a step down
+        j = int(round(at / dt))
+        recorder.write("/position_reference", int((wall[j] - 1e-4) * 1e9), serialize_float64(float(ref[j])))
+    recorder.close()
+    got_rows, ref_t, ref_m, _ = read_run(bag)
+    assert np.allclose(ref_t, [0.5 - dt, 1.5 - dt, 3.0 - dt], atol=1.5 * dt), ref_t
+    steps = find_steps(got_rows[:, 0], got_rows[:, 2], reference_on_samples(got_rows[:, 0], ref_t, ref_m))
+    assert [(s.start_um, s.end_um) for s in steps] == [(0.0, 20.0), (20.0, -20.0)]
+    # without positions the samples messages alone place it within their batch
+    to_t = receive_to_sample_time(wall[99::100] + 1e-4, t[99::100])
+    assert abs(float(to_t(np.array([wall[1500]]))[0]) - 1.5) < 0.1
+
+
 def test_parameter_assignments_read_as_yaml():
     assert parse_assignment("kp:=1.5") == ("kp", 1.5)
     assert parse_assignment("samples_batch:=10") == ("samples_batch", 10)
@@ -158,9 +192,9 @@ def test_record_command_and_identify_a_running_rig(tmp_path):
         assert step.returncode == 0 and "1 reference(s)" in step.stdout and "acknowledged by 2 reader" in step.stdout, step
         time.sleep(1.5)
         refused = tool("valve_command", "--namespace", ns, "set", "controller", "kp:=-1.0", "reference_ramp_s:=0.01")
-        assert refused.returncode == 1
-        lines = refused.stdout.splitlines()
-        assert "kp := -1.0 refused: " in lines[0] and "gain_set" in lines[0], refused.stdout
+        assert refused.returncode == 1   # two values: one update, refused whole with the node's reason
+        assert "kp := -1.0, reference_ramp_s := 0.01 refused, nothing changed: " in refused.stdout, refused.stdout
+        assert "gain_set" in refused.stdout or "kp" in refused.stdout.split("nothing changed:")[1], refused.stdout
         got = tool("valve_command", "--namespace", ns, "get", "controller", "strategy", "gain_set")
         assert got.returncode == 0 and "strategy: 'pid_hc'" in got.stdout, got
         accepted = tool("valve_command", "--namespace", ns, "set", "hardware", "command_timeout_s:=0.3")
@@ -256,6 +290,12 @@ def test_an_out_of_tree_backend_runs_the_rig(tmp_path):
     unknown = subprocess.run([hw_exe, "--ros-args", "-p", "backend:=nope"], env=plugin_env(), capture_output=True,
                              text=True, timeout=60)
     assert unknown.returncode == 2 and "unknown backend 'nope'; available: loopback, sim" in unknown.stderr
+    # a misspelt backend parameter (rclpy would ignore it, leaving the default in force) is refused by name
+    misspelt = subprocess.run([hw_exe, "--ros-args", "-p", "backend:=loopback", "-p", "loopback.gain_m_per_vv:=1e-5"],
+                              env=plugin_env(), capture_output=True, text=True, timeout=60)
+    assert misspelt.returncode == 2, misspelt
+    assert misspelt.stderr.strip().startswith("valve_hardware: unknown parameter(s) loopback.gain_m_per_vv (the "
+                                              "loopback backend's own: loopback.gain_m_per_v,"), misspelt.stderr
 
     ns = f"/daq{os.getpid()}"
     bag = tmp_path / "loop"
@@ -279,6 +319,31 @@ def test_an_out_of_tree_backend_runs_the_rig(tmp_path):
     late = rows[rows[:, 0] > rows[-1, 0] - 0.5]  # the last half second: settled on the step
     assert np.abs(late[:, 2] - 20e-6).max() < 0.5e-6
     assert np.allclose(late[:, 2], 12e-6 * (late[:, 1] - 5.0), atol=0.3e-6)  # the loopback's own law
+
+
+def test_valve_rig_with_a_backend_that_is_not_installed_ends_at_once_with_the_hardwares_reason():
+    """The hardware refuses the backend and exits; the rig notices while it comes up, says which node ended, and
+    exits non-zero (it used to wait for the hardware forever, the controller reporting 'waiting for spool_position')."""
+    started = time.monotonic()
+    proc = tool("valve_rig", "--demo", "none", "--backend", "my_daq", "--namespace", f"/nodaq{os.getpid()}",
+                timeout_s=60)
+    took = time.monotonic() - started
+    assert proc.returncode != 0, proc.stdout + proc.stderr
+    assert "valve_hardware: unknown backend 'my_daq'" in proc.stderr, proc.stderr
+    assert "valve_hardware exited with code 2 while the rig came up" in proc.stderr, proc.stderr
+    assert "rig up" not in proc.stdout
+    assert took < 15.0, took
+
+
+def test_a_misspelt_parameter_of_the_sim_backend_or_of_the_hardware_is_refused_where_it_was_given():
+    """valve_hardware refuses every name its command line gives it that it does not declare; valve_composed, whose
+    unprefixed names go to both nodes, refuses a backend's misspelt one and leaves the controller's to it."""
+    for args, says in [(["-p", "sim.sed:=3"], "unknown parameter(s) sim.sed (the sim backend's own: sim.seed,"),
+                       (["-p", "clok:=lockstep"], "unknown parameter(s) clok ")]:
+        out = tool("valve_hardware", "--ros-args", *args)
+        assert out.returncode == 2 and says in out.stderr, (args, out.stderr)
+    out = tool("valve_composed", "--ros-args", "-p", "sim.sed:=3")
+    assert out.returncode == 2 and "unknown parameter(s) sim.sed" in out.stderr, out.stderr
 
 
 def test_valve_rig_stops_when_its_identification_plan_ends(tmp_path):

@@ -72,7 +72,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = sub.add_parser("get", help="print parameters of a node")
     p.add_argument("node")
     p.add_argument("names", nargs="*")
-    p = sub.add_parser("set", help="set parameters of a node (NAME:=VALUE ...)")
+    p = sub.add_parser("set", help="set parameters of a node (NAME:=VALUE ...; several go in one atomic update, "
+                                   "all applied or none, e.g. strategy:=pid gain_set:='')")
     p.add_argument("node")
     p.add_argument("assignments", nargs="+", metavar="NAME:=VALUE")
     p = sub.add_parser("load", help="load a ROS parameters file into a running node in one atomic update (all "
@@ -147,6 +148,15 @@ STATUS_DISCOVERY_S = 1.5   # status: the namespace's nodes have stayed the same 
 REPORTING_NODES = {"valve_hardware", "valve_controller", "valve_monitor"}   # they publish on /diagnostics
 
 
+def same_value(a, b) -> bool:
+    """Whether a node's parameter value and a file's are the same (lists and tuples alike, ints and floats alike)."""
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(same_value(x, y) for x, y in zip(a, b))
+    if isinstance(a, bool) or isinstance(b, bool):
+        return a is b
+    return a == b
+
+
 def status(args, client: RigClient, out=sys.stdout) -> int:
     """The latest /diagnostics status of each node in the rig's namespace and the latest controller state,
     heard until every such node (the hardware and the controller always) has reported, at most ``args.listen``
@@ -211,6 +221,15 @@ def run(args, client: RigClient, request, out=sys.stdout) -> int:
         for name, value in values.items():
             print(f"{name}: {value!r}" if value is not None else f"{name}: (not set)", file=out)
         return 0 if all(v is not None for v in values.values()) else 1
+    if args.command == "set" and len(request) > 1:   # values that belong together: one update, all or none
+        values = request
+        result = client.set_params_atomically(client.wait_for_node(args.node, args.timeout), values, args.timeout)
+        who, names = client.node_name(args.node), ", ".join(f"{k} := {v!r}" for k, v in values.items())
+        if result.successful:
+            print(f"{who}: {names} accepted together", file=out)
+            return 0
+        print(f"{who}: {names} refused, nothing changed: {result.reason}", file=out)
+        return 1
     if args.command == "set":
         values = request
         results = client.set_params(client.wait_for_node(args.node, args.timeout), values, args.timeout)
@@ -223,11 +242,19 @@ def run(args, client: RigClient, request, out=sys.stdout) -> int:
                 print(f"{client.node_name(args.node)}: {name} := {value!r} refused: {result.reason}", file=out)
         return 1 if refused else 0
     if args.command == "load":
-        values = request
-        result = client.set_params_atomically(client.wait_for_node(args.node, args.timeout), values, args.timeout)
+        node = client.wait_for_node(args.node, args.timeout)
+        # values already in force are left out: a file the tools wrote carries start-up-only ones (control_period_s)
+        current = client.get_params(node, list(request), args.timeout)
+        values = {k: v for k, v in request.items() if not same_value(current.get(k), v)}
         who = client.node_name(args.node)
+        kept = len(request) - len(values)
+        if not values:
+            print(f"{who}: every one of the {len(request)} parameters in {args.path} is in force already", file=out)
+            return 0
+        result = client.set_params_atomically(node, values, args.timeout)
         if result.successful:
-            print(f"{who}: {len(values)} parameters from {args.path} applied together", file=out)
+            print(f"{who}: {len(values)} parameters from {args.path} applied together"
+                  + (f" ({kept} already in force)" if kept else ""), file=out)
             return 0
         print(f"{who}: {args.path} refused, nothing changed: {result.reason}", file=out)
         return 1

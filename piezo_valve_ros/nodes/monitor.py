@@ -82,6 +82,8 @@ class ValveMonitorNode(Node):
         self.verdicts = 0
         self._model_wanted, self._request, self._model_values = True, None, None
         self._waiting_said = False
+        self._first_sample_s: Optional[float] = None   # the rig's time [s] of the first and the latest sample judged
+        self._latest_sample_s: Optional[float] = None
         self.controller_state: dict[str, float] = {}
         self._last_push_s = -math.inf
         self._advised = False
@@ -146,6 +148,8 @@ class ValveMonitorNode(Node):
                 self.get_logger().warning("rejected samples message: its times do not give a sample period")
                 return
             self.monitor = HealthMonitor(self.model, dt, self.limits, self.command_range_v)
+            self._first_sample_s = float(rows[0, 0])
+        self._latest_sample_s = float(rows[-1, 0])
         for health in self.monitor.add(rows):
             self.latest, self.verdicts = health, self.verdicts + 1
             self.health_pub.publish(samples_message(np.array([[
@@ -198,8 +202,12 @@ class ValveMonitorNode(Node):
 
     def _status(self) -> tuple[str, str, dict]:
         if self.latest is None:
-            what = "the controller's model" if self.model is None else "a full window of samples"
-            return "STALE", f"waiting for {what}", {}
+            if self.model is None:
+                return "STALE", "waiting for the controller's model", {}
+            have = 0.0 if self._first_sample_s is None else self._latest_sample_s - self._first_sample_s
+            return "STALE", (f"waiting for a full window of samples: {have:.1f} of {self.limits.window_s:g} s of the "
+                             "rig's time so far (a lockstep rig's time runs at its own pace; window_s sets the "
+                             "window)"), {}
         return self.latest.level.name, self.latest.message, self.latest.values()
 
     def _report_while_waiting(self) -> None:

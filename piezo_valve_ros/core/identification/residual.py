@@ -80,6 +80,7 @@ INITIAL_STATE_TOLERANCE = 0.02              # "cycled" replaces "rest" only if i
 WIPE_GAIN = 0.1                             # fitting only after the wipe must cut the held-out RMS by >= 10 %
 HELD_OUT_RANGE_MARGIN = 0.05                # held-out data driven beyond the fit part's voltage range by more
                                             # than this share of it: warned (the fit cannot know that range)
+RESOLUTION_SHARE = 1e-6                     # a record's noise is taken as at least this share of its range
 UNEXPLAINED_NOISE_RATIO = 2.0               # structured residual RMS above this many noise RMS: unexplained
 PEAK_NOISE_RATIO = 2.5                      # held-out peaks above this many times the noise's: unexplained
 PEAK_BLOCK_S = 0.005                        # ... judged on the PEAK_RANK-th largest peak of blocks this long
@@ -190,8 +191,13 @@ class _Loop:
             self.warnings.append(f"the record is sampled at {full.rate_hz:.0f} Hz, below the supported "
                                  f"{SUPPORTED_RATE_HZ:.0f} Hz: G_v's poles cannot be resolved and fast effects go unseen")
             log("warning: " + self.warnings[-1])
-        self.noise = noise_floor_um(full.position_um)
         self.range_um = float(np.ptp(split.score_full.position_um if split.held_out else full.position_um))
+        self.noise = noise_floor_um(full.position_um)
+        if not self.noise >= RESOLUTION_SHARE * self.range_um:   # a simulated or a smoothed record
+            self.noise = RESOLUTION_SHARE * self.range_um
+            self.warnings.append(f"the record shows no sensor noise (below {RESOLUTION_SHARE:g} of its range): the "
+                                 f"noise is taken as {self.noise:.3g} um, and figures relative to it are relative to that")
+            log("warning: " + self.warnings[-1])
         self.range_val = (float(np.ptp(split.score_full.position_um[split.start_full:])) if not split.held_out
                           else self.range_um)
         held_out_text = ('last ' + format(100 * HELD_OUT_FRACTION, '.0f') + ' %' if split.held_out
