@@ -317,3 +317,51 @@ def test_a_bag_with_one_damaged_segment_is_read_from_the_intact_ones_and_says_wh
     assert f"1 damaged storage file(s) left out, the rest used: {damaged.name}" in out.stdout
     report = json.loads((tmp_path / "report.json").read_text())
     assert any(damaged.name in w for w in report["warnings"])
+
+
+def test_a_model_fitted_on_part_of_the_drive_limits_the_commands_to_what_it_knows(tmp_path):
+    """A record over 2..8 V: the parameters file limits the commands to 0.5..9.5 V (a quarter of the fitted span
+    beyond it), says so, and the controller and valve_tune accept it; the controller refuses the model for
+    0..10 V, naming the range to set.  A record over 0.11 V of the drive is too narrow: a note, no limits."""
+    from piezo_valve_ros.core.control.compensation import command_range_for, fitted_range_problems
+    assert command_range_for((2.0, 8.0), 0.0, 10.0, 5.0) == (0.5, 9.5)
+    assert command_range_for((1.0, 9.0), 0.0, 10.0, 5.0) == (0.0, 10.0)
+    assert command_range_for((6.07, 6.18), 0.0, 10.0, 5.0) is None
+    assert "limit command_min_v/command_max_v to 0.5..9.5 V" in fitted_range_problems((2.0, 8.0), 0.0, 10.0)[0]
+    v = 5.0 + 0.6 * (identification_voltage(5e-4, 12.0) - 5.0)
+    rows = simulate_rows(v, ValveSimConfig(dt=5e-4, seed=3))
+    write_samples_bag(tmp_path / "narrow", rows)
+    out = run_cli(tmp_path / "narrow", "--params-out", tmp_path / "fitted.yaml", "--quiet")
+    assert out.returncode == 0, out.stderr
+    assert "note: the record drove the valve over" in out.stdout and "commands limited to" in out.stdout, out.stdout
+    params = yaml.safe_load((tmp_path / "fitted.yaml").read_text())["/**/valve_controller"]["ros__parameters"]
+    lo, hi = params["model.fitted_range_v"]
+    assert params["command_min_v"] == pytest.approx(max(0.0, lo - 0.25 * (hi - lo)), abs=1e-3)
+    assert params["command_max_v"] == pytest.approx(min(10.0, hi + 0.25 * (hi - lo)), abs=1e-3)
+    CompensationModel.from_parameters(params, params["command_min_v"], params["command_max_v"])
+    with pytest.raises(ValueError, match="limit command_min_v/command_max_v to"):
+        CompensationModel.from_parameters(params, 0.0, 10.0)
+
+
+def test_the_offline_monitor_says_why_a_short_record_gives_no_verdict(tmp_path):
+    from piezo_valve_ros.core.control.compensation import CompensationModel as Model
+    from piezo_valve_ros.identify import parameters_yaml
+    rows = simulate_rows(identification_voltage(5e-4, 5.0)[: int(12 / 5e-4)], ValveSimConfig(dt=5e-4, seed=4))
+    write_samples_bag(tmp_path / "short", rows)
+    (tmp_path / "model.yaml").write_text(parameters_yaml(Model().to_parameters(), ["the paper's model"]))
+    out = run_cli(tmp_path / "short", "--monitor", tmp_path / "model.yaml")
+    assert out.returncode == 0, out.stderr
+    assert "no verdict possible: the record spans 12.0 s, shorter than one window of 20 s" in out.stdout, out.stdout
+    out = run_cli(tmp_path / "short", "--monitor", tmp_path / "model.yaml", "--window-s", "5")
+    assert out.returncode == 0 and "no verdict possible" not in out.stdout and " verdicts: " in out.stdout, out.stdout
+    assert run_cli(tmp_path / "short", "--window-s", "5").returncode == 2   # --window-s belongs to --monitor
+
+
+def test_a_noise_free_record_is_judged_against_its_resolution_not_a_noise_of_1e_minus_14():
+    from piezo_valve_ros.core.identification.records import Record
+    from piezo_valve_ros.core.identification.residual import analyse
+    rows = simulate_rows(identification_voltage(5e-4, 10.0), ValveSimConfig(dt=5e-4, seed=5).ideal())
+    report = analyse(Record.from_rows(rows)).report
+    assert report["noise_floor_um"] == pytest.approx(1e-6 * report["range_um"], rel=1e-3)
+    assert any("shows no sensor noise" in w for w in report["warnings"])
+    assert report["residual_structure"]["ratio_to_noise"] < 1e7
