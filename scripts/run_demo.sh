@@ -2,7 +2,7 @@
 # The main job: a simulated rig (hardware + controller in separate processes, lockstep at 10 kHz)
 # running the paper's three step tests. Extra arguments go to valve_rig (see valve_rig --help).
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$(readlink -f "$0")")/.."
 bash scripts/setup_venv.sh
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-42}
 export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}

@@ -5,7 +5,7 @@
 # more than the machine's cores, at most 4: the end-to-end runs wait on the wall clock part of the time;
 # each worker claims its own ROS domain); -n 0 runs them in this process.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$(readlink -f "$0")")/.."
 bash scripts/setup_venv.sh
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 args=()

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Create (or reuse) the project's venv in .venv and install everything into it. Idempotent.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$(readlink -f "$0")")/.."
 VENV=${PIEZO_VENV:-.venv}
 if [ ! -x "$VENV/bin/python" ]; then
   python3 -m venv "$VENV"
