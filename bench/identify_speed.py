@@ -74,7 +74,7 @@ def _exhaustive_exact(train: Record, validate: Record) -> list:
     for r in range(len(effects) + 1):
         for subset in itertools.combinations(effects, r):
             m = fit_model(fit, a.baseline, list(subset), cache=cache) if subset else a.baseline
-            e = a.split.held_out_error(m)
+            e = a.held_out_error(m)
             scores.append(([x.name for x in subset], float((e ** 2).mean() ** 0.5)))
     return scores
 

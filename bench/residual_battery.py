@@ -162,7 +162,7 @@ def main():
                  f"cubic by up to {structure['held_out_noise_peak_um']:.3f} um ({structure['held_out_noise_peak_pct']:.3f} "
                  f"% of the range): the peak its sensor noise alone puts there, below which no model's peak can go.")
     print(notes[-1])
-    part_rms, without_rms, half_period = repeating_part(analysis.split.held_out_error(analysis.final, True), full.dt)
+    part_rms, without_rms, half_period = repeating_part(analysis.held_out_error(full=True), full.dt)
     notes.append(f"The final model's held-out residual repeats {part_rms:.4f} um RMS every cycle (without that part "
                  f"{without_rms:.4f} um RMS would remain); that part correlates {half_period:+.2f} with itself half a "
                  f"period later, on the other branch at the opposite voltage (-1: an error a PI model's odd-symmetric "

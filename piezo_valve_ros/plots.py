@@ -58,7 +58,9 @@ class _HeldOut:
         self.label_base, self.label_final = f"baseline {analysis.baseline.name}", analysis.final.name
 
     def predict(self, model) -> np.ndarray:
-        return model.predict(self.record, self.t0)[self.start:]
+        """What ``model`` predicts on the held-out data, as the report scores it (its own start and the session's
+        offset on a validation record)."""
+        return self.y - self.analysis.held_out_error(model)
 
 
 def write_all(analysis: Analysis, directory, log: Callable[[str], None] = lambda s: None) -> list[str]:

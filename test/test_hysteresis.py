@@ -363,3 +363,19 @@ def test_the_turning_points_of_a_path_leave_the_operators_as_the_whole_path_does
         InitialState("remanent")
     with pytest.raises(ValueError):
         InitialState("rest", (1.0,))
+
+
+def test_play_bounds_give_every_start_s_states_as_one_clamp():
+    """A play bank's states from any start are that start clipped to (L, U) (clamps compose into one), for
+    symmetric and for asymmetric drives: what a separate session's unknown start is estimated through."""
+    from piezo_valve_ros.core.model.hysteresis import play_batch, play_bounds
+    rng = np.random.default_rng(3)
+    g = PAPER_GPIM.model()
+    v = 5.0 + np.cumsum(rng.normal(0.0, 0.05, 4000))
+    lower = g.ascending_envelope(v)
+    for upper in (lower, lower + 0.3 + 0.05 * (v - 5.0)):
+        L, U = play_bounds(lower, upper, g.thresholds)
+        for _ in range(4):
+            z0 = rng.uniform(lower[0] - g.thresholds, upper[0] + g.thresholds)
+            states, _ = play_batch(lower, upper, g.thresholds, z0)
+            assert np.array_equal(np.clip(z0, L, U), states)

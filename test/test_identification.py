@@ -135,8 +135,10 @@ def test_a_slow_record_falls_back_to_the_paper_g_v_and_warns():
     valve = NOMINAL
     rows = valve.rows(training_voltage(2e-3), 1, dt=2e-3)  # 500 Hz
     report = analyse(Record.from_rows(rows)).report
-    assert report["baseline"]["G_v"]["source"].startswith("paper (the record's 500 Hz")
-    assert any("below the supported 1000 Hz" in w for w in report["warnings"])
+    # G_v's poles are tried at any rate; the paper's (poles near 80 and 380 Hz) are kept where 500 Hz cannot tell
+    assert report["baseline"]["G_v"]["source"].startswith("paper (")
+    assert any(w.startswith("the record is sampled at 500 Hz, below 1000 Hz: what happens faster than its Nyquist "
+                            "rate (250 Hz) goes unseen") for w in report["warnings"])
 
 
 def test_capacity_is_chosen_on_held_out_data():
@@ -220,7 +222,7 @@ def test_held_out_split_is_the_contract_s_last_30_percent():
 
 def test_held_out_figures_are_at_the_record_s_rate():
     a = analysis_of("nominal")
-    e = a.split.held_out_error(a.final, full=True)
+    e = a.held_out_error(full=True)
     assert a.report["final"]["validate"]["rms_um"] == pytest.approx(float(np.sqrt(np.mean(e ** 2))), rel=1e-5)
     assert e.size == len(VALID_V)
 
@@ -434,7 +436,8 @@ def test_a_closed_loop_record_of_a_nominal_valve_adds_nothing(strategy, gains):
     assert start["chosen"] == "estimated" and start["held_out_rms_um"]["estimated"] < 0.9 * start["held_out_rms_um"]["rest"]
     rested_at = float(start["assumed"].split("rest at ")[1].split(" V")[0])
     assert abs(rested_at - 5.0) < 0.3, start["assumed"]            # the controller's centre voltage
-    assert "rest at" in start["validation_record_start"]           # its own start, estimated the same way
+    validation = report["sessions"][1]                              # its own start, estimated for each model
+    assert validation["start"].startswith("its own, estimated") and abs(validation["offset_um"]) < 0.2
     assert report["final"]["validate"]["rms_um"] < 0.1
     # G starts at rest at the voltage the valve rested at, not at the first command (15-18 um peak at t = 0)
     assert report["final"]["validate"]["peak_um"] < 1.0
@@ -458,9 +461,10 @@ def test_a_closed_loop_record_of_a_creeping_valve_names_creep(strategy, gains):
     assert report["effects_added"] == ["creep"]
     start = report["baseline_fits"]["initial_state"]
     assert start["chosen"] == "estimated"
-    for said in (start["assumed"], start["validation_record_start"]):
-        rested_at = float(said.split("rest at ")[1].split(" V")[0])
-        assert abs(rested_at - 5.0) < 0.3, said
+    rested_at = float(start["assumed"].split("rest at ")[1].split(" V")[0])
+    assert abs(rested_at - 5.0) < 0.3, start["assumed"]
+    validation = report["sessions"][1]                 # the validation record's own start, estimated for each model
+    assert validation["start"].startswith("its own, estimated") and abs(validation["offset_um"]) < 0.2
     assert report["final"]["validate"]["rms_um"] < 0.4 * report["baseline"]["validate"]["rms_um"]
     assert_every_name_is_supported(report)
 
@@ -530,12 +534,13 @@ def test_asymmetry_is_compensated_only_where_the_controller_can_invert_it():
 
 
 @pytest.mark.slow
-def test_the_loop_swaps_in_the_better_of_two_effects_and_ends_at_the_best_set_it_confirmed():
+def test_where_the_first_order_search_is_not_trusted_the_effects_are_chosen_by_exact_refits():
     """A valve unlike the paper's (the end-to-end test's: rho 6.6, tau 1, offset -75 um; creep, flattening,
     slew limit, noise) through the rig's training experiment at a quarter of its length, 1 kHz commands held
-    for 10 samples.  The first-order search ranks dynamics first; by the exact refits saturation in its place
-    does better, and is swapped in.  Dynamics then joins on top, and confirming that set drops saturation
-    again (it raises the held-out peak), to a set that does worse than creep + saturation: it is not kept."""
+    for 10 samples.  The first-order search's best set (creep, saturation) does worse by its exact refit than the
+    search's figure for it by more than SEARCH_TRUST, so the effects are chosen forward by exact refits: creep,
+    saturation, then dynamics (a 5 V step in one 1 ms period meets the amplifier's slew limit: a rate effect),
+    each supported on top of the ones before, and confirmed by the exact drop-one refits."""
     from piezo_valve_ros.core.sim.experiments import simulate_rows
     from piezo_valve_ros.core.sim.signals import rig_training_voltage
     base = ValveSimConfig(dt=1e-4, seed=7)
@@ -543,13 +548,11 @@ def test_the_loop_swaps_in_the_better_of_two_effects_and_ends_at_the_best_set_it
     rows = simulate_rows(np.repeat(rig_training_voltage(1e-3, 30.0, 0.25), 10), config)
     said = []
     report = analyse(Record.from_rows(rows), log=said.append).report
-    assert any(line.startswith("swap: saturation in dynamics's place") for line in said), said
-    assert report["effects_added"] == ["creep", "saturation"]
-    confirmed = {frozenset(c["effects"]): c["held_out_rms_um"] for c in report["confirm"]}
-    assert confirmed[frozenset(["creep", "saturation"])] < confirmed[frozenset(["creep", "dynamics"])], confirmed
-    assert any(line.startswith("confirm: saturation not supported by the exact refit (raises the held-out peak")
-               for line in said), said
-    assert any(line.endswith("kept creep, saturation") for line in said), said
+    chosen = [line.split(":")[1].split()[0] for line in said if line.startswith("exact selection: ")]
+    assert chosen == ["creep", "saturation", "dynamics"], said
+    assert all("(the first-order search is not trusted here)" in line for line in said if "exact selection" in line)
+    assert report["effects_added"] == ["creep", "dynamics", "saturation"]
+    assert report["confirm"][-1]["effects"] == report["effects_added"]
     assert_every_name_is_supported(report)
 
 
@@ -586,7 +589,7 @@ def test_an_effects_refit_is_settled_not_one_solve_deep():
         return np.linalg.norm(solve(model).gpim.weights - model.gpim.weights) / np.linalg.norm(model.gpim.weights)
 
     def held_out_rms(model):
-        return float(np.sqrt(np.mean(a.split.held_out_error(model) ** 2)))
+        return float(np.sqrt(np.mean(a.held_out_error(model) ** 2)))
 
     settled = fit_model(fit, base, [creep])
     one = solve(replace(base, effects=(creep,), coefs=(np.zeros(0),)))
@@ -638,3 +641,18 @@ def test_the_bounded_solve_keeps_its_bounds_exactly():
         y = A @ np.where(rng.random(30) < 0.5, 0.0, rng.random(30)) + rng.normal(0.0, 5.0, 400)
         x = solve_gram(A.T @ A, A.T @ y, 400, np.zeros(30), np.zeros(30))
         assert np.all(x >= 0.0), (seed, x.min())
+
+
+def test_a_transport_delay_in_fractional_samples_shifts_the_prediction_by_that_much():
+    """discretise_for's delay: whole samples, then the fraction by linear interpolation; a model with delay_s
+    predicts its undelayed prediction that much later (a ramp: exactly)."""
+    from piezo_valve_ros.core.identification.valve_model import delay_taps
+    assert list(delay_taps(0.0)) == [1.0, 0.0] and list(delay_taps(2.25)) == [0.0, 0.0, 0.75, 0.25]
+    train, _ = records("nominal")
+    model = analysis_of("nominal").baseline
+    rec = train.slice(0, 4000)
+    plain = model.predict(rec)
+    late = replace(model, delay_s=2.5 * rec.dt).predict(rec)
+    middle = slice(100, 3900)
+    expected = 0.5 * (np.roll(plain, 2) + np.roll(plain, 3))
+    assert np.allclose(late[middle], expected[middle], atol=1e-9)

@@ -112,7 +112,7 @@ class FitCache:
     def basis(self, ctx: Context) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The GPIM columns (states minus their first row) through G as rows (n, N), with their Gram matrix
         (n, n) and their products with the measured position (n,)."""
-        key = (id(ctx.record), ctx.model.structure_key, ctx.model.sections)
+        key = (id(ctx.record), ctx.model.structure_key, ctx.model.sections, ctx.model.delay_s)
 
         def make():
             rows = filter_rows_at_rest(*ctx.filter, np.ascontiguousarray((ctx.states - ctx.states[0]).T))
@@ -248,12 +248,12 @@ def _free_poles(model: ValveModel) -> np.ndarray:
 def _pole_columns(record: Record, model: ValveModel, static: np.ndarray, free: np.ndarray) -> np.ndarray:
     """d G_theta[static] / d theta for the free pole parameters (post-G columns), by forward differences."""
     theta = _theta(model.sections)
-    base = filter_at_rest(*discretise_for(unity_dc_poles(list(model.sections)), record), static)
+    base = filter_at_rest(*discretise_for(unity_dc_poles(list(model.sections)), record, model.delay_s), static)
     cols = []
     for i in np.flatnonzero(free):
         t = theta.copy()
         t[i] += POLE_DIFF_STEP
-        cols.append((filter_at_rest(*discretise_for(unity_dc_poles(list(_secs(t))), record), static) - base)
+        cols.append((filter_at_rest(*discretise_for(unity_dc_poles(list(_secs(t))), record, model.delay_s), static) - base)
                     / POLE_DIFF_STEP)
     return np.column_stack(cols) if cols else np.zeros((static.size, 0))
 
@@ -365,7 +365,8 @@ def _fit(train: Record, start: ValveModel, effects: Sequence[Effect], *, poles: 
         for i in range(rounds or BASELINE_ROUNDS):
             model, _, _ = _linear_solve(train, model, steps=False, free=none, cache=cache)
             ctx = cache.context(train, model)
-            fit = fit_dynamics(train, model.static_output(ctx), train.position_um, (PAPER_SECTION,), baseline=True)
+            fit = fit_dynamics(train, model.static_output(ctx), train.position_um, (PAPER_SECTION,), baseline=True,
+                               delay_s=model.delay_s)
             moved = max(abs(math.log(a / b)) for s1, s2 in zip(fit.sections, model.sections) for a, b in zip(s1, s2))
             model = replace(model, sections=fit.sections, dynamics_note=fit.note, dynamics_free=fit.determined)
             if moved < BASELINE_POLE_TOLERANCE:
@@ -427,7 +428,8 @@ def _place_extra_poles(train: Record, model: ValveModel, own: int,
     static = model.static_output(cache.context(train, model))
     placed: dict[tuple, tuple[ValveModel, float]] = {}
     for free in options:
-        fit = fit_dynamics(train, static, train.position_um, model.sections, free=free, multistart=True)
+        fit = fit_dynamics(train, static, train.position_um, model.sections, free=free, multistart=True,
+                           delay_s=model.delay_s)
         if fit.sections not in placed:
             placed[fit.sections] = _settled(train, replace(model, sections=fit.sections), cache)
     return list(placed.values())
@@ -448,7 +450,7 @@ def refit_poles_with_effects(train: Record, model: ValveModel, cache: Optional[F
     cache = FitCache() if cache is None else cache
     for _ in range(BASELINE_ROUNDS):
         fit = fit_dynamics(train, model.static_output(cache.context(train, model)), train.position_um,
-                           model.sections)
+                           model.sections, delay_s=model.delay_s)
         if not fit.determined:
             break
         moved = max(abs(math.log(a / b)) for a, b in zip(fit.sections[0], model.sections[0]))
@@ -514,7 +516,7 @@ def _levenberg_marquardt(residual, theta, lo, hi, max_iterations: int = 20, step
 
 def fit_dynamics(record: Record, static_um: np.ndarray, measured_um: np.ndarray,
                  start: Sequence[tuple[float, float]] = (PAPER_SECTION,), *, free: Optional[np.ndarray] = None,
-                 baseline: bool = False, multistart: bool = False) -> DynamicsFit:
+                 baseline: bool = False, multistart: bool = False, delay_s: float = 0.0) -> DynamicsFit:
     """Pole pairs (unity DC gain) so that G[static] fits the measurement, by Levenberg-Marquardt.
 
     Fitted on first differences: the poles shape the fast part of the response, and slow structure the
@@ -530,14 +532,11 @@ def fit_dynamics(record: Record, static_um: np.ndarray, measured_um: np.ndarray,
     lo, hi = _pole_bounds(record, len(start))
     theta0 = np.clip(_theta(start), lo, hi)
     free = np.ones(theta0.size, bool) if free is None else np.asarray(free, bool)
-    if record.undersampled:
-        return DynamicsFit(start, f"paper (the record's {record.rate_hz:.0f} Hz cannot resolve G_v's poles)", False,
-                           float("inf"))
 
     def residual(th_free):
         th = theta0.copy()
         th[free] = th_free
-        return np.diff(filter_at_rest(*discretise_for(unity_dc_poles(list(_secs(th))), record), S)) - y
+        return np.diff(filter_at_rest(*discretise_for(unity_dc_poles(list(_secs(th))), record, delay_s), S)) - y
 
     r0 = residual(theta0[free])
     sse0 = float(r0 @ r0)

@@ -20,7 +20,8 @@ __all__ = ["IdentificationError", "Record", "analysis_record", "split_held_out",
 
 HELD_OUT_FRACTION = 0.3      # without a validation record, the last 30 % (in time) is held out (CONTRACT.md)
 ANALYSIS_RATE_HZ = 2000.0    # fits run on block means at most this rate (error figures are at the record's rate)
-SUPPORTED_RATE_HZ = 1000.0   # below this the valve's G_v (poles near 80 and 380 Hz) is not resolved: a warning
+SUPPORTED_RATE_HZ = 1000.0   # below this the paper's G_v (poles near 80 and 380 Hz) is not resolved: a warning says
+                             # what the rate cannot show
 MIN_SAMPLES = 200
 NOISE_PEAK_WINDOW_S = 0.002  # noise_peak_um: the local cubic spans this long (at least 5 samples)
 FALLING_CORRELATION = -0.5   # position and voltage correlated below this: the position falls as the drive rises

@@ -92,6 +92,14 @@ class ConfirmRound(TypedDict):
     drop_one: dict
 
 
+class Session(TypedDict):
+    record: str
+    offset_um: float
+    start: str
+    start_rows: int
+    start_rows_rms_um: float
+
+
 class BaselineFits(TypedDict):
     capacity: list[Capacity]
     chosen: str
@@ -123,6 +131,8 @@ class IdentificationReport(TypedDict, total=False):
     analysis_rate_hz: float
     noise_floor_um: float
     thresholds: dict
+    sessions: list[Session]
+    transport_delay_s: float
     warnings: list[str]
     final_model: dict
     seconds: float
@@ -161,6 +171,11 @@ DESCRIPTIONS: dict[str, str] = {
     "analysis_rate_hz": "the rate fits and decisions run at (block means) [Hz]",
     "noise_floor_um": "the sensor noise measured on the record [um]",
     "thresholds": "every threshold the decisions used, by name",
+    "sessions": "each record as a session of its own, for the final model: the training record (the model's own "
+                "offset and start), and a separate validation record with its sensor offset relative to the "
+                "training record's and how its unknown start was handled",
+    "transport_delay_s": "the final model's transport delay between drive and sensor [s] (0: none; the dynamics "
+                         "effect's)",
     "warnings": "what the reader should know (undersampled record, damaged bag files left out)",
     "final_model": "the final model: GPIM, G_v, initial state and one entry per added effect",
     "seconds": "wall time of the analysis [s]",
@@ -227,6 +242,10 @@ FIELD_DESCRIPTIONS: dict[str, str] = {
     "cubic: the peak its noise alone puts there [um]",
     "ResidualStructure.peak_ratio": "the 3rd largest 5 ms peak over what the noise gives",
     "ResidualStructure.ratio_to_noise": "structured RMS over the sensor noise",
+    "Session.record": "training or validation", "Session.offset_um": "the session's sensor offset relative to the "
+    "training record's [um] (0 for the training record)", "Session.start": "how the session's unknown start was "
+    "handled, in words", "Session.start_rows": "rows (record rate) the start counts on: until the input wiped it out",
+    "Session.start_rows_rms_um": "the final model's held-out error RMS over those rows [um]",
     "BaselineFits.initial_state": "held_out_rms_um per start tried, chosen, assumed (in words), fit_starts_at_s, "
     "before_the_record / validation_record_start where estimated",
 }

@@ -54,12 +54,12 @@ from threadpoolctl import threadpool_limits
 from .effects import CATALOGUE, Effect
 from .fitting import FitCache, fit_model, fit_paper_gpim, refit_poles_with_effects, with_poles, uniform_thresholds
 from ..model.hysteresis import GPIM
-from .initial_state import ESTIMATE_ROUNDS, ESTIMATE_STATE_GAIN, WIPE_STATE_GAIN, estimate_state, own_start
+from .initial_state import ESTIMATE_ROUNDS, ESTIMATE_STATE_GAIN, WIPE_STATE_GAIN, estimate_state, session_start
 from .report import IdentificationReport
 from .records import ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, SUPPORTED_RATE_HZ, Record, noise_floor_um, noise_peak_um
 from .search import (GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, Score, SubsetSearch, support,
                      unsupported_because)
-from .split import WIPE_MARGIN, Split, split_records
+from .split import WIPE_MARGIN, SessionStart, Split, split_records
 from ..metrics import error_figures, rms
 from ..model.dynamics import describe_dynamics
 from .valve_model import REST, InitialState, ValveModel
@@ -90,7 +90,9 @@ REFIT_THREADS = min(4, os.cpu_count() or 1)  # independent refits run on this ma
 CONFIRM_ROUNDS = 4                          # exact drop-one rounds at most
 SEPARATION_SHARE = 0.8                       # an effect that does this share of an added one's work in its
                                             # place: the record cannot tell the two apart (reported)
-EXACT_CHECK_GAIN = 0.05                     # effects the linear search credits with >= 5 % are checked exactly
+EXACT_CHECK_GAIN = 0.05                     # effects the linear search credits with >= 5 % are checked exactly ...
+EXACT_ALL_ROWS = 20000                      # ... every effect, on a fit record of at most this many rows ...
+SEARCH_TRUST = 0.2                          # ... or where the exact refit of its set does worse than its figure by more
 
 
 def _ordinal(k: int) -> str:
@@ -105,6 +107,23 @@ class Analysis:
     final: ValveModel
     split: Split
     drop_one: dict = field(default_factory=dict)   # effect name -> the final model refitted without it
+    sessions: dict = field(default_factory=dict)   # id(model) -> (model, its start and offset on a validation record)
+
+    def session(self, model: ValveModel) -> Optional[SessionStart]:
+        """``model``'s start and offset on a separate validation record (None on a held-out tail): as the loop
+        estimated it, or estimated the same way (``initial_state.session_start``)."""
+        if self.split.held_out:
+            return None
+        if id(model) not in self.sessions:
+            self.sessions[id(model)] = (model, session_start(model, self.split.score, self.split.score_t0))
+        return self.sessions[id(model)][1]
+
+    def held_out_error(self, model: Optional[ValveModel] = None, full: bool = False) -> np.ndarray:
+        """The final model's (or ``model``'s) held-out error [um] as every decision and the report take it (analysis
+        rate, or the record's own with ``full``): on a validation record from the model's own start, less the
+        session's offset."""
+        model = self.final if model is None else model
+        return self.split.held_out_error(model, full, self.session(model))
 
 
 def _structure(e_score: np.ndarray, dt: float, noise_um: float, range_um: float) -> dict:
@@ -188,8 +207,10 @@ class _Loop:
         self.full = full = split.fit_full
         self.warnings: list[str] = []
         if full.undersampled:
-            self.warnings.append(f"the record is sampled at {full.rate_hz:.0f} Hz, below the supported "
-                                 f"{SUPPORTED_RATE_HZ:.0f} Hz: G_v's poles cannot be resolved and fast effects go unseen")
+            self.warnings.append(f"the record is sampled at {full.rate_hz:.0f} Hz, below {SUPPORTED_RATE_HZ:.0f} Hz: what "
+                                 f"happens faster than its Nyquist rate ({0.5 * full.rate_hz:.0f} Hz) goes unseen (a "
+                                 f"G_v with poles above it keeps the paper's); delays and lags of a sample or more, "
+                                 f"rate dependence and the slow effects are identified as at any rate")
             log("warning: " + self.warnings[-1])
         self.range_um = float(np.ptp(split.score_full.position_um if split.held_out else full.position_um))
         self.noise = noise_floor_um(full.position_um)
@@ -206,7 +227,8 @@ class _Loop:
             f"{len(split.score_full) - split.start_full} samples ({held_out_text}); "
             f"analysis at {split.fit.rate_hz:.0f} Hz; sensor noise {self.noise:.4f} um")
         self.cache = FitCache()  # operator states etc. shared by every fit on the fit record
-        self.final_split: Optional[Split] = None   # set once the final model is known (stage 3)
+        self.sessions: dict[int, tuple[ValveModel, SessionStart]] = {}   # each model's start on a validation session
+        self.session_bounds: dict = {}   # the operators' clamp bounds there, per hysteresis structure
         self.final: Optional[ValveModel] = None
 
     # ------------------------------------------------------------------ helpers
@@ -218,10 +240,27 @@ class _Loop:
         """Independent jobs on the pool, results in order (a job never waits for another)."""
         return [f.result() for f in [self.pool.submit(job) for job in jobs]]
 
+    def session(self, model: ValveModel, on: Optional[Split] = None) -> Optional[SessionStart]:
+        """``model``'s start and offset on a separate validation session (estimated once per model, the same way for
+        every model: each is scored from its own, so every comparison of two models is one of the same kind); None
+        for a held-out tail, which continues the fit part."""
+        on = self.split if on is None else on
+        if on.held_out:
+            return None
+        key = id(model)
+        if key not in self.sessions:
+            self.sessions[key] = (model, session_start(model, on.score, on.score_t0, self.session_bounds))
+        return self.sessions[key][1]
+
+    def error(self, model: ValveModel, on: Optional[Split] = None, full: bool = False) -> np.ndarray:
+        """``model``'s held-out error [um] (analysis rate, or the record's own with ``full``): on a separate session
+        from the model's own start there and less the session's offset."""
+        on = self.split if on is None else on
+        return on.held_out_error(model, full, self.session(model, on))
+
     def held_out(self, model: ValveModel) -> Score:
-        """``model``'s held-out score; the final model from its own start on a validation record (stage 3)."""
-        on = self.final_split if self.final_split is not None and model is self.final else self.split
-        return Score.of(on.held_out_error(model))
+        """``model``'s held-out score (``error``): the one figure every decision compares."""
+        return Score.of(self.error(model))
 
     def start_model(self, thresholds: np.ndarray, like: Optional[ValveModel] = None,
                     history: InitialState = REST) -> ValveModel:
@@ -234,7 +273,7 @@ class _Loop:
     def fitted_and_scored(self, start: ValveModel, poles: str, on: Optional[Split] = None) -> tuple[ValveModel, float]:
         on = self.split if on is None else on
         m = fit_model(on.fit, start, poles=poles, cache=self.cache)
-        return m, Score.of(on.held_out_error(m)).rms
+        return m, rms(self.error(m, on))
 
     def mid_capacity_start(self, like: ValveModel, history: InitialState, on: Optional[Split] = None) -> ValveModel:
         on = self.split if on is None else on
@@ -258,14 +297,6 @@ class _Loop:
             for h in candidates.values()])
         self.starts = {h: m for h, (m, _) in zip(candidates, fits)}
         self.start_rms = {h: r for h, (_, r) in zip(candidates, fits)}
-        if not self.split.held_out:
-            # the validation record started on its own, whatever the training record's start: where its first
-            # rows misfit, its start is estimated (as a simulation is started from the measured initial
-            # conditions), and every candidate is scored from it
-            score_state = own_start(self.starts["rest"], self.split, always=False)
-            if score_state is not None:
-                self.split = replace(self.split, score_history=score_state)
-                self.start_rms = {h: self.held_out(m).rms for h, m in self.starts.items()}
         self.chosen_state = ("cycled" if self.start_rms["cycled"] < (1 - INITIAL_STATE_TOLERANCE) * self.start_rms["rest"]
                              else "rest")
 
@@ -303,10 +334,6 @@ class _Loop:
                      f"{estimate['rms_before_wipe_um']:.4f} um against {estimate['rms_before_wipe_from_rest_um']:.4f} from rest")
             if clear_gain or rested_elsewhere:
                 self.chosen_state = "estimated"
-        if not self.split.held_out and self.chosen_state == "estimated":
-            # a record that starts off its loop is judged with the validation record's start estimated too
-            self.split = replace(self.split, score_history=own_start(starts["estimated"], self.split, always=True))
-            start_rms["estimated"] = self.held_out(starts["estimated"]).rms
 
     def _wiped_start(self) -> None:
         """Fitting only after the input has wiped out an unknown start, on the poles just fitted on the whole
@@ -346,9 +373,11 @@ class _Loop:
                                   f"operators start there as the record's input since its first sample left them",
                        "fit_starts_at_s": split.wiped_at_s,
                        "before_the_record": self.before_wipe}
-        if split.score_history is not None:
-            assumed["validation_record_start"] = (split.score_history.describe() + ": estimated from its first rows "
-                                                  "before its input wiped the state out")
+        if not split.held_out:
+            assumed["validation_record_start"] = (
+                "a separate session: each model's operator states at its first sample and the output G had settled "
+                "to before it (estimated on the rows until the input has wiped them out) and the session's sensor "
+                "offset (the whole record) estimated for it; its held-out error taken from that start, less that offset")
         self.assumed = assumed
         self.log("initial state: " + ", ".join(f"{h} {r:.4f}" for h, r in self.start_rms.items())
                  + " um held-out RMS; chosen "
@@ -401,7 +430,7 @@ class _Loop:
     def capacity_fit(self, thresholds: np.ndarray) -> "CapacityFit":
         """A GPIM on ``thresholds`` fitted from the chosen start (G_v fixed), with its held-out figures."""
         m = fit_model(self.fit, self.start_model(thresholds, self.first), poles="fixed", cache=self.cache)
-        error = self.split.held_out_error(m)
+        error = self.error(m)
         return CapacityFit("", thresholds.size, m, rms(error), rms(_detrended(error)))
 
     # ------------------------------------------------------------------ 2. every subset, one linear solve each
@@ -411,7 +440,7 @@ class _Loop:
         H_fit = baseline.context(fit).H
         self.effects = [e for e in (cls.prepare(fit, H_fit) for cls in CATALOGUE) if e is not None]
         self.by_name = {e.name: e for e in self.effects}
-        self.search = search = SubsetSearch(baseline, self.split, self.effects, self.each)
+        self.search = search = SubsetSearch(baseline, self.split, self.effects, self.each, self.session(baseline))
         self.names = names = [e.name for e in self.effects]
         subsets = [frozenset(c) for r in range(len(names) + 1) for c in itertools.combinations(names, r)]
         table = []
@@ -447,11 +476,48 @@ class _Loop:
             self.refits[key] = result
         return [self.refits[frozenset(subset)] for subset, _ in requests]
 
+    def search_untrusted(self, current: list[str]) -> bool:
+        """Whether the first-order search cannot be trusted to choose or rank effects here: a short record (exact
+        refits cost little) or one where the exact refit of ``current`` does worse than the search's figure for it
+        by more than SEARCH_TRUST (the search saw a set that is not there: at low sample rates a delay of a sample or
+        two is far from its first-order proxy; on a separate session each model has its own start).  A search that
+        underrates a set (a large nonlinear structure) chose it rightly: the exact checks that follow add to it."""
+        if len(self.fit) <= EXACT_ALL_ROWS:
+            return True
+        (_, exact), = self.refit_many([(current, None)])
+        return exact.rms > (1 + SEARCH_TRUST) * self.search.score(frozenset(current)).rms
+
+    def forward_selection(self) -> list[str]:
+        """Effects chosen by exact refits alone: from the baseline, the effect whose exact refit on top of the set
+        is supported and leaves the lowest held-out RMS joins it, until none does (where the search cannot be
+        trusted, ``search_untrusted``)."""
+        current: list[str] = []
+        score = self.held_out(self.baseline)
+        while len(current) < len(self.names):
+            options = [n for n in self.names if n not in current]
+            fits = self.refit_many([([m for m in self.names if m in current or m == n], None) for n in options])
+            supported = [(s.rms, n) for n, (_, s) in zip(options, fits) if support(s, score, self.noise)[2]]
+            if not supported:
+                break
+            best_rms, best = min(supported)
+            self.log(f"exact selection: {best} cuts the held-out RMS {score.rms:.4f} -> {best_rms:.4f} um on top of "
+                     f"{', '.join(current) or 'the baseline'} (the first-order search is not trusted here)")
+            current = [m for m in self.names if m in current or m == best]
+            score = dict(zip(options, fits))[best][1]
+        return current
+
     def exact_options(self, current: list[str]) -> list[str]:
-        """Effects outside ``current`` that the linear search credits with >= EXACT_CHECK_GAIN on top of it."""
+        """Effects outside ``current`` to refit exactly on top of it: those the linear search credits with at least
+        EXACT_CHECK_GAIN, or every one where the search cannot be trusted to rank them: on a short record (a few
+        refits cost little) or where its first-order figure for ``current`` misses the exact refit's by more than
+        SEARCH_TRUST (at low sample rates a delay of a sample or two is far from its first-order proxy; a separate
+        session's start moves with each model)."""
         linear_base = self.search.score(frozenset(current))
-        return [n for n in self.names if n not in current
-                and 1.0 - self.search.score(frozenset(current) | {n}).rms / max(linear_base.rms, 1e-30) >= EXACT_CHECK_GAIN]
+        outside = [n for n in self.names if n not in current]
+        if self.search_untrusted(current):
+            return outside
+        return [n for n in outside
+                if 1.0 - self.search.score(frozenset(current) | {n}).rms / max(linear_base.rms, 1e-30) >= EXACT_CHECK_GAIN]
 
     def confirm(self, current: list[str]) -> tuple[ValveModel, dict, dict, list[str]]:
         """Backward elimination with exact refits: (final model, drop-one models, verdicts, effects kept).  The
@@ -523,6 +589,8 @@ class _Loop:
         self.confirm_log: list[dict] = []
         self.refits: dict[frozenset, tuple[ValveModel, Score]] = {frozenset(): (self.baseline, self.held_out(self.baseline))}
         current = [n for n in self.names if n in self.chosen_set]
+        if self.search_untrusted(current):
+            current = self.forward_selection()
         final, drop_one, verdicts, current = self.confirm(current)
         tried: set[frozenset] = set()   # sets already put to confirm: each once (an effect added here and dropped
         while True:                     # by confirm would be added again, and dropped again, forever)
@@ -552,41 +620,27 @@ class _Loop:
                 self.log(f"G_v: refitted with {', '.join(current)} ({polished.dynamics_note}) but the held-out RMS "
                          f"rose {before:.4f} -> {after:.4f} um; poles kept")
         self.final, self.drop_one, self.verdicts, self.current = final, drop_one, verdicts, current
-        self._final_split()
+        self._never_worse()
 
-    def _final_split(self) -> None:
-        """The validation record's start, where estimated, is estimated for the final model too (its effects,
-        creep say, were at rest before it as well): each model is scored from its own start, as a simulation
-        of it is started from initial conditions estimated for it.  The final model is never worse on held-out
-        data than the baseline."""
-        split, final = self.split, self.final
-        if split.score_history is not None and final is not self.baseline:
-            rows = split.first_rows(split.score)
-            own, _ = estimate_state(final, rows, split.score, with_effects=True)
-            misfit = {s: rms(rows.position_um - replace(final, history=s).predict(rows, split.score_t0))
-                      for s in (split.score_history, own)}
-            self.final_split = replace(split, score_history=min(misfit, key=misfit.get))
-        else:
-            self.final_split = split
-        if self.held_out(final).rms > self.held_out(self.baseline).rms:
+    def _never_worse(self) -> None:
+        """The final model is never worse on held-out data than the baseline (by the one score every decision
+        used: ``held_out``)."""
+        if self.held_out(self.final).rms > self.held_out(self.baseline).rms:
             self.log("the extended model is worse on held-out data than the baseline: baseline kept")
-            self.final, self.drop_one, self.current, self.final_split = self.baseline, {}, [], split
+            self.final, self.drop_one, self.current = self.baseline, {}, []
         self.added = [n for n in self.names if n in self.current]
-        if self.final_split.score_history != split.score_history:
-            self.assumed["validation_record_start_final_model"] = (self.final_split.score_history.describe()
-                                                                   + ": estimated the same way for the final model")
 
     # ------------------------------------------------------------------ 4. what remains
     def what_remains(self) -> None:
         """Size, peaks and shape of the final held-out residual; sets ``structure``, ``unexplained``, ``seen``."""
         split, final, noise = self.split, self.final, self.noise
-        e_score = self.final_split.held_out_error(final)
+        e_score = self.error(final)
         structure = _structure(e_score, split.score.dt, noise, self.range_val)
         final_set = frozenset(self.added)
         closest = {n: 1.0 - self.search.score(final_set | {n}).rms / max(self.search.score(final_set).rms, 1e-30)
                    for n in self.names if n not in final_set}
         near = max(closest.items(), key=lambda kv: kv[1]) if closest else ("none", 0.0)
-        peaks = _peak_structure(self.final_split.held_out_error(final, True), split.score_full.dt, noise, self.range_val)
+        peaks = _peak_structure(self.error(final, full=True), split.score_full.dt, noise, self.range_val)
         structure.update(peaks)
         measured = split.score_full.position_um[split.start_full:]
         structure["held_out_noise_peak_um"] = noise_peak_um(measured, split.score_full.dt)
@@ -612,14 +666,13 @@ class _Loop:
     # ------------------------------------------------------------------ 5. figures at the record's own rate, report
     def figures(self, model: ValveModel) -> dict:
         split = self.split
-        on = self.final_split if model is self.final else split
         return {"train": error_figures(split.fit_full.position_um,
                                        split.fit_full.position_um - split.fit_error(model, True), self.range_um).as_dict(),
                 "validate": error_figures(split.score_full.position_um[split.start_full:],
-                                          split.score_full.position_um[split.start_full:] - on.held_out_error(model, True),
+                                          split.score_full.position_um[split.start_full:] - self.error(model, full=True),
                                           self.range_val).as_dict(),
                 "validate_analysis_rate": error_figures(split.score.position_um[split.start:],
-                                                        split.score.position_um[split.start:] - on.held_out_error(model),
+                                                        split.score.position_um[split.start:] - self.error(model),
                                                         self.range_val).as_dict()}
 
     def diagnosis(self) -> list[dict]:
@@ -653,6 +706,7 @@ class _Loop:
             self.log(f"cannot tell apart: {a['effect']} and {a['alternative']}: {a['why']}")
         held_out_text = (f"held-out last {100 * HELD_OUT_FRACTION:.0f} % of the training record" if split.held_out
                          else "separate validation record")
+        sessions = self.sessions_report()   # (says in ``assumed`` how the final model started on a validation record)
         report = {
             "range_um": round(self.range_um, 4),
             "baseline": {"model": baseline.name, "fit": self.capacity_label, **figured[id(baseline)],
@@ -699,6 +753,8 @@ class _Loop:
                            "initial_state_tolerance": INITIAL_STATE_TOLERANCE, "wipe_gain": WIPE_GAIN,
                            "wipe_state_gain": WIPE_STATE_GAIN, "wipe_margin": WIPE_MARGIN,
                            "separation_share": SEPARATION_SHARE},
+            "sessions": sessions,
+            "transport_delay_s": round(final.delay_s, 7),
             "warnings": self.warnings,
             "final_model": final.describe(),
             "seconds": round(time.monotonic() - self.started, 3),
@@ -708,6 +764,20 @@ class _Loop:
                  f"peak {b['peak_um']:.3f} -> {f['peak_um']:.3f} um at {self.full.rate_hz:.0f} Hz; unexplained: "
                  f"{str(self.unexplained).lower()} ({report['seconds']:.1f} s)")
         return report
+
+    def sessions_report(self) -> list[dict]:
+        """Each record as a session of its own, for the final model (``Session`` in the report's schema)."""
+        first = self.first.history.describe() if self.split.wiped_at_s is None else self.assumed["assumed"]
+        out = [{"record": "training", "offset_um": 0.0, "start": first, "start_rows": 0, "start_rows_rms_um": 0.0}]
+        session = self.session(self.final)
+        if session is not None:
+            self.assumed["validation_record_start_final_model"] = session.history.describe()
+            out.append({"record": "validation", "offset_um": round(session.offset_um, 6),
+                        "start": "its own, estimated for the model: " + session.history.describe(),
+                        "start_rows": session.rows, "start_rows_rms_um": round(session.first_rows_rms_um, 6)})
+            self.log(f"validation session: sensor offset {session.offset_um:+.4f} um against the training record's; "
+                     f"start estimated on its first {session.rows} rows ({session.first_rows_rms_um:.4f} um RMS there)")
+        return out
 
     def check_held_out_range(self) -> None:
         """Warn when the held-out data drive the valve beyond the fit part's voltage range: the operators that
@@ -735,7 +805,7 @@ class _Loop:
         self.extend()
         self.what_remains()
         report = self.report()
-        return Analysis(report, self.baseline, self.final, self.split, self.drop_one)
+        return Analysis(report, self.baseline, self.final, self.split, self.drop_one, self.sessions)
 
 
 def _detrended(error: np.ndarray) -> np.ndarray:

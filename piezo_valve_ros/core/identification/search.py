@@ -3,8 +3,8 @@ the held-out score of a model, and the rule an effect added last must pass.  Not
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Callable
+from dataclasses import dataclass, replace
+from typing import Callable, Optional
 
 import numpy as np
 from scipy import linalg
@@ -12,7 +12,7 @@ from scipy import linalg
 from ..metrics import rms
 from .effects import Effect
 from .fitting import BASIS_RIDGE
-from .split import Split
+from .split import SessionStart, Split
 from .valve_model import ValveModel
 
 __all__ = ["SubsetSearch", "Score", "support", "GAIN_THRESHOLD", "MIN_EFFECT_NOISE_RATIO", "PEAK_TOLERANCE"]
@@ -30,10 +30,14 @@ class SubsetSearch:
     """
 
     def __init__(self, baseline: ValveModel, split: Split, effects: list[Effect],
-                 each: Callable[[list[Callable[[], object]]], list] = lambda jobs: [job() for job in jobs]):
+                 each: Callable[[list[Callable[[], object]]], list] = lambda jobs: [job() for job in jobs],
+                 session: Optional[SessionStart] = None):
+        """``session``: on a separate session, the baseline's start and the session's offset there (every subset is
+        scored from them)."""
         self.effects = effects
         ctx_f = baseline.context(split.fit, split.t0)
-        ctx_s = split.scored(baseline).context(split.score, split.score_t0)
+        scored = baseline if session is None else replace(baseline, history=session.history)
+        ctx_s = scored.context(split.score, split.score_t0)
         z_first = ctx_f.states[0]
 
         def design(ctx) -> tuple[np.ndarray, list[int]]:
@@ -59,6 +63,11 @@ class SubsetSearch:
         self.B = B[split.start:]
         y = split.fit.position_um
         self.y_score = split.score.position_um[split.start:]
+        self.own_offset = session is not None   # a separate session: each subset is scored about its own zero there
+        if session is not None:   # G's settling from before the session, as the baseline has it
+            static, rest = scored.static_output_and_rest(ctx_s)
+            settling = 0.0 if rest is None else (rest - static[0]) * ctx_s.free_response
+            self.y_score = self.y_score - settling
         n = A.shape[0]
         self.scale = np.sqrt(np.einsum("ij,ij->j", A, A) / n)
         self.scale[self.scale == 0] = 1.0
@@ -72,7 +81,8 @@ class SubsetSearch:
             idx = np.concatenate([self.groups[0]] + [self.groups[1 + i] for i, e in enumerate(self.effects)
                                                      if e.name in subset])
             x = linalg.solve(self.gram[np.ix_(idx, idx)], self.rhs[idx], assume_a="pos") / self.scale[idx]
-            self._cache[subset] = Score.of(self.y_score - self.B[:, idx] @ x)
+            error = self.y_score - self.B[:, idx] @ x
+            self._cache[subset] = Score.of(error - np.mean(error) if self.own_offset else error)
         return self._cache[subset]
 
 

@@ -11,13 +11,42 @@ from .records import (HELD_OUT_FRACTION, MIN_SAMPLES, IdentificationError, Recor
                       split_held_out)
 from .valve_model import InitialState, ValveModel, turning_points
 
-__all__ = ["Split", "split_records", "WIPE_MARGIN", "WIPE_MAX_SHARE", "ESTIMATE_WINDOW_S"]
+__all__ = ["Split", "SessionStart", "split_records", "wipe_index", "first_rows", "WIPE_MARGIN", "WIPE_MAX_SHARE", "ESTIMATE_WINDOW_S"]
 
 WIPE_MARGIN = 0.02                          # the input has wiped the unknown initial state once it has come this
                                             # close (share of its span) to both extremes of the fit part
 WIPE_MAX_SHARE = 0.9                        # ... which must happen before the last tenth of the fit part (held-out
                                             # data then decide whether fitting after it pays, WIPE_GAIN)
 ESTIMATE_WINDOW_S = 2.0  # ... on the rows before the wipe, at most this long (the start shows first)
+
+
+def wipe_index(record: Record) -> int:
+    """Row of ``record`` (analysis rate) from which its input has wiped out the operators' unknown state before
+    it: it has come within ``WIPE_MARGIN`` of both its extremes."""
+    v = record.voltage_v
+    lo, hi = float(np.min(v)), float(np.max(v))
+    margin = WIPE_MARGIN * (hi - lo)
+    return max(int(np.argmax(v >= hi - margin)), int(np.argmax(v <= lo + margin)))
+
+
+def first_rows(record: Record) -> Record:
+    """The rows of ``record`` (analysis rate) a start is estimated on: before its input wiped the state out, at most
+    ``ESTIMATE_WINDOW_S`` and at least ``MIN_SAMPLES``."""
+    return record.slice(0, min(max(wipe_index(record), MIN_SAMPLES), max(int(ESTIMATE_WINDOW_S / record.dt),
+                                                                          MIN_SAMPLES)))
+
+
+@dataclass(frozen=True)
+class SessionStart:
+    """How a model is started on a separate session (a validation record): the operators' states and G's settled
+    output before it (``history``), and the session's sensor offset [um] relative to the training record's (a
+    re-zeroed sensor), with the rows the start was estimated on and the model's error RMS there about that offset
+    (``initial_state.session_start``)."""
+
+    history: InitialState
+    offset_um: float
+    rows: int
+    first_rows_rms_um: float
 
 
 @dataclass(frozen=True)
@@ -38,25 +67,14 @@ class Split:
     start_full: int
     held_out: bool
     wiped_at_s: Optional[float] = None   # record time [s] the fit starts at when cut after the wipe (after_wipe)
-    score_history: Optional[InitialState] = None   # a validation record's own start, where estimated
-
-    def scored(self, model: ValveModel) -> ValveModel:
-        """``model`` as it runs over the score record: from the validation record's own start, where known."""
-        return model if self.score_history is None else replace(model, history=self.score_history)
 
     def wipe_index(self, record: Optional[Record] = None) -> int:
-        """Row of the fit record (or ``record``; analysis rate) from which its input has wiped out the
-        operators' unknown state before it: it has come within ``WIPE_MARGIN`` of both its extremes."""
-        v = (self.fit if record is None else record).voltage_v
-        lo, hi = float(np.min(v)), float(np.max(v))
-        margin = WIPE_MARGIN * (hi - lo)
-        return max(int(np.argmax(v >= hi - margin)), int(np.argmax(v <= lo + margin)))
+        """Row of the fit record (or ``record``): ``wipe_index``."""
+        return wipe_index(self.fit if record is None else record)
 
     def first_rows(self, record: Record) -> Record:
-        """The rows of ``record`` (analysis rate) a start is estimated on: before its input wiped the state
-        out, at most ``ESTIMATE_WINDOW_S`` and at least ``MIN_SAMPLES``."""
-        return record.slice(0, min(max(self.wipe_index(record), MIN_SAMPLES),
-                                   max(int(ESTIMATE_WINDOW_S / record.dt), MIN_SAMPLES)))
+        """``first_rows`` of ``record``."""
+        return first_rows(record)
 
     def after_wipe(self) -> Optional[tuple["Split", InitialState]]:
         """The split with the fit part cut where its input has wiped out the operators' unknown state before
@@ -80,9 +98,14 @@ class Split:
                     self.score_full.slice(w_full), self.start_full - w_full, True, float(self.fit_full.time_s[w_full]))
         return cut, history
 
-    def held_out_error(self, model: ValveModel, full: bool = False) -> np.ndarray:
+    def held_out_error(self, model: ValveModel, full: bool = False, session: Optional[SessionStart] = None) -> np.ndarray:
+        """The held-out error [um]; on a separate session ``session`` gives the model's start there and that
+        session's offset (taken off)."""
         rec, start = (self.score_full, self.start_full) if full else (self.score, self.start)
-        return rec.position_um[start:] - self.scored(model).predict(rec, self.score_t0)[start:]
+        if session is None:
+            return rec.position_um[start:] - model.predict(rec, self.score_t0)[start:]
+        scored = replace(model, history=session.history)
+        return rec.position_um[start:] - scored.predict(rec, self.score_t0)[start:] - session.offset_um
 
     def fit_error(self, model: ValveModel, full: bool = False) -> np.ndarray:
         rec = self.fit_full if full else self.fit

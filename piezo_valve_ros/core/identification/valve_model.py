@@ -11,6 +11,7 @@ block means (first-order hold plus the source's half-sample delay).  Nothing her
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Optional, Protocol
@@ -39,7 +40,7 @@ class ModelTerm(Protocol):
     def describe(self, model: "ValveModel", coefs: np.ndarray) -> dict: ...
 
 
-INITIAL_STATES = ("rest", "cycled", "remanent")   # kinds of the operators' state before a record (InitialState)
+INITIAL_STATES = ("rest", "cycled", "remanent", "given")   # kinds of the operators' state before a record
 
 
 @dataclass(frozen=True)
@@ -47,22 +48,32 @@ class InitialState:
     """The operators' state at a record's first sample, as the input path that left it there.
 
     kind:  "rest" (no history at the first voltage: a valve started from rest), "cycled" (the record's own
-           range swept before it: a record cut from running operation) or "remanent" (the input went from
+           range swept before it: a record cut from running operation), "remanent" (the input went from
            rest at ``turning_points_v[0]`` through the others to the record's first voltage: a valve left
            off its loop by an earlier excitation, e.g. the part of a record before its input wiped the
-           unknown state out, see ``residual``)
+           unknown state out, see ``residual``) or "given" (the operators' states themselves, estimated for one
+           model from the record's first rows: a session recorded after an excitation nobody recorded, see
+           ``initial_state.session_start``)
     turning_points_v: [V], remanent only
+    states_v: [V], given only: each operator's state at the first sample (the model's thresholds, in order)
+    rest_output_um: given only: the static output [um] G had settled to before the first sample (None: the first
+           sample's, G at rest there)
     """
 
     kind: str = "rest"
     turning_points_v: tuple[float, ...] = ()
+    states_v: tuple[float, ...] = ()
+    rest_output_um: Optional[float] = None
 
     def __post_init__(self):
         if self.kind not in INITIAL_STATES:
             raise ValueError(f"initial state must be one of {INITIAL_STATES}, got {self.kind!r}")
         if (self.kind == "remanent") != bool(self.turning_points_v):
             raise ValueError("turning points are given for a remanent initial state, and only for it")
+        if (self.kind == "given") != bool(self.states_v) or (self.rest_output_um is not None and self.kind != "given"):
+            raise ValueError("operator states (and a rest output) are given for a given initial state, and only for it")
         object.__setattr__(self, "turning_points_v", tuple(float(x) for x in self.turning_points_v))
+        object.__setattr__(self, "states_v", tuple(float(x) for x in self.states_v))
 
     @property
     def rested_at_v(self) -> Optional[float]:
@@ -77,9 +88,17 @@ class InitialState:
             return gpim.cycled_state(v)
         if self.kind == "remanent":
             return gpim.state_after(self.turning_points_v + (float(v[0]),))
+        if self.kind == "given":
+            if len(self.states_v) != gpim.n:
+                raise ValueError(f"{len(self.states_v)} operator states given for a GPIM of {gpim.n} operators")
+            return np.asarray(self.states_v, float)
         return gpim.virgin_state(float(v[0]))
 
     def describe(self) -> str:
+        if self.kind == "given":
+            return (f"estimated ({len(self.states_v)} operator states at the first sample" +
+                    (f", G settled at {self.rest_output_um:.4g} um before it)" if self.rest_output_um is not None
+                     else ")"))
         if self.kind == "remanent":
             tp = self.turning_points_v
             shown = " V to ".join(f"{x:.4g}" for x in tp) if len(tp) <= 6 else (
@@ -141,6 +160,7 @@ class ValveModel:
     effects:   the effects added, each with its coefficients (possibly none: its structure is nonlinear)
     t0:        record time [s] from which drift terms count
     dynamics_note, dynamics_free: where G's poles came from, and whether refits may move them
+    delay_s:   a transport delay [s] after G, in whole and fractional samples (``discretise_for``)
     history:   the operators' state at a record's first sample (``InitialState``; a kind's name is accepted)
     """
 
@@ -153,6 +173,7 @@ class ValveModel:
     dynamics_note: str = "paper"
     dynamics_free: bool = True   # the record determines G_v's poles (refits may move them)
     history: InitialState = REST
+    delay_s: float = 0.0         # transport delay between drive and sensor after G [s] (the dynamics effect's)
 
     def __post_init__(self):
         if isinstance(self.history, str):
@@ -203,6 +224,8 @@ class ValveModel:
                 static += columns @ c
                 if rest is not None:
                     rest += float(e.rest_columns(ctx, columns) @ c)
+        if self.history.rest_output_um is not None:   # estimated as the whole static output before the record
+            rest = self.history.rest_output_um
         return static, rest
 
     def predict(self, record: Record, t0: Optional[float] = None) -> np.ndarray:
@@ -221,6 +244,7 @@ class ValveModel:
                "gpim": {"thresholds": [float(x) for x in g.thresholds], "weights": [float(x) for x in g.weights],
                         "a0": g.a0, "a1": g.a1, "offset_um": g.offset_um},
                "G_v": describe_dynamics(self.dynamics, self.dynamics_note),
+               "delay_s": self.delay_s,
                "initial_state": {"kind": self.history.kind, "turning_points_v": list(self.history.turning_points_v),
                                  "description": self.history.describe()}}
         if not g.symmetric:
@@ -309,7 +333,11 @@ class Context:
     @property
     def H_before(self) -> float:
         """Hysteresis output [um] while the valve rested before the record: at the rest voltage where it
-        rested at another voltage than the first (``rest_states``), else the first sample's."""
+        rested at another voltage than the first (``rest_states``), the settled output of an estimated start
+        (``InitialState.rest_output_um``: slow effects, creep's lags, start at rest there too), else the first
+        sample's."""
+        if self.model.history.rest_output_um is not None:
+            return float(self.model.history.rest_output_um)
         z = self.rest_states
         if z is None:
             return float(self.H[0])
@@ -340,7 +368,7 @@ class Context:
     @cached_property
     def filter(self) -> tuple[np.ndarray, np.ndarray]:
         """(b, a) of G on this record (``discretise_for``)."""
-        return discretise_for(self.model.dynamics, self.record)
+        return discretise_for(self.model.dynamics, self.record, self.model.delay_s)
 
     def through_dynamics(self, x: np.ndarray, rest=None) -> np.ndarray:
         """G(s) applied to x (N,) or to each column of x (N, k), at rest at the first sample, or at rest at
@@ -368,13 +396,28 @@ class Context:
         return self._structural("rest_states", lambda: self.model.gpim.state_after((e,)))
 
 
-def discretise_for(tf: ContinuousTF, record: Record) -> tuple[np.ndarray, np.ndarray]:
+def discretise_for(tf: ContinuousTF, record: Record, delay_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(b, a) of G for this record: zero-order hold on raw samples (what a DAQ applies); on block means a
     first-order hold plus the source's half-sample delay, which reproduces the source's zero-order hold
-    to 0.004 um RMS at 2 kHz block means of a 10 kHz record."""
+    to 0.004 um RMS at 2 kHz block means of a 10 kHz record.  A transport delay ``delay_s`` [s] >= 0 follows
+    as whole samples and a linear interpolation between two for the fraction (``delay_taps``)."""
     if record.block == 1:
-        return discretise(tf, record.dt, "zoh")
-    return discretise(tf, record.dt, "foh", 0.5 * (record.source_dt or 0.0))
+        b, a = discretise(tf, record.dt, "zoh")
+    else:
+        b, a = discretise(tf, record.dt, "foh", 0.5 * (record.source_dt or 0.0))
+    if delay_s > 0.0:
+        b = np.convolve(b, delay_taps(delay_s / record.dt))
+    return b, a
+
+
+def delay_taps(samples: float) -> np.ndarray:
+    """FIR taps of a delay of ``samples`` (>= 0, fractional): whole samples, then the fraction by linear
+    interpolation between the two samples around it."""
+    whole = int(math.floor(samples))
+    fraction = samples - whole
+    taps = np.zeros(whole + 2)
+    taps[whole], taps[whole + 1] = 1.0 - fraction, fraction
+    return taps
 
 
 def filter_at_rest(b: np.ndarray, a: np.ndarray, x: np.ndarray) -> np.ndarray:

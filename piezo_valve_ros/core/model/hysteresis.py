@@ -23,7 +23,7 @@ import numpy as np
 
 from .drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
-__all__ = [
+__all__ = ["play_bounds", 
     "PlayOperatorBank",
     "play_batch",
     "last_contact",
@@ -216,6 +216,30 @@ def play_batch(
         else:
             out[start:stop] = z
     return out, state_at_turns[-1].copy()
+
+
+def play_bounds(lower_drive: np.ndarray, upper_drive: np.ndarray, thresholds: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """How a bank of play operators depends on its initial state: (L, U), each (N, n), such that the states
+    :func:`play_batch` gives from any initial state z0 are ``min(max(z0, L), U)`` (clamps compose into one).  Where
+    ``L == U`` the input has wiped the start out of that operator; before, its state is its start clipped.  The
+    drives and thresholds as :func:`play_batch` takes them (no per-sample threshold scale)."""
+    lower_drive = np.asarray(lower_drive, dtype=float)
+    upper_drive = np.asarray(upper_drive, dtype=float)
+    r = np.asarray(thresholds, dtype=float)
+    same = lower_drive is upper_drive or np.array_equal(lower_drive, upper_drive)
+    turns = _reversal_indices(lower_drive) if same else np.union1d(
+        np.union1d(_reversal_indices(lower_drive), _reversal_indices(upper_drive)),
+        _last_crossed_indices(lower_drive, upper_drive, r))
+    lo_t, hi_t = _clamp_bounds(lower_drive[turns], upper_drive[turns], r, same)
+    A, B = _compose_clamps_scan(lo_t, np.maximum(hi_t, lo_t))
+    # each sample: the composition up to the turn before it, then its own clamp
+    A = np.vstack((np.full((1, r.size), -np.inf), A))
+    B = np.vstack((np.full((1, r.size), np.inf), B))
+    idx = np.searchsorted(turns, np.arange(lower_drive.shape[0]), side="left")
+    lo, hi = _clamp_bounds(lower_drive, upper_drive, r, same)
+    hi = np.maximum(hi, lo)
+    return np.minimum(np.maximum(A[idx], lo), hi), np.minimum(np.maximum(B[idx], lo), hi)
 
 
 def last_contact(states: np.ndarray, lower_drive: np.ndarray, upper_drive: np.ndarray,

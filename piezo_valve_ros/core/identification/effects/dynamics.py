@@ -1,8 +1,10 @@
-"""Dynamics beyond the baseline's second-order G_v: extra poles (a lag, a delay or a resonance a second
+"""Dynamics beyond the baseline's second-order G_v: a transport delay, extra poles (a lag or a resonance a second
 order cannot represent) and rate-dependent hysteresis (the loop widens with the input rate).
 
 Structure, nonlinear in its parameters (fitted by Gauss-Newton with the rest of the model):
-* G(s) gets a second unity-DC-gain pole pair, fourth order in all;
+* a transport delay between drive and sensor, in whole and fractional samples at any sample rate (``delay_s``:
+  the Hammerstein structure's dead time; a DAQ pipeline, a conditioning filter, a sensor's own lag);
+* G(s) gets a second unity-DC-gain pole pair, fourth order in all (a first-order lag: one pole, its partner far);
 * the operators' thresholds grow with the input rate, ``r_j + sum_k c_k rho / (rho + rate_k)``: the
   rate-dependent Prandtl-Ishlinskii model of Al Janaideh and Krejci (thresholds as functions of the
   rate) with a widening that is linear at low rates and levels off, at the scales
@@ -22,10 +24,12 @@ from ...model.dynamics import lag_bank
 from ...model.rate_dependence import MAX_WIDENING_V, RATE_FILTERS_S, RATE_SCALES_V_S, TERM_COUNT
 from .base import Effect
 
-__all__ = ["Dynamics", "FAST_LAGS_S", "MAX_WIDENING_V", "EXTRA_START"]
+__all__ = ["Dynamics", "FAST_LAGS_S", "MAX_WIDENING_V", "EXTRA_START", "MAX_DELAY_S"]
 
 FAST_LAGS_S = (3e-4, 1e-3, 3e-3)   # first-order proxies of extra poles, for the subset search
-FORMS = ("poles", "rate", "both")
+FORMS = ("delay", "poles", "rate", "all")   # each structure alone, then all of them from the best of those
+MAX_DELAY_S = 0.05                          # a transport delay of at most this long [s]
+SEARCH_DELAY_SAMPLES = (1, 2, 4)            # the subset search's delay proxies: H this many samples late
 EXTRA_START = 3.0   # the extra pole pair starts this factor above G_v's natural frequency (well damped)
 
 
@@ -35,17 +39,20 @@ class Dynamics(Effect):
     signature = ("lag or ringing after fast moves beyond the second-order G_v, or a loop that widens with the "
                  "input rate: the residual follows fast lags (0.3-3 ms) of the model output, or the operators' "
                  "sensitivity to thresholds that grow with the input rate")
-    form: str = "both"   # "poles", "rate" or "both": the structures switched on
+    form: str = "all"   # "delay", "poles", "rate" or "all": the structures switched on
 
     def forms(self) -> list["Dynamics"]:
-        """Each structure alone and both together: fitted jointly from scratch the two trade against each
-        other and end in a poor optimum, so each form is fitted and the best on training data kept."""
+        """Each structure alone and all together: fitted jointly from scratch they trade against each other and
+        end in a poor optimum, so each form is fitted and the best on training data kept."""
         return [replace(self, form=f) for f in FORMS]
 
+    def has(self, structure: str) -> bool:
+        return self.form in (structure, "all")
+
     def switch_on(self, model):
-        if self.form in ("rate", "both") and not model.rate_widening_v:
+        if self.has("rate") and not model.rate_widening_v:
             model = replace(model, rate_widening_v=(0.0,) * TERM_COUNT)
-        if self.form in ("poles", "both") and len(model.sections) == 1:
+        if self.has("poles") and len(model.sections) == 1:
             w, _ = model.sections[0]
             model = replace(model, sections=model.sections + ((EXTRA_START * w, 1.1),))
         return model
@@ -53,34 +60,49 @@ class Dynamics(Effect):
     def carry(self, source, target):
         if source.term(self.name) is None:
             return target
-        if self.form in ("rate", "both") and source.rate_widening_v:
+        if self.has("rate") and source.rate_widening_v:
             target = replace(target, rate_widening_v=source.rate_widening_v)
-        if self.form in ("poles", "both") and len(source.sections) > 1:
+        if self.has("poles") and len(source.sections) > 1:
             target = replace(target, sections=source.sections)
+        if self.has("delay"):
+            target = replace(target, delay_s=source.delay_s)
         return target
 
     def sensitivities(self, ctx) -> np.ndarray:
-        if self.form == "poles":
-            return np.zeros((len(ctx.record), 0))
-        terms = ctx.rate_terms
-        return np.column_stack([ctx.bound_sensitivity(-terms[:, k], terms[:, k]) for k in range(terms.shape[1])])
+        columns = []
+        if self.has("delay"):   # y(t - d): dy/dd = -dy/dt, i.e. G applied to -dS/dt (S by the hysteresis output)
+            columns.append(-np.gradient(ctx.H, ctx.dt)[:, None])
+        if self.has("rate"):
+            terms = ctx.rate_terms
+            columns.append(np.column_stack([ctx.bound_sensitivity(-terms[:, k], terms[:, k])
+                                            for k in range(terms.shape[1])]))
+        return np.column_stack(columns) if columns else np.zeros((len(ctx.record), 0))
 
     def step(self, model, delta):
-        if self.form == "poles":
-            return model
-        c = np.clip(np.asarray(model.rate_widening_v) + np.asarray(delta, float), -MAX_WIDENING_V, MAX_WIDENING_V)
-        return replace(model, rate_widening_v=tuple(float(x) for x in c))
+        delta = np.asarray(delta, float)
+        if self.has("delay"):
+            model = replace(model, delay_s=float(np.clip(model.delay_s + delta[0], 0.0, MAX_DELAY_S)))
+            delta = delta[1:]
+        if self.has("rate"):
+            c = np.clip(np.asarray(model.rate_widening_v) + delta, -MAX_WIDENING_V, MAX_WIDENING_V)
+            model = replace(model, rate_widening_v=tuple(float(x) for x in c))
+        return model
 
     def search_columns(self, ctx) -> np.ndarray:
+        """Fast lags of H (extra poles), H a few whole samples late (a delay, which a derivative represents only
+        well below a sample), and the rate terms' exact sensitivities."""
         taus = [t for t in FAST_LAGS_S if t >= ctx.dt / 4]
         H = ctx.H
-        return np.column_stack((lag_bank(H, taus, ctx.dt) - H[:, None], replace(self, form="both").sensitivities(ctx)))
+        shifts = [m for m in SEARCH_DELAY_SAMPLES if m * ctx.dt <= MAX_DELAY_S and m < H.size]
+        late = [np.concatenate((np.full(m, H[0]), H[:-m])) - H for m in shifts]
+        return np.column_stack([lag_bank(H, taus, ctx.dt) - H[:, None]] + late
+                               + [replace(self, form="rate").sensitivities(ctx)])
 
     def describe(self, model, coefs) -> dict:
         extra = model.sections[1:]
         return {"form": self.form, "extra_poles": [{"omega_rad_s": round(w, 3), "zeta": round(z, 4)} for w, z in extra],
-                "rate_widening_v": [float(x) for x in model.rate_widening_v], "rate_scales_v_s": list(RATE_SCALES_V_S),
-                "rate_filters_s": list(RATE_FILTERS_S)}
+                "delay_s": model.delay_s, "rate_widening_v": [float(x) for x in model.rate_widening_v],
+                "rate_scales_v_s": list(RATE_SCALES_V_S), "rate_filters_s": list(RATE_FILTERS_S)}
 
     def plot_axis(self, ctx):
         return np.gradient(ctx.H, ctx.record.time_s), "model output rate [um/s]", False
