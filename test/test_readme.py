@@ -173,7 +173,7 @@ def _expect_bring_up(k: int, out: str, workdir: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.wall_clock(seconds=200)
+@pytest.mark.wall_clock(seconds=250)
 def test_the_readme_tour_and_bring_up_run_as_written(tmp_path):
     text = README.read_text()
     for link in ("scripts", "test", ".venv"):

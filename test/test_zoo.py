@@ -1,0 +1,63 @@
+"""The residual loop on valves written from the literature's equations (``valve_zoo.py``: nothing of the package's
+catalogue, simulator or signals), each recorded in two sessions that start after an excitation nobody recorded.
+
+Each must be judged right: the names it may give and no other, every one it must give unless it says unexplained.
+Cases it does not yet judge right are marked so, with why: strict, so a fix shows as an unexpected pass.
+"""
+import pytest
+
+from valve_zoo import CASES
+
+from piezo_valve_ros.core.identification.records import Record
+from piezo_valve_ros.core.identification.report import check_report
+from piezo_valve_ros.core.identification.residual import analyse
+
+NOT_YET = {
+    "backlash after the hysteresis (0.6 um)": "no catalogue effect is backlash yet: the play's hold after each "
+                                              "reversal is taken for a lag (dynamics)",
+    "200 Hz micromanipulator, two sessions, re-zeroed sensor, 10 ms delay":
+        "dynamics and the session are right, but a delay fitted as a lag leaves a branch-dependent error that "
+        "asymmetry takes",
+}
+
+
+def _run(case):
+    train, validate = case.records(1)
+    lines: list[str] = []
+    analysis = analyse(Record(train[:, 0], train[:, 1], train[:, 2]),
+                       Record(validate[:, 0], validate[:, 1], validate[:, 2]), log=lines.append)
+    return analysis.report, lines
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(strict=True, reason=NOT_YET[n]))
+                                  if n in NOT_YET else n for n in CASES])
+def test_a_valve_from_the_literature_is_judged_right(name):
+    case = CASES[name]
+    report, lines = _run(case)
+    assert check_report(report) == []
+    # one decision, stated once: what the decisions compared is what the report says (no later re-scoring)
+    assert not any("worse on held-out data than the baseline" in line for line in lines), lines
+    assert report["final"]["validate"]["rms_um"] <= report["baseline"]["validate"]["rms_um"] + 1e-9
+    assert case.judged_right(report["effects_added"], report["unexplained"]), (
+        report["effects_added"], report["unexplained"], report["residual"])
+
+
+def test_a_two_session_200_hz_record_names_the_delay_each_sessions_offset_and_the_validation_start():
+    """The micromanipulator at 200 Hz: the training session and a validation session recorded after an unrecorded
+    excitation with the sensor re-zeroed 1.2 um off, a 10 ms transport delay.  The report names the delay (the
+    dynamics effect's, 5-15 ms with the valve's own lag), the validation session's offset against the training
+    one's, and that its start was estimated; the 200 Hz warning says what the rate cannot show, not that it
+    cannot identify."""
+    report, lines = _run(CASES["200 Hz micromanipulator, two sessions, re-zeroed sensor, 10 ms delay"])
+    assert "dynamics" in report["effects_added"]
+    assert 0.005 <= report["transport_delay_s"] <= 0.015
+    training, validation = report["sessions"]
+    assert training["record"] == "training" and training["offset_um"] == 0.0
+    assert validation["record"] == "validation" and validation["offset_um"] == pytest.approx(1.2, abs=0.2)
+    assert validation["start"].startswith("its own, estimated for the model")
+    assert any(w.startswith("the record is sampled at 200 Hz") and "identified as at any rate" in w
+               for w in report["warnings"])
+    # the unknown start no longer stands as the record's peak error (it was 21 % of the range from outside)
+    assert report["final"]["validate"]["peak_pct"] < 5.0
+    assert any(line.startswith("validation session: sensor offset +1.") for line in lines), lines
