@@ -533,6 +533,25 @@ def test_asymmetry_is_compensated_only_where_the_controller_can_invert_it():
         effect.compensation(SimpleNamespace(gpim=falling), None)
 
 
+def test_asymmetry_steps_keep_the_descending_envelope_rising_on_a_record_of_part_of_the_range():
+    """A record that drove only 5..7 V puts the asymmetry's centre far from 0 V: however far a Gauss-Newton step
+    pushes the curvature, the descending envelope it proposes is a valid GPIM that rises from 0 V to the end of
+    the range (it once stopped valve_identify with "envelope slope a0 (and b0) must be > 0")."""
+    from piezo_valve_ros.core.identification.effects.asymmetry import MIN_SLOPE_SHARE, Asymmetry
+    from piezo_valve_ros.core.identification.valve_model import ValveModel
+    from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM
+    m = PAPER_GPIM.model()
+    effect = Asymmetry(centre_v=6.0, half_span_v=1.0)
+    model = ValveModel(m)
+    for delta in [(0.0, 0.0, 5.0), (0.0, 0.0, -5.0), (0.1, -5.0, 5.0), (-0.1, -5.0, -5.0), (0.0, 5.0, 5.0)]:
+        stepped = effect.step(model, delta).gpim
+        assert not stepped.problems()
+        v = np.linspace(0.0, 7.0, 71)
+        slope = stepped.b0 + 2.0 * stepped.b2 * v
+        assert np.all(slope >= MIN_SLOPE_SHARE * m.a0 - 1e-12), (delta, slope.min())
+    assert abs(effect.betas(effect.step(model, (0.0, 0.0, 0.03)).gpim)[2] - 0.03) < 1e-12   # a mild one is kept
+
+
 @pytest.mark.slow
 def test_where_the_first_order_search_is_not_trusted_the_effects_are_chosen_by_exact_refits():
     """A valve unlike the paper's (the end-to-end test's: rho 6.6, tau 1, offset -75 um; creep, flattening,

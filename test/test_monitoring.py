@@ -163,7 +163,7 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
             wait_for_text(tmp_path / "rig.log", "running; Ctrl-C", timeout_s=90)
             wait_for_text(tmp_path / "rig.log", "model in force taken from", timeout_s=60)
             procs.start("sine", [os.path.join(bin_dir, "valve_command"), "--namespace", ns, "sine", "--amplitude",
-                                 "40e-6", "--frequency", "0.4", "--duration", "75"], env=ros_env(),
+                                 "40e-6", "--frequency", "0.4", "--duration", "150"], env=ros_env(),
                         stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
             # OK while the valve matches its model (before the drift sets in 25 s after the rig came up)
             assert spin_until(lambda: any(lv == b"\x00" for lv, _, _ in levels_since(opened)), 25.0), \

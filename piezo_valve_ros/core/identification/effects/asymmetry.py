@@ -22,6 +22,7 @@ __all__ = ["Asymmetry", "MAX_SLOPE_CHANGE", "MAX_SHIFT_SHARE"]
 
 MAX_SLOPE_CHANGE = 0.5  # |beta1|, |beta2| <= 0.5: the descending envelope stays monotone over the range
 MAX_SHIFT_SHARE = 0.2   # |beta0| <= 0.2 of the half span
+MIN_SLOPE_SHARE = 0.2   # the descending envelope's slope stays >= 0.2 of the ascending one's, from 0 V to the range's end
 
 
 @dataclass(frozen=True)
@@ -72,8 +73,21 @@ class Asymmetry(Effect):
 
     def step(self, model, delta):
         limits = (MAX_SHIFT_SHARE * self.half_span_v, MAX_SLOPE_CHANGE, MAX_SLOPE_CHANGE)
-        betas = [float(np.clip(b + float(d), -lim, lim)) for b, d, lim in zip(self.betas(model.gpim), delta, limits)]
-        return replace(model, gpim=self.with_betas(model.gpim, *betas))
+        beta0, beta1, beta2 = [float(np.clip(b + float(d), -lim, lim))
+                               for b, d, lim in zip(self.betas(model.gpim), delta, limits)]
+        return replace(model, gpim=self.with_betas(model.gpim, beta0, beta1, self.rising_curvature(beta1, beta2)))
+
+    def rising_curvature(self, beta1: float, beta2: float) -> float:
+        """``beta2`` limited so the descending envelope's slope, ``a0 (1 + beta1 + 2 beta2 (v - v_c) / h)``, stays
+        at least MIN_SLOPE_SHARE of a0 for every v from 0 V (where the GPIM's ``b0`` is that slope) to the end of
+        the range: a record that drove only part of 0..10 V has its centre far from 0 V, where an unlimited
+        curvature would turn the envelope down."""
+        c, h = self.centre_v, self.half_span_v
+        for v in (min(0.0, c - h), c + h):
+            s = 2.0 * (v - c) / h
+            if 1.0 + beta1 + beta2 * s < MIN_SLOPE_SHARE:
+                beta2 = (MIN_SLOPE_SHARE - 1.0 - beta1) / s
+        return float(beta2)
 
     def describe(self, model, coefs) -> dict:
         g = model.gpim
