@@ -7,6 +7,7 @@ module.  No ROS import: it runs wherever ``rosbags`` does.
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from datetime import datetime, timezone
@@ -132,7 +133,9 @@ def command_range_note(comp: Compensation) -> tuple[dict, str]:
                     f"model (the controller and valve_tune refuse it for commands {COMMAND_MIN_V:g}..{COMMAND_MAX_V:g} V); "
                     f"record a training run across the range the valve will see (valve_identification's train step, or "
                     f"valve_command sine --amplitude 50e-6 --frequency 0.5 --duration 10)")
-    return ({"command_min_v": round(allowed[0], 4), "command_max_v": round(allowed[1], 4)},
+    # rounded inwards: a limit rounded outwards lies beyond what the controller and valve_tune accept
+    inside = math.ceil(allowed[0] * 1e4) / 1e4, math.floor(allowed[1] * 1e4) / 1e4
+    return ({"command_min_v": inside[0], "command_max_v": inside[1]},
             f"the record drove the valve over {lo:.3g}..{hi:.3g} V: commands limited to {allowed[0]:.3g}..{allowed[1]:.3g} V "
             f"(a model is trusted a quarter of its span beyond it); a training run across {COMMAND_MIN_V:g}..{COMMAND_MAX_V:g} V "
             f"gives a model for the whole drive")

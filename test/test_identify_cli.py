@@ -365,3 +365,15 @@ def test_a_noise_free_record_is_judged_against_its_resolution_not_a_noise_of_1e_
     assert report["noise_floor_um"] == pytest.approx(1e-6 * report["range_um"], rel=1e-3)
     assert any("shows no sensor noise" in w for w in report["warnings"])
     assert report["residual_structure"]["ratio_to_noise"] < 1e7
+
+
+def test_the_written_command_limits_are_rounded_inwards_so_the_tools_accept_them():
+    """A record over 2.9396..7.009 V puts the quarter-span limit at 1.92225 V: written rounded to 4 decimals it
+    must lie inside (1.9223), or valve_tune and the controller refuse the file the tool wrote."""
+    from types import SimpleNamespace
+    from piezo_valve_ros.core.control.compensation import fitted_range_problems
+    from piezo_valve_ros.identify import command_range_note
+    for fitted in [(2.9396, 7.009), (2.94, 7.0091), (3.00005, 6.99995), (4.12345, 6.54321)]:
+        limits, note = command_range_note(SimpleNamespace(controller_model=SimpleNamespace(fitted_range_v=fitted)))
+        assert limits and "commands limited to" in note
+        assert fitted_range_problems(fitted, limits["command_min_v"], limits["command_max_v"]) == [], (fitted, limits)
