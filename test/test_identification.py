@@ -567,9 +567,14 @@ def test_where_the_first_order_search_is_not_trusted_the_effects_are_chosen_by_e
     rows = simulate_rows(np.repeat(rig_training_voltage(1e-3, 30.0, 0.25), 10), config)
     said = []
     report = analyse(Record.from_rows(rows), log=said.append).report
-    chosen = [line.split(":")[1].split()[0] for line in said if line.startswith("exact selection: ")]
+    chosen = [line.split(":")[1].split()[0] for line in said
+              if line.startswith("exact selection: ") and " cuts the held-out RMS " in line]
     assert chosen == ["creep", "saturation", "dynamics"], said
-    assert all("(the first-order search is not trusted here)" in line for line in said if "exact selection" in line)
+    assert all("(the first-order search is not trusted here)" in line for line in said
+               if "exact selection" in line and " cuts the held-out RMS " in line)
+    # where it stops, each effect left out says why (one reason per effect)
+    stop, = [line for line in said if line.startswith("exact selection: nothing more on top of creep, ")]
+    assert "asymmetry (" in stop and "drift (" in stop, stop
     assert report["effects_added"] == ["creep", "dynamics", "saturation"]
     assert report["confirm"][-1]["effects"] == report["effects_added"]
     assert_every_name_is_supported(report)

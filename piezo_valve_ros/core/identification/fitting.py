@@ -330,8 +330,8 @@ def fit_model(train: Record, start: ValveModel, effects: Sequence[Effect] = (), 
         for f in forms[:-1]:
             fits.append(_fit(train, start, [f if j == i else e for j, e in enumerate(effects)], poles=poles,
                              rounds=rounds, cache=cache))
-        # the last form combines the others: it starts from the best of them
-        seed = min(fits, key=lambda f: f[1])[0]
+        # the last form combines others: it starts from the best of those it contains
+        seed = min((fit for f, fit in zip(forms[:-1], fits) if forms[-1].contains(f)), key=lambda f: f[1])[0]
         seeded = replace(seed, effects=(), coefs=())
         fits.append(_fit(train, seeded, [forms[-1] if j == i else e for j, e in enumerate(effects)], poles=poles,
                          rounds=rounds, cache=cache))

@@ -92,6 +92,8 @@ SEPARATION_SHARE = 0.8                       # an effect that does this share of
                                             # place: the record cannot tell the two apart (reported)
 EXACT_CHECK_GAIN = 0.05                     # effects the linear search credits with >= 5 % are checked exactly ...
 EXACT_ALL_ROWS = 20000                      # ... every effect, on a fit record of at most this many rows ...
+DELAY_STEPS = (-2, -1, 1, 2, 3)             # a dead time chosen on held-out data: the fitted one and these many
+                                            # analysis samples from it
 SEARCH_TRUST = 0.2                          # ... or where the exact refit of its set does worse than its figure by more
 
 
@@ -495,16 +497,79 @@ class _Loop:
         score = self.held_out(self.baseline)
         while len(current) < len(self.names):
             options = [n for n in self.names if n not in current]
-            fits = self.refit_many([([m for m in self.names if m in current or m == n], None) for n in options])
+            so_far = self.refit_many([(current, None)])[0][0] if current else None
+            fits = self.refit_many([([m for m in self.names if m in current or m == n], so_far) for n in options])
             supported = [(s.rms, n) for n, (_, s) in zip(options, fits) if support(s, score, self.noise)[2]]
             if not supported:
+                self.log(f"exact selection: nothing more on top of {', '.join(current) or 'the baseline'}: "
+                         + "; ".join(f"{n} ({unsupported_because(s, score, self.noise)})"
+                                     for n, (_, s) in zip(options, fits)))
                 break
             best_rms, best = min(supported)
             self.log(f"exact selection: {best} cuts the held-out RMS {score.rms:.4f} -> {best_rms:.4f} um on top of "
                      f"{', '.join(current) or 'the baseline'} (the first-order search is not trusted here)")
             current = [m for m in self.names if m in current or m == best]
-            score = dict(zip(options, fits))[best][1]
+            score = self.delay_on_held_out(current)
         return current
+
+    def delay_on_held_out(self, subset: list[str]) -> Score:
+        """Where ``subset``'s exact refit has a transport delay, the delay chosen as the capacity is, on held-out
+        data: refits with the delay held at the fitted one and DELAY_STEPS analysis samples from it; the best
+        replaces the subset's refit (later refits from it hold that delay).  A record of one frequency cannot tell a
+        lag from the loop's width, so its training error does not place the delay; a separate session can (as
+        system identification chooses a model's dead time on validation data).  Returns the subset's score."""
+        (model, score), = self.refit_many([(subset, None)])
+        dynamics = next((e for e in model.effects if e.name == "dynamics"), None)
+        if dynamics is None or dynamics.delay_held:
+            return score
+        # a form without a delay (a lag in its place) is tried with one too: its whole delay from the samples up
+        held = replace(dynamics, form=dynamics.form if dynamics.has("delay") else "all", delay_held=True)
+        effects = [held if e.name == "dynamics" else e for e in model.effects]
+        dt = self.fit.dt
+        delays = sorted({round(max(model.delay_s + k * dt, 0.0), 12) for k in DELAY_STEPS}
+                        | ({round(k * dt, 12) for k in range(1, max(DELAY_STEPS) + 1)} if not dynamics.has("delay")
+                           else set()))
+        delays = [d for d in delays if d != model.delay_s or not dynamics.has("delay")]
+
+        def job(delay_s: float) -> tuple[ValveModel, Score]:
+            m = fit_model(self.fit, replace(self.baseline, delay_s=delay_s), effects, try_forms=False, cache=self.cache)
+            return m, self.held_out(m)
+
+        tried = self.each([lambda d=d: job(d) for d in delays])
+        best_model, best = min(tried, key=lambda t: t[1].rms)
+        if best.rms >= score.rms:
+            return score
+        fitted = f"the {1e3 * model.delay_s:.2f} ms" if dynamics.has("delay") else f"the {dynamics.form} form (no delay)"
+        self.log(f"dynamics: transport delay {1e3 * best_model.delay_s:.2f} ms chosen on held-out data over {fitted} "
+                 f"the training record fitted ({', '.join(f'{1e3 * m.delay_s:.2f}' for m, _ in tried)} ms tried); "
+                 f"held-out RMS {score.rms:.4f} -> {best.rms:.4f} um")
+        self.refits[frozenset(subset)] = (best_model, best)
+        return best
+
+    def untrusted_or_confirmed(self, searched: list[str]) -> tuple[ValveModel, dict, dict, list[str]]:
+        """The search's set confirmed by exact refits (``confirm``); where the search cannot be trusted
+        (``search_untrusted``), also the forward selection's, and of the two the one with the lower held-out
+        RMS: effects chosen one at a time miss those that are supported only together (a rate-dependent gain
+        that a slow lag and a rate term share), the search's set may hold one the exact refits do not want."""
+        if not self.search_untrusted(searched):
+            return self.confirm(searched)
+        forward = self.confirm(self.forward_selection())
+        if not searched or set(searched) == set(forward[3]):
+            return forward
+        confirmed = self.confirm(searched)
+        if set(confirmed[3]) == set(forward[3]):
+            return forward
+        with_search, with_forward = self.held_out(confirmed[0]).rms, self.held_out(forward[0]).rms
+        if with_search < with_forward:
+            self.log(f"exact selection: the search's {', '.join(searched)}, confirmed as "
+                     f"{', '.join(confirmed[3]) or 'nothing'}, leaves a held-out RMS of {with_search:.4f} um against "
+                     f"{with_forward:.4f} um with {', '.join(forward[3]) or 'nothing'} chosen one at a time "
+                     f"(effects supported only together); kept")
+            return confirmed
+        self.log(f"exact selection: {', '.join(forward[3]) or 'nothing'} chosen one at a time leaves a held-out RMS "
+                 f"of {with_forward:.4f} um against {with_search:.4f} um with the search's {', '.join(searched)} "
+                 f"confirmed as {', '.join(confirmed[3]) or 'nothing'}; kept")
+        return forward
 
     def exact_options(self, current: list[str]) -> list[str]:
         """Effects outside ``current`` to refit exactly on top of it: those the linear search credits with at least
@@ -551,7 +616,10 @@ class _Loop:
         one that is supported (None: none is)."""
         if len(current) == len(self.names):
             return None
-        base_score = self.held_out(final)
+        # against the set as it ends if nothing is added: with G_v's poles fitted again through it (an effect
+        # added here must do more than the poles' refit at the end would do anyway)
+        base_score = min(self.held_out(final), self.held_out(refit_poles_with_effects(self.fit, final, self.cache)),
+                         key=lambda s: s.rms)
         options = [n for n in self.exact_options(current) if frozenset(current + [n]) not in tried]
         best = None
         for n, (_, score) in zip(options, self.refit_many([(current + [n], final) for n in options])):
@@ -589,9 +657,7 @@ class _Loop:
         self.confirm_log: list[dict] = []
         self.refits: dict[frozenset, tuple[ValveModel, Score]] = {frozenset(): (self.baseline, self.held_out(self.baseline))}
         current = [n for n in self.names if n in self.chosen_set]
-        if self.search_untrusted(current):
-            current = self.forward_selection()
-        final, drop_one, verdicts, current = self.confirm(current)
+        final, drop_one, verdicts, current = self.untrusted_or_confirmed(current)
         tried: set[frozenset] = set()   # sets already put to confirm: each once (an effect added here and dropped
         while True:                     # by confirm would be added again, and dropped again, forever)
             changed = self.exact_addition(current, final, tried) or self.better_swap(current, verdicts, tried)

@@ -86,8 +86,13 @@ class Effect:
 
     def forms(self) -> list["Effect"]:
         """Alternative structures of this effect; a refit tries each and keeps the best on training data.  The
-        last form combines the others and is fitted starting from the best of them."""
+        last form combines others and is fitted starting from the best of those it ``contains``."""
         return [self]
+
+    def contains(self, other: "Effect") -> bool:
+        """Whether this form has every structure of ``other`` (a form of the same effect): the combined last form
+        starts from the best of the forms it contains."""
+        return True
 
     def search_columns(self, ctx: "Context") -> np.ndarray:
         """What the subset search fits for this effect (from the baseline, one linear solve)."""

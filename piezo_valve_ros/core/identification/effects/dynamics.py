@@ -9,7 +9,9 @@ Structure, nonlinear in its parameters (fitted by Gauss-Newton with the rest of 
   rate-dependent Prandtl-Ishlinskii model of Al Janaideh and Krejci (thresholds as functions of the
   rate) with a widening that is linear at low rates and levels off, at the scales
   ``RATE_SCALES_V_S``; ``rho`` is |dv/dt| through each lag of ``RATE_FILTERS_S`` (cycling rates over
-  two memories, not the slope inside a 2 ms ramp).
+  two memories, not the slope inside a 2 ms ramp);
+* the loading curve's slope grows with the input rate (Ang, Khosla and Riviere's modified PI model):
+  ``(H - H_c) / H_h * rho / (rho + rate_k)`` for the same rate terms, linear in their coefficients [um].
 For the subset search (one linear solve from the baseline) the extra poles are represented to first
 order by fast lags of H (``lag_tau[H] - H`` is ``-tau s H`` for small tau) and the rate terms by their
 exact sensitivities.
@@ -22,12 +24,14 @@ import numpy as np
 
 from ...model.dynamics import lag_bank
 from ...model.rate_dependence import MAX_WIDENING_V, RATE_FILTERS_S, RATE_SCALES_V_S, TERM_COUNT
-from .base import Effect
+from ..records import Record
+from .base import Effect, NotCompensable, normalised
 
 __all__ = ["Dynamics", "FAST_LAGS_S", "MAX_WIDENING_V", "EXTRA_START", "MAX_DELAY_S"]
 
 FAST_LAGS_S = (3e-4, 1e-3, 3e-3)   # first-order proxies of extra poles, for the subset search
-FORMS = ("delay", "poles", "rate", "all")   # each structure alone, then all of them from the best of those
+FORMS = ("delay", "poles", "rate", "slope", "rates", "all")   # see Dynamics.has
+STRUCTURES = ("delay", "poles", "rate", "slope")
 MAX_DELAY_S = 0.05                          # a transport delay of at most this long [s]
 SEARCH_DELAY_SAMPLES = (1, 2, 4)            # the subset search's delay proxies: H this many samples late
 EXTRA_START = 3.0   # the extra pole pair starts this factor above G_v's natural frequency (well damped)
@@ -39,15 +43,33 @@ class Dynamics(Effect):
     signature = ("lag or ringing after fast moves beyond the second-order G_v, or a loop that widens with the "
                  "input rate: the residual follows fast lags (0.3-3 ms) of the model output, or the operators' "
                  "sensitivity to thresholds that grow with the input rate")
-    form: str = "all"   # "delay", "poles", "rate" or "all": the structures switched on
+    form: str = "all"   # "delay", "poles", "rate", "slope" or "all": the structures switched on (see has)
+    centre_um: float = 0.0   # H's centre and half span over the training record [um]: the slope terms' scale
+    half_um: float = 1.0
+    delay_held: bool = False   # the delay held where a refit starts it (chosen on held-out data), not fitted
+
+    @classmethod
+    def prepare(cls, train: Record, H: np.ndarray) -> "Dynamics":
+        lo, hi = float(np.min(H)), float(np.max(H))
+        return cls(centre_um=0.5 * (lo + hi), half_um=max(0.5 * (hi - lo), 1e-9))
 
     def forms(self) -> list["Dynamics"]:
-        """Each structure alone and all together: fitted jointly from scratch they trade against each other and
-        end in a poor optimum, so each form is fitted and the best on training data kept."""
+        """Each structure alone, both rate structures together (thresholds in proportion to the rate are a
+        widening and a steeper slope at once) and all but the slope together, from the best of those it contains:
+        fitted jointly from scratch they trade against each other and end in a poor optimum, so each form is fitted
+        and the best on training data kept."""
         return [replace(self, form=f) for f in FORMS]
 
     def has(self, structure: str) -> bool:
-        return self.form in (structure, "all")
+        """Whether this form has ``structure``: its own, or every one but the rate-dependent slope for "all" (a
+        slope that follows the rate terms fits a lag or a delay's share of the training record too, and loses it
+        on held-out data; it stands alone against the others)."""
+        if self.form == "rates":   # both rate structures: thresholds in proportion to the rate are both
+            return structure in ("rate", "slope")
+        return self.form == structure or (self.form == "all" and structure != "slope")
+
+    def contains(self, other: "Dynamics") -> bool:
+        return all(self.has(s) for s in STRUCTURES if other.has(s))
 
     def switch_on(self, model):
         if self.has("rate") and not model.rate_widening_v:
@@ -68,9 +90,15 @@ class Dynamics(Effect):
             target = replace(target, delay_s=source.delay_s)
         return target
 
+    def columns(self, ctx) -> np.ndarray:
+        """The rate-dependent slope terms (rate form): the normalised output times each rate term."""
+        if not self.has("slope"):
+            return np.zeros((len(ctx.record), 0))
+        return normalised(ctx.H, self.centre_um, self.half_um)[:, None] * ctx.rate_terms
+
     def sensitivities(self, ctx) -> np.ndarray:
         columns = []
-        if self.has("delay"):   # y(t - d): dy/dd = -dy/dt, i.e. G applied to -dS/dt (S by the hysteresis output)
+        if self.has("delay") and not self.delay_held:   # y(t - d): dy/dd = -dy/dt: G applied to -dS/dt
             columns.append(-np.gradient(ctx.H, ctx.dt)[:, None])
         if self.has("rate"):
             terms = ctx.rate_terms
@@ -80,7 +108,7 @@ class Dynamics(Effect):
 
     def step(self, model, delta):
         delta = np.asarray(delta, float)
-        if self.has("delay"):
+        if self.has("delay") and not self.delay_held:
             model = replace(model, delay_s=float(np.clip(model.delay_s + delta[0], 0.0, MAX_DELAY_S)))
             delta = delta[1:]
         if self.has("rate"):
@@ -96,12 +124,13 @@ class Dynamics(Effect):
         shifts = [m for m in SEARCH_DELAY_SAMPLES if m * ctx.dt <= MAX_DELAY_S and m < H.size]
         late = [np.concatenate((np.full(m, H[0]), H[:-m])) - H for m in shifts]
         return np.column_stack([lag_bank(H, taus, ctx.dt) - H[:, None]] + late
-                               + [replace(self, form="rate").sensitivities(ctx)])
+                               + [replace(self, form="slope").columns(ctx), replace(self, form="rate").sensitivities(ctx)])
 
     def describe(self, model, coefs) -> dict:
         extra = model.sections[1:]
         return {"form": self.form, "extra_poles": [{"omega_rad_s": round(w, 3), "zeta": round(z, 4)} for w, z in extra],
                 "delay_s": model.delay_s, "rate_widening_v": [float(x) for x in model.rate_widening_v],
+                "rate_slope_um": [float(x) for x in np.asarray(coefs, float).reshape(-1)],
                 "rate_scales_v_s": list(RATE_SCALES_V_S), "rate_filters_s": list(RATE_FILTERS_S)}
 
     def plot_axis(self, ctx):
@@ -110,7 +139,11 @@ class Dynamics(Effect):
     def compensation(self, model, coefs) -> dict:
         """Extra poles: G_v becomes the fitted higher-order G (the identification writes all of G's sections),
         which the dynamic feedforward inverts and ff_pid_g shapes with.  Rate-dependent thresholds: the
-        controller's inverse widens its thresholds the same way (``rate_dependence``)."""
+        controller's inverse widens its thresholds the same way (``rate_dependence``).  Rate-dependent slopes
+        are not in the controller's inverse: NotCompensable (the rest of the model is refitted without them)."""
+        if np.any(np.asarray(coefs, float) != 0.0):
+            raise NotCompensable("dynamics: the controller's inverse has no rate-dependent slope (the loading "
+                                 "curve steepening with the input rate); left to the feedback")
         if any(c != 0.0 for c in model.rate_widening_v):
             return {"gpim.rate_widening_v": [float(c) for c in model.rate_widening_v]}
         return {}
