@@ -166,6 +166,21 @@ class RigClient(Node):
         future = client.set_parameters_atomically([Parameter(k, value=v) for k, v in values.items()])
         return wait_future(future, timeout_s, f"setting {len(values)} parameters atomically").result
 
+    def reset_hardware(self, timeout_s: float = 10.0) -> tuple[bool, str]:
+        """Call the hardware's ``~/reset`` (leave a latched fault once its cause is gone): (success, message);
+        TimeoutError when the service does not answer."""
+        from std_srvs.srv import Trigger
+        name = f"{self.node_name('hardware')}/reset"
+        client = self.create_client(Trigger, name)
+        try:
+            if not client.wait_for_service(timeout_sec=timeout_s):
+                raise TimeoutError(f"{name} does not answer (is valve_hardware running, in this namespace and ROS "
+                                   f"domain?)")
+            result = wait_future(client.call_async(Trigger.Request()), timeout_s, name)
+            return bool(result.success), str(result.message)
+        finally:
+            self.destroy_client(client)
+
     def get_params(self, client: AsyncParameterClient, names: list[str], timeout_s: float = 10.0) -> dict:
         """Values of ``names`` on the node behind ``client`` (all of its parameters when empty)."""
         return get_parameter_values(client, names, timeout_s)

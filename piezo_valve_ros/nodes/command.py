@@ -80,6 +80,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                                     "applied or none: e.g. a fitted model from valve_identify --params-out)")
     p.add_argument("node")
     p.add_argument("path")
+    sub.add_parser("reset", help="leave the hardware's latched fault (its ~/reset service) once its cause is gone")
     p = sub.add_parser("status", help="print the rig's health (/diagnostics) and the controller's state")
     p.add_argument("--listen", type=float, default=6.0, metavar="S",
                    help="listen at most this long for every node to report (default 6 s: valve_monitor reports "
@@ -129,6 +130,8 @@ def checked_request(args):
     if not (np.isfinite(args.timeout) and args.timeout > 0):
         raise ValueError(f"--timeout must be > 0 s, got {args.timeout}")
     if args.command == "get":
+        return None
+    if args.command == "reset":
         return None
     if args.command == "status":
         if not (np.isfinite(args.listen) and args.listen > 0):
@@ -216,6 +219,10 @@ def run(args, client: RigClient, request, out=sys.stdout) -> int:
     through ``client`` (spun elsewhere)."""
     if args.command == "status":
         return status(args, client, out)
+    if args.command == "reset":
+        ok, message = client.reset_hardware(args.timeout)
+        print(f"{client.node_name('hardware')}: {'reset: ' if ok else 'reset refused: '}{message}", file=out)
+        return 0 if ok else 1
     if args.command == "get":
         values = client.get_params(client.wait_for_node(args.node, args.timeout), args.names, args.timeout)
         for name, value in values.items():

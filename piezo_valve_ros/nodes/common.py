@@ -31,6 +31,9 @@ COMMAND_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, histor
 REFERENCE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 SAMPLES_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
                          durability=DurabilityPolicy.VOLATILE)
+# hardware_state: the latest state, kept for readers that join later
+STATE_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def declare(node: Node, name: str, default: Any, description: str, *, read_only: bool = False,
@@ -153,6 +156,8 @@ class Diagnostics:
         if level != self.last_level:
             if level == "OK":   # rclpy ties a call site to one severity: one call per severity
                 self.node.get_logger().info(f"health {level}: {message}")
+            elif level == "ERROR":
+                self.node.get_logger().error(f"health {level}: {message}")
             else:
                 self.node.get_logger().warning(f"health {level}: {message}")
             self.last_level = level

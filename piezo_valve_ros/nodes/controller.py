@@ -24,14 +24,14 @@ import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from std_msgs.msg import Float64, Float64MultiArray
+from std_msgs.msg import Float64, Float64MultiArray, String
 
 from ..core.control.compensation import MODEL_PARAMETERS, CompensationModel
 from ..core.model.rate_dependence import describe_inverse, solved_each_step
 from ..core.sim.signals import ReferenceRamp
 from ..core.control.strategies import (GUARD_WINDOW_S, SAFE_PERIOD_S, STRATEGIES, TABLE1_GAINS, ControllerConfig,
                                        PIDGains, ValveController, default_gain_set, gain_set, loop_settings)
-from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, LATEST_SENSOR_QOS, SAMPLES_QOS, Diagnostics, period_parameter,
+from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, LATEST_SENSOR_QOS, SAMPLES_QOS, STATE_QOS, Diagnostics, period_parameter,
                      ParameterSpec, samples_message, as_float, declare_all,
                      parameter_values, realtime_settings, realtime_specs, refuse, run_node, samples_from_message)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
@@ -144,6 +144,8 @@ class ValveControllerNode(Node):
         # depth 1: after a stall the controller answers the newest position, never a queue of stale ones
         self._position_sub = self.create_subscription(Float64, "spool_position", self._on_position, LATEST_SENSOR_QOS)
         self.create_subscription(Float64, "position_reference", self._on_reference, 10)
+        self.hardware_fault: Optional[str] = None   # what hardware_state says while the hardware is in fault
+        self.create_subscription(String, "hardware_state", self._on_hardware_state, STATE_QOS)
         self.add_pre_set_parameters_callback(self._expand_gain_set)
         self.add_on_set_parameters_callback(self._on_parameters)
         self.create_timer(HANDBACK_CHECK_S, self._check_handback)
@@ -210,7 +212,7 @@ class ValveControllerNode(Node):
             self.get_logger().warning(f"ignored non-finite spool_position {y!r}", throttle_duration_sec=1.0)
             return None
         self._last_position_m = y
-        if not self.enabled:
+        if not self.enabled or self.hardware_fault is not None:
             return None
         ctl = self.controller
         trips = ctl.guard_trips
@@ -254,6 +256,9 @@ class ValveControllerNode(Node):
                   "model": ", ".join(parts), "reachable_m": f"{lo:.6g} .. {hi:.6g}", "guard_trips": ctl.guard_trips,
                   "references_rejected": self.rejected_references, "references_clamped": self.clamped_references,
                   "period_s": ctl.config.dt}
+        if self.hardware_fault is not None:
+            values["hardware"] = self.hardware_fault
+            return "WARN", f"holding: the hardware is in fault ({self.hardware_fault}): no commands, integrator held", values
         if self.enabled and ctl.in_fallback:
             return "WARN", f"oscillation guard: feedforward only (trip {ctl.guard_trips})", values
         if not self.enabled:
@@ -261,6 +266,19 @@ class ValveControllerNode(Node):
         if self._last_position_m is None:
             return "OK", f"{ctl.config.strategy}: waiting for spool_position", values
         return "OK", f"{ctl.config.strategy}: in control", values
+
+    def _on_hardware_state(self, msg: String) -> None:
+        """The hardware's state: while it is in fault no period runs (the integrator holds); when it leaves it,
+        control starts afresh from the safe voltage it applied (the centre voltage by default), bumpless."""
+        fault = None if msg.data == "ok" else msg.data
+        if fault == self.hardware_fault:
+            return
+        if fault is not None:
+            self.get_logger().warning(f"hardware {fault}: holding (no commands, integrator held)")
+        else:
+            self.controller.reset(None, self._last_position_m)
+            self.get_logger().info("hardware fault cleared: control starts afresh from the centre voltage")
+        self.hardware_fault = fault
 
     def _on_position(self, msg: Float64) -> None:
         if self.command_pub.get_subscription_count() <= 1:  # our own _on_command_seen is one of them

@@ -7,6 +7,12 @@ Clock modes
             ``lockstep.step_budget`` (-1 = unlimited) lets a test or demo pause the loop after a
             number of periods: commands that arrive while paused are held (the latest wins) and
             applied when budget is granted; ``samples`` is flushed on pausing.
+
+Faults (``faults``): a backend that raises, samples that are non-finite, implausible or frozen, or no samples at
+all latch a fault: the safe voltage is applied (retried every period while writes fail, and said so), commands
+are refused, nothing is published as a position, /diagnostics says ERROR naming the fault, and
+``hardware_state`` says ``fault: <kind>: <what>``.  Only ``~/reset`` (std_srvs/Trigger; ``valve_command reset``)
+leaves it, once the backend writes and reads sound samples again.
 """
 from __future__ import annotations
 
@@ -20,11 +26,13 @@ from builtin_interfaces.msg import Time
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
-from std_msgs.msg import Float64, Float64MultiArray
+from std_msgs.msg import Float64, Float64MultiArray, String
+from std_srvs.srv import Trigger
 
 from ..backends import ValveBackend, available_backends, backend_class
+from ..faults import Fault, FaultLimits, SampleCheck
 from ..loop_timing import LoopTiming
-from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, MAX_CONTROL_PERIOD_S, Diagnostics, period_parameter, SAMPLES_QOS, SENSOR_QOS, Pacing, ParameterSpec,
+from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, MAX_CONTROL_PERIOD_S, Diagnostics, period_parameter, SAMPLES_QOS, SENSOR_QOS, STATE_QOS, Pacing, ParameterSpec,
                      as_float, declare, declare_all, given_parameter_names, parameter_values, realtime_settings,
                      realtime_specs, refuse,
                      run_node, samples_message, tighten_timer_slack)
@@ -57,6 +65,15 @@ HARDWARE_PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("realtime.busy_poll_s", 0.0, "realtime clock: poll for messages instead of sleeping this long "
                   "before each tick [s] (costs a core; >= control_period_s polls all the time)", read_only=True),
     *realtime_specs(),
+    ParameterSpec("fault.position_limit_m", FaultLimits.position_limit_m, "a position beyond +- this is implausible: "
+                  "fault [m]", read_only=True, low=1e-5, high=1.0),
+    ParameterSpec("fault.stuck_time_s", FaultLimits.stuck_time_s, "a position that does not change at all for this "
+                  "long while the command moves over fault.stuck_command_span_v: stuck sensor, fault [s]",
+                  read_only=True, low=0.05, high=10.0),
+    ParameterSpec("fault.stuck_command_span_v", FaultLimits.stuck_command_span_v, "see fault.stuck_time_s [V]",
+                  read_only=True, low=0.05, high=100.0),
+    ParameterSpec("fault.missing_samples_s", FaultLimits.missing_samples_s, "realtime clock: no samples from the "
+                  "backend for this long: fault [s]", read_only=True, low=0.05, high=10.0),
     ParameterSpec("loop_stats_period_s", 0.0, "log the loop timing (rate, commands in time, latency) this often [s]; "
                   "0: only at shutdown", read_only=True),
     DIAGNOSTICS_PERIOD,
@@ -136,6 +153,11 @@ class ValveHardwareNode(Node):
         self.busy_poll_s = as_float("realtime.busy_poll_s", p["realtime.busy_poll_s"])
         if self.busy_poll_s < 0:
             raise ValueError("realtime.busy_poll_s must be >= 0")
+        self.fault_limits = FaultLimits(*(as_float(f"fault.{k}", p[f"fault.{k}"]) for k in (
+            "position_limit_m", "stuck_time_s", "stuck_command_span_v", "missing_samples_s")))
+        problems = self.fault_limits.problems()
+        if problems:
+            raise ValueError("; ".join(problems))
         return stats_period
 
     def _bind_backend(self, backend: ValveBackend, p: dict) -> None:
@@ -164,6 +186,8 @@ class ValveHardwareNode(Node):
         self._clock_msg = Clock(clock=Time())
         self.loop_timing = LoopTiming(self.control_period_s)
         self._command_sub = self.create_subscription(Float64, "voltage_command", self._on_command, COMMAND_QOS)
+        self.state_pub = self.create_publisher(String, "hardware_state", STATE_QOS)
+        self.create_service(Trigger, "~/reset", self._on_reset)
         self.add_on_set_parameters_callback(self._on_parameters)
 
     def _reset_counters(self) -> None:
@@ -185,11 +209,17 @@ class ValveHardwareNode(Node):
         self._last_position_m = float("nan")   # the last position published [m] (repeated when unanswered)
         self._closed = False
         self._health_mark = (0, 0)
+        self.fault: Optional[Fault] = None
+        self._safe_written = True          # while in fault: whether the safe voltage was written
+        self._sample_check = SampleCheck(self.fault_limits)
+        self._last_rows_wall = time.monotonic()
+        self.refused_in_fault = 0
 
     def _start(self, p: dict, stats_period: float) -> None:
         """Open the backend at the safe voltage and start the clock's timers and the reports."""
         self.backend.open()
         self.backend.write_voltage(self.safe_voltage)
+        self.state_pub.publish(String(data="ok"))
         if self.clock_mode == "lockstep":
             # y_0 (at the initial voltage) goes out once a commander is matched both ways and settled
             # (_lockstep_idle), or before the first command that arrives earlier
@@ -222,6 +252,14 @@ class ValveHardwareNode(Node):
                   "commands_in_time_share": round(share, 4) if periods else "no periods since the last report",
                   "commands_clamped": self.clamped, "commands_rejected": self.rejected,
                   "late_commands": self.late_commands, "watchdog": watchdog, "safe_voltage_v": self.safe_voltage}
+        if self.fault is not None:
+            values.update({"fault": self.fault.kind, "fault_detail": self.fault.detail,
+                           "commands_refused_in_fault": self.refused_in_fault,
+                           "safe_voltage_written": self._safe_written})
+            held = ("safe voltage applied" if self._safe_written else
+                    "the safe voltage could NOT be written (writes fail; retrying every period)")
+            return "ERROR", (f"fault {self.fault.text(time.monotonic())}; {held}; commands refused until "
+                             f"~/reset (valve_command reset) once the cause is gone"), values
         if self._timed_out:
             return "ERROR", f"watchdog: no valid command for {self.command_timeout_s} s, safe voltage applied", values
         if self._armed and self.clock_mode == "realtime" and periods and share < IN_TIME_WARN_SHARE:
@@ -266,6 +304,12 @@ class ValveHardwareNode(Node):
         self._accept_command(msg.data)
 
     def _accept_command(self, v: float) -> None:
+        if self.fault is not None:
+            self.refused_in_fault += 1
+            self.get_logger().warning(f"command refused: in fault ({self.fault.kind}; {self.refused_in_fault} "
+                                      f"refused so far): valve_command reset once the cause is gone",
+                                      throttle_duration_sec=2.0)
+            return
         v = self._validate(v)
         if v is None:
             return
@@ -281,7 +325,7 @@ class ValveHardwareNode(Node):
             self._timed_out = False
             self.get_logger().info("valid command received: resuming")
         if self.clock_mode == "realtime":
-            self.backend.write_voltage(v)
+            self._write(v)
             return
         if self.periods == 0:
             self._advance_and_publish()  # y_0 first: a commander that did not wait for it
@@ -291,7 +335,8 @@ class ValveHardwareNode(Node):
         self._apply_lockstep(v)
 
     def _apply_lockstep(self, v: float) -> None:
-        self.backend.write_voltage(v)
+        if not self._write(v):
+            return
         self._advance_and_publish()
         if self.step_budget > 0:
             self.step_budget -= 1
@@ -300,7 +345,13 @@ class ValveHardwareNode(Node):
 
     # ------------------------------------------------------------------ time
     def _advance_and_publish(self) -> None:
-        rows = self.backend.advance(self.samples_per_period)
+        try:
+            rows = self.backend.advance(self.samples_per_period)
+        except Exception as exc:  # a backend's failure, whatever its type: the fault names it
+            self._enter_fault("read_failed", f"advance raised {exc!r}")
+            return
+        if not self._sound(rows):
+            return
         self._publish(rows)
         if self.clock_pub is not None:
             ns = int(round((rows[-1, 0] + self.backend.sample_period_s) * 1e9))
@@ -355,12 +406,124 @@ class ValveHardwareNode(Node):
         self._timed_out = True
         self.get_logger().warning(f"no valid command for {silent:.3f} s (timeout {self.command_timeout_s} s): "
                                   f"applying safe_voltage {self.safe_voltage} V")
-        self.backend.write_voltage(self.safe_voltage)
+        self._write(self.safe_voltage)
         return True
 
     def _realtime_tick(self) -> None:
+        if self.fault is not None:
+            self._while_in_fault()
+            return
         self._check_watchdog()
-        self._publish(self.backend.read_samples())
+        rows = self._read()
+        if rows is None or not self._sound(rows):
+            return
+        self._publish(rows)
+
+    # ------------------------------------------------------------------ faults
+    def _write(self, v: float) -> bool:
+        """Write ``v`` [V] to the backend; a failure latches the fault (False)."""
+        try:
+            self.backend.write_voltage(v)
+            return True
+        except Exception as exc:  # a backend's failure, whatever its type: the fault names it
+            self._enter_fault("write_failed", f"write_voltage({v:.4g} V) raised {exc!r}")
+            return False
+
+    def _read(self) -> Optional[np.ndarray]:
+        """The backend's new rows; a read that raises is retried once at once (a transient error), a second
+        failure latches the fault (None)."""
+        try:
+            return self.backend.read_samples()
+        except Exception:
+            pass
+        try:
+            return self.backend.read_samples()
+        except Exception as exc:
+            self._enter_fault("read_failed", f"read_samples raised {exc!r} twice in a row")
+            return None
+
+    def _sound(self, rows: np.ndarray) -> bool:
+        """Whether a read's rows may be published: finite, plausible, not frozen; samples arriving at all on the
+        real-time clock.  Otherwise the fault is latched."""
+        now = time.monotonic()
+        if rows.shape[0] == 0:
+            silent = now - self._last_rows_wall
+            if self.clock_mode == "realtime" and self.periods and silent >= self.fault_limits.missing_samples_s:
+                self._enter_fault("no_samples", f"no samples from the backend for {silent:.2f} s")
+            return False
+        self._last_rows_wall = now
+        problem = self._sample_check.check(rows)
+        if problem is not None:
+            self._enter_fault(*problem)
+            return False
+        return True
+
+    def _enter_fault(self, kind: str, detail: str) -> None:
+        """Latch a fault (a further one while latched is counted): safe voltage, ERROR, hardware_state."""
+        if self.fault is not None:
+            self.fault = Fault(self.fault.kind, self.fault.detail, self.fault.first_at_s, self.fault.count + 1)
+            return
+        self.fault = Fault(kind, detail, time.monotonic())
+        self._flush_samples()
+        self._safe_written = self._try_safe_voltage()
+        held = (f"safe voltage {self.safe_voltage} V applied" if self._safe_written else
+                f"the safe voltage {self.safe_voltage} V could NOT be written: retrying every period")
+        self.get_logger().error(f"fault {kind}: {detail}; {held}; commands refused until ~/reset")
+        self.state_pub.publish(String(data=f"fault: {kind}: {detail}"))
+        if hasattr(self, "diagnostics"):
+            self.diagnostics.publish()
+
+    def _try_safe_voltage(self) -> bool:
+        try:
+            self.backend.write_voltage(self.safe_voltage)
+            return True
+        except Exception:
+            return False
+
+    def _while_in_fault(self) -> None:
+        """Each period in fault: the safe voltage again until a write succeeds; the backend drained."""
+        if not self._safe_written and self._try_safe_voltage():
+            self._safe_written = True
+            self.get_logger().error(f"in fault {self.fault.kind}: safe voltage {self.safe_voltage} V applied at last")
+        try:
+            self.backend.read_samples()
+        except Exception:
+            pass
+
+    def _on_reset(self, request, response):
+        """~/reset: leave the fault once the backend writes the safe voltage and reads sound samples again."""
+        if self.fault is None:
+            response.success, response.message = True, "no fault"
+            return response
+        fault = self.fault
+        try:
+            self.backend.write_voltage(self.safe_voltage)
+            rows = self.backend.read_samples() if self.clock_mode == "realtime" else np.zeros((0, 3))
+        except Exception as exc:
+            response.success = False
+            response.message = f"fault {fault.kind} kept: the backend still fails ({exc!r})"
+            self.get_logger().error(f"~/reset refused: {response.message}")
+            return response
+        problem = SampleCheck(self.fault_limits).check(rows)
+        if problem is not None:
+            response.success = False
+            response.message = f"fault {fault.kind} kept: {problem[0]}: {problem[1]}"
+            self.get_logger().error(f"~/reset refused: {response.message}")
+            return response
+        self.fault, self._safe_written = None, True
+        self._sample_check.reset()
+        now = time.monotonic()
+        self._last_rows_wall = now
+        self._armed, self._timed_out = False, False   # at the safe voltage until the next valid command
+        self._last_valid_command_wall = now
+        self.state_pub.publish(String(data="ok"))
+        response.success = True
+        response.message = (f"fault {fault.kind} cleared ({fault.count} occurrence(s)); safe voltage applied, "
+                            f"commands accepted" + ("" if rows.shape[0] else
+                                                    "; no samples to check yet: the next period's are checked "
+                                                    "as every period's"))
+        self.get_logger().info(f"~/reset: {response.message}")
+        return response
 
     def _commander_matched(self) -> bool:
         return bool(self.position_pub.get_subscription_count() and self._command_sub.get_publisher_count())
@@ -451,13 +614,18 @@ class ValveHardwareNode(Node):
         if self._closed:
             return
         self._closed = True
+        written = self._try_safe_voltage()
         try:
-            self.backend.write_voltage(self.safe_voltage)
             if self.context.ok():  # after a signal the publishers are gone with the context
                 self._flush_samples()
         finally:
-            self.backend.close()
-            line = f"valve_hardware stopped: safe_voltage {self.safe_voltage} V applied; {self._loop_line()}"
+            try:
+                self.backend.close()
+            except Exception as exc:
+                print(f"[ERROR] [valve_hardware]: closing the backend raised {exc!r}", file=sys.stderr, flush=True)
+            held = (f"safe_voltage {self.safe_voltage} V applied" if written else
+                    f"the safe voltage {self.safe_voltage} V could NOT be written: the DAQ holds its last value")
+            line = f"valve_hardware stopped: {held}; {self._loop_line()}"
             if self.context.ok():
                 self.get_logger().info(line)
             else:  # after Ctrl-C/SIGTERM the ROS context (and /rosout) is already gone

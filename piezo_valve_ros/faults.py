@@ -1,0 +1,110 @@
+"""What a data-acquisition card does wrong, named: the hardware node's latched fault and the checks that find one.
+
+A fault is latched by ``valve_hardware`` (safe voltage applied, ERROR on /diagnostics naming it and when it
+first occurred) and left only when told (its ``~/reset`` service, ``valve_command reset``).  The kinds:
+
+``read_failed``       the backend raised while reading (a transient error is retried once within the period)
+``write_failed``      the backend raised while writing a voltage
+``non_finite_sample`` a sample's time, command or position is NaN or infinite
+``implausible_sample`` a position beyond ``fault.position_limit_m`` (no spool travels that far)
+``stuck_sensor``      the position did not change at all for ``fault.stuck_time_s`` while the command moved over
+                      ``fault.stuck_command_span_v`` (a frozen reading; any live sensor's noise or motion changes it)
+``no_samples``        the backend returned no samples for ``fault.missing_samples_s`` on the wall clock
+
+No ROS import: the checks run on the rows a backend returns (time [s], command [V], position [m]).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+__all__ = ["FAULT_KINDS", "Fault", "FaultLimits", "SampleCheck"]
+
+FAULT_KINDS = ("read_failed", "write_failed", "non_finite_sample", "implausible_sample", "stuck_sensor", "no_samples")
+
+
+@dataclass(frozen=True)
+class Fault:
+    """A latched fault: its kind (one of FAULT_KINDS), what was seen, and when it first occurred (monotonic wall
+    time [s]); ``count``: occurrences since (repeated reads or writes that fail, further bad samples)."""
+    kind: str
+    detail: str
+    first_at_s: float
+    count: int = 1
+
+    def text(self, now_s: float) -> str:
+        return f"{self.kind}: {self.detail} (first {now_s - self.first_at_s:.1f} s ago, {self.count} time(s))"
+
+
+@dataclass(frozen=True)
+class FaultLimits:
+    """The plausibility limits (the node's ``fault.*`` parameters).  Defaults that never trip on a healthy valve:
+    a spool moves a few hundred um at most; a live sensor's reading changes within a sample or two when the
+    command moves by a volt; a DAQ delivers samples every period."""
+    position_limit_m: float = 1e-3
+    stuck_time_s: float = 0.5
+    stuck_command_span_v: float = 1.0
+    missing_samples_s: float = 0.5
+
+    def problems(self) -> list[str]:
+        out = []
+        for name, low, high in (("position_limit_m", 1e-5, 1.0), ("stuck_time_s", 0.05, 10.0),
+                                ("stuck_command_span_v", 0.05, 100.0), ("missing_samples_s", 0.05, 10.0)):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and low <= value <= high):
+                out.append(f"fault.{name} must lie in [{low:g}, {high:g}], got {value!r}")
+        return out
+
+
+class SampleCheck:
+    """The checks on each period's rows; ``check`` returns (kind, detail) of the first problem, or None.  Keeps
+    a few scalars (the last position and how long it has not changed, the command's span since), so a period's
+    check allocates only what numpy's reductions do."""
+
+    def __init__(self, limits: FaultLimits):
+        problems = limits.problems()
+        if problems:
+            raise ValueError("; ".join(problems))
+        self.limits = limits
+        self.reset()
+
+    def reset(self) -> None:
+        self._last_position = math.nan
+        self._unchanged_since_s = math.nan      # sample time the position last changed
+        self._command_lo = math.inf
+        self._command_hi = -math.inf
+
+    def check(self, rows: np.ndarray) -> Optional[tuple[str, str]]:
+        """Rows (k, 3) of time [s], command [V], position [m] from one read."""
+        if rows.shape[0] == 0:
+            return None
+        if not np.isfinite(rows).all():
+            bad = rows[~np.isfinite(rows).all(axis=1)][0]
+            return "non_finite_sample", f"sample (time, command, position) = ({bad[0]:g}, {bad[1]:g}, {bad[2]:g})"
+        position = rows[:, 2]
+        worst = float(np.max(np.abs(position)))
+        if worst > self.limits.position_limit_m:
+            return "implausible_sample", (f"position {1e6 * worst:.1f} um beyond fault.position_limit_m "
+                                          f"{1e6 * self.limits.position_limit_m:.0f} um")
+        changed = np.flatnonzero(np.diff(position))   # row i + 1 differs from row i
+        first_changed = not math.isnan(self._last_position) and position[0] != self._last_position
+        if changed.size or first_changed:
+            k = int(changed[-1]) + 1 if changed.size else 0
+            self._unchanged_since_s = float(rows[k, 0])
+            tail = rows[k:, 1]
+            self._command_lo, self._command_hi = float(np.min(tail)), float(np.max(tail))
+        else:
+            if math.isnan(self._unchanged_since_s):
+                self._unchanged_since_s = float(rows[0, 0])
+            self._command_lo = min(self._command_lo, float(np.min(rows[:, 1])))
+            self._command_hi = max(self._command_hi, float(np.max(rows[:, 1])))
+        self._last_position = float(position[-1])
+        frozen_s = float(rows[-1, 0]) - self._unchanged_since_s
+        span = self._command_hi - self._command_lo
+        if frozen_s >= self.limits.stuck_time_s and span >= self.limits.stuck_command_span_v:
+            return "stuck_sensor", (f"position frozen at {1e6 * self._last_position:.3f} um for {frozen_s:.2f} s "
+                                    f"while the command moved over {span:.2f} V")
+        return None

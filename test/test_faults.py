@@ -1,0 +1,320 @@
+"""A DAQ that fails, lies or goes silent: the hardware latches a fault, applies the safe voltage, says which fault
+on /diagnostics and hardware_state, refuses commands, stays up, and leaves the fault only on ~/reset once its
+cause is gone; the controller holds meanwhile.
+
+The node runs in this process on the real-time clock with a fault-injecting backend on a clock the test moves:
+each period is the node's own pacing tick (``claim_pacing``), so every fault lands at a known sample.
+"""
+import math
+import os
+import time
+from itertools import count
+
+import numpy as np
+import pytest
+
+import rclpy
+from rclpy.parameter import Parameter
+from std_msgs.msg import Float64, String
+
+from piezo_valve_ros.backends import SimBackend
+from piezo_valve_ros.core.sim.simulator import ValveSimConfig
+from piezo_valve_ros.faults import FaultLimits, SampleCheck
+from piezo_valve_ros.nodes.common import COMMAND_QOS, STATE_QOS, make_executor
+from piezo_valve_ros.nodes.controller import ValveControllerNode
+from piezo_valve_ros.nodes.hardware import ValveHardwareNode
+
+_ids = count()
+PERIOD_S = 1e-3
+SAFE_V = 5.0
+
+
+# ---------------------------------------------------------------------------- the checks, without ROS
+def rows_of(t, command, position):
+    return np.column_stack((t, command, position))
+
+
+def test_the_sample_checks_name_non_finite_implausible_and_frozen_samples():
+    check = SampleCheck(FaultLimits())
+    t = np.arange(10) * 1e-4
+    assert check.check(rows_of(t, np.full(10, 5.0), 1e-6 * np.arange(10))) is None
+    bad = rows_of(t + 1e-3, np.full(10, 5.0), np.r_[np.zeros(9), np.nan])
+    assert check.check(bad)[0] == "non_finite_sample"
+    assert SampleCheck(FaultLimits()).check(rows_of(t, np.full(10, 5.0), np.full(10, 2e-3)))[0] == "implausible_sample"
+    # frozen: the same reading for 0.5 s while the command sweeps 2 V; not before 0.5 s, and never while the
+    # command holds still (a valve at rest with a quantised sensor)
+    frozen, still = SampleCheck(FaultLimits()), SampleCheck(FaultLimits())
+    said = []
+    for k in range(80):
+        tk = k * 0.01 + np.arange(10) * 1e-3
+        said.append(frozen.check(rows_of(tk, 4.0 + 0.025 * k + 0 * tk, np.full(10, 3e-6))))
+        assert still.check(rows_of(tk, np.full(10, 4.0), np.full(10, 3e-6))) is None
+    first = next(i for i, s in enumerate(said) if s is not None)
+    assert said[first][0] == "stuck_sensor" and 49 <= first <= 51, (first, said[first])
+    with pytest.raises(ValueError, match="fault.stuck_time_s must lie in"):
+        SampleCheck(FaultLimits(stuck_time_s=0.0))
+
+
+def test_a_healthy_valve_never_trips_the_checks_even_noise_free_or_at_a_rail():
+    """The simulated valve (every effect, and again without noise) through a minute of the paper's training
+    signal, steps to both rails and holds: no check trips."""
+    from piezo_valve_ros.core.sim.signals import rig_training_voltage
+    from dataclasses import replace
+    from piezo_valve_ros.core.sim.simulator import SensorParams, SimulatedValve
+    for noise in (True, False):
+        config = ValveSimConfig(dt=1e-4, seed=3)
+        valve = SimulatedValve(config if noise else replace(config, sensor=SensorParams(noise_enabled=False)))
+        v = np.concatenate((np.repeat(rig_training_voltage(1e-3, 30.0, 1.0), 10), np.full(20000, 0.0),
+                            np.full(20000, 10.0), np.full(20000, 5.0)))
+        y = valve.run(v)
+        rows = np.column_stack((np.arange(v.size) * 1e-4, v, y))
+        check = SampleCheck(FaultLimits())
+        for start in range(0, v.size, 10):
+            assert check.check(rows[start:start + 10]) is None, (noise, start)
+
+
+# ---------------------------------------------------------------------------- the node
+class FaultyDaq(SimBackend):
+    """The simulated valve on a clock the test moves, with faults switched on and off by the test."""
+
+    def __init__(self):
+        self.now = 100.0
+        super().__init__(ValveSimConfig(dt=1e-4, seed=11), clock=lambda: self.now)
+        self.fault = None          # None, "read_raises", "read_raises_once", "nan", "write_raises", "stuck", "silent"
+        self.writes: list[float] = []
+        self._frozen = None
+
+    def write_voltage(self, voltage_v):
+        if self.fault == "write_raises":
+            raise OSError("DAQ write timed out")
+        self.writes.append(float(voltage_v))
+        super().write_voltage(voltage_v)
+
+    def read_samples(self):
+        if self.fault == "read_raises":
+            raise OSError("DAQ disconnected")
+        if self.fault == "read_raises_once":
+            self.fault = None
+            raise OSError("DAQ glitch")
+        rows = super().read_samples()
+        if self.fault == "nan":
+            rows[:, 2] = np.nan
+        elif self.fault == "stuck":
+            if self._frozen is None:
+                self._frozen = float(rows[0, 2])
+            rows[:, 2] = self._frozen
+        elif self.fault == "silent":
+            return np.zeros((0, 3))
+        return rows
+
+
+@pytest.fixture(scope="module")
+def ros_context():
+    rclpy.init()
+    yield
+    rclpy.try_shutdown()
+
+
+class Rig:
+    """The hardware node with a FaultyDaq, a helper node to command it and read what it says, and the ticks."""
+
+    def __init__(self):
+        ns = f"/faults{os.getpid()}_{next(_ids)}"
+        self.daq = FaultyDaq()
+        self.hw = ValveHardwareNode(backend=self.daq, namespace=ns, parameter_overrides=[
+            Parameter("command_timeout_s", value=0.5), Parameter("diagnostics_period_s", value=0.0)])
+        self.tick = self.hw.claim_pacing().tick
+        self.other = rclpy.create_node("fault_probe", namespace=ns)
+        self.states = []
+        self.other.create_subscription(String, "hardware_state", lambda m: self.states.append(m.data), STATE_QOS)
+        self.commands = self.other.create_publisher(Float64, "voltage_command", COMMAND_QOS)
+        from std_srvs.srv import Trigger
+        self.reset_client = self.other.create_client(Trigger, f"{ns}/valve_hardware/reset")
+        self.executor = make_executor()
+        self.executor.add_node(self.hw)
+        self.executor.add_node(self.other)
+        deadline = time.monotonic() + 5.0
+        while self.commands.get_subscription_count() < 1 and time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def run(self, periods: int, command=None) -> None:
+        """``periods`` control periods; each sends ``command(k)`` [V] first (None: no command)."""
+        for k in range(periods):
+            if command is not None:
+                self.commands.publish(Float64(data=float(command(k))))
+                deadline = time.monotonic() + 1.0
+                seen = (len(self.daq.writes), self.hw.refused_in_fault, self.hw.fault)
+                while seen == (len(self.daq.writes), self.hw.refused_in_fault, self.hw.fault) \
+                        and time.monotonic() < deadline:   # the command arrived: written, refused, or a fault
+                    self.executor.spin_once(timeout_sec=0.005)
+            self.daq.now += PERIOD_S
+            self.tick()
+
+    def run_wall(self, seconds: float, command=None) -> None:
+        """Periods for ``seconds`` of the wall clock (a check that waits on the wall clock: missing samples)."""
+        deadline, k = time.monotonic() + seconds, 0
+        while time.monotonic() < deadline:
+            self.run(1, None if command is None else (lambda _, k=k: command(k)))
+            time.sleep(PERIOD_S)
+            k += 1
+
+    def spin(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def health(self):
+        status = self.hw.diagnostics.publish().status[0]
+        return status.level, status.message
+
+    def reset(self):
+        from std_srvs.srv import Trigger
+        assert self.reset_client.wait_for_service(timeout_sec=5.0)
+        future = self.reset_client.call_async(Trigger.Request())
+        deadline = time.monotonic() + 5.0
+        while not future.done() and time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.01)
+        return future.result()
+
+    def close(self):
+        self.executor.remove_node(self.hw)
+        self.executor.remove_node(self.other)
+        self.hw.shutdown_safely()
+        self.hw.destroy_node()
+        self.other.destroy_node()
+        self.executor.shutdown()
+
+
+@pytest.fixture
+def rig(ros_context):
+    made = Rig()
+    yield made
+    made.close()
+
+
+def sine(k):
+    return 5.0 + 3.0 * math.sin(2 * math.pi * k / 200.0)
+
+
+@pytest.mark.parametrize("fault, kind, periods", [
+    ("read_raises", "read_failed", 1),
+    ("nan", "non_finite_sample", 1),
+    ("write_raises", "write_failed", 1),
+    ("stuck", "stuck_sensor", 600),       # frozen while the sine moves the command: tripped after 0.5 s
+    ("silent", "no_samples", None),       # no samples for 0.5 s of the wall clock
+])
+def test_a_fault_is_latched_safe_named_and_left_only_on_reset(rig, fault, kind, periods):
+    rig.run(100, sine)
+    assert rig.hw.fault is None and rig.health()[0] != b"\x02"   # (WARN: the test ticks faster than the wall clock)
+    rig.daq.fault = fault
+    if fault == "silent":
+        rig.run_wall(0.8, sine)
+    else:
+        rig.run(periods, sine)
+    assert rig.hw.fault is not None and rig.hw.fault.kind == kind, rig.hw.fault
+    writes = np.array(rig.daq.writes)
+    assert np.all(np.isfinite(writes))                                      # no non-finite write, ever
+    level, message = rig.health()
+    assert level == b"\x02" and message.startswith(f"fault {kind}: ") and "~/reset" in message, message
+    if fault == "write_raises":
+        assert "could NOT be written" in message
+    else:
+        assert writes[-1] == SAFE_V and "safe voltage applied" in message
+    rig.spin(0.3)
+    assert rig.states and rig.states[-1].startswith(f"fault: {kind}: "), rig.states
+    # latched: commands refused while it lasts, and after the cause is gone, until reset
+    before = len(rig.daq.writes)
+    rig.run(50, lambda k: 7.0)
+    assert len(rig.daq.writes) == before and rig.hw.refused_in_fault >= 50
+    if fault in ("read_raises", "write_raises"):   # the cause still there: reset refused, fault kept
+        refused = rig.reset()
+        assert not refused.success and refused.message.startswith(f"fault {kind} kept"), refused.message
+        assert rig.hw.fault is not None
+    if fault == "nan":   # a reset with no samples to check yet clears; the next period's samples latch it again
+        again = rig.reset()
+        assert again.success and "the next period's are checked" in again.message, again.message
+        rig.run(1)
+        assert rig.hw.fault is not None and rig.hw.fault.kind == kind
+    rig.daq.fault = None
+    rig.run(20)
+    assert rig.hw.fault is not None and rig.health()[0] == b"\x02"         # no silent clearing
+    if fault == "write_raises":   # the safe voltage was retried every period until a write succeeded
+        assert rig.daq.writes[-1] == SAFE_V and "safe voltage applied" in rig.health()[1]
+    done = rig.reset()
+    assert done.success and f"fault {kind} cleared" in done.message, done.message
+    rig.spin(0.3)
+    assert rig.states[-1] == "ok" and rig.health()[0] != b"\x02"
+    rig.run(100, sine)
+    assert rig.hw.fault is None and rig.daq.writes[-1] == pytest.approx(sine(99))
+
+
+def test_a_transient_read_error_is_retried_within_the_period(rig):
+    rig.run(50, sine)
+    rig.daq.fault = "read_raises_once"
+    rig.run(50, sine)
+    assert rig.hw.fault is None and rig.health()[0] != b"\x02"   # (WARN: the test ticks faster than the wall clock)
+
+
+def test_the_controller_holds_while_the_hardware_is_in_fault_and_starts_afresh_after(ros_context):
+    ns = f"/faults{os.getpid()}_{next(_ids)}"
+    ctl = ValveControllerNode(namespace=ns, parameter_overrides=[Parameter("gain_set", value="pid_hc_2"),
+                                                                  Parameter("diagnostics_period_s", value=0.0)])
+    other = rclpy.create_node("fault_state", namespace=ns)
+    state = other.create_publisher(String, "hardware_state", STATE_QOS)
+    executor = make_executor()
+    executor.add_node(ctl)
+    executor.add_node(other)
+    try:
+        assert ctl.on_measurement(0.0) is not None
+        state.publish(String(data="fault: stuck_sensor: position frozen"))
+        deadline = time.monotonic() + 5.0
+        while ctl.hardware_fault is None and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.01)
+        assert ctl.on_measurement(1e-6) is None                    # no period runs: the integrator holds
+        status = ctl.diagnostics.publish().status[0]
+        assert status.level == b"\x01" and status.message.startswith("holding: the hardware is in fault (fault: "
+                                                                     "stuck_sensor"), status.message
+        state.publish(String(data="ok"))
+        deadline = time.monotonic() + 5.0
+        while ctl.hardware_fault is not None and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.01)
+        assert ctl.on_measurement(0.0) is not None
+        assert "in control" in ctl.diagnostics.publish().status[0].message
+    finally:
+        executor.remove_node(ctl)
+        executor.remove_node(other)
+        ctl.destroy_node()
+        other.destroy_node()
+        executor.shutdown()
+
+
+def test_valve_command_reset_leaves_the_fault_and_says_why_it_cannot(rig):
+    """`valve_command reset` against the node: refused (exit 1, the backend's reason) while the DAQ still fails,
+    then accepted (exit 0) once it reads again."""
+    import subprocess
+    import sys
+    import threading
+    from ros_helpers import ros_env
+    rig.run(20, sine)
+    rig.daq.fault = "read_raises"
+    rig.run(1)
+    assert rig.hw.fault is not None
+    stop = threading.Event()
+
+    def spin():
+        while not stop.is_set():
+            rig.executor.spin_once(timeout_sec=0.01)
+    spinner = threading.Thread(target=spin, daemon=True)
+    spinner.start()
+    tool = [os.path.join(os.path.dirname(sys.executable), "valve_command"), "--namespace", rig.hw.get_namespace(),
+            "reset"]
+    try:
+        refused = subprocess.run(tool, env=ros_env(), capture_output=True, text=True, timeout=60)
+        assert refused.returncode == 1 and "reset refused: fault read_failed kept" in refused.stdout, refused
+        rig.daq.fault = None
+        done = subprocess.run(tool, env=ros_env(), capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0 and "reset: fault read_failed cleared" in done.stdout, done
+    finally:
+        stop.set()
+        spinner.join(5.0)
+    assert rig.hw.fault is None
