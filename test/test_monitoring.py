@@ -256,3 +256,20 @@ def test_the_sim_backends_drift_parameters_are_checked():
                                 (("drift_gain_change", "much"), "sim.drift_gain_change")):
         with pytest.raises(ValueError, match=says):
             sim_config_from_parameters({name: value})
+
+
+@pytest.mark.parametrize("drift, named", [
+    (DriftParams(True, offset_um=0.0, gain_change=-0.04, time_constant_s=5.0, start_s=ONSET_S), "drift: a gain change of -"),
+    (DriftParams(True, offset_um=-0.8, gain_change=0.0, time_constant_s=5.0, start_s=ONSET_S), "drift: an offset of -"),
+])
+def test_a_gain_change_is_named_a_gain_change_and_an_offset_an_offset(drift, named):
+    """A 4 % gain loss and a -0.8 um offset (the size the gain loss makes about the valve's mean) set in at 60 s:
+    each is named for what it is once the monitor warns, the gain change with its size."""
+    rows = operating_rows(replace(PLAIN, drift=drift), 120.0)
+    monitor = HealthMonitor(CompensationModel(), DT)
+    warned = [h for h in verdicts(monitor, rows) if h.end_s > ONSET_S + 20.0 and h.level is not Level.OK]
+    assert warned, "no warning"
+    assert all(h.resembles.startswith(named) for h in warned), [h.resembles for h in warned]
+    if "gain" in named:
+        sizes = [float(h.resembles.split("gain change of ")[1].split(" %")[0]) for h in warned]
+        assert all(-5.0 < x < -3.0 for x in sizes), sizes

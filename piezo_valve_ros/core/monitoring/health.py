@@ -14,8 +14,10 @@ residual against the measured position is judged against the sensor noise measur
 * structured residual = sqrt(RMS^2 - noise^2) of the residual less the reference offset; above
   ``warn_ratio`` x the noise: WARN, above ``error_ratio`` x: ERROR;
 * a window whose voltage spans less than ``min_span_v`` (a valve held still) cannot be judged: STALE;
-* from WARN on, the window's held-out part (its last 30 %) names what the residual resembles: an offset the
-  model lacks (a constant takes ``REFIT_SHARE`` of its RMS: drift), the model's own parameters (the residual
+* from WARN on, the window's held-out part (its last 30 %) names what the residual resembles: a gain change
+  (a term in proportion to the prediction's swing, with an offset, takes ``REFIT_SHARE`` of its RMS and
+  ``GAIN_SHARE`` of what an offset alone leaves: drift), an offset the model lacks (a constant takes
+  ``REFIT_SHARE``: drift), the model's own parameters (the residual
   loop's subset search, ``identification.search.SubsetSearch``, refits the GPIM on the window's first 70 %
   and that takes ``REFIT_SHARE``), a catalogue effect that cuts the refit's held-out RMS by
   ``RESEMBLANCE_GAIN`` more, or none of them.
@@ -44,7 +46,7 @@ from ..model.drive import COMMAND_MAX_V, COMMAND_MIN_V
 from ..model.dynamics import sections
 
 __all__ = ["Level", "HealthLimits", "Health", "HealthMonitor", "WINDOW_S", "WARN_RATIO", "ERROR_RATIO",
-           "MIN_SPAN_V", "RESEMBLANCE_GAIN", "REFIT_SHARE", "SEARCH_RATE_HZ"]
+           "MIN_SPAN_V", "RESEMBLANCE_GAIN", "REFIT_SHARE", "GAIN_SHARE", "SEARCH_RATE_HZ"]
 
 WINDOW_S = 20.0           # judged windows are this long [s] ...
 STEP_S = 5.0              # ... and one is judged this often [s]
@@ -53,6 +55,7 @@ ERROR_RATIO = 5.0         # ... above this many: ERROR
 MIN_SPAN_V = 0.5          # a window whose voltage spans less [V] does not excite the valve enough to judge
 RESEMBLANCE_GAIN = 0.2    # a catalogue effect resembles the residual when it cuts the window's held-out RMS by this
 REFIT_SHARE = 0.5         # "the model's own parameters" when a GPIM refit on the window takes this share of the RMS
+GAIN_SHARE = 0.2          # a gain change (not an offset) when a gain term takes this share of what an offset leaves
 SEARCH_RATE_HZ = 500.0    # the window's subset search runs on block means at most this rate [Hz]
 START_ROWS_S = 2.0        # the operators' state at the first sample is estimated on this much of the first rows [s]
 
@@ -279,8 +282,19 @@ class HealthMonitor:
         held_out = residual.position_um[split.start:]
         in_force = rms(held_out)
         shift = float(np.median(held_out))
-        if in_force > 0 and 1.0 - rms(held_out - shift) / in_force >= REFIT_SHARE:
-            return f"drift: an offset of {shift:+.3f} um the model lacks", 1.0 - rms(held_out - shift) / in_force
+        offset_rms = rms(held_out - shift)
+        # a gain change: the residual in proportion to the prediction's swing, about its mean (with an offset)
+        swing = analysis_record(Record(t, v, predicted), SEARCH_RATE_HZ).position_um[split.start:]
+        design = np.column_stack((np.ones(swing.size), swing - np.mean(swing)))
+        (level_um, gain), *_ = np.linalg.lstsq(design, held_out, rcond=None)
+        gain_rms = rms(held_out - design @ np.array([level_um, gain]))
+        if in_force > 0 and 1.0 - gain_rms / in_force >= REFIT_SHARE \
+                and 1.0 - gain_rms / max(offset_rms, 1e-30) >= GAIN_SHARE:
+            return (f"drift: a gain change of {100.0 * gain:+.1f} % (the swing about {np.mean(swing):.1f} um "
+                    f"scaled by {1.0 + gain:.4f}) and an offset of {level_um:+.3f} um the model lacks",
+                    1.0 - gain_rms / in_force)
+        if in_force > 0 and 1.0 - offset_rms / in_force >= REFIT_SHARE:
+            return f"drift: an offset of {shift:+.3f} um the model lacks", 1.0 - offset_rms / in_force
         history = tuple(before) + (float(v[0]),)
         start = InitialState("remanent", dominant_turning_points(np.asarray(history))) if len(history) > 1 else InitialState()
         baseline = ValveModel(self.model.gpim, tuple(sections(self.model.valve_model)), t0=split.t0, history=start)
