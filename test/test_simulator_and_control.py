@@ -324,6 +324,32 @@ def test_a_loop_delay_that_makes_pid_hc_swing_rail_to_rail_is_caught_and_held_on
     assert np.max(np.abs(np.diff(v[after]))) < 0.5   # the hand-back is bumpless
 
 
+@pytest.mark.parametrize("dt", [1e-3, 1e-4])
+def test_the_guards_both_rails_window_is_twenty_ms_at_any_period(dt):
+    """A P controller driven onto the upper rail, then (after a gap at mid-range) onto the lower one: both rails
+    within GUARD_WINDOW_S (20 ms) trip the guard, 30 ms apart do not, at 1 and 10 kHz (the window in periods
+    is the time divided by the period)."""
+    from piezo_valve_ros.core.control.strategies import GUARD_WINDOW_S
+    for gap_s, trips in ((0.5 * GUARD_WINDOW_S, 1), (1.5 * GUARD_WINDOW_S, 0)):
+        ctl = ValveController(ControllerConfig(strategy="pid", gains=PIDGains(50.0, 0.0, 0.0), dt=dt))
+        ctl.reset()
+        commands = [ctl.step(0.0, -60e-6)]                                   # far below: the upper rail
+        commands += [ctl.step(0.0, 0.0) for _ in range(int(round(gap_s / dt)))]   # mid-range
+        commands.append(ctl.step(0.0, 60e-6))                               # far above: the lower rail
+        assert commands[0] == 10.0 and commands[-1] == 0.0 and 0.0 < commands[1] < 10.0
+        assert ctl.guard_trips == trips, (dt, gap_s, ctl.guard_trips)
+
+
+def test_the_pids_derivative_opposes_a_measurement_that_rises_towards_the_demand():
+    """PID with only a derivative gain, demand held at 10 um: a measurement rising towards it (the error
+    falling) pulls the command below the centre voltage, one falling away pushes it above."""
+    for rise, sign in ((1e-6, -1.0), (-1e-6, 1.0)):
+        ctl = ValveController(ControllerConfig(strategy="pid", gains=PIDGains(0.0, 0.0, 1e-4), dt=1e-3))
+        ctl.reset()
+        v = [ctl.step(10e-6, k * rise) for k in range(5)]
+        assert sign * (v[-1] - ctl.config.centre_voltage_v) > 0, (rise, v)
+
+
 def test_the_guard_never_trips_on_the_paper_step_tests_or_without_delay():
     """Every Table 1 set on the paper's three steps at 10 kHz: no trip, so the paper's results stand."""
     from piezo_valve_ros.core.sim.signals import PAPER_STEPS_UM, step_reference_m
