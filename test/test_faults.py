@@ -2,7 +2,8 @@
 on /diagnostics and hardware_state, refuses commands, stays up, and leaves the fault only on ~/reset once its
 cause is gone; the controller holds meanwhile.
 
-The node runs in this process on the real-time clock with a fault-injecting backend on a clock the test moves:
+The node runs in this process on the real-time clock with the kit's fault-injecting backend around the simulated
+valve, on a clock the test moves:
 each period is the node's own pacing tick (``claim_pacing``), so every fault lands at a known sample.
 """
 import math
@@ -17,6 +18,7 @@ import rclpy
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64, String
 
+from piezo_valve_ros.backend_kit import FaultInjectingBackend, check_backend
 from piezo_valve_ros.backends import SimBackend
 from piezo_valve_ros.core.sim.simulator import ValveSimConfig
 from piezo_valve_ros.faults import FaultLimits, SampleCheck
@@ -74,40 +76,6 @@ def test_a_healthy_valve_never_trips_the_checks_even_noise_free_or_at_a_rail():
 
 
 # ---------------------------------------------------------------------------- the node
-class FaultyDaq(SimBackend):
-    """The simulated valve on a clock the test moves, with faults switched on and off by the test."""
-
-    def __init__(self):
-        self.now = 100.0
-        super().__init__(ValveSimConfig(dt=1e-4, seed=11), clock=lambda: self.now)
-        self.fault = None          # None, "read_raises", "read_raises_once", "nan", "write_raises", "stuck", "silent"
-        self.writes: list[float] = []
-        self._frozen = None
-
-    def write_voltage(self, voltage_v):
-        if self.fault == "write_raises":
-            raise OSError("DAQ write timed out")
-        self.writes.append(float(voltage_v))
-        super().write_voltage(voltage_v)
-
-    def read_samples(self):
-        if self.fault == "read_raises":
-            raise OSError("DAQ disconnected")
-        if self.fault == "read_raises_once":
-            self.fault = None
-            raise OSError("DAQ glitch")
-        rows = super().read_samples()
-        if self.fault == "nan":
-            rows[:, 2] = np.nan
-        elif self.fault == "stuck":
-            if self._frozen is None:
-                self._frozen = float(rows[0, 2])
-            rows[:, 2] = self._frozen
-        elif self.fault == "silent":
-            return np.zeros((0, 3))
-        return rows
-
-
 @pytest.fixture(scope="module")
 def ros_context():
     rclpy.init()
@@ -120,7 +88,8 @@ class Rig:
 
     def __init__(self):
         ns = f"/faults{os.getpid()}_{next(_ids)}"
-        self.daq = FaultyDaq()
+        self.now = 100.0   # the simulated DAQ's clock [s], moved by the test
+        self.daq = FaultInjectingBackend(SimBackend(ValveSimConfig(dt=1e-4, seed=11), clock=lambda: self.now))
         self.hw = ValveHardwareNode(backend=self.daq, namespace=ns, parameter_overrides=[
             Parameter("command_timeout_s", value=0.5), Parameter("diagnostics_period_s", value=0.0)])
         self.tick = self.hw.claim_pacing().tick
@@ -147,7 +116,7 @@ class Rig:
                 while seen == (len(self.daq.writes), self.hw.refused_in_fault, self.hw.fault) \
                         and time.monotonic() < deadline:   # the command arrived: written, refused, or a fault
                     self.executor.spin_once(timeout_sec=0.005)
-            self.daq.now += PERIOD_S
+            self.now += PERIOD_S
             self.tick()
 
     def run_wall(self, seconds: float, command=None) -> None:
@@ -206,7 +175,7 @@ def sine(k):
 def test_a_fault_is_latched_safe_named_and_left_only_on_reset(rig, fault, kind, periods):
     rig.run(100, sine)
     assert rig.hw.fault is None and rig.health()[0] != b"\x02"   # (WARN: the test ticks faster than the wall clock)
-    rig.daq.fault = fault
+    rig.daq.inject(fault)
     if fault == "silent":
         rig.run_wall(0.8, sine)
     else:
@@ -235,7 +204,7 @@ def test_a_fault_is_latched_safe_named_and_left_only_on_reset(rig, fault, kind, 
         assert again.success and "the next period's are checked" in again.message, again.message
         rig.run(1)
         assert rig.hw.fault is not None and rig.hw.fault.kind == kind
-    rig.daq.fault = None
+    rig.daq.inject(None)
     rig.run(20)
     assert rig.hw.fault is not None and rig.health()[0] == b"\x02"         # no silent clearing
     if fault == "write_raises":   # the safe voltage was retried every period until a write succeeded
@@ -250,7 +219,7 @@ def test_a_fault_is_latched_safe_named_and_left_only_on_reset(rig, fault, kind, 
 
 def test_a_transient_read_error_is_retried_within_the_period(rig):
     rig.run(50, sine)
-    rig.daq.fault = "read_raises_once"
+    rig.daq.inject("read_raises_once")
     rig.run(50, sine)
     assert rig.hw.fault is None and rig.health()[0] != b"\x02"   # (WARN: the test ticks faster than the wall clock)
 
@@ -296,7 +265,7 @@ def test_valve_command_reset_leaves_the_fault_and_says_why_it_cannot(rig):
     import threading
     from ros_helpers import ros_env
     rig.run(20, sine)
-    rig.daq.fault = "read_raises"
+    rig.daq.inject("read_raises")
     rig.run(1)
     assert rig.hw.fault is not None
     stop = threading.Event()
@@ -311,10 +280,41 @@ def test_valve_command_reset_leaves_the_fault_and_says_why_it_cannot(rig):
     try:
         refused = subprocess.run(tool, env=ros_env(), capture_output=True, text=True, timeout=60)
         assert refused.returncode == 1 and "reset refused: fault read_failed kept" in refused.stdout, refused
-        rig.daq.fault = None
+        rig.daq.inject(None)
         done = subprocess.run(tool, env=ros_env(), capture_output=True, text=True, timeout=60)
         assert done.returncode == 0 and "reset: fault read_failed cleared" in done.stdout, done
     finally:
         stop.set()
         spinner.join(5.0)
     assert rig.hw.fault is None
+
+
+def test_the_backend_kit_passes_the_projects_backends_and_names_what_a_broken_one_breaks():
+    """``check_backend`` on the simulated valve and the out-of-tree loopback DAQ: no problem; on backends that
+    return NaN, lose samples, raise, or return rows of the wrong shape: each named."""
+    import sys
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "data", "loopback_daq"))
+    from loopback_daq import LoopbackBackend
+    assert check_backend(lambda: SimBackend(ValveSimConfig(dt=1e-4, seed=1))) == []
+    assert check_backend(lambda: LoopbackBackend(10e-6, 5.0, 2e-3, 1e-4, 5.0)) == []
+
+    def faulty(kind):
+        daq = FaultInjectingBackend(SimBackend(ValveSimConfig(dt=1e-4, seed=1)))
+        daq.inject(kind)
+        return daq
+    assert any("non-finite" in p for p in check_backend(lambda: faulty("nan")))
+    assert any("samples are lost" in p for p in check_backend(lambda: faulty("silent")))
+    assert any("raised while running: OSError" in p for p in check_backend(lambda: faulty("read_raises")))
+
+    class Transposed(SimBackend):
+        def read_samples(self):
+            return super().read_samples().T
+    assert any("shape (k, 3)" in p for p in check_backend(lambda: Transposed(ValveSimConfig(dt=1e-4))))
+
+    class Repeating(SimBackend):
+        def read_samples(self):
+            rows = super().read_samples()
+            return np.vstack((rows, rows[-1:])) if rows.shape[0] else rows
+    assert any("without gaps or repeats" in p for p in check_backend(lambda: Repeating(ValveSimConfig(dt=1e-4))))
+    with pytest.raises(ValueError, match="fault must be one of"):
+        faulty("smoke")

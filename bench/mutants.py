@@ -1,0 +1,136 @@
+"""Mutation audit of the safety and judgement paths: each mutant is a plausible one-line bug, applied to a copy of
+the repository (the committed tree), and the test suite is run on it: does it notice?
+
+    python bench/mutants.py [--markdown docs/results/tests.md] [--full] [--only N ...]
+
+Per mutant: where, what it breaks, whether the quick suite (``-m "not slow"``) fails on it and which test failed
+first, and with ``--full`` whether the slow tests catch what the quick suite missed.  The copy imports its own
+package (PYTHONPATH), executables included; the working tree is never touched.
+"""
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+
+# (file, the line as it is, the bug, what the bug breaks)
+MUTANTS = (
+    ("piezo_valve_ros/core/control/strategies.py",
+     "oscillating = abs(self._rail_high_at - self._rail_low_at) <= max(int(round(GUARD_WINDOW_S / c.dt)), 1)",
+     "oscillating = abs(self._rail_high_at - self._rail_low_at) <= max(int(round(GUARD_WINDOW_S * c.dt)), 1)",
+     "oscillation guard: both-rails window of one period instead of 20 ms"),
+    ("piezo_valve_ros/core/control/strategies.py",
+     "self._d_state += self._d_alpha * (g.kd * (e - self._last_error) / c.dt - self._d_state)",
+     "self._d_state += self._d_alpha * (g.kd * (self._last_error - e) / c.dt - self._d_state)",
+     "PID: derivative of the wrong sign"),
+    ("piezo_valve_ros/core/identification/split.py",
+     "        n_fit = cut // block\n",
+     "        n_fit = cut // block + 1\n",
+     "identification: the fit part overlaps the held-out part by a block"),
+    ("piezo_valve_ros/core/identification/residual.py",
+     "            failing = [n for n in current if not verdicts[n][2]]",
+     "            failing = []",
+     "identification: the confirmation never drops an effect"),
+    ("piezo_valve_ros/core/identification/search.py",
+     "    return cut, explained, (cut >= GAIN_THRESHOLD and explained >= MIN_EFFECT_NOISE_RATIO * noise_um",
+     "    return cut, explained, (cut >= 0.0 and explained >= MIN_EFFECT_NOISE_RATIO * noise_um",
+     "identification: an effect is supported by any cut of the held-out error"),
+    ("piezo_valve_ros/nodes/hardware.py",
+     "        if silent < self.command_timeout_s:",
+     "        if silent < 10 * self.command_timeout_s:",
+     "hardware: the watchdog waits ten times its timeout"),
+    ("piezo_valve_ros/nodes/hardware.py",
+     "        if v < self.command_min_v or v > self.command_max_v:",
+     "        if v < self.command_min_v or v > self.command_max_v + 1.0:",
+     "hardware: commands up to 1 V above the range pass unclamped"),
+    ("piezo_valve_ros/faults.py",
+     "        if not np.isfinite(rows).all():",
+     "        if False:",
+     "faults: non-finite samples pass"),
+    ("piezo_valve_ros/faults.py",
+     "        if frozen_s >= self.limits.stuck_time_s and span >= self.limits.stuck_command_span_v:",
+     "        if frozen_s >= 10 * self.limits.stuck_time_s and span >= self.limits.stuck_command_span_v:",
+     "faults: a frozen sensor tolerated ten times longer"),
+    ("piezo_valve_ros/nodes/hardware.py",
+     "        if self.fault is not None:\n            self.refused_in_fault += 1",
+     "        if False:\n            self.refused_in_fault += 1",
+     "hardware: commands applied while in fault"),
+    ("piezo_valve_ros/nodes/controller.py",
+     "        if not self.enabled or self.hardware_fault is not None:",
+     "        if not self.enabled:",
+     "controller: keeps integrating while the hardware is in fault"),
+    ("piezo_valve_ros/core/monitoring/health.py",
+     "        if ratio < self.limits.warn_ratio:",
+     "        if ratio < 3 * self.limits.warn_ratio:",
+     "monitor: warns at three times its threshold"),
+)
+
+
+def copy_of_head(dest: str) -> None:
+    """The committed tree into ``dest``."""
+    archive = subprocess.run(["git", "-C", ROOT, "archive", "HEAD"], capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", dest], input=archive, check=True)
+
+
+def run_suite(tree: str, marker: str, workers: int) -> tuple[bool, str, float]:
+    """(caught, first failing test or '', seconds) of the suite's ``marker`` part on ``tree``."""
+    env = dict(os.environ, PYTHONPATH=tree, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    started = time.monotonic()
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", "-m", marker,
+                           "-n", str(workers), os.path.join(tree, "test")], cwd=tree, env=env,
+                          capture_output=True, text=True)
+    failed = [line.split(" ")[1] for line in proc.stdout.splitlines() if line.startswith("FAILED ")]
+    return proc.returncode != 0, (failed[0].split("::", 1)[-1] if failed else ""), time.monotonic() - started
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--markdown", help="also write the table here")
+    ap.add_argument("--full", action="store_true", help="run the slow tests on what the quick suite missed")
+    ap.add_argument("--only", type=int, nargs="*", help="mutant numbers (1-based)")
+    ap.add_argument("--workers", type=int, default=3)
+    args = ap.parse_args()
+    rows = []
+    for k, (path, old, new, what) in enumerate(MUTANTS, 1):
+        if args.only and k not in args.only:
+            continue
+        with tempfile.TemporaryDirectory(prefix=f"mutant{k}_") as tree:
+            copy_of_head(tree)
+            target = os.path.join(tree, path)
+            text = open(target).read()
+            if text.count(old) != 1:
+                raise SystemExit(f"mutant {k}: the line is not in {path} exactly once: {old!r}")
+            open(target, "w").write(text.replace(old, new))
+            caught, first, seconds = run_suite(tree, "not slow", args.workers)
+            full = ""
+            if args.full and not caught:
+                slow_caught, slow_first, slow_s = run_suite(tree, "slow", args.workers)
+                full = f"{'caught: ' + slow_first if slow_caught else 'missed'} ({slow_s:.0f} s)"
+            shutil.rmtree(os.path.join(tree, "test", "__pycache__"), ignore_errors=True)
+        rows.append((k, what, path, caught, first, seconds, full))
+        print(f"{k:2d} {'caught' if caught else 'MISSED'} {seconds:5.0f} s  {what}  {first}", flush=True)
+    lines = [f"Output of `python bench/mutants.py{' --full' if args.full else ''}`: each mutant is one plausible "
+             f"one-line bug in the safety and judgement paths, applied to a copy of the committed tree; the quick "
+             f"suite (`-m \"not slow\"`, stopping at the first failure) is run on it"
+             + (", and the slow tests where the quick suite missed it" if args.full else "") + ".", "",
+             "| # | mutant | file | quick suite | first failing test | s |" + (" slow tests |" if args.full else ""),
+             "|---|---|---|---|---|---|" + ("---|" if args.full else "")]
+    for k, what, path, caught, first, seconds, full in rows:
+        lines.append(f"| {k} | {what} | `{path}` | {'caught' if caught else 'MISSED'} | {first} | {seconds:.0f} |"
+                     + (f" {full} |" if args.full else ""))
+    caught = sum(r[3] for r in rows)
+    lines += ["", f"{caught} of {len(rows)} mutants caught by the quick suite."]
+    print("\n".join(lines))
+    if args.markdown:
+        with open(args.markdown, "w") as f:
+            f.write("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
