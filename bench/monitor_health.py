@@ -33,11 +33,13 @@ from piezo_valve_ros.core.sim.simulator import DriftParams, SensorParams, Simula
 PID_HC = PIDGains(0.4823, 213.8982, 0.0)
 
 
-def operation(seconds: float, dt: float, drift: DriftParams = DriftParams(), seed: int = 7) -> np.ndarray:
-    """``samples`` rows of the simulated valve under PID HC, built a minute at a time (the controller and the
-    valve carry on between minutes)."""
-    config = replace(ValveSimConfig(dt=dt).ideal(), dynamics_enabled=True, sensor=SensorParams(), drift=drift,
-                     seed=seed)
+def operation(seconds: float, dt: float, drift: DriftParams = DriftParams(), seed: int = 7,
+              config: ValveSimConfig = None) -> np.ndarray:
+    """``samples`` rows of the simulated valve (default: the paper's GPIM and G_v with LVDT noise; ``config``
+    another) under PID HC, built a minute at a time (the controller and the valve carry on between minutes)."""
+    base = replace(ValveSimConfig(dt=dt).ideal(), dynamics_enabled=True, sensor=SensorParams()) if config is None \
+        else config
+    config = replace(base, drift=drift, seed=seed)
     valve = SimulatedValve(config)
     controller = ValveController(ControllerConfig(strategy="pid_hc", gains=PID_HC, dt=dt), CompensationModel())
     controller.reset(5.0)
