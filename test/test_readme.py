@@ -169,6 +169,7 @@ def _expect_bring_up(k: int, out: str, workdir: Path) -> None:
     if k == 3:
         assert "backend: 'loopback'" in out and "clock: 'realtime'" in out, out
         assert "20.00 um" in out and "valve_hardware" in out and "valve_controller" in out, out
+        assert "valve_hardware: reset: no fault" in out, out
     elif k == 4:
         assert "wrote fitted.yaml" in out and "applied together" in out, out
 
