@@ -81,8 +81,11 @@ def run_suite(tree: str, marker: str, workers: int) -> tuple[bool, str, float]:
     """(caught, first failing test or '', seconds) of the suite's ``marker`` part on ``tree``."""
     env = dict(os.environ, PYTHONPATH=tree, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     started = time.monotonic()
+    # (the docs' links are left out: this bench writes one of the files they point at)
     proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", "-m", marker,
-                           "-n", str(workers), os.path.join(tree, "test")], cwd=tree, env=env,
+                           "-n", str(workers), "--deselect",
+                           "test/test_architecture.py::test_every_relative_link_in_the_docs_points_at_a_file",
+                           os.path.join(tree, "test")], cwd=tree, env=env,
                           capture_output=True, text=True)
     failed = [line.split(" ")[1] for line in proc.stdout.splitlines() if line.startswith("FAILED ")]
     return proc.returncode != 0, (failed[0].split("::", 1)[-1] if failed else ""), time.monotonic() - started
