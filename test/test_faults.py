@@ -22,7 +22,7 @@ from piezo_valve_ros.backend_kit import FaultInjectingBackend, check_backend
 from piezo_valve_ros.backends import SimBackend
 from piezo_valve_ros.core.sim.simulator import ValveSimConfig
 from piezo_valve_ros.faults import FaultLimits, SampleCheck
-from piezo_valve_ros.nodes.common import COMMAND_QOS, STATE_QOS, make_executor
+from piezo_valve_ros.nodes.common import COMMAND_QOS, SENSOR_QOS, STATE_QOS, make_executor
 from piezo_valve_ros.nodes.controller import ValveControllerNode
 from piezo_valve_ros.nodes.hardware import ValveHardwareNode
 
@@ -392,4 +392,53 @@ def test_a_rig_tracking_through_a_fault_goes_safe_and_tracks_again_after_reset(r
         hw.shutdown_safely()
         for node in (hw, ctl, other):
             node.destroy_node()
+        executor.shutdown()
+
+
+@pytest.mark.parametrize("fault, kind", [("nan", "non_finite_sample"), ("write_raises", "write_failed")])
+def test_a_lockstep_rig_in_fault_runs_no_period_and_says_nothing_as_a_position(ros_context, fault, kind):
+    """In lockstep a command advances the simulated valve a period; NaN samples or a failing write latch the
+    fault, and then neither commands, the watchdog, nor the repeat of an unanswered position publish a position,
+    while the state says fault."""
+    ns = f"/faults{os.getpid()}_{next(_ids)}"
+    daq = FaultInjectingBackend(SimBackend(ValveSimConfig(dt=1e-4, seed=2)))
+    hw = ValveHardwareNode(backend=daq, namespace=ns, parameter_overrides=[
+        Parameter("clock", value="lockstep"), Parameter("command_timeout_s", value=0.2),
+        Parameter("diagnostics_period_s", value=0.0)])
+    other = rclpy.create_node("lockstep_probe", namespace=ns)
+    positions, states = [], []
+    other.create_subscription(Float64, "spool_position", lambda m: positions.append(m.data), SENSOR_QOS)
+    other.create_subscription(String, "hardware_state", lambda m: states.append(m.data), STATE_QOS)
+    commands = other.create_publisher(Float64, "voltage_command", COMMAND_QOS)
+    executor = make_executor()
+    executor.add_node(hw)
+    executor.add_node(other)
+
+    def spin(seconds, until=lambda: False):
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline and not until():
+            executor.spin_once(timeout_sec=0.01)
+        return until()
+    try:
+        assert spin(5.0, lambda: len(positions) >= 1)          # y_0 once the commander is matched
+        for k in range(20):
+            n = len(positions)
+            commands.publish(Float64(data=5.0 + 0.05 * k))
+            assert spin(2.0, lambda: len(positions) > n)
+        daq.inject(fault)
+        commands.publish(Float64(data=6.0))
+        assert spin(2.0, lambda: hw.fault is not None) and hw.fault.kind == kind
+        after = len(positions)
+        for _ in range(5):
+            commands.publish(Float64(data=6.5))
+        spin(1.5)                                               # the watchdog's and the repeat's time
+        assert len(positions) == after and all(math.isfinite(p) for p in positions)
+        assert states[-1].startswith(f"fault: {kind}")
+        assert daq.writes[-1] == SAFE_V if fault == "nan" else daq.writes[-1] == pytest.approx(5.95)
+    finally:
+        executor.remove_node(hw)
+        executor.remove_node(other)
+        hw.shutdown_safely()
+        hw.destroy_node()
+        other.destroy_node()
         executor.shutdown()

@@ -480,11 +480,14 @@ class ValveHardwareNode(Node):
         except Exception:
             return False
 
-    def _while_in_fault(self) -> None:
-        """Each period in fault: the safe voltage again until a write succeeds; the backend drained."""
+    def _retry_safe_voltage(self) -> None:
         if not self._safe_written and self._try_safe_voltage():
             self._safe_written = True
             self.get_logger().error(f"in fault {self.fault.kind}: safe voltage {self.safe_voltage} V applied at last")
+
+    def _while_in_fault(self) -> None:
+        """Each period in fault: the safe voltage again until a write succeeds; the backend drained."""
+        self._retry_safe_voltage()
         try:
             self.backend.read_samples()
         except Exception:
@@ -529,6 +532,9 @@ class ValveHardwareNode(Node):
         return bool(self.position_pub.get_subscription_count() and self._command_sub.get_publisher_count())
 
     def _lockstep_idle(self) -> None:
+        if self.fault is not None:   # no period runs and nothing is said again until ~/reset
+            self._retry_safe_voltage()
+            return
         if self.periods == 0:
             self._publish_first_sample_when_settled()
         elif self.step_budget != 0 and self._check_watchdog():
