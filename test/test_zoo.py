@@ -6,6 +6,7 @@ Cases it does not yet judge right are marked so, with why: strict, so a fix show
 """
 import pytest
 
+from shared import computed_once
 from valve_zoo import CASES
 
 from piezo_valve_ros.core.identification.records import Record
@@ -19,11 +20,15 @@ NOT_YET = {
 
 
 def _run(case):
-    train, validate = case.records(1)
-    lines: list[str] = []
-    analysis = analyse(Record(train[:, 0], train[:, 1], train[:, 2]),
-                       Record(validate[:, 0], validate[:, 1], validate[:, 2]), log=lines.append)
-    return analysis.report, lines
+    """(report, log lines) of the case's first record, computed once per test run."""
+    def compute():
+        train, validate = case.records(1)
+        lines: list[str] = []
+        analysis = analyse(Record(train[:, 0], train[:, 1], train[:, 2]),
+                           Record(validate[:, 0], validate[:, 1], validate[:, 2]), log=lines.append)
+        return analysis.report, lines
+    name = next(n for n, c in CASES.items() if c is case)
+    return computed_once(f"test_zoo._run({name!r})", compute)
 
 
 @pytest.mark.slow
