@@ -269,7 +269,7 @@ class ValveControllerNode(Node):
 
     def _on_hardware_state(self, msg: String) -> None:
         """The hardware's state: while it is in fault no period runs (the integrator holds); when it leaves it,
-        control starts afresh from the safe voltage it applied (the centre voltage by default), bumpless."""
+        control starts afresh from the controller's centre voltage (the hardware's default safe voltage)."""
         fault = None if msg.data == "ok" else msg.data
         if fault == self.hardware_fault:
             return
