@@ -7,8 +7,10 @@ first occurred) and left only when told (its ``~/reset`` service, ``valve_comman
 ``write_failed``      the backend raised while writing a voltage
 ``non_finite_sample`` a sample's time, command or position is NaN or infinite
 ``implausible_sample`` a position beyond ``fault.position_limit_m`` (no spool travels that far)
-``stuck_sensor``      the position did not change at all for ``fault.stuck_time_s`` while the command moved over
-                      ``fault.stuck_command_span_v`` (a frozen reading; any live sensor's noise or motion changes it)
+``stuck_sensor``      the position has not changed at all for ``fault.stuck_time_s`` since the command moved over
+                      ``fault.stuck_command_span_v`` with the reading unchanged (a frozen reading; any live
+                      sensor's noise, or the spool's answer to a volt within milliseconds, changes it; a noise-free
+                      sensor at rest repeats its reading until the command moves, and answers at once when it does)
 ``no_samples``        the backend returned no samples for ``fault.missing_samples_s`` on the wall clock
 
 No ROS import: the checks run on the rows a backend returns (time [s], command [V], position [m]).
@@ -76,6 +78,7 @@ class SampleCheck:
         self._unchanged_since_s = math.nan      # sample time the position last changed
         self._command_lo = math.inf
         self._command_hi = -math.inf
+        self._moved_at_s = math.nan             # sample time the command had moved over the span, reading unchanged
 
     def check(self, rows: np.ndarray) -> Optional[tuple[str, str]]:
         """Rows (k, 3) of time [s], command [V], position [m] from one read.  A few microseconds per period: the
@@ -97,11 +100,13 @@ class SampleCheck:
         if last != before:                     # changed at the last sample (a live sensor's usual period)
             self._unchanged_since_s = float(rows[-1, 0])
             self._command_lo = self._command_hi = float(rows[-1, 1])
+            self._moved_at_s = math.nan
         elif lo != hi or (last != self._last_position and not math.isnan(self._last_position)):
             k = int(np.flatnonzero(np.diff(position))[-1]) + 1 if lo != hi else 0   # the row it last changed at
             self._unchanged_since_s = float(rows[k, 0])
             tail = rows[k:, 1]
             self._command_lo, self._command_hi = float(tail.min()), float(tail.max())
+            self._moved_at_s = math.nan
         else:                                  # the same reading all through (or the first read)
             if math.isnan(self._unchanged_since_s):
                 self._unchanged_since_s = float(rows[0, 0])
@@ -109,9 +114,12 @@ class SampleCheck:
             self._command_lo = min(self._command_lo, float(command.min()))
             self._command_hi = max(self._command_hi, float(command.max()))
         self._last_position = last
-        frozen_s = float(rows[-1, 0]) - self._unchanged_since_s
+        now_s = float(rows[-1, 0])
         span = self._command_hi - self._command_lo
+        if span >= self.limits.stuck_command_span_v and math.isnan(self._moved_at_s):
+            self._moved_at_s = now_s
+        frozen_s = now_s - self._moved_at_s    # frozen since the command moved (NaN: it has not)
         if frozen_s >= self.limits.stuck_time_s and span >= self.limits.stuck_command_span_v:
-            return "stuck_sensor", (f"position frozen at {1e6 * last:.3f} um for {frozen_s:.2f} s "
-                                    f"while the command moved over {span:.2f} V")
+            return "stuck_sensor", (f"position frozen at {1e6 * last:.3f} um for {now_s - self._unchanged_since_s:.2f} s, "
+                                    f"{frozen_s:.2f} s of it since the command moved over {span:.2f} V")
         return None

@@ -67,8 +67,8 @@ HARDWARE_PARAMETERS: tuple[ParameterSpec, ...] = (
     *realtime_specs(),
     ParameterSpec("fault.position_limit_m", FaultLimits.position_limit_m, "a position beyond +- this is implausible: "
                   "fault [m]", read_only=True, low=1e-5, high=1.0),
-    ParameterSpec("fault.stuck_time_s", FaultLimits.stuck_time_s, "a position that does not change at all for this "
-                  "long while the command moves over fault.stuck_command_span_v: stuck sensor, fault [s]",
+    ParameterSpec("fault.stuck_time_s", FaultLimits.stuck_time_s, "a position that has not changed at all for this "
+                  "long since the command moved over fault.stuck_command_span_v: stuck sensor, fault [s]",
                   read_only=True, low=0.05, high=10.0),
     ParameterSpec("fault.stuck_command_span_v", FaultLimits.stuck_command_span_v, "see fault.stuck_time_s [V]",
                   read_only=True, low=0.05, high=100.0),
