@@ -453,3 +453,21 @@ def test_a_lockstep_rig_in_fault_runs_no_period_and_says_nothing_as_a_position(r
         hw.destroy_node()
         other.destroy_node()
         executor.shutdown()
+
+
+def test_the_watchdog_applies_the_safe_voltage_at_its_timeout_not_later(rig):
+    """Commands stop (timeout 0.5 s): 0.3 s later the last command still holds, 0.8 s later the safe voltage is
+    applied and /diagnostics says why (the wall clock: the watchdog's own)."""
+    rig.run(50, lambda k: 7.0)
+    last = time.monotonic()
+
+    def ticks_until(seconds):
+        while time.monotonic() - last < seconds:
+            rig.run(1)
+            time.sleep(PERIOD_S)
+    ticks_until(0.3)
+    assert rig.daq.writes[-1] == 7.0 and "watchdog" not in rig.health()[1]
+    ticks_until(0.8)
+    assert rig.daq.writes[-1] == SAFE_V
+    level, message = rig.health()
+    assert level == b"\x02" and message.startswith("watchdog: no valid command for 0.5 s"), message
