@@ -102,7 +102,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--markdown", help="also write the table here")
     ap.add_argument("--full", action="store_true", help="run the slow tests on what the quick suite missed")
-    ap.add_argument("--only", type=int, nargs="*", help="mutant numbers (1-based)")
+    ap.add_argument("--only", type=int, nargs="*", help="mutant numbers (1-based); with --markdown the other rows "
+                                                          "are kept from the file as it is")
     ap.add_argument("--workers", type=int, default=3)
     args = ap.parse_args()
     rows = []
@@ -133,8 +134,13 @@ def main() -> int:
     for k, what, path, caught, first, seconds, full in rows:
         lines.append(f"| {k} | {what} | `{path}` | {'caught' if caught else 'MISSED'} | {first} | {seconds:.0f} |"
                      + (f" {full} |" if args.full else ""))
-    caught = sum(r[3] for r in rows)
-    lines += ["", f"{caught} of {len(rows)} mutants caught by the quick suite."]
+    if args.only and args.markdown and os.path.exists(args.markdown):   # the rows not rerun, as they were
+        kept = {int(line.split("|")[1]): line for line in open(args.markdown).read().splitlines()
+                if line.startswith("| ") and line.split("|")[1].strip().isdigit()}
+        kept.update({int(line.split("|")[1]): line for line in lines[4:]})
+        lines = lines[:4] + [kept[k] for k in sorted(kept)]
+    caught = sum(" | caught | " in line for line in lines[4:])
+    lines += ["", f"{caught} of {len(lines) - 4} mutants caught by the quick suite."]
     print("\n".join(lines))
     if args.markdown:
         with open(args.markdown, "w") as f:
