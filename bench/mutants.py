@@ -128,7 +128,9 @@ def main() -> int:
     lines = [f"Output of `python bench/mutants.py{' --full' if args.full else ''}`: each mutant is one plausible "
              f"one-line bug in the safety and judgement paths, applied to a copy of the committed tree; the quick "
              f"suite (`-m \"not slow\"`, stopping at the first failure) is run on it"
-             + (", and the slow tests where the quick suite missed it" if args.full else "") + ".", "",
+             + (", and the slow tests where the quick suite missed it" if args.full else "") + "."
+             + (f" Mutant(s) {', '.join(map(str, args.only))} re-run on a later commit than the others."
+                if args.only else ""), "",
              "| # | mutant | file | quick suite | first failing test | s |" + (" slow tests |" if args.full else ""),
              "|---|---|---|---|---|---|" + ("---|" if args.full else "")]
     for k, what, path, caught, first, seconds, full in rows:
