@@ -471,3 +471,13 @@ def test_the_watchdog_applies_the_safe_voltage_at_its_timeout_not_later(rig):
     assert rig.daq.writes[-1] == SAFE_V
     level, message = rig.health()
     assert level == b"\x02" and message.startswith("watchdog: no valid command for 0.5 s"), message
+
+
+@pytest.mark.parametrize("command, applied", [(10.5, 10.0), (10.001, 10.0), (-0.5, 0.0), (9.999, 9.999)])
+def test_a_command_just_beyond_the_range_is_clamped_to_it(rig, command, applied):
+    """The command range is 0..10 V: a command a little beyond it is applied at the limit and counted, one inside
+    it as it is."""
+    rig.run(5, lambda k: 5.0)
+    rig.run(1, lambda k: command)
+    assert rig.daq.writes[-1] == pytest.approx(applied, abs=1e-12)
+    assert rig.hw.clamped == (0 if command == applied else 1)
