@@ -263,6 +263,26 @@ def test_command_range_update_moves_static_gain_and_demand_limits(controller):
     assert ctl.controller.config.command_min_v == 2.0
 
 
+def test_a_model_that_knows_part_of_the_drive_loads_with_its_command_range_in_one_update(controller):
+    """A fitted model of a record over 2.94..7.01 V and the command range it knows (1.93..8.02 V), in one update,
+    as valve_command load sends a valve_identify/valve_tune file: applied together (the model alone does not suit
+    0..10 V, the range alone not the old model's checks); the model alone is refused with the range to set."""
+    from piezo_valve_ros.core.control.compensation import CompensationModel, command_range_for
+    ctl = controller(gain_set="pid_hc_2")
+    fitted = (2.9396, 7.009)
+    lo, hi = command_range_for(fitted, 0.0, 10.0, 5.0)
+    model = CompensationModel(fitted_range_v=fitted).to_parameters()
+    alone = ctl.set_parameters_atomically([Parameter(k, value=v) for k, v in model.items()])
+    assert not alone.successful and "limit command_min_v/command_max_v" in alone.reason, alone.reason
+    together = ctl.set_parameters_atomically([Parameter(k, value=v) for k, v in model.items()]
+                                             + params(command_min_v=round(lo + 1e-4, 4), command_max_v=round(hi - 1e-4, 4)))
+    assert together.successful, together.reason
+    assert ctl.controller.config.command_min_v == round(lo + 1e-4, 4)
+    assert ctl.controller.compensation.fitted_range_v == fitted
+    v = ctl.on_measurement(0.0)
+    assert ctl.controller.config.command_min_v <= v <= ctl.controller.config.command_max_v
+
+
 # ---------------------------------------------------------------------------- hand-back
 @contextlib.contextmanager
 def beside(node, name: str):

@@ -403,13 +403,18 @@ class ValveControllerNode(Node):
         if "initial_reference_m" in changed:
             return refuse(self, "initial_reference_m applies at start-up only (send position_reference instead)")
         old = ctl.config
+        new_range = (config.command_min_v, config.command_max_v, config.centre_voltage_v)
+        range_changed = new_range != (old.command_min_v, old.command_max_v, old.centre_voltage_v)
         if changed & MODEL_PARAMETERS.keys():
-            ctl.set_model(model)
+            if range_changed:   # together: the new model may know only the new range
+                ctl.set_model_and_command_range(model, *new_range)
+            else:
+                ctl.set_model(model)
             self.get_logger().info(f"new model parameters in use ({describe_inverse(ctl.ff_inverse)})")
             self._check_inverse_cost(ctl)
-        if (config.command_min_v, config.command_max_v, config.centre_voltage_v) != \
-                (old.command_min_v, old.command_max_v, old.centre_voltage_v):
-            ctl.set_command_range(config.command_min_v, config.command_max_v, config.centre_voltage_v)
+        elif range_changed:
+            ctl.set_command_range(*new_range)
+        if range_changed:
             self.get_logger().info(f"command range {config.command_min_v:g}..{config.command_max_v:g} V "
                                    f"(centre {config.centre_voltage_v:g} V) in use (bumpless)")
         if config.derivative_filter_s != old.derivative_filter_s:

@@ -355,6 +355,26 @@ class ValveController:
         self.last_command_v = min(max(self.last_command_v, command_min_v), command_max_v)
         self._transfer(self.config.strategy)
 
+    def set_model_and_command_range(self, compensation: CompensationModel, command_min_v: float,
+                                    command_max_v: float, centre_voltage_v: float) -> None:
+        """A new model and a new command range [V] together (a fitted model and the range it knows, from one
+        parameters file): validated together, all or nothing; either alone may not suit the other one in force."""
+        new = replace(self.config, command_min_v=command_min_v, command_max_v=command_max_v,
+                      centre_voltage_v=centre_voltage_v)
+        problems = new.problems() or compensation.problems(command_min_v, command_max_v, new.dt)
+        if problems:
+            raise ValueError("; ".join(problems))
+        old = self.config
+        self.config = new
+        try:
+            self.set_model(compensation)
+        except Exception:
+            self.config = old
+            self._setup_model()
+            raise
+        self.last_command_v = min(max(self.last_command_v, command_min_v), command_max_v)
+        self._transfer(self.config.strategy)
+
     def set_derivative_filter(self, time_constant_s: float) -> None:
         """New time constant [s] of the D term's filter; the filter's present output carries on (bumpless)."""
         new = replace(self.config, derivative_filter_s=time_constant_s)
