@@ -280,7 +280,10 @@ def test_realtime_hardware_process_watchdog_and_sigterm(ros_context, tmp_path):
     # never early: the watchdog's own silence, from the last command's arrival (a busy box may apply a
     # command a few ticks after it arrived, so the samples alone cannot show this bound)
     silent_s = float(re.search(r"no valid command for ([0-9.]+) s", log).group(1))
-    assert timeout - 1e-3 <= silent_s <= timeout + period + 0.05, silent_s
+    # ... nor late by more than a tick that came late: the loop's longest stall (a loaded machine may not run
+    # the process for a second; no watchdog in it can fire meanwhile), as its shutdown line reports it
+    stall_s = 1e-3 * float(re.search(r"stalls > 2 periods \(longest ([0-9.]+) ms\)", log).group(1))
+    assert timeout - 1e-3 <= silent_s <= timeout + period + max(0.05, stall_s + 0.01), (silent_s, stall_s)
     # ... and the valve held the last command until then: at most a period (+ scheduling) after it
     assert 0.5 * timeout <= held_s <= silent_s + period + 0.05, (held_s, silent_s)
     assert "safe_voltage 5.0 V applied; loop:" in log and "commands in time" in log
