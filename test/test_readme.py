@@ -157,10 +157,12 @@ def _expect_tour(k: int, out: str, workdir: Path) -> None:
         steps = json.loads((workdir / "identification_runs/summary.json").read_text())["steps"]
         assert [s["step"] for s in steps] == ["validate", "train", "refit", "validate"], steps
         assert steps[2]["ok"] and steps[2]["pushed"], steps[2]
-        # open loop with the inverse tracks the ~95 um demand within about 1 % RMS on the refit; the first
+        # open loop with the inverse tracks the ~95 um demand within a few % RMS on the refit; the first
         # validation runs on block 2's model, which knows only the voltages the tour's short record drove (on a
         # loaded machine fewer: the commands then stop where the model ends, a few um RMS)
-        assert steps[3]["rms_um"] < 1.0 and steps[0]["rms_um"] < 10.0, steps
+        # (the plan's compressed experiments on a loaded machine give a refit of 0.5-1.9 um RMS on the ~95 um
+        # demand; a broken refit or push gives tens of um)
+        assert steps[3]["rms_um"] < 5.0 and steps[0]["rms_um"] < 10.0, steps
     elif k == 5:   # the monitor's verdict in the status
         assert re.search(r"valve_monitor.*\b(OK|WARN|ERROR)\b", out), out
 
