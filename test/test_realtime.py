@@ -303,15 +303,20 @@ def test_valve_composed_process_runs_10khz_on_the_wall_clock_and_stops_on_sigter
         while ref.get_subscription_count() == 0 or not rows:
             assert time.monotonic() < deadline, open(tmp_path / "composed.log").read()
             executor.spin_once(timeout_sec=0.05)
-        spin_for(executor, 0.5)  # the node's side of the match may lag ours (a message before it is dropped)
-        ref.publish(Float64(data=-25e-6))
+        # the node's side of the match may lag ours on a loaded machine (a message before it is dropped):
+        # the reference is repeated until the spool moves (a repeated reference changes nothing)
+        deadline = time.monotonic() + 20
+        while rows[-1][-1, 2] > -5e-6:
+            assert time.monotonic() < deadline, open(tmp_path / "composed.log").read()
+            ref.publish(Float64(data=-25e-6))
+            spin_for(executor, 0.2)
         spin_for(executor, 1.0)
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(10) == 0
     data = np.concatenate(rows)
-    assert abs(data[-1, 2] * 1e6 + 25.0) < 1.0  # settled on the reference (the loop ran at 10 kHz)
-    np.testing.assert_allclose(np.diff(data[:, 0]), 1e-4, atol=1e-12)
     log = open(tmp_path / "composed.log").read()
+    assert abs(data[-1, 2] * 1e6 + 25.0) < 1.0, log  # settled on the reference (the loop ran at 10 kHz)
+    np.testing.assert_allclose(np.diff(data[:, 0]), 1e-4, atol=1e-12)
     assert "position and command pass by function call" in log
     assert "safe_voltage 5.0 V applied; loop:" in log and "unanswered 0, late 0" in log
 
