@@ -21,6 +21,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from .core.defaults import CONTROL_PERIOD_S
 from .backends import ValveBackend
 
 __all__ = ["check_backend", "FaultInjectingBackend", "INJECTABLE_FAULTS"]
@@ -29,7 +30,7 @@ INJECTABLE_FAULTS = ("read_raises", "read_raises_once", "nan", "write_raises", "
 TIME_TOLERANCE = 0.01   # sample instants within 1 % of a sample period of the grid
 
 
-def check_backend(make: Callable[[], ValveBackend], seconds: float = 0.3, period_s: float = 1e-3,
+def check_backend(make: Callable[[], ValveBackend], seconds: float = 0.3, period_s: float = CONTROL_PERIOD_S,
                   voltages: tuple[float, ...] = (5.0, 6.0, 4.0)) -> list[str]:
     """Every way the backend ``make()`` returns breaks the contract (empty: it keeps it).  It is opened, each of
     ``voltages`` [V] is written in turn for a share of ``seconds`` while ``read_samples`` is called every

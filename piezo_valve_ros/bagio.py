@@ -21,6 +21,8 @@ from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.rosbag2.metadata import dump_qos_v9
 from rosbags.typesys import Stores, get_typestore
 
+from .core.defaults import BAG_STORAGE
+from .core.errors import PiezoValveError
 from .params_yaml import dump as dump_yaml, load as load_yaml
 from .samples import SAMPLES_COLUMNS, SAMPLES_LABEL, SamplesLayoutError, decode_samples
 
@@ -35,7 +37,7 @@ CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
 
-class BagError(RuntimeError):
+class BagError(PiezoValveError, RuntimeError):
     """A bag that cannot be written or read (one-line message)."""
 
 
@@ -71,7 +73,7 @@ class BagRecorder:
     rclpy subscription with ``raw=True``) and a receive time in ns.
     """
 
-    def __init__(self, path: str | os.PathLike, topics: dict[str, tuple[str, Qos]], storage: str = "mcap",
+    def __init__(self, path: str | os.PathLike, topics: dict[str, tuple[str, Qos]], storage: str = BAG_STORAGE,
                  segment_s: float = 1.0, clock: Callable[[], float] = time.monotonic):
         if storage not in STORAGES:
             raise BagError(f"unknown storage {storage!r}; use one of {', '.join(STORAGES)}")
@@ -186,7 +188,7 @@ class BagRecorder:
         os.replace(tmp, self.path / "metadata.yaml")
 
 
-def write_samples_bag(path, rows: np.ndarray, topic: str = "/samples", storage: str = "mcap",
+def write_samples_bag(path, rows: np.ndarray, topic: str = "/samples", storage: str = BAG_STORAGE,
                       batch: int = 1000, start_ns: int = 1_700_000_000_000_000_000,
                       label: str = SAMPLES_LABEL) -> None:
     """A bag holding ``rows`` on a ``samples`` topic (offline use and tests)."""

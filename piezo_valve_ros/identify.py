@@ -16,6 +16,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from .core.errors import PiezoValveError
 from .bagio import read_samples
 from .core.control.compensation import CompensationModel, command_range_for
 from .core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
@@ -33,7 +34,7 @@ __all__ = ["identify_bags", "read_record", "Compensation", "compensation", "base
 CONTROLLER_NODE = "valve_controller"   # the node whose section a parameters file carries
 
 
-class ParametersFileError(ValueError):
+class ParametersFileError(PiezoValveError, ValueError):
     """A parameters file that cannot be read or has no usable ``valve_controller`` section."""
 
 

@@ -17,11 +17,10 @@ import argparse
 import sys
 from dataclasses import replace
 
-from .bagio import BagError
-from .core.identification.records import HELD_OUT_FRACTION, IdentificationError
+from .core.identification.records import HELD_OUT_FRACTION
 from .core.monitoring.health import WINDOW_S, HealthLimits
 from .tool import run_tool
-from .identify import (ParametersFileError, command_range_note, compensation, controller_parameters_yaml, health_json,
+from .identify import (command_range_note, compensation, controller_parameters_yaml, health_json,
                        identify_bags, monitor_record, report_json, write_outputs)
 
 __all__ = ["main"]
@@ -77,7 +76,7 @@ def main(argv=None) -> int:
             if args.report:
                 lines += [f"wrote {p}" for p in write_outputs({args.report: health_json(verdicts, str(args.train_bag))})]
             return lines
-        return run_tool("valve_identify", judge, (BagError, IdentificationError, ParametersFileError))
+        return run_tool("valve_identify", judge)
 
     def work() -> list[str]:
         if args.plots:
@@ -97,7 +96,7 @@ def main(argv=None) -> int:
         if args.plots:
             written += plots.write_all(analysis, args.plots, log)
         return [_summary(report)] + notes + [f"wrote {path}" for path in written]
-    return run_tool("valve_identify", work, (BagError, IdentificationError))
+    return run_tool("valve_identify", work)
 
 if __name__ == "__main__":
     sys.exit(main())

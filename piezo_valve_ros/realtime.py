@@ -13,6 +13,7 @@ import sys
 from dataclasses import dataclass
 from typing import Any, Sequence
 
+from .core.errors import PiezoValveError
 from .core.validation import as_float, as_int
 
 DEFAULT_SWITCH_INTERVAL_S = 5e-5           # CPython's GIL switch interval in real-time processes (its default: 5 ms)
@@ -20,7 +21,7 @@ SWITCH_INTERVAL_RANGE_S = (1e-6, 0.005)
 PRIORITY_RANGE = (0, 98)                   # SCHED_FIFO priority; 0 = the normal scheduler; 99 is left to the kernel
 
 
-class RealtimeError(ValueError):
+class RealtimeError(PiezoValveError, ValueError):
     """A real-time setting that is invalid, or that this process may not have (the reason says which)."""
 
 

@@ -6,13 +6,15 @@ from typing import Sequence
 
 import numpy as np
 
+from .core.errors import PiezoValveError
+
 __all__ = ["SAMPLES_COLUMNS", "SAMPLES_LABEL", "SamplesLayoutError", "decode_samples"]
 
 SAMPLES_COLUMNS = ("time", "voltage_command", "spool_position")   # [s], [V], [m]
 SAMPLES_LABEL = ",".join(SAMPLES_COLUMNS)                         # the label of the column dimension
 
 
-class SamplesLayoutError(ValueError):
+class SamplesLayoutError(PiezoValveError, ValueError):
     """A samples message whose layout or size is not the contract's (one-line reason)."""
 
 

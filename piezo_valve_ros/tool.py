@@ -7,16 +7,18 @@ from __future__ import annotations
 import sys
 from typing import Callable
 
+from .core.errors import PiezoValveError
+
 __all__ = ["run_tool"]
 
 
-def run_tool(prog: str, work: Callable[[], list[str]], bad_input: tuple[type[BaseException], ...]) -> int:
+def run_tool(prog: str, work: Callable[[], list[str]], bad_input: tuple[type[BaseException], ...] = ()) -> int:
     """Run ``work`` (it returns the lines to print when it succeeds); any failure ends with one line on
-    stderr and never a traceback.  Exit codes: 0 done, 2 ``bad_input`` or an OSError (a path), 130
-    interrupted (nothing written), 1 anything else."""
+    stderr and never a traceback.  Exit codes: 0 done, 2 bad input (a ``PiezoValveError``, one of
+    ``bad_input`` or an OSError: a path), 130 interrupted (nothing written), 1 anything else."""
     try:
         lines = work()
-    except (*bad_input, OSError) as exc:
+    except (PiezoValveError, *bad_input, OSError) as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -19,18 +19,18 @@ import json
 from dataclasses import replace
 import sys
 
+from .core.defaults import CONTROL_PERIOD_S
 from .core.control.compensation import CompensationModel
 from .core.control.strategies import TABLE1_GAINS, loop_settings
 from .core.control.forward import ModelValve
 from .core.tuning.tuner import (MAX_NOISE_GAIN, MIN_CROSSOVER_HZ, MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG, OVERSHOOT_LIMIT_PCT,
-                          TUNABLE_STRATEGIES, TuningError, TuningLimits, loop_margins, step_score, tune)
+                          TUNABLE_STRATEGIES, TuningLimits, loop_margins, step_score, tune)
 from .core.sim.signals import PAPER_STEPS_UM
 from .identify import ParametersFileError, parameters_yaml, read_parameters_file, write_outputs
 from .tool import run_tool
 
 __all__ = ["main"]
 
-DEFAULT_PERIOD_S = 1e-3   # the controller's default control period
 
 
 def _steps_text(score) -> list[str]:
@@ -47,7 +47,7 @@ def main(argv=None) -> int:
                                         "(valve_identify --params-out)")
     ap.add_argument("--strategy", default="pid_hc", choices=TUNABLE_STRATEGIES)
     ap.add_argument("--control-period-s", type=float, help=f"control period [s] (default: the file's "
-                                                           f"control_period_s, else {DEFAULT_PERIOD_S:g})")
+                                                           f"control_period_s, else {CONTROL_PERIOD_S:g})")
     ap.add_argument("--max-overshoot-pct", type=float, default=OVERSHOOT_LIMIT_PCT)
     ap.add_argument("--min-gain-margin-db", type=float, default=MIN_GAIN_MARGIN_DB)
     ap.add_argument("--min-phase-margin-deg", type=float, default=MIN_PHASE_MARGIN_DEG)
@@ -64,7 +64,7 @@ def main(argv=None) -> int:
 
     def work() -> list[str]:
         params = read_parameters_file(args.params_file)
-        config = loop_settings(params, args.strategy, dt=args.control_period_s, default_dt=DEFAULT_PERIOD_S)
+        config = loop_settings(params, args.strategy, dt=args.control_period_s, default_dt=CONTROL_PERIOD_S)
         dt, v_min, v_max = config.dt, config.command_min_v, config.command_max_v
         try:  # the command range and period are checked by tune(), with the limits
             model = CompensationModel.from_parameters(params, v_min, v_max, dt)
@@ -93,7 +93,7 @@ def main(argv=None) -> int:
         if args.json:
             return [json.dumps({**result.as_dict(), "control_period_s": float(dt), "written": written})]
         return lines + [f"wrote {path}" for path in written]
-    return run_tool("valve_tune", work, (ParametersFileError, TuningError, ValueError))
+    return run_tool("valve_tune", work, (ValueError,))  # a parameter value that is not a number
 
 
 if __name__ == "__main__":

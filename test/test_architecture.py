@@ -10,7 +10,7 @@ PACKAGE = "piezo_valve_ros"
 ROOT = Path(__file__).resolve().parent.parent / PACKAGE
 
 # what each part of the core may import from the rest of the core (besides itself and the shared leaves)
-SHARED_LEAVES = {"core.metrics", "core.validation"}
+SHARED_LEAVES = {"core.metrics", "core.validation", "core.defaults", "core.errors"}
 MAY_IMPORT = {
     "core.model": set(),
     "core.control": {"core.model"},
@@ -168,3 +168,22 @@ def test_the_steady_state_of_a_filter_is_scipys():
         assert np.allclose(steady_state(f.b, f.a), lfilter_zi(f.b, f.a), rtol=1e-12, atol=1e-12)
     # unnormalised, b shorter than a (as scipy takes them)
     assert np.allclose(steady_state([0.0, 0.4], [2.0, -1.2, 0.2]), lfilter_zi([0.0, 0.4], [2.0, -1.2, 0.2]))
+
+
+def test_every_typed_error_shares_the_one_base():
+    """Each ``...Error`` class the package defines derives from ``core.errors.PiezoValveError`` (besides the
+    built-in class it always was), so one ``except`` serves the tools' error handling."""
+    from piezo_valve_ros.core.errors import PiezoValveError
+    from piezo_valve_ros.tool import run_tool
+    errors = {}
+    for path in ROOT.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ClassDef) and node.name.endswith("Error"):
+                errors[f"{_module_name(path)}.{node.name}"] = [ast.unparse(b) for b in node.bases]
+    assert len(errors) >= 9
+    assert not [name for name, bases in errors.items() if "PiezoValveError" not in bases
+                and not name.endswith("errors.PiezoValveError")], errors
+
+    def fails():
+        raise PiezoValveError("bad input")
+    assert run_tool("valve_x", fails) == 2

@@ -19,6 +19,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy, DurabilityPo
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
+from ..core.defaults import CONTROL_PERIOD_S
 from ..samples import SAMPLES_LABEL, decode_samples
 from ..core.validation import as_float
 
@@ -98,7 +99,7 @@ class ParameterSpec:
 
 
 CONTROL_PERIOD = ParameterSpec(
-    "control_period_s", 1e-3, "control period [s]: one spool_position and one command per period (a whole number "
+    "control_period_s", CONTROL_PERIOD_S, "control period [s]: one spool_position and one command per period (a whole number "
     "of the hardware's sample periods); every node of a rig must use the same", read_only=True,
     low=0.0, high=MAX_CONTROL_PERIOD_S)
 

@@ -49,7 +49,8 @@ from rclpy.exceptions import InvalidServiceNameException
 from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Float64
 
-from ..bagio import BagError
+from ..core.defaults import BAG_STORAGE
+from ..bagio import STORAGES, BagError
 from ..core.identification.records import IdentificationError
 from ..core.metrics import error_figures
 from ..core.sim.signals import rig_training_voltage, validation_reference_m
@@ -106,7 +107,7 @@ IDENTIFICATION_PARAMETERS: tuple[ParameterSpec, ...] = (CONTROL_PERIOD,) + tuple
         ("tune_max_overshoot_pct", OVERSHOOT_LIMIT_PCT, "tune: largest overshoot of any paper step [%]"),
         ("time_scale", 1.0, "< 1 compresses the experiments in time (quick runs); 1 = the paper's signals"),
         ("bag_dir", "identification_runs", "one bag per experiment is written below this directory"),
-        ("storage", "mcap", "bag storage: mcap or sqlite3"),
+        ("storage", BAG_STORAGE, f"bag storage: {' or '.join(STORAGES)}"),
         ("params_out", "", "parameters file written by refit (default: <bag_dir>/fitted.yaml)"),
         ("push", True, "push refitted parameters to the controller"),
         ("controller", "valve_controller", "name of the controller node (relative to this namespace)"),
@@ -150,8 +151,8 @@ class ValveIdentificationNode(Node):
         self.validation_strategy = str(p["validation_strategy"])
         self.bag_dir = Path(str(p["bag_dir"]))
         self.storage = str(p["storage"])
-        if self.storage not in ("mcap", "sqlite3"):
-            raise ValueError(f"storage must be mcap or sqlite3, got {self.storage!r}")
+        if self.storage not in STORAGES:
+            raise ValueError(f"storage must be {' or '.join(STORAGES)}, got {self.storage!r}")
         self.params_out = Path(str(p["params_out"]) or self.bag_dir / "fitted.yaml")
         self.push = bool(p["push"])
         self.exit_when_done = bool(p["exit_when_done"])

@@ -22,6 +22,7 @@ import numpy as np
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 
+from ..core.defaults import BAG_STORAGE
 from ..bagio import STORAGES, BagError, read_samples
 from .common import close, init_ros, spin_loop, split_ros_args, stop_requested
 from .recording import RigRecorder
@@ -35,7 +36,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("out", help="bag directory to create (must not exist)")
     ap.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: Ctrl-C)")
     ap.add_argument("--namespace", default="", help="the rig's namespace (default: the root)")
-    ap.add_argument("--storage", default="mcap", choices=sorted(STORAGES), help="storage plugin (default mcap)")
+    ap.add_argument("--storage", default=BAG_STORAGE, choices=sorted(STORAGES), help=f"storage plugin (default {BAG_STORAGE})")
     ap.add_argument("--json", action="store_true", help="end with one JSON object instead of the summary line")
     return ap.parse_args(argv)
 

@@ -17,6 +17,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64, Float64MultiArray
 
+from ..core.defaults import BAG_STORAGE
 from ..bagio import CLOCK_TYPE, FLOAT64_TYPE, SAMPLES_TYPE, BagRecorder, qos_profile
 from .common import COMMAND_QOS, REFERENCE_QOS, SAMPLES_QOS, SENSOR_QOS
 
@@ -34,7 +35,7 @@ class RigRecorder:
     """Subscribes ``node`` to the rig's topics (and ``/clock`` when ``with_clock``); :meth:`start` opens a
     bag, :meth:`stop` closes it.  Messages arriving while no bag is open are not kept."""
 
-    def __init__(self, node: Node, storage: str = "mcap", with_clock: bool = False, roll_period_s: float = 0.2,
+    def __init__(self, node: Node, storage: str = BAG_STORAGE, with_clock: bool = False, roll_period_s: float = 0.2,
                  dds_receive_time: bool = False):
         """``dds_receive_time``: stamp each message with the time DDS received it (what rosbag2 stores),
         not the time the callback ran, which lags whenever the executor is busy; needs an executor that

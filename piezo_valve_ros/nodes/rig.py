@@ -21,6 +21,7 @@ import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from ..core.errors import PiezoValveError
 from ..dds import use_fast_acknowledgements
 from ..core.metrics import step_metrics
 from ..core.sim.signals import PAPER_STEPS_UM
@@ -151,7 +152,7 @@ def rig_gains(args) -> dict:
     return {"gain_set": name} if name else {"strategy": NO_SAFE_SET_STRATEGY, "gain_set": ""}
 
 
-class UsageError(ValueError):
+class UsageError(PiezoValveError, ValueError):
     """Options or a parameters file the rig cannot run with (exit 2, one line)."""
 
 
@@ -219,7 +220,7 @@ READY_TIMEOUT_S = 30.0      # the rig's nodes must answer within this long ...
 READY_CHECK_S = 0.5         # ... and a node that exits meanwhile is noticed within about this long
 
 
-class StartUpError(RuntimeError):
+class StartUpError(PiezoValveError, RuntimeError):
     """A node of the rig ended while the rig came up (one line; the node said why on stderr)."""
 
 

@@ -27,6 +27,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from ..defaults import CONTROL_PERIOD_S
 from ..model.drive import COMMAND_MAX_V, COMMAND_MIN_V
 from ..model.dynamics import PAPER_VALVE_MODEL, ContinuousTF, DiscreteFilter, sections
 from ..model.hysteresis import GPIM, PAPER_GPIM, GPIMParams, inverse_problems
@@ -278,7 +279,7 @@ class CompensationModel:
             map_problems = self.output_map.problems(lo, hi, floor=self.creep.gain_sum if self.creep.active else 0.0)
         out += map_problems
         if self.dynamic_feedforward and not self.valve_model.problems():
-            out += DynamicFeedforward(self.valve_model, 1e-3 if dt is None else dt).problems()
+            out += DynamicFeedforward(self.valve_model, CONTROL_PERIOD_S if dt is None else dt).problems()
         return out
 
     # ------------------------------------------------------------------ the parameter schema

@@ -45,6 +45,7 @@ from dataclasses import dataclass, replace
 from typing import Optional
 
 
+from ..defaults import CONTROL_PERIOD_S, PAPER_CONTROL_PERIOD_S
 from .compensation import CompensationModel, StaticInverse, reference_filters
 from ..model.hysteresis import GPIM, NotInvertibleError
 from ..model.rate_dependence import hysteresis_inverse, swap_inverse, take_over_state
@@ -140,7 +141,7 @@ class ControllerConfig:
 
     strategy: str = "pid_hc"
     gains: PIDGains = PIDGains(1.6879, 748.6437, 0.0)
-    dt: float = 1e-4
+    dt: float = PAPER_CONTROL_PERIOD_S   # the paper's loop; a rig's default is defaults.CONTROL_PERIOD_S
     command_min_v: float = COMMAND_MIN_V
     command_max_v: float = COMMAND_MAX_V
     centre_voltage_v: float = CENTRE_VOLTAGE_V
@@ -172,7 +173,7 @@ LOOP_SETTINGS = ("control_period_s", "command_min_v", "command_max_v", "centre_v
 
 
 def loop_settings(values: dict, strategy: str, gains: PIDGains = PIDGains(), dt: Optional[float] = None,
-                  default_dt: float = 1e-3) -> ControllerConfig:
+                  default_dt: float = CONTROL_PERIOD_S) -> ControllerConfig:
     """A ControllerConfig from ``valve_controller`` parameter values (``LOOP_SETTINGS``; a missing one takes
     ControllerConfig's default, the period ``default_dt`` [s]); ``dt`` overrides the period.  Unchecked (see
     ``ControllerConfig.problems``); ValueError for a value that is not a finite number."""

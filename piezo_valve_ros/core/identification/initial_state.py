@@ -130,7 +130,6 @@ def session_start(model: ValveModel, record: Record, t0: float, bounds: Optional
     _, rest = simple_model.static_output_and_rest(simple_ctx)
     rest = float(simple_model.static_output(simple_ctx)[0]) if rest is None else float(rest)
     offset = 0.0   # the static output G had settled to before the record (rest) [um], the session's offset
-    span = max(float(np.max(U[0] - L[0])), 1e-9)
     k = free_states.size
 
     def started(z_, rest_) -> ValveModel:

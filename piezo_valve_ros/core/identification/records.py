@@ -12,6 +12,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..errors import PiezoValveError
 from ..model.dynamics import scipy_signal
 
 __all__ = ["IdentificationError", "Record", "analysis_record", "split_held_out",
@@ -27,7 +28,7 @@ NOISE_PEAK_WINDOW_S = 0.002  # noise_peak_um: the local cubic spans this long (a
 FALLING_CORRELATION = -0.5   # position and voltage correlated below this: the position falls as the drive rises
 
 
-class IdentificationError(ValueError):
+class IdentificationError(PiezoValveError, ValueError):
     """Data that cannot be identified from (the message says why, in one line)."""
 
 

@@ -21,6 +21,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ..errors import PiezoValveError
 from .drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 __all__ = ["play_bounds", 
@@ -43,7 +44,7 @@ OUTPUT_RANGE_POINTS = 401     # major-loop points behind GPIM.output_range
 ORDER_TOLERANCE_V = 1e-12     # breakpoints out of the operators' order by no more than rounding count as in order
 
 
-class NotInvertibleError(ValueError):
+class NotInvertibleError(PiezoValveError, ValueError):
     """A parameter set that has no analytic inverse (the reason is the message)."""
 
 

@@ -51,6 +51,8 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
+from ..defaults import CONTROL_PERIOD_S
+from ..errors import PiezoValveError
 from ..control.compensation import CompensationModel, reference_filters
 from ..control.forward import ModelValve
 from ..model.dynamics import ContinuousTF, first_order_lag, scipy_signal
@@ -95,7 +97,7 @@ DERIVATIVE_STARTS_S = (0.5e-4, 1e-4, 3e-4)  # kd/kp the search tries on a set wi
 MIN_DERIVATIVE_S = 1e-6        # kd/kp below this [s] is no derivative action: the search sets kd = 0
 
 
-class TuningError(ValueError):
+class TuningError(PiezoValveError, ValueError):
     """The tuner cannot tune this strategy on this model (with the reason)."""
 
 
@@ -585,7 +587,7 @@ class _Tuner:
         problems = limits.problems()
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             problems.append(f"dt must be > 0, got {dt!r}")
-        base = replace(config or ControllerConfig(), strategy=strategy, dt=float(dt) if not problems else 1e-3)
+        base = replace(config or ControllerConfig(), strategy=strategy, dt=float(dt) if not problems else CONTROL_PERIOD_S)
         plant = model if plant is None else plant
         problems += base.problems() + model.problems(base.command_min_v, base.command_max_v, base.dt)
         problems += ([f"plant: {p}" for p in plant.problems(base.command_min_v, base.command_max_v)]
