@@ -14,7 +14,7 @@ from piezo_valve_ros.core.control.compensation import CompensationModel
 from piezo_valve_ros.core.evaluation import simulated_analysis
 from piezo_valve_ros.core.sim.experiments import DEFAULT_SWEEP_HZ, frequency_response, paper_step_tests
 from piezo_valve_ros.core.sim.simulator import ValveSimConfig
-from piezo_valve_ros.core.control.strategies import TABLE1_GAINS, ControllerConfig, PIDGains
+from piezo_valve_ros.core.control.strategies import TABLE1_GAINS, ControllerConfig, PIDGains, has_feedback
 from piezo_valve_ros.core.tuning.tuner import (OVERSHOOT_LIMIT_PCT, TUNABLE_STRATEGIES, dynamics_variants, loop_margins,
                                          outside_limits, robust_overshoot_pct, tune, TuningError)
 from piezo_valve_ros.identify import compensation
@@ -54,7 +54,7 @@ PAPER_T2 = {
 
 
 def config_for(name):
-    if name in ("ol", "ol_hc"):
+    if not has_feedback(name):
         return ControllerConfig(strategy=name, gains=PIDGains(0.0, 0.0))
     strategy, gains = TABLE1_GAINS[name]
     return ControllerConfig(strategy=strategy, gains=gains)

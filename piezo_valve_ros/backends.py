@@ -37,7 +37,7 @@ import numpy as np
 
 from .core.sim.simulator import (AmplifierParams, CreepParams, DriftParams, RateDependenceParams, SaturationParams,
                              SensorParams, SimulatedValve, ValveSimConfig)
-from .core.validation import as_bool, as_float, as_int
+from .core.validation import as_bool, as_float, as_int, whole_periods
 from .core.model.drive import CENTRE_VOLTAGE_V
 
 __all__ = ["ValveBackend", "SimBackend", "BackendParameter", "register_backend", "backend_class",
@@ -127,8 +127,8 @@ class ValveBackend(ABC):
 
 
 def _sensor_delay_samples(delay_s: float, dt: float) -> int:
-    k = round(delay_s / dt)
-    if not 0.0 <= delay_s <= MAX_SENSOR_DELAY_S or abs(k * dt - delay_s) > 1e-9 + 1e-6 * delay_s:
+    k = whole_periods(delay_s, dt)
+    if not 0.0 <= delay_s <= MAX_SENSOR_DELAY_S or k is None:
         raise ValueError(f"sim.sensor_delay_s must be a whole number of sample periods ({dt} s) in "
                          f"[0, {MAX_SENSOR_DELAY_S}] s, got {delay_s}")
     return int(k)

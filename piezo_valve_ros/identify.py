@@ -21,7 +21,7 @@ from .bagio import read_samples
 from .core.control.compensation import CompensationModel, command_range_for
 from .core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 from .core.monitoring.health import Health, HealthLimits, HealthMonitor, Level
-from .params_yaml import YAMLError, load as load_yaml, yaml_value
+from .params_yaml import node_section, yaml_value
 from .core.identification.records import Record, read_csv
 from .core.identification.residual import Analysis, analyse
 from .core.identification.to_controller import (Compensation, base_parameters, baseline_compensation, compensation,
@@ -158,26 +158,15 @@ def controller_parameters_yaml(comp: Compensation, source: str, report: dict, ex
 
 
 def read_parameters_file(path: str | os.PathLike) -> dict:
-    """The ``valve_controller`` parameters of a ROS parameters file (as ``valve_identify --params-out`` writes:
-    a ``ros__parameters`` mapping under ``valve_controller``, ``/**/valve_controller`` or a namespaced name
-    ending in it).  Raises ParametersFileError with the reason."""
+    """The ``valve_controller`` parameters of a ROS parameters file, read as ROS reads it
+    (``params_yaml.node_section``: the ``/**`` section, then every ``valve_controller``, ``/**/valve_controller``
+    or namespaced section ending in it, later ones winning).  Raises ParametersFileError with the reason."""
     try:
-        with open(path) as f:
-            doc = load_yaml(f)
+        return node_section(path, CONTROLLER_NODE)
     except OSError as exc:
         raise ParametersFileError(f"cannot read {path}: {exc.strerror or exc}") from None
-    except YAMLError as exc:
-        raise ParametersFileError(f"{path} is not YAML: {str(exc).splitlines()[0]}") from None
-    if not isinstance(doc, dict):
-        raise ParametersFileError(f"{path}: expected a mapping of node names, got {type(doc).__name__}")
-    sections = [v for k, v in doc.items() if str(k).rstrip("/").split("/")[-1] == CONTROLLER_NODE]
-    if not sections:
-        raise ParametersFileError(f"{path}: no {CONTROLLER_NODE} section (nodes in the file: "
-                                  f"{', '.join(map(str, doc)) or 'none'})")
-    params = sections[0].get("ros__parameters") if isinstance(sections[0], dict) else None
-    if not isinstance(params, dict):
-        raise ParametersFileError(f"{path}: the {CONTROLLER_NODE} section has no ros__parameters mapping")
-    return params
+    except ValueError as exc:
+        raise ParametersFileError(str(exc)) from None
 
 
 def write_atomically(path: str | os.PathLike, text: str) -> None:

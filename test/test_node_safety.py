@@ -663,3 +663,12 @@ def test_hardware_diagnostics_report_the_watchdog(hardware):
         assert "watchdog" in health[-1].message and "safe voltage" in health[-1].message
         values = {kv.key: kv.value for kv in health[-1].values}
         assert values["watchdog"].startswith("fired") and values["clock"] == "realtime"
+
+
+def test_one_rule_says_whether_a_time_is_a_whole_number_of_periods():
+    """The hardware's control period, the simulator's sensor delay and the composed node's two periods are
+    judged by one rule (``core.validation``): equal to rounding, never to a choice."""
+    from piezo_valve_ros.core.validation import same_period, whole_periods
+    assert whole_periods(1e-3, 1e-4) == 10 and whole_periods(0.3e-3, 1e-4) == 3 and whole_periods(0.0, 1e-4) == 0
+    assert whole_periods(1.5e-4, 1e-4) is None and whole_periods(1.0005e-3, 1e-4) is None
+    assert same_period(1e-4, 1e-4 * (1 + 1e-9)) and not same_period(1e-4, 1.0001e-4)

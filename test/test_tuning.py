@@ -198,7 +198,12 @@ def test_valve_tune_fails_with_one_line_and_writes_nothing(tmp_path, capsys):
     other = tmp_path / "other.yaml"
     other.write_text("/**/valve_hardware:\n  ros__parameters:\n    backend: sim\n")
     assert valve_tune([str(other), "--params-out", str(out)]) == 2
-    assert "no valve_controller section" in capsys.readouterr().err
+    assert "no section for valve_controller" in capsys.readouterr().err
+    # read as ROS reads it: the /** section first, then the node's own sections, later ones winning
+    both = _write(tmp_path / "both.yaml", "/**:\n  ros__parameters:\n    control_period_s: 0.002\n    kp: 1.0\n"
+                  "valve_controller:\n  ros__parameters:\n    kp: 2.0\n/rig/valve_controller:\n  ros__parameters:\n"
+                  "    ki: 3.0\n")
+    assert read_parameters_file(both) == {"control_period_s": 0.002, "kp": 2.0, "ki": 3.0}
     with pytest.raises(ParametersFileError, match="not YAML"):
         read_parameters_file(_write(tmp_path / "bad.yaml", "a: [1,\n"))
     src = _model_file(tmp_path / "fitted.yaml", control_period_s=2e-3, derivative_filter_s=1e-3)

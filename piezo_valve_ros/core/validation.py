@@ -5,7 +5,9 @@ from __future__ import annotations
 import math
 from typing import Any
 
-__all__ = ["as_float", "as_int", "as_float_list", "as_bool"]
+__all__ = ["as_float", "as_int", "as_float_list", "as_bool", "PERIOD_TOLERANCE", "whole_periods", "same_period"]
+
+PERIOD_TOLERANCE = 1e-6   # times [s] closer than this share of the longer one are equal (rounding, not a choice)
 
 
 def as_float(name: str, value: Any) -> float:
@@ -41,3 +43,14 @@ def as_bool(name: str, value: Any) -> bool:
     if not isinstance(value, bool):
         raise ValueError(f"{name} must be true or false, got {value!r}")
     return value
+
+
+def whole_periods(span_s: float, period_s: float) -> int | None:
+    """``span_s / period_s`` [s / s] when it is a whole number (to PERIOD_TOLERANCE), else None."""
+    k = round(span_s / period_s)
+    return int(k) if abs(k * period_s - span_s) <= PERIOD_TOLERANCE * max(abs(span_s), period_s) else None
+
+
+def same_period(a_s: float, b_s: float) -> bool:
+    """Whether two periods [s] are the same (to PERIOD_TOLERANCE)."""
+    return abs(a_s - b_s) <= PERIOD_TOLERANCE * max(abs(a_s), abs(b_s))

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import sys
 
+from ..core.validation import same_period
 from ..processes import die_with_parent
 from .common import close, init_ros, print_help, spin, wants_help
 from .controller import ValveControllerNode
@@ -29,7 +30,7 @@ def build(hardware_overrides=(), controller_overrides=(), **node_kwargs) -> tupl
     try:
         controller = ValveControllerNode(parameter_overrides=list(controller_overrides), **node_kwargs)
         dt = controller.controller.config.dt
-        if abs(dt - hardware.control_period_s) > 1e-9 * hardware.control_period_s:
+        if not same_period(dt, hardware.control_period_s):
             raise ValueError(f"control_period_s differs: hardware {hardware.control_period_s} s, controller {dt} s")
     except Exception:
         hardware.shutdown_safely()

@@ -29,7 +29,7 @@ from std_msgs.msg import Float64, Float64MultiArray, String
 from ..core.control.compensation import MODEL_PARAMETERS, CompensationModel
 from ..core.model.rate_dependence import describe_inverse, solved_each_step
 from ..core.sim.signals import ReferenceRamp
-from ..core.control.strategies import (GUARD_WINDOW_S, SAFE_PERIOD_S, STRATEGIES, TABLE1_GAINS, ControllerConfig,
+from ..core.control.strategies import (GUARD_WINDOW_S, has_feedback, SAFE_PERIOD_S, STRATEGIES, TABLE1_GAINS, ControllerConfig,
                                        PIDGains, ValveController, default_gain_set, gain_set, loop_settings)
 from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, LATEST_SENSOR_QOS, SAMPLES_QOS, STATE_QOS, Diagnostics, period_parameter,
                      ParameterSpec, samples_message, as_float, declare_all,
@@ -185,8 +185,8 @@ class ValveControllerNode(Node):
 
     @staticmethod
     def _gains_text(config: ControllerConfig) -> str:
-        if config.strategy in ("ol", "ol_hc"):
-            return ""  # no feedback: the gains are not used
+        if not has_feedback(config.strategy):
+            return ""  # the gains are not used
         g = config.gains
         return f" kp={g.kp} ki={g.ki}" + (f" kd={g.kd}" if g.kd else "")
 

@@ -37,12 +37,11 @@ from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, MAX_CONTRO
                      realtime_specs, refuse,
                      run_node, samples_message, tighten_timer_slack)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
-from ..core.validation import as_int
+from ..core.validation import as_int, whole_periods
 
 
 MAX_COMMAND_TIMEOUT_S = 10.0    # the watchdog may not be stretched beyond this
 MIN_TIMEOUT_PERIODS = 2         # ... nor shortened below this many control periods (it would fire between commands)
-PERIOD_TOLERANCE = 1e-3         # control_period_s must be a whole number of sample periods to this relative error
 FIRST_SAMPLE_SETTLE_S = 0.3   # lockstep: a commander matched this long before y_0 is sent (s)
 UNANSWERED_REPEAT_S = 1.0     # lockstep: an unanswered position is sent again after this long (s)
 
@@ -85,8 +84,8 @@ def samples_per_period(control_period_s: float, sample_period_s: float) -> int:
     """Whole number of backend samples in one control period; ValueError with the reason otherwise."""
     if not (math.isfinite(control_period_s) and 0.0 < control_period_s <= MAX_CONTROL_PERIOD_S):
         raise ValueError(f"control_period_s must lie in (0, {MAX_CONTROL_PERIOD_S}] s, got {control_period_s}")
-    k = round(control_period_s / sample_period_s)
-    if k < 1 or abs(k * sample_period_s - control_period_s) > PERIOD_TOLERANCE * control_period_s:
+    k = whole_periods(control_period_s, sample_period_s)
+    if k is None or k < 1:
         raise ValueError(f"control_period_s {control_period_s} s is not a whole number of the backend's sample "
                          f"periods ({sample_period_s} s)")
     return int(k)

@@ -54,10 +54,11 @@ from ..model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 __all__ = ["STRATEGIES", "PIDGains", "ControllerConfig", "ValveController", "TABLE1_GAINS", "gain_set",
            "SAFE_PERIOD_S", "default_gain_set", "NO_SAFE_SET_STRATEGY",
            "LOOP_SETTINGS", "loop_settings",
-           "nominal_static_gain"]
+           "nominal_static_gain", "FEEDBACK_STRATEGIES", "has_feedback"]
 
 STRATEGIES = ("ol", "ol_hc", "pid", "pid_hc", "ff_pid", "ff_pid_g")
 FALLBACK_LAW = {"pid": "ol", "pid_hc": "ol_hc", "ff_pid": "ol_hc", "ff_pid_g": "ol_hc"}  # feedback -> feedforward
+FEEDBACK_STRATEGIES = tuple(FALLBACK_LAW)   # the strategies with a feedback loop: their gains are used (and tuned)
 REFERENCE_CLAMP_SHARE = 0.05  # a reference this share of the reachable span outside it is clamped; further: refused
 GUARD_WINDOW_S = 0.02     # commands on both rails within this long: the loop oscillates
 GUARD_ENTRIES = 3         # ... and so does a command that comes onto a rail this often ...
@@ -117,6 +118,11 @@ SAFE_PERIOD_S = {"pid_hc_5": 4e-4, "pid_hc_6": 4e-4, "pid_hc_4": 5e-4, "pid_hc_3
                  "pid_hc_1": 2e-3}
 FASTEST_FIRST = ("pid_hc_5", "pid_hc_6", "pid_hc_4", "pid_hc_3", "pid_hc_2", "pid_hc_1")  # Table 1's settling
 NO_SAFE_SET_STRATEGY = "ol_hc"   # beyond every set's safe period: open loop with the inverse (no loop to destabilise)
+
+
+def has_feedback(strategy: str) -> bool:
+    """Whether ``strategy`` closes a feedback loop (its PID gains are used)."""
+    return strategy in FEEDBACK_STRATEGIES
 
 
 def default_gain_set(period_s: float) -> Optional[str]:

@@ -59,13 +59,13 @@ from ..model.dynamics import ContinuousTF, first_order_lag, scipy_signal
 from ..sim.experiments import responses, run_closed_loop
 from ..metrics import StepMetrics, step_metrics
 from ..sim.signals import PAPER_STEPS_UM, step_reference_m
-from ..control.strategies import TABLE1_GAINS, ControllerConfig, PIDGains, ValveController, nominal_static_gain
+from ..control.strategies import FEEDBACK_STRATEGIES, TABLE1_GAINS, ControllerConfig, PIDGains, ValveController, nominal_static_gain
 
 __all__ = ["TUNABLE_STRATEGIES", "TuningLimits", "LoopMargins", "StepScore", "TuningResult", "TuningError",
            "plant_gain_range", "loop_margins", "linear_step", "step_score", "dynamics_variants",
            "variant_scores", "robust_overshoot_pct", "outside_limits", "tune"]
 
-TUNABLE_STRATEGIES = ("pid", "pid_hc", "ff_pid", "ff_pid_g")
+TUNABLE_STRATEGIES = FEEDBACK_STRATEGIES   # every strategy with a feedback loop
 OVERSHOOT_LIMIT_PCT = 2.0      # default: no step may overshoot by more than this [% of the step]
 MIN_GAIN_MARGIN_DB = 6.0       # default: the loop gain may double before the loop goes unstable ...
 MIN_PHASE_MARGIN_DEG = 45.0    # ... and this much extra phase lag is tolerated
