@@ -106,6 +106,14 @@ def controller(ros_context):
     ({"diagnostics_period_s": -1}, "diagnostics_period_s must lie in"),
     ({"diagnostics_period_s": float("nan")}, "diagnostics_period_s out of range"),   # rclpy's range check
     ({"diagnostics_period_s": "often"}, "diagnostics_period_s must be a number"),
+    # the fault checks cannot be switched off: no zero, negative, endless or non-number limit
+    ({"fault__position_limit_m": 0.0}, "fault.position_limit_m"),
+    ({"fault__position_limit_m": 5.0}, "fault.position_limit_m"),
+    ({"fault__stuck_time_s": -1.0}, "fault.stuck_time_s"),
+    ({"fault__stuck_time_s": float("inf")}, "fault.stuck_time_s"),
+    ({"fault__stuck_command_span_v": float("nan")}, "fault.stuck_command_span_v"),
+    ({"fault__missing_samples_s": 0.0}, "fault.missing_samples_s"),
+    ({"fault__missing_samples_s": "never"}, "fault.missing_samples_s"),
 ])
 def test_hardware_refuses_unsafe_start_up_parameters(hardware, overrides, says):
     with pytest.raises(Exception, match=says):
