@@ -347,7 +347,8 @@ def test_the_turning_points_of_a_path_leave_the_operators_as_the_whole_path_does
     """``InitialState`` keeps only where an input path turned: the states after it are the same, for a
     symmetric and an asymmetric GPIM."""
     from piezo_valve_ros.core.model.hysteresis import GPIM
-    from piezo_valve_ros.core.identification.valve_model import InitialState, turning_points
+    from piezo_valve_ros.core.identification.valve_model import InitialState
+    from piezo_valve_ros.core.model.hysteresis import turning_points
     g = PAPER_GPIM.model()
     asymmetric = GPIM(g.thresholds, g.weights, g.a0, g.a1, g.offset_um, 1.1, 0.3, 0.01)
     rng = np.random.default_rng(3)

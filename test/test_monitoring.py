@@ -80,7 +80,7 @@ def test_a_valve_held_still_is_not_judged():
 def test_the_dominant_turning_points_give_the_same_state_as_the_whole_path_and_stay_few():
     """The monitor's voltage history: the wiping-out property keeps it exact and short (every sample of a
     noisy voltage turns; the extrema that still matter are few), for symmetric and asymmetric envelopes."""
-    from piezo_valve_ros.core.identification.valve_model import dominant_turning_points, turning_points
+    from piezo_valve_ros.core.model.hysteresis import dominant_turning_points, turning_points
     g = CompensationModel().gpim
     asymmetric = GPIM(g.thresholds, g.weights, 1.0, 0.0, g.offset_um, 1.05, 0.3, 0.005)
     rng = np.random.default_rng(1)

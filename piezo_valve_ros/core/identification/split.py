@@ -9,7 +9,8 @@ import numpy as np
 
 from .records import (HELD_OUT_FRACTION, MIN_SAMPLES, IdentificationError, Record, analysis_record,
                       split_held_out)
-from .valve_model import InitialState, ValveModel, turning_points
+from ..model.hysteresis import turning_points
+from .valve_model import InitialState, ValveModel
 
 __all__ = ["Split", "SessionStart", "split_records", "wipe_index", "first_rows", "WIPE_MARGIN", "WIPE_MAX_SHARE", "ESTIMATE_WINDOW_S"]
 

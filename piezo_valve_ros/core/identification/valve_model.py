@@ -25,7 +25,7 @@ from ..model.rate_dependence import rate_terms
 from .records import Record
 
 __all__ = ["ValveModel", "Context", "ModelTerm", "discretise_for", "filter_at_rest", "filter_rows_at_rest", "INITIAL_STATES",
-           "InitialState", "REST", "turning_points"]
+           "InitialState", "REST"]
 
 class ModelTerm(Protocol):
     """What a model asks of an effect term (``effects.base.Effect`` is one): its name, its columns on a record
@@ -109,43 +109,6 @@ class InitialState:
 
 
 REST = InitialState()
-
-
-def turning_points(v: np.ndarray) -> tuple[float, ...]:
-    """The first value and the turning points [V] of an input path, ending with its last value: what
-    ``GPIM.state_after`` needs to give the same states as for the whole path (the operators remember
-    only where the input turned)."""
-    v = np.asarray(v, float).reshape(-1)
-    keep = [float(v[0])]
-    moves = np.diff(v)
-    idx = np.flatnonzero(moves)
-    if idx.size:
-        sign = np.sign(moves[idx])
-        ends = np.concatenate((idx[np.flatnonzero(sign[1:] != sign[:-1])], [idx[-1]])) + 1  # each run's end
-        keep += [float(v[k]) for k in ends]
-    return tuple(keep)
-
-
-def dominant_turning_points(path_v) -> tuple[float, ...]:
-    """The first value and the turning points [V] of a path that still set the operators' state, ending with
-    its last value: a pair of turning points nested in the swing before it is wiped out once the path goes
-    beyond the first of them (the wiping-out property of play operators, whatever their envelopes: the
-    operators the pair moved are all moved again), so ``GPIM.state_after`` gives the same
-    states for this as for the whole path while the list stays as short as the nested extrema are few
-    (bounded for a valve in operation, where every sample would otherwise turn)."""
-    out: list[float] = []
-    for x in turning_points(np.asarray(path_v, float)) if len(path_v) else ():
-        if out and x == out[-1]:
-            continue
-        out.append(float(x))
-        if len(out) >= 3 and (out[-3] - out[-2]) * (out[-2] - out[-1]) >= 0:
-            del out[-2]                      # not a turning point: the path went on the same way
-        # a move beyond the extremum two back wipes it and the one between out, where that pair lies within
-        # the swing before it (nested: always but right after the start, which stays)
-        while len(out) >= 4 and abs(out[-1] - out[-2]) >= abs(out[-3] - out[-2]) \
-                and abs(out[-2] - out[-3]) <= abs(out[-4] - out[-3]):
-            del out[-3:-1]
-    return tuple(out)
 
 
 @dataclass(frozen=True)

@@ -40,7 +40,8 @@ from ..identification.initial_state import estimate_state
 from ..identification.records import ANALYSIS_RATE_HZ, IdentificationError, Record, analysis_record, noise_floor_um
 from ..identification.search import SubsetSearch
 from ..identification.split import split_records
-from ..identification.valve_model import InitialState, ValveModel, dominant_turning_points
+from ..identification.valve_model import InitialState, ValveModel
+from ..model.hysteresis import dominant_turning_points
 from ..metrics import rms
 from ..model.drive import COMMAND_MAX_V, COMMAND_MIN_V
 from ..model.dynamics import sections
