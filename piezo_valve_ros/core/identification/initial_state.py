@@ -78,7 +78,9 @@ SESSION_RATE_HZ = 500.0       # a separate session's start is estimated on block
 SESSION_RIDGE = 1e-4          # ridge on the standardised state changes: what the record cannot tell stays at rest
 SESSION_ROUNDS = 8            # Gauss-Newton rounds at most (the clamps' active sets settle in a few)
 SESSION_TOLERANCE = 1e-3     # ... until a round cuts the squared error by less than this share
-SESSION_WINDOW_S = 10.0       # ... and at most this long
+SESSION_WINDOW_S = 60.0       # ... and at most this long (shorter, the operators wiped after it would count as
+                              # constants there, which the in-window offset takes, and the rows before the wipe
+                              # would keep that offset less the whole record's as error)
 SESSION_SETTLE_S = 0.05       # rows the start is estimated on: until every operator it can move is wiped, and this
 
 

@@ -332,10 +332,18 @@ class _Loop:
             clear_gain = (start_rms["estimated"] < (1 - WIPE_GAIN) * start_rms[self.chosen_state]
                           and explains <= 1 - ESTIMATE_STATE_GAIN)
             rested_elsewhere = estimated.rested_at_v is not None and explains <= 1 - WIPE_STATE_GAIN
+            # held-out data that cannot tell the starts apart (a separate session has its own start): the
+            # training record's first rows can, and a start they refute would bend every later fit to it
+            indistinct = (explains <= 1 - ESTIMATE_STATE_GAIN and start_rms["estimated"]
+                          <= (1 + INITIAL_STATE_TOLERANCE) * min(start_rms["rest"], start_rms["cycled"]))
             self.log(f"initial state: estimated {estimate['estimate']}; first rows' RMS "
                      f"{estimate['rms_before_wipe_um']:.4f} um against {estimate['rms_before_wipe_from_rest_um']:.4f} from rest")
-            if clear_gain or rested_elsewhere:
+            if clear_gain or rested_elsewhere or indistinct:
                 self.chosen_state = "estimated"
+                if indistinct and not (clear_gain or rested_elsewhere):
+                    self.log(f"initial state: held-out data cannot tell the starts apart (within "
+                             f"{100 * INITIAL_STATE_TOLERANCE:g} %); the estimate leaves {100 * explains:.0f} % of "
+                             f"the training record's first rows' misfit from rest: estimated")
 
     def _wiped_start(self) -> None:
         """Fitting only after the input has wiped out an unknown start, on the poles just fitted on the whole
@@ -487,7 +495,12 @@ class _Loop:
         if len(self.fit) <= EXACT_ALL_ROWS:
             return True
         (_, exact), = self.refit_many([(current, None)])
-        return exact.rms > (1 + SEARCH_TRUST) * self.search.score(frozenset(current)).rms
+        searched = self.search.score(frozenset(current)).rms
+        # ... by its figure, or by the cut it promised from the baseline (the search's own baseline figure may
+        # differ from the exact one: a set it credits with half the error gone that the exact refit does not cut)
+        promised = searched / max(self.search.score(frozenset()).rms, 1e-30)
+        delivered = exact.rms / max(self.held_out(self.baseline).rms, 1e-30)
+        return exact.rms > (1 + SEARCH_TRUST) * searched or delivered > (1 + SEARCH_TRUST) * promised
 
     def forward_selection(self) -> list[str]:
         """Effects chosen by exact refits alone: from the baseline, the effect whose exact refit on top of the set
@@ -573,13 +586,15 @@ class _Loop:
 
     def exact_options(self, current: list[str]) -> list[str]:
         """Effects outside ``current`` to refit exactly on top of it: those the linear search credits with at least
-        EXACT_CHECK_GAIN, or every one where the search cannot be trusted to rank them: on a short record (a few
-        refits cost little) or where its first-order figure for ``current`` misses the exact refit's by more than
+        EXACT_CHECK_GAIN, or every one where the search cannot be trusted to rank them: on a separate validation
+        session where it found nothing (it scores every set from the baseline's start there, which may have taken
+        a slow effect's share: each model's own start may not), on a short record (a few refits cost little) or
+        where its first-order figure for ``current`` misses the exact refit's by more than
         SEARCH_TRUST (at low sample rates a delay of a sample or two is far from its first-order proxy; a separate
         session's start moves with each model)."""
         linear_base = self.search.score(frozenset(current))
         outside = [n for n in self.names if n not in current]
-        if self.search_untrusted(current):
+        if (not self.split.held_out and not current) or self.search_untrusted(current):
             return outside
         return [n for n in outside
                 if 1.0 - self.search.score(frozenset(current) | {n}).rms / max(linear_base.rms, 1e-30) >= EXACT_CHECK_GAIN]
