@@ -679,4 +679,5 @@ def test_one_rule_says_whether_a_time_is_a_whole_number_of_periods():
     from piezo_valve_ros.core.validation import same_period, whole_periods
     assert whole_periods(1e-3, 1e-4) == 10 and whole_periods(0.3e-3, 1e-4) == 3 and whole_periods(0.0, 1e-4) == 0
     assert whole_periods(1.5e-4, 1e-4) is None and whole_periods(1.0005e-3, 1e-4) is None
+    assert whole_periods(float("nan"), 1e-4) is None and whole_periods(float("inf"), 1e-4) is None
     assert same_period(1e-4, 1e-4 * (1 + 1e-9)) and not same_period(1e-4, 1.0001e-4)

@@ -46,8 +46,12 @@ def as_bool(name: str, value: Any) -> bool:
 
 
 def whole_periods(span_s: float, period_s: float) -> int | None:
-    """``span_s / period_s`` [s / s] when it is a whole number (to PERIOD_TOLERANCE), else None."""
-    k = round(span_s / period_s)
+    """``span_s / period_s`` [s / s] when it is a whole number (to PERIOD_TOLERANCE), else None (also for a
+    ratio that is not finite)."""
+    ratio = span_s / period_s
+    if not math.isfinite(ratio):
+        return None
+    k = round(ratio)
     return int(k) if abs(k * period_s - span_s) <= PERIOD_TOLERANCE * max(abs(span_s), period_s) else None
 
 

@@ -499,7 +499,7 @@ class _Loop:
         # ... by its figure, or by the cut it promised from the baseline (the search's own baseline figure may
         # differ from the exact one: a set it credits with half the error gone that the exact refit does not cut)
         promised = searched / max(self.search.score(frozenset()).rms, 1e-30)
-        delivered = exact.rms / max(self.held_out(self.baseline).rms, 1e-30)
+        delivered = exact.rms / max(self.refits[frozenset()][1].rms, 1e-30)   # the baseline's score, scored once
         return exact.rms > (1 + SEARCH_TRUST) * searched or delivered > (1 + SEARCH_TRUST) * promised
 
     def forward_selection(self) -> list[str]:
