@@ -619,6 +619,40 @@ def test_asymmetry_steps_keep_the_descending_envelope_rising_on_a_record_of_part
     assert abs(effect.betas(effect.step(model, (0.0, 0.0, 0.03)).gpim)[2] - 0.03) < 1e-12   # a mild one is kept
 
 
+def test_a_models_bound_sensitivities_match_finite_differences_column_by_column():
+    """The Gauss-Newton sensitivities of a fitted model on a record (``Context.bound_sensitivity`` for the
+    descending envelope, ``widening_sensitivity`` for rate-dependent thresholds), several changes at once, equal
+    central finite differences of the hysteresis output with the bounds moved (every threshold above zero: an
+    operator of zero threshold has both bounds at once, and any widening changes which one it follows)."""
+    from piezo_valve_ros.core.identification.records import Record
+    from piezo_valve_ros.core.identification.valve_model import ValveModel
+    from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM, play_batch
+    rng = np.random.default_rng(11)
+    t = np.arange(4000) * 1e-3
+    v = 5.0 + 4.0 * np.sin(2 * np.pi * 1.3 * t) * np.exp(-0.3 * t) + 0.3 * np.cumsum(rng.standard_normal(t.size)) / 20
+    paper = PAPER_GPIM.model()
+    gpim = type(paper)(paper.thresholds + 0.05, paper.weights, paper.a0, paper.a1, paper.offset_um)
+    ctx = ValveModel(gpim).context(Record(t, v, np.zeros(t.size)))
+    lower, upper = ctx.drives
+    g = ctx.model.gpim
+    changes = np.column_stack((np.abs(np.gradient(v, t)) / 50, np.full(t.size, 0.1), (v - 5.0) / 5))
+    eps = 1e-6
+
+    def H(lo, hi):
+        return play_batch(lo, hi, g.thresholds, ctx.initial_state, g.weights)[0]
+    widened = ctx.widening_sensitivity(changes)
+    upper_only = ctx.bound_sensitivity(None, changes)
+    assert widened.shape == upper_only.shape == (t.size, 3)
+    for k in range(3):
+        c = changes[:, k]
+        fd = (H(lower - eps * c, upper + eps * c) - H(lower + eps * c, upper - eps * c)) / (2 * eps)
+        assert np.max(np.abs(widened[:, k] - fd)) < 1e-6 * max(1.0, np.max(np.abs(fd)))
+        assert np.allclose(ctx.bound_sensitivity(-c, c), widened[:, k], atol=1e-12)
+        fd = (H(lower, upper + eps * c) - H(lower, upper - eps * c)) / (2 * eps)
+        assert np.max(np.abs(upper_only[:, k] - fd)) < 1e-6 * max(1.0, np.max(np.abs(fd)))
+    assert np.abs(widened).max() > 0.0 and np.abs(upper_only).max() > 0.0
+
+
 @pytest.mark.slow
 def test_where_the_first_order_search_is_not_trusted_the_effects_are_chosen_by_exact_refits():
     """A valve unlike the paper's (the end-to-end test's: rho 6.6, tau 1, offset -75 um; creep, flattening,

@@ -535,8 +535,9 @@ class _Loop:
         dynamics = next((e for e in model.effects if e.name == "dynamics"), None)
         if dynamics is None or dynamics.delay_held:
             return score
-        # a form without a delay (a lag in its place) is tried with one too: its whole delay from the samples up
-        held = replace(dynamics, form=dynamics.form if dynamics.has("delay") else "all", delay_held=True)
+        # a form without a delay (a lag in its place) is tried with one besides its own structures: its whole delay
+        # from the samples up
+        held = replace(dynamics.with_delay(), delay_held=True)
         effects = [held if e.name == "dynamics" else e for e in model.effects]
         dt = self.fit.dt
         delays = sorted({round(max(model.delay_s + k * dt, 0.0), 12) for k in DELAY_STEPS}
@@ -545,7 +546,11 @@ class _Loop:
         delays = [d for d in delays if d != model.delay_s or not dynamics.has("delay")]
 
         def job(delay_s: float) -> tuple[ValveModel, Score]:
-            m = fit_model(self.fit, replace(self.baseline, delay_s=delay_s), effects, try_forms=False, cache=self.cache)
+            # a delay moved from the fitted one: from the fitted structure (its poles, its rate terms), a few
+            # Gauss-Newton rounds; a delay in a lag's place: the poles placed afresh (the lag's are a local minimum)
+            start = held.carry(model, self.baseline) if dynamics.has("delay") else self.baseline
+            start = replace(start, delay_s=delay_s)
+            m = fit_model(self.fit, start, effects, try_forms=False, cache=self.cache)
             return m, self.held_out(m)
 
         tried = self.each([lambda d=d: job(d) for d in delays])

@@ -315,17 +315,41 @@ class Context:
             return last_contact(self.states, lower, upper, self.model.gpim.thresholds)
         return self._structural("contacts", compute)
 
+    @property
+    def _contact_sides(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(sample of each operator's last contact, +1 where it was the upper bound, -1 where the lower, 0
+        before any), each (N, n): ``contacts`` in the form the sensitivities gather with."""
+        def compute():
+            side, index = self.contacts
+            return np.maximum(index, 0), (side > 0).astype(float), -(side < 0).astype(float)
+        return self._structural("contact_sides", compute)
+
+    def _gathered(self, change: np.ndarray, weighted_side: np.ndarray) -> np.ndarray:
+        """Sum over operators of weighted_side (N, n) times each column of change (N,) or (N, k) at the
+        operator's last contact: (N,) or (N, k)."""
+        at = self._contact_sides[0]
+        c = np.asarray(change, float)
+        if c.ndim == 1:
+            return (c[at] * weighted_side).sum(axis=1)
+        return np.column_stack([(np.ascontiguousarray(c[:, k])[at] * weighted_side).sum(axis=1)
+                                for k in range(c.shape[1])])
+
     def bound_sensitivity(self, lower_change: Optional[np.ndarray], upper_change: Optional[np.ndarray]) -> np.ndarray:
-        """dH [um] for a small change of the operators' lower / upper bounds (each (N,) in V, or None), exactly
-        to first order: each operator moves by the change of the bound it touched last, at that time."""
-        side, index = self.contacts
-        at = np.maximum(index, 0)
-        moved = np.zeros(side.shape)
-        if lower_change is not None:
-            moved += np.where(side < 0, np.asarray(lower_change)[at], 0.0)
+        """dH [um] for a small change of the operators' lower / upper bounds (each (N,) or (N, k) in V, or None),
+        exactly to first order: each operator moves by the change of the bound it touched last, at that time.
+        Returns (N,) or (N, k), a column per column of the changes."""
+        _, upper, lower = self._contact_sides
+        w = self.model.gpim.weights
+        moved = [self._gathered(lower_change, -lower * w)] if lower_change is not None else []   # -lower: 1 or 0
         if upper_change is not None:
-            moved += np.where(side > 0, np.asarray(upper_change)[at], 0.0)
-        return moved @ self.model.gpim.weights
+            moved.append(self._gathered(upper_change, upper * w))
+        return sum(moved[1:], moved[0]) if moved else np.zeros(len(self.record))
+
+    def widening_sensitivity(self, change: np.ndarray) -> np.ndarray:
+        """dH [um] for the thresholds widened by ``change`` (N,) or (N, k) [V] (lower bounds down, upper bounds
+        up by it): ``bound_sensitivity(-change, change)`` in one gather per column."""
+        _, upper, lower = self._contact_sides
+        return self._gathered(change, (upper + lower) * self.model.gpim.weights)
 
     # ------------------------------------------------------------------ the linear dynamics
     @cached_property

@@ -67,9 +67,7 @@ class Asymmetry(Effect):
     def sensitivities(self, ctx) -> np.ndarray:
         a0 = ctx.model.gpim.a0
         dv = ctx.v - self.centre_v
-        return np.column_stack((ctx.bound_sensitivity(None, np.full(dv.size, a0)),
-                                ctx.bound_sensitivity(None, a0 * dv),
-                                ctx.bound_sensitivity(None, a0 * dv * dv / self.half_span_v)))
+        return ctx.bound_sensitivity(None, a0 * np.column_stack((np.ones(dv.size), dv, dv * dv / self.half_span_v)))
 
     def step(self, model, delta):
         limits = (MAX_SHIFT_SHARE * self.half_span_v, MAX_SLOPE_CHANGE, MAX_SLOPE_CHANGE)

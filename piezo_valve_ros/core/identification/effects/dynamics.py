@@ -43,7 +43,7 @@ class Dynamics(Effect):
     signature = ("lag or ringing after fast moves beyond the second-order G_v, or a loop that widens with the "
                  "input rate: the residual follows fast lags (0.3-3 ms) of the model output, or the operators' "
                  "sensitivity to thresholds that grow with the input rate")
-    form: str = "all"   # "delay", "poles", "rate", "slope" or "all": the structures switched on (see has)
+    form: str = "all"   # "delay", "poles", "rate", "slope", "rates", "all" or structures joined by "+" (see has)
     centre_um: float = 0.0   # H's centre and half span over the training record [um]: the slope terms' scale
     half_um: float = 1.0
     delay_held: bool = False   # the delay held where a refit starts it (chosen on held-out data), not fitted
@@ -66,7 +66,15 @@ class Dynamics(Effect):
         on held-out data; it stands alone against the others)."""
         if self.form == "rates":   # both rate structures: thresholds in proportion to the rate are both
             return structure in ("rate", "slope")
+        if "+" in self.form:       # structures named one by one (``with_delay``)
+            return structure in self.form.split("+")
         return self.form == structure or (self.form == "all" and structure != "slope")
+
+    def with_delay(self) -> "Dynamics":
+        """This form with a transport delay besides its own structures ("poles" -> "delay+poles")."""
+        if self.has("delay"):
+            return self
+        return replace(self, form="+".join(["delay"] + [s for s in STRUCTURES if self.has(s)]))
 
     def contains(self, other: "Dynamics") -> bool:
         return all(self.has(s) for s in STRUCTURES if other.has(s))
@@ -102,8 +110,7 @@ class Dynamics(Effect):
             columns.append(-np.gradient(ctx.H, ctx.dt)[:, None])
         if self.has("rate"):
             terms = ctx.rate_terms
-            columns.append(np.column_stack([ctx.bound_sensitivity(-terms[:, k], terms[:, k])
-                                            for k in range(terms.shape[1])]))
+            columns.append(ctx.widening_sensitivity(terms))
         return np.column_stack(columns) if columns else np.zeros((len(ctx.record), 0))
 
     def step(self, model, delta):
