@@ -8,6 +8,7 @@ holding everything up to the last finished segment, which ``ros2 bag play`` and 
 """
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import time
@@ -23,6 +24,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from .core.defaults import BAG_STORAGE
 from .core.errors import PiezoValveError
+from .core.runs import WHOLE_RECORD, TimeWindow
 from .params_yaml import dump as dump_yaml, load as load_yaml
 from .samples import SAMPLES_COLUMNS, SAMPLES_LABEL, SamplesLayoutError, decode_samples
 
@@ -271,31 +273,44 @@ def _read_file_by_file(path: Path, topic: Optional[str], skipped: list[str]) -> 
 
 
 def _time_ordered(parts: list[np.ndarray]) -> np.ndarray:
-    rows = np.concatenate(parts)
+    rows = np.concatenate(parts) if parts else np.zeros((0, len(SAMPLES_COLUMNS)))
+    if rows.shape[0] == 0:
+        return rows
     rows = rows[np.argsort(rows[:, 0], kind="stable")]
     keep = np.concatenate(([True], np.diff(rows[:, 0]) > 0))  # a batch delivered twice counts once
     return rows[keep]
 
 
-def _damaged(path: Path, topic: Optional[str], skipped: Optional[list[str]], reason: str) -> tuple[np.ndarray, str]:
-    """The whole-bag read failed: what the intact files hold, or the one-line error."""
+def _in_window(path: Path, rows: np.ndarray, window: TimeWindow, first_s: float, last_s: float) -> np.ndarray:
+    if rows.shape[0] == 0:
+        raise BagError(f"bag {path}: no samples from {window.describe()} (its samples run from {first_s:.3f} s to "
+                       f"{last_s:.3f} s on their own time axis, {last_s - first_s:.3f} s long)")
+    return rows
+
+
+def _damaged(path: Path, topic: Optional[str], skipped: Optional[list[str]], reason: str,
+             window: TimeWindow = WHOLE_RECORD) -> tuple[np.ndarray, str]:
+    """The whole-bag read failed: what the intact files hold (in ``window``), or the one-line error."""
     skips: list[str] = []
     parts, name = _read_file_by_file(path, topic, skips)
     if not parts:
         raise BagError(f"cannot read bag {path} (truncated or corrupt?): {reason}")
     if skipped is not None:
         skipped += skips
-    return _time_ordered(parts), name
+    rows = _time_ordered(parts)
+    return _in_window(path, window.rows(rows, rows[0, 0]), window, rows[0, 0], rows[-1, 0]), name
 
 
-def read_samples(path, topic: Optional[str] = None,
-                 skipped: Optional[list[str]] = None) -> tuple[np.ndarray, str]:
+def read_samples(path, topic: Optional[str] = None, skipped: Optional[list[str]] = None,
+                 window: TimeWindow = WHOLE_RECORD) -> tuple[np.ndarray, str]:
     """Rows (time [s], voltage [V], position [m]) of the bag's ``samples`` topic, time-ordered; and its name.
 
     Any namespace is accepted (a topic whose last name is ``samples``); ``topic`` picks one explicitly.
-    A multi-file bag with damaged storage files is read file by file: the intact ones are used and each
-    file left out is appended to ``skipped`` (name and reason).  Raises BagError with a one-line reason
-    when nothing is readable.
+    ``window``: only the rows in that stretch are kept as the messages are decoded (and reading stops past
+    its end), so a window of a long bag costs the window's memory, not the bag's.  A multi-file bag with
+    damaged storage files is read file by file: the intact ones are used and each file left out is appended
+    to ``skipped`` (name and reason).  Raises BagError with a one-line reason when nothing is readable or the
+    window holds no samples.
     """
     path = Path(path)
     if not path.exists():
@@ -324,21 +339,36 @@ def read_samples(path, topic: Optional[str] = None,
                 raise BagError(f"bag {path} has several samples topics ({', '.join(names)}); choose one with --topic")
         name = chosen[0].topic
         decode = _SamplesDecoder(name)
+        parts: list[np.ndarray] = []
+        first_s = last_s = math.nan
+        lo, hi = -math.inf, math.inf
         try:
-            parts = [decode(raw, conn.msgtype) for conn, _, raw in reader.messages(connections=chosen)]
+            for conn, _, raw in reader.messages(connections=chosen):
+                block = decode(raw, conn.msgtype)
+                if block.shape[0] == 0:
+                    continue
+                if math.isnan(first_s):
+                    first_s = float(block[0, 0])
+                    lo, hi = window.bounds(first_s)
+                last_s = max(float(block[-1, 0]), last_s) if not math.isnan(last_s) else float(block[-1, 0])
+                if block[0, 0] > hi:   # messages come in time order: the rest lies past the window
+                    break
+                parts.append(block if window.whole else block[(block[:, 0] >= lo) & (block[:, 0] <= hi)])
         except BagError:
             raise
         except Exception as exc:
-            return _damaged(path, topic, skipped, _first_line(exc))
-        if not parts:
+            return _damaged(path, topic, skipped, _first_line(exc), window)
+        if math.isnan(first_s):
             raise BagError(f"bag {path}: topic {name} holds no messages")
-        return _time_ordered(parts), name
+        return _in_window(path, _time_ordered(parts), window, first_s, last_s), name
     finally:
         reader.close()
 
 
-def read_run(path, topic: Optional[str] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
-    """A recorded run for plotting: the ``samples`` rows (see :func:`read_samples`), and the references sent
+def read_run(path, topic: Optional[str] = None,
+             window: TimeWindow = WHOLE_RECORD) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """A recorded run for plotting: the ``samples`` rows in ``window`` (see :func:`read_samples`), and the
+    references sent up to the window's end
     on the ``position_reference`` topic of the same namespace as (times [s] on the samples' time axis,
     positions [m]); its samples topic's name.
 
@@ -349,7 +379,7 @@ def read_run(path, topic: Optional[str] = None) -> tuple[np.ndarray, np.ndarray,
     simulated time runs at a varying share of the wall clock.  No reference topic or no messages: empty arrays.
     """
     from .core.runs import receive_to_sample_time
-    rows, name = read_samples(path, topic)
+    rows, name = read_samples(path, topic, window=window)
     namespace = name.rsplit("/", 1)[0]
     ref_topic, position_topic, clock_topic = (f"{namespace}/position_reference", f"{namespace}/spool_position",
                                               "/clock")
@@ -391,5 +421,7 @@ def read_run(path, topic: Optional[str] = None) -> tuple[np.ndarray, np.ndarray,
                 pair_times.append(at[value])
     order = np.argsort(stamps, kind="stable")
     to_sample_time = receive_to_sample_time(np.asarray(pair_stamps), np.asarray(pair_times))
-    return rows, to_sample_time(np.asarray(stamps)[order]), np.asarray(values, float)[order], name
+    ref_t, ref_m = to_sample_time(np.asarray(stamps)[order]), np.asarray(values, float)[order]
+    keep = ref_t <= rows[-1, 0]   # those before the window too: the one in force at its start
+    return rows, ref_t[keep], ref_m[keep], name
 

@@ -23,6 +23,7 @@ from .core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 from .core.monitoring.health import Health, HealthLimits, HealthMonitor, Level
 from .params_yaml import node_section, yaml_value
 from .core.identification.records import Record, read_csv
+from .core.runs import WHOLE_RECORD, TimeWindow, WindowError
 from .core.identification.residual import Analysis, analyse
 from .core.identification.to_controller import (Compensation, base_parameters, baseline_compensation, compensation,
                                                  controller_parameters)
@@ -39,37 +40,58 @@ class ParametersFileError(PiezoValveError, ValueError):
 
 
 def read_record(path, topic: Optional[str] = None, log: Callable[[str], None] = print,
-                warnings: Optional[list[str]] = None) -> tuple[Record, Optional[str]]:
-    """A record from a bag directory (its samples topic) or from a ``.csv`` file (``records.read_csv``);
-    returns (record, topic name or None).  Storage files of a damaged bag that had to be left out are logged
-    and appended to ``warnings``."""
+                warnings: Optional[list[str]] = None, window: TimeWindow = WHOLE_RECORD) -> tuple[Record, Optional[str]]:
+    """A record from a bag directory (its samples topic) or from a ``.csv`` file (``records.read_csv``), the
+    stretch ``window`` of it; returns (record, topic name or None).  Storage files of a damaged bag that had to be
+    left out are logged and appended to ``warnings``.  Raises BagError or WindowError (the window holds no samples
+    or is malformed) with a one-line reason."""
+    if window.problems():
+        raise WindowError("; ".join(window.problems()))
     if str(path).lower().endswith(".csv") and not Path(path).is_dir():
         record = read_csv(path)
-        log(f"{path}: {len(record)} samples (CSV)")
+        lo, hi = window.bounds(float(record.time_s[0]))
+        inside = np.flatnonzero((record.time_s >= lo) & (record.time_s <= hi))
+        if inside.size == 0:
+            raise WindowError(f"{path}: no samples from {window.describe()} (its samples run from "
+                              f"{record.time_s[0]:.3f} s to {record.time_s[-1]:.3f} s)")
+        record = record if window.whole else record.slice(int(inside[0]), int(inside[-1]) + 1)
+        log(f"{path}: {len(record)} samples (CSV){_window_note(record, window)}")
         return record, None
     skipped: list[str] = []
-    rows, name = read_samples(path, topic, skipped)
-    log(f"{path}: {rows.shape[0]} samples on {name}")
+    rows, name = read_samples(path, topic, skipped, window)
+    record = Record.from_rows(rows)
+    log(f"{path}: {rows.shape[0]} samples on {name}{_window_note(record, window)}")
     if skipped:
         text = (f"{path}: {len(skipped)} damaged storage file(s) left out, the rest used: "
                 + "; ".join(skipped))
         log(f"warning: {text}")
         if warnings is not None:
             warnings.append(text)
-    return Record.from_rows(rows), name
+    return record, name
+
+
+def _window_note(record: Record, window: TimeWindow) -> str:
+    if window.whole:
+        return ""
+    return (f", the window {window.describe()}: {record.time_s[0]:.3f} .. {record.time_s[-1]:.3f} s on the samples' "
+            f"own time axis")
 
 
 def identify_bags(train_bag, validate_bag=None, topic: Optional[str] = None,
-                  log: Callable[[str], None] = print) -> tuple[Analysis, Optional[str]]:
-    """Read the bag(s) or CSV record(s) and run the residual loop; returns (analysis, samples topic name, None
-    for CSV).  Raises BagError or IdentificationError with a one-line reason."""
+                  log: Callable[[str], None] = print, window: TimeWindow = WHOLE_RECORD) -> tuple[Analysis, Optional[str]]:
+    """Read the bag(s) or CSV record(s) and run the residual loop on the training record's stretch ``window``
+    (the validation record whole); returns (analysis, samples topic name, None for CSV).  The report's
+    ``source`` names the window and the samples it held.  Raises BagError, WindowError or IdentificationError
+    with a one-line reason."""
     damaged: list[str] = []
-    train, name = read_record(train_bag, topic, log, damaged)
+    train, name = read_record(train_bag, topic, log, damaged, window)
     validate = None if validate_bag is None else read_record(validate_bag, topic, log, damaged)[0]
     analysis = analyse(train, validate, log=log)
     analysis.report["warnings"] = damaged + list(analysis.report.get("warnings", []))
     analysis.report["source"] = {"train_bag": str(train_bag), "validate_bag": None if validate_bag is None
-                                 else str(validate_bag), "topic": name}
+                                 else str(validate_bag), "topic": name,
+                                 "train_window": {**window.as_dict(), "first_sample_s": float(train.time_s[0]),
+                                                  "last_sample_s": float(train.time_s[-1]), "samples": len(train)}}
     return analysis, name
 
 

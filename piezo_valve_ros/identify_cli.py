@@ -1,7 +1,7 @@
 """``valve_identify``: offline analysis of recorded bags (fit, residual loop, report, parameters, plots).
 
     valve_identify TRAIN_BAG [--validate VAL_BAG] [--report report.json] [--params-out fitted.yaml]
-                   [--plots DIR] [--topic /valve1/samples]
+                   [--plots DIR] [--topic /valve1/samples] [--from S] [--to S [--stamps]]
     valve_identify DAY_BAG --monitor fitted.yaml [--report health.json]   # the health monitor, offline
 
 A record may also be a ``.csv`` file whose header names time_s, voltage_v and position_m or position_um.
@@ -19,7 +19,7 @@ from dataclasses import replace
 
 from .core.identification.records import HELD_OUT_FRACTION
 from .core.monitoring.health import WINDOW_S, HealthLimits
-from .tool import run_tool
+from .tool import add_window_arguments, run_tool, window_from
 from .identify import (command_range_note, compensation, controller_parameters_yaml, health_json,
                        identify_bags, monitor_record, report_json, write_outputs)
 
@@ -50,6 +50,8 @@ def main(argv=None) -> int:
     ap.add_argument("--plots", metavar="DIR", help="write PNG figures here (needs matplotlib)")
     ap.add_argument("--topic", help="samples topic to read (default: the one topic named .../samples)")
     ap.add_argument("--quiet", action="store_true", help="no progress lines (the summary is printed)")
+    add_window_arguments(ap, "identify this stretch of the training record only (the validation record is used "
+                             "whole); the report's source.train_window says what was used")
     ap.add_argument("--monitor", metavar="PARAMS", help="instead of identifying: judge the record's health against "
                     "the model of this controller parameters file, as valve_monitor does live (--report writes "
                     "the verdicts)")
@@ -57,10 +59,11 @@ def main(argv=None) -> int:
                     f"long of the record [s] (default {WINDOW_S:g}, as valve_monitor's window_s)")
     args = ap.parse_args(argv)
     log = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
+    window = window_from(ap, args)
     if args.window_s != WINDOW_S and not args.monitor:
         ap.error("--window-s applies to --monitor")
     if args.monitor:
-        if args.validate or args.params_out or args.plots:
+        if args.validate or args.params_out or args.plots or not window.whole:
             ap.error("--monitor takes a record, the parameters file and --report only")
         limits = replace(HealthLimits(), window_s=args.window_s, step_s=min(HealthLimits().step_s, args.window_s))
         if limits.problems():
@@ -82,7 +85,7 @@ def main(argv=None) -> int:
         if args.plots:
             from . import plots  # fail before the work, with the reason
             plots.require()
-        analysis, name = identify_bags(args.train_bag, args.validate, args.topic, log)
+        analysis, name = identify_bags(args.train_bag, args.validate, args.topic, log, window)
         report = analysis.report
         outputs, notes = {}, []
         if args.params_out:

@@ -2,6 +2,7 @@
 
     valve_plot run1                  # figures into run1_plots/
     valve_plot run1 --out figs --topic /valve1/samples
+    valve_plot day1 --from 600 --to 660   # one minute of a long run (only that minute is kept in memory)
 
 Writes ``run_time.png`` (position and reference, command, tracking error) and ``hysteresis_loop.png``
 (command vs position), prints the run's extent and the tracking error, and for every step found in the
@@ -21,6 +22,7 @@ import numpy as np
 from .bagio import BagError, read_run
 from .core.metrics import error_figures
 from .core.runs import STEP_MIN_HOLD_S, STEP_MIN_JUMP_M, align_jumps, find_steps, reference_on_samples
+from .tool import add_window_arguments, window_from
 
 __all__ = ["main"]
 
@@ -82,9 +84,11 @@ def main(argv=None) -> int:
     ap.add_argument("--topic", help="samples topic (default: the one named .../samples)")
     ap.add_argument("--json", action="store_true", help="print the figures as one JSON object (the PNGs are "
                     "still written where matplotlib is installed)")
+    add_window_arguments(ap, "plot this stretch of the run only")
     args = ap.parse_args(argv)
+    window = window_from(ap, args)
     try:
-        rows, ref_t, ref_m, topic = read_run(args.bag, args.topic)
+        rows, ref_t, ref_m, topic = read_run(args.bag, args.topic, window)
     except BagError as exc:
         print(f"valve_plot: {exc}", file=sys.stderr)
         return 2

@@ -377,3 +377,73 @@ def test_the_written_command_limits_are_rounded_inwards_so_the_tools_accept_them
         limits, note = command_range_note(SimpleNamespace(controller_model=SimpleNamespace(fitted_range_v=fitted)))
         assert limits and "commands limited to" in note
         assert fitted_range_problems(fitted, limits["command_min_v"], limits["command_max_v"]) == [], (fitted, limits)
+
+
+def _two_valve_day(path):
+    """A 60 s 1 kHz 'day' bag: the default valve for 30 s, then 30 s where the sensor reads a constant (a wire
+    fell off): a window of the first half identifies the valve, the whole day cannot be fitted to it.  Its
+    samples' own time axis starts at 1000 s."""
+    rows = simulate_rows(identification_voltage(1e-3, 30.0), ValveSimConfig(dt=1e-3, seed=3))
+    rows = rows[rows[:, 0] - rows[0, 0] < 30.0 - 1e-6]
+    late = rows.copy()
+    late[:, 0] += rows[-1, 0] + 1e-3 - rows[0, 0]
+    late[:, 2] = rows[-1, 2]
+    day = np.vstack((rows, late))
+    day[:, 0] += 1000.0
+    write_samples_bag(path, day, topic="/valve1/samples")
+    return day
+
+
+def test_a_window_of_a_long_bag_is_read_alone(tmp_path):
+    """read_samples keeps only the rows of the window (from the record's first sample, or on the samples' own
+    time axis); a window that holds nothing or is malformed is refused with one line naming the record's extent."""
+    from piezo_valve_ros.bagio import BagError
+    from piezo_valve_ros.core.runs import TimeWindow
+    day = _two_valve_day(tmp_path / "day")
+    t0 = day[0, 0]
+    rows, _ = read_samples(tmp_path / "day", window=TimeWindow(5.0, 8.0))
+    assert rows[0, 0] >= t0 + 5.0 - 1e-9 and rows[-1, 0] <= t0 + 8.0 + 1e-9 and abs(rows.shape[0] - 3001) <= 1
+    np.testing.assert_array_equal(rows, day[(day[:, 0] >= t0 + 5.0) & (day[:, 0] <= t0 + 8.0)])
+    stamped, _ = read_samples(tmp_path / "day", window=TimeWindow(1005.0, 1008.0, on_stamps=True))
+    np.testing.assert_array_equal(stamped, rows)
+    tail, _ = read_samples(tmp_path / "day", window=TimeWindow(from_s=55.0))
+    assert tail[-1, 0] == day[-1, 0] and abs(tail.shape[0] - 5000) <= 1
+    with pytest.raises(BagError, match="no samples from 70 to its end"):
+        read_samples(tmp_path / "day", window=TimeWindow(from_s=70.0))
+    with pytest.raises(BagError, match="run from 1000.000 s"):
+        read_samples(tmp_path / "day", window=TimeWindow(to_s=10.0, on_stamps=True))
+    assert TimeWindow(5.0, 2.0).problems() == ["--to 2 s must come after --from 5 s"]
+    assert "before the record's start" in TimeWindow(-1.0).problems()[0]
+    assert TimeWindow(-1.0, on_stamps=True).problems() == []
+    assert "finite" in TimeWindow(to_s=float("nan")).problems()[0]
+
+
+def test_valve_identify_and_valve_plot_take_a_window_of_a_long_run(tmp_path):
+    """valve_identify --from/--to identifies one stretch and the report says which (source.train_window); the
+    whole day, whose held-out tail is the lost sensor, is refused.  valve_plot --to reads the same stretch.  A malformed
+    window ends either tool with one line and exit 2."""
+    _two_valve_day(tmp_path / "day")
+    out = run_cli(tmp_path / "day", "--to", "30", "--report", tmp_path / "r.json", "--quiet")
+    assert out.returncode == 0, out.stderr
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert check_report(report) == []
+    window = report["source"]["train_window"]
+    assert window["from_s"] is None and window["to_s"] == 30.0 and window["axis"] == "record_start"
+    assert window["first_sample_s"] == 1000.0 and abs(window["last_sample_s"] - 1030.0) < 2e-3
+    assert abs(window["samples"] - 30001) <= 1
+    assert report["final"]["validate"]["rms_um"] < 0.2
+    # the whole day: its held-out tail is the dead sensor, refused with the reason
+    _one_error_line(run_cli(tmp_path / "day", "--quiet"), "position is constant")
+    for args, needle in ((("--from", "20", "--to", "10"), "must come after"), (("--stamps",), "--stamps needs")):
+        usage = run_cli(tmp_path / "day", *args)   # argparse: its usage line, then the reason
+        assert usage.returncode == 2 and needle in usage.stderr.splitlines()[-1] and "Traceback" not in usage.stderr
+    _one_error_line(run_cli(tmp_path / "day", "--from", "500"), "no samples from 500 to its end")
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    plot = subprocess.run([sys.executable, "-m", "piezo_valve_ros.plot_cli", str(tmp_path / "day"), "--to", "30",
+                           "--json", "--out", str(tmp_path / "figs")], capture_output=True, text=True, env=env,
+                          timeout=120)
+    assert plot.returncode == 0, plot.stderr
+    assert abs(json.loads(plot.stdout)["samples"] - 30001) <= 1
+    bad = subprocess.run([sys.executable, "-m", "piezo_valve_ros.plot_cli", str(tmp_path / "day"), "--from", "nan"],
+                         capture_output=True, text=True, env=env, timeout=120)
+    assert bad.returncode == 2 and "finite" in bad.stderr

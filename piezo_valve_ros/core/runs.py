@@ -1,10 +1,14 @@
-"""A recorded closed-loop run (samples and the references sent): the reference on the sample grid, the
-steps in it and their metrics.  ROS-free; ``valve_plot`` is its command-line face."""
+"""A recorded closed-loop run (samples and the references sent): a window of a long run, the reference on the
+sample grid, the steps in it and their metrics.  ROS-free; ``valve_plot`` is its command-line face."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
+
+from .errors import PiezoValveError
 
 from .metrics import step_metrics
 
@@ -13,6 +17,58 @@ STEP_MIN_HOLD_S = 0.05      # ... held at least this long after it (and before t
 ALIGN_WINDOW_S = 1.0        # a jump of the reference is moved to the command's reaction within this of its receive time
 ALIGN_MIN_RATIO = 10.0      # ... a command change this many times the window's median change (a clear reaction)
 BURST_S = 0.02              # ... and the references received within this of it move with it
+
+
+class WindowError(PiezoValveError, ValueError):
+    """A window of a record that is malformed or holds no samples (one-line message)."""
+
+
+@dataclass(frozen=True)
+class TimeWindow:
+    """A stretch of a long record: from ``from_s`` to ``to_s`` [s] (either open), counted from the record's first
+    sample, or on the samples' own time axis (``on_stamps``: the times the hardware stamped them with)."""
+
+    from_s: Optional[float] = None
+    to_s: Optional[float] = None
+    on_stamps: bool = False
+
+    def problems(self) -> list[str]:
+        out = []
+        for name, value in (("from", self.from_s), ("to", self.to_s)):
+            if value is not None and not math.isfinite(value):
+                out.append(f"--{name} must be a finite time [s], not {value}")
+            elif value is not None and value < 0 and not self.on_stamps:
+                out.append(f"--{name} {value:g} s is before the record's start (seconds from its first sample)")
+        if not out and self.from_s is not None and self.to_s is not None and self.to_s <= self.from_s:
+            out.append(f"--to {self.to_s:g} s must come after --from {self.from_s:g} s")
+        return out
+
+    @property
+    def whole(self) -> bool:
+        return self.from_s is None and self.to_s is None
+
+    def bounds(self, first_time_s: float) -> tuple[float, float]:
+        """The window on the samples' time axis [s] for a record whose first sample is at ``first_time_s``."""
+        origin = 0.0 if self.on_stamps else first_time_s
+        return (-math.inf if self.from_s is None else origin + self.from_s,
+                math.inf if self.to_s is None else origin + self.to_s)
+
+    def rows(self, rows: np.ndarray, first_time_s: float) -> np.ndarray:
+        """The rows (time [s] first) inside the window."""
+        lo, hi = self.bounds(first_time_s)
+        return rows[(rows[:, 0] >= lo) & (rows[:, 0] <= hi)]
+
+    def describe(self) -> str:
+        axis = "s on the samples' own time axis" if self.on_stamps else "s from the record's first sample"
+        lo = "its start" if self.from_s is None else f"{self.from_s:g}"
+        hi = "its end" if self.to_s is None else f"{self.to_s:g}"
+        return f"{lo} to {hi} {axis}"
+
+    def as_dict(self) -> dict:
+        return {"from_s": self.from_s, "to_s": self.to_s, "axis": "stamps" if self.on_stamps else "record_start"}
+
+
+WHOLE_RECORD = TimeWindow()
 
 
 @dataclass(frozen=True)

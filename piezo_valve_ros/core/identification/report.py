@@ -179,7 +179,8 @@ DESCRIPTIONS: dict[str, str] = {
     "warnings": "what the reader should know (undersampled record, damaged bag files left out)",
     "final_model": "the final model: GPIM, G_v, initial state and one entry per added effect",
     "seconds": "wall time of the analysis [s]",
-    "source": "the bags (or CSV) and topic read",
+    "source": "the bags (or CSV) and topic read, and the stretch of the training record used (train_window: from_s, "
+              "to_s, axis, first_sample_s, last_sample_s, samples)",
 }
 
 
