@@ -81,6 +81,8 @@ SESSION_TOLERANCE = 1e-3     # ... until a round cuts the squared error by less 
 SESSION_WINDOW_S = 60.0       # ... and at most this long (shorter, the operators wiped after it would count as
                               # constants there, which the in-window offset takes, and the rows before the wipe
                               # would keep that offset less the whole record's as error)
+SESSION_WINDOW_SHARE = 0.5    # ... and at most this share of the record: the rest scores the models (a closed-loop
+                              # record may leave an operator unwiped to its end: the start would be fitted on it all)
 SESSION_SETTLE_S = 0.05       # rows the start is estimated on: until every operator it can move is wiped, and this
 
 
@@ -116,7 +118,7 @@ def session_start(model: ValveModel, record: Record, t0: float, bounds: Optional
     starts_open = open_[0] & wiped
     collapse = np.where(open_.any(axis=0), open_.shape[0] - np.argmax(open_[::-1], axis=0), 0)
     free_states = np.flatnonzero(starts_open)
-    n_rows = int(min(len(record), int(SESSION_WINDOW_S / record.dt),
+    n_rows = int(min(len(record), int(SESSION_WINDOW_S / record.dt), int(SESSION_WINDOW_SHARE * len(record)),
                      (np.max(collapse[free_states]) if free_states.size else 0) + max(int(SESSION_SETTLE_S / record.dt), 20)))
     L, U = L[:n_rows], U[:n_rows]
     window = record.slice(0, n_rows)
