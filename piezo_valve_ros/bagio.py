@@ -289,7 +289,7 @@ def _in_window(path: Path, rows: np.ndarray, window: TimeWindow, first_s: float,
 
 
 def _damaged(path: Path, topic: Optional[str], skipped: Optional[list[str]], reason: str,
-             window: TimeWindow = WHOLE_RECORD) -> tuple[np.ndarray, str]:
+             window: TimeWindow = WHOLE_RECORD, extent: Optional[dict] = None) -> tuple[np.ndarray, str]:
     """The whole-bag read failed: what the intact files hold (in ``window``), or the one-line error."""
     skips: list[str] = []
     parts, name = _read_file_by_file(path, topic, skips)
@@ -298,16 +298,20 @@ def _damaged(path: Path, topic: Optional[str], skipped: Optional[list[str]], rea
     if skipped is not None:
         skipped += skips
     rows = _time_ordered(parts)
+    if extent is not None:
+        extent.update(first_s=float(rows[0, 0]), last_s=float(rows[-1, 0]))
     return _in_window(path, window.rows(rows, rows[0, 0]), window, rows[0, 0], rows[-1, 0]), name
 
 
 def read_samples(path, topic: Optional[str] = None, skipped: Optional[list[str]] = None,
-                 window: TimeWindow = WHOLE_RECORD) -> tuple[np.ndarray, str]:
+                 window: TimeWindow = WHOLE_RECORD, extent: Optional[dict] = None) -> tuple[np.ndarray, str]:
     """Rows (time [s], voltage [V], position [m]) of the bag's ``samples`` topic, time-ordered; and its name.
 
     Any namespace is accepted (a topic whose last name is ``samples``); ``topic`` picks one explicitly.
     ``window``: only the rows in that stretch are kept as the messages are decoded (and reading stops past
-    its end), so a window of a long bag costs the window's memory, not the bag's.  A multi-file bag with
+    its end), so a window of a long bag costs the window's memory, not the bag's; ``extent`` (a dict) receives the
+    whole record's first and last sample times (``first_s``, ``last_s`` [s]: the messages past the window are
+    skipped undecoded but the last).  A multi-file bag with
     damaged storage files is read file by file: the intact ones are used and each file left out is appended
     to ``skipped`` (name and reason).  Raises BagError with a one-line reason when nothing is readable or the
     window holds no samples.
@@ -320,7 +324,7 @@ def read_samples(path, topic: Optional[str] = None, skipped: Optional[list[str]]
         reader.open()
     except Exception as exc:  # rosbags raises several types; the message is what matters
         if (path / "metadata.yaml").exists():
-            return _damaged(path, topic, skipped, _first_line(exc))
+            return _damaged(path, topic, skipped, _first_line(exc), window, extent)
         raise BagError(f"cannot read bag {path}: {_first_line(exc)}") from None
     try:
         conns = [c for c in reader.connections if c.msgtype == SAMPLES_TYPE]
@@ -342,8 +346,12 @@ def read_samples(path, topic: Optional[str] = None, skipped: Optional[list[str]]
         parts: list[np.ndarray] = []
         first_s = last_s = math.nan
         lo, hi = -math.inf, math.inf
+        past: Optional[tuple] = None   # the last message past the window, undecoded
         try:
             for conn, _, raw in reader.messages(connections=chosen):
+                if past is not None:
+                    past = (raw, conn.msgtype)
+                    continue
                 block = decode(raw, conn.msgtype)
                 if block.shape[0] == 0:
                     continue
@@ -352,14 +360,22 @@ def read_samples(path, topic: Optional[str] = None, skipped: Optional[list[str]]
                     lo, hi = window.bounds(first_s)
                 last_s = max(float(block[-1, 0]), last_s) if not math.isnan(last_s) else float(block[-1, 0])
                 if block[0, 0] > hi:   # messages come in time order: the rest lies past the window
-                    break
+                    if extent is None:
+                        break
+                    past = (raw, conn.msgtype)
+                    continue
                 parts.append(block if window.whole else block[(block[:, 0] >= lo) & (block[:, 0] <= hi)])
+            if past is not None:
+                tail = decode(*past)
+                last_s = max(last_s, float(tail[-1, 0])) if tail.shape[0] else last_s
         except BagError:
             raise
         except Exception as exc:
-            return _damaged(path, topic, skipped, _first_line(exc), window)
+            return _damaged(path, topic, skipped, _first_line(exc), window, extent)
         if math.isnan(first_s):
             raise BagError(f"bag {path}: topic {name} holds no messages")
+        if extent is not None:
+            extent.update(first_s=first_s, last_s=last_s)
         return _in_window(path, _time_ordered(parts), window, first_s, last_s), name
     finally:
         reader.close()

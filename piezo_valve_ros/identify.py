@@ -22,7 +22,7 @@ from .core.control.compensation import CompensationModel, command_range_for
 from .core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 from .core.monitoring.health import Health, HealthLimits, HealthMonitor, Level
 from .params_yaml import node_section, yaml_value
-from .core.identification.records import Record, read_csv
+from .core.identification.records import MAX_ANALYSED_S, Record, read_csv
 from .core.runs import WHOLE_RECORD, TimeWindow, WindowError
 from .core.identification.residual import Analysis, analyse
 from .core.identification.to_controller import (Compensation, base_parameters, baseline_compensation, compensation,
@@ -40,9 +40,11 @@ class ParametersFileError(PiezoValveError, ValueError):
 
 
 def read_record(path, topic: Optional[str] = None, log: Callable[[str], None] = print,
-                warnings: Optional[list[str]] = None, window: TimeWindow = WHOLE_RECORD) -> tuple[Record, Optional[str]]:
+                warnings: Optional[list[str]] = None, window: TimeWindow = WHOLE_RECORD,
+                longest_s: Optional[float] = None) -> tuple[Record, Optional[str]]:
     """A record from a bag directory (its samples topic) or from a ``.csv`` file (``records.read_csv``), the
-    stretch ``window`` of it; returns (record, topic name or None).  Storage files of a damaged bag that had to be
+    stretch ``window`` of it (no window: its first ``longest_s`` [s] where given, said in ``warnings`` when that is
+    not all of it); returns (record, topic name or None).  Storage files of a damaged bag that had to be
     left out are logged and appended to ``warnings``.  Raises BagError or WindowError (the window holds no samples
     or is malformed) with a one-line reason."""
     if window.problems():
@@ -58,9 +60,17 @@ def read_record(path, topic: Optional[str] = None, log: Callable[[str], None] = 
         log(f"{path}: {len(record)} samples (CSV){_window_note(record, window)}")
         return record, None
     skipped: list[str] = []
-    rows, name = read_samples(path, topic, skipped, window)
+    extent: dict = {}
+    capped = window.whole and longest_s is not None
+    rows, name = read_samples(path, topic, skipped, TimeWindow(to_s=longest_s) if capped else window, extent)
     record = Record.from_rows(rows)
     log(f"{path}: {rows.shape[0]} samples on {name}{_window_note(record, window)}")
+    if capped and extent["last_s"] > record.time_s[-1]:
+        text = (f"{path}: the record runs {extent['last_s'] - extent['first_s']:.0f} s; its first {longest_s:g} s were "
+                f"read and analysed (the loop analyses no more: MAX_ANALYSED_S; --from/--to choose another stretch)")
+        log(f"warning: {text}")
+        if warnings is not None:
+            warnings.append(text)
     if skipped:
         text = (f"{path}: {len(skipped)} damaged storage file(s) left out, the rest used: "
                 + "; ".join(skipped))
@@ -84,8 +94,10 @@ def identify_bags(train_bag, validate_bag=None, topic: Optional[str] = None,
     ``source`` names the window and the samples it held.  Raises BagError, WindowError or IdentificationError
     with a one-line reason."""
     damaged: list[str] = []
-    train, name = read_record(train_bag, topic, log, damaged, window)
-    validate = None if validate_bag is None else read_record(validate_bag, topic, log, damaged)[0]
+    # no more than the loop analyses is read: an hour-long bag costs what its first minutes do
+    train, name = read_record(train_bag, topic, log, damaged, window, longest_s=MAX_ANALYSED_S)
+    validate = (None if validate_bag is None
+                else read_record(validate_bag, topic, log, damaged, longest_s=MAX_ANALYSED_S)[0])
     analysis = analyse(train, validate, log=log)
     analysis.report["warnings"] = damaged + list(analysis.report.get("warnings", []))
     analysis.report["source"] = {"train_bag": str(train_bag), "validate_bag": None if validate_bag is None

@@ -447,3 +447,62 @@ def test_valve_identify_and_valve_plot_take_a_window_of_a_long_run(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "piezo_valve_ros.plot_cli", str(tmp_path / "day"), "--from", "nan"],
                          capture_output=True, text=True, env=env, timeout=120)
     assert bad.returncode == 2 and "finite" in bad.stderr
+
+
+def _sine_bag(path, seconds, rate_hz=1000.0, batch=1000):
+    """A bag of a 1 Hz sine drive and a position that follows it, written a message at a time (its rows are never
+    all in memory here)."""
+    from piezo_valve_ros.bagio import SAMPLES_TYPE, serialize_samples
+    rec = BagRecorder(path, {"/samples": (SAMPLES_TYPE, qos_profile(True, 100))}, segment_s=float("inf"),
+                      clock=lambda: 0.0)
+    for k0 in range(0, int(seconds * rate_hz), batch):
+        t = (k0 + np.arange(batch)) / rate_hz
+        v = 5.0 + 4.0 * np.sin(2 * np.pi * t)
+        rec.write("/samples", 1_700_000_000_000_000_000 + int(round(t[-1] * 1e9)),
+                  serialize_samples(np.column_stack((t, v, 13e-6 * v))))
+    rec.close()
+
+
+def test_a_long_bag_is_read_no_further_than_the_loop_analyses(tmp_path):
+    """identify_bags reads a training bag only up to MAX_ANALYSED_S (the rest is skipped undecoded): the memory the
+    read takes does not grow with the bag (peak traced allocations for a bag 4x longer within 1.3x, and below the
+    longer bag's own rows), and a warning says how long the record runs and what was read."""
+    import tracemalloc
+    from piezo_valve_ros.core.identification.records import MAX_ANALYSED_S
+    from piezo_valve_ros.identify import read_record
+    peaks, records = [], []
+    for seconds in (1.5 * MAX_ANALYSED_S, 6 * MAX_ANALYSED_S):
+        _sine_bag(tmp_path / f"bag{seconds:.0f}", seconds)
+        warnings: list[str] = []
+        tracemalloc.start()
+        record, _ = read_record(tmp_path / f"bag{seconds:.0f}", log=lambda s: None, warnings=warnings,
+                                longest_s=MAX_ANALYSED_S)
+        peaks.append(tracemalloc.get_traced_memory()[1])
+        tracemalloc.stop()
+        records.append(record)
+        assert len(record) == int(MAX_ANALYSED_S * 1000) + 1
+        assert len(warnings) == 1 and f"runs {seconds - 1e-3:.0f} s; its first {MAX_ANALYSED_S:g} s" in warnings[0]
+    assert peaks[1] < 1.3 * peaks[0], peaks
+    assert peaks[1] < 6 * MAX_ANALYSED_S * 1000 * 3 * 8, peaks   # less than the longer bag's rows alone
+    np.testing.assert_array_equal(records[0].position_um, records[1].position_um)
+
+
+def test_the_loop_analyses_the_first_part_of_a_long_record_and_says_so():
+    """analyse on a record longer than MAX_ANALYSED_S: its first MAX_ANALYSED_S, a warning and the report's
+    ``analysed`` say so; a shorter record is analysed whole."""
+    from piezo_valve_ros.core.identification.records import MAX_ANALYSED_S, Record
+    from piezo_valve_ros.core.identification.residual import analyse
+    rows = simulate_rows(identification_voltage(1e-3, 30.0), ValveSimConfig(dt=1e-3, seed=5))
+    n = rows.shape[0]
+    reps = int(np.ceil(1.6 * MAX_ANALYSED_S / (n * 1e-3)))
+    long = Record(np.arange(n * reps) * 1e-3, np.tile(rows[:, 1], reps), np.tile(rows[:, 2], reps) * 1e6)
+    report = analyse(long).report
+    a = report["analysed"]["train"]
+    assert a["from_s"] == 0.0 and a["to_s"] == MAX_ANALYSED_S and a["samples"] == int(MAX_ANALYSED_S * 1000) + 1
+    assert a["of_samples"] == n * reps
+    assert any(f"its first {MAX_ANALYSED_S:.0f} s" in w for w in report["warnings"])
+    assert report["held_out_samples"] == a["samples"] - int(round(0.7 * a["samples"])) or \
+        abs(report["held_out_samples"] - 0.3 * a["samples"]) < 2000
+    short = analyse(Record(rows[:, 0], rows[:, 1], rows[:, 2] * 1e6)).report
+    assert short["analysed"]["train"]["samples"] == n == short["analysed"]["train"]["of_samples"]
+    assert not any("were analysed" in w for w in short["warnings"])

@@ -17,13 +17,15 @@ from ..model.dynamics import scipy_signal
 
 __all__ = ["IdentificationError", "Record", "analysis_record", "split_held_out",
            "noise_floor_um", "noise_peak_um", "NOISE_PEAK_WINDOW_S", "FALLING_CORRELATION", "join", "HELD_OUT_FRACTION", "ANALYSIS_RATE_HZ", "SUPPORTED_RATE_HZ",
-           "MIN_SAMPLES", "read_csv", "CSV_POSITION_COLUMNS"]
+           "MIN_SAMPLES", "MAX_ANALYSED_S", "read_csv", "CSV_POSITION_COLUMNS"]
 
 HELD_OUT_FRACTION = 0.3      # without a validation record, the last 30 % (in time) is held out (CONTRACT.md)
 ANALYSIS_RATE_HZ = 2000.0    # fits run on block means at most this rate (error figures are at the record's rate)
 SUPPORTED_RATE_HZ = 1000.0   # below this the paper's G_v (poles near 80 and 380 Hz) is not resolved: a warning says
                              # what the rate cannot show
 MIN_SAMPLES = 200
+MAX_ANALYSED_S = 100.0       # of a longer record the loop analyses its first this long (its memory and time grow
+                             # with what it analyses: about 10 kB per analysed row); the report says what it used
 NOISE_PEAK_WINDOW_S = 0.002  # noise_peak_um: the local cubic spans this long (at least 5 samples)
 FALLING_CORRELATION = -0.5   # position and voltage correlated below this: the position falls as the drive rises
 
@@ -88,6 +90,11 @@ class Record:
     @property
     def range_um(self) -> float:
         return float(np.ptp(self.position_um)) if len(self) else 0.0
+
+    def first(self, seconds: float) -> "Record":
+        """The record's samples up to ``seconds`` [s] after its first (all of it when shorter)."""
+        stop = int(np.searchsorted(self.time_s, self.time_s[0] + seconds, side="right"))
+        return self if stop >= len(self) else self.slice(0, stop)
 
     def slice(self, start: int, stop: Optional[int] = None) -> "Record":
         return Record(self.time_s[start:stop], self.voltage_v[start:stop], self.position_um[start:stop],

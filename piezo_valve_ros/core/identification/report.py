@@ -126,6 +126,7 @@ class IdentificationReport(TypedDict, total=False):
     validation: str
     held_out_fraction: Optional[float]
     held_out_samples: int
+    analysed: dict
     validate_range_um: float
     sample_rate_hz: float
     analysis_rate_hz: float
@@ -166,6 +167,9 @@ DESCRIPTIONS: dict[str, str] = {
     "validation": "what the held-out data are: a separate validation record or the training record's tail",
     "held_out_fraction": "the share held out of the training record (null with a validation record)",
     "held_out_samples": "held-out samples at the record's rate",
+    "analysed": "what of each record the loop analysed: train (and validate) with from_s, to_s (sample times), "
+                "samples, of_samples and record_duration_s; a record longer than MAX_ANALYSED_S (100 s) is "
+                "analysed on its first 100 s, and a warning says so",
     "validate_range_um": "range of the held-out position [um]",
     "sample_rate_hz": "the record's sampling rate [Hz]",
     "analysis_rate_hz": "the rate fits and decisions run at (block means) [Hz]",

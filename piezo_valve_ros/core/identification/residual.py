@@ -56,7 +56,8 @@ from .fitting import FitCache, fit_model, fit_paper_gpim, refit_poles_with_effec
 from ..model.hysteresis import GPIM
 from .initial_state import ESTIMATE_ROUNDS, ESTIMATE_STATE_GAIN, WIPE_STATE_GAIN, estimate_state, session_start
 from .report import IdentificationReport
-from .records import ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, SUPPORTED_RATE_HZ, Record, noise_floor_um, noise_peak_um
+from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, MAX_ANALYSED_S, SUPPORTED_RATE_HZ, Record, noise_floor_um,
+                      noise_peak_um)
 from .search import (GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, Score, SubsetSearch, support,
                      unsupported_because)
 from .split import WIPE_MARGIN, SessionStart, Split, split_records
@@ -204,10 +205,14 @@ class _Loop:
                  log: Callable[[str], None], pool: ThreadPoolExecutor):
         self.started = time.monotonic()
         self.log, self.pool = log, pool
+        self.warnings: list[str] = []
+        self.analysed: dict = {}   # what of each record the loop analysed (the report's "analysed")
+        train_full = self.representative_part(train_full, "training record")
+        if validate_full is not None:
+            validate_full = self.representative_part(validate_full, "validation record")
         self.split = split_records(train_full, validate_full, max_rate_hz)
         split = self.split
         self.full = full = split.fit_full
-        self.warnings: list[str] = []
         if full.undersampled:
             self.warnings.append(f"the record is sampled at {full.rate_hz:.0f} Hz, below {SUPPORTED_RATE_HZ:.0f} Hz: what "
                                  f"happens faster than its Nyquist rate ({0.5 * full.rate_hz:.0f} Hz) goes unseen (a "
@@ -234,6 +239,22 @@ class _Loop:
         self.final: Optional[ValveModel] = None
 
     # ------------------------------------------------------------------ helpers
+    def representative_part(self, record: Record, what: str) -> Record:
+        """The part of ``record`` the loop analyses: its first MAX_ANALYSED_S (a record of repeated experiments
+        shows its valve in its first minutes as well as in hours; the loop's memory grows with what it analyses);
+        kept in ``analysed`` and said in a warning where that is not all of it."""
+        part = record.first(MAX_ANALYSED_S)
+        key = "train" if what.startswith("training") else "validate"
+        self.analysed[key] = {"from_s": float(part.time_s[0]), "to_s": float(part.time_s[-1]),
+                              "samples": len(part), "of_samples": len(record),
+                              "record_duration_s": record.duration_s}
+        if part is not record:
+            self.warnings.append(f"the {what} is {record.duration_s:.0f} s long: its first {part.duration_s:.0f} s "
+                                 f"({len(part)} of {len(record)} samples) were analysed (MAX_ANALYSED_S; the "
+                                 f"loop's memory and time grow with what it analyses)")
+            self.log("warning: " + self.warnings[-1])
+        return part
+
     @property
     def fit(self) -> Record:
         return self.split.fit
@@ -827,6 +848,7 @@ class _Loop:
             "validation": held_out_text,
             "held_out_fraction": HELD_OUT_FRACTION if split.held_out else None,
             "held_out_samples": len(split.score_full) - split.start_full,
+            "analysed": self.analysed,
             "validate_range_um": round(self.range_val, 4),
             "sample_rate_hz": round(self.full.rate_hz, 3),
             "analysis_rate_hz": round(self.fit.rate_hz, 3),
