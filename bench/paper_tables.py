@@ -14,7 +14,7 @@ from piezo_valve_ros.core.control.compensation import CompensationModel
 from piezo_valve_ros.core.evaluation import simulated_analysis
 from piezo_valve_ros.core.sim.experiments import DEFAULT_SWEEP_HZ, frequency_response, paper_step_tests
 from piezo_valve_ros.core.sim.simulator import ValveSimConfig
-from piezo_valve_ros.core.control.strategies import TABLE1_GAINS, ControllerConfig, PIDGains, has_feedback
+from piezo_valve_ros.core.control.strategies import REGISTRY, TABLE1_GAINS, ControllerConfig, PIDGains, has_feedback
 from piezo_valve_ros.core.tuning.tuner import (OVERSHOOT_LIMIT_PCT, TUNABLE_STRATEGIES, dynamics_variants, loop_margins,
                                          outside_limits, robust_overshoot_pct, tune, TuningError)
 from piezo_valve_ros.identify import compensation
@@ -61,7 +61,12 @@ def config_for(name):
 
 
 def label(name):
-    return name.upper().replace("_", " ").replace("FF PID G", "FF PID G").replace("PID HC", "PID HC")
+    """The paper's name of a strategy ("PID HC") or of a Table 1 gain set ("PID HC 5"), from the registry."""
+    if name in REGISTRY:
+        return REGISTRY[name].label
+    if name in TABLE1_GAINS:
+        return f"{REGISTRY[TABLE1_GAINS[name][0]].label} {name.rsplit('_', 1)[1]}"
+    return name.upper().replace("_", " ")
 
 
 def table1(lines):

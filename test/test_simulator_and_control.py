@@ -109,6 +109,43 @@ def test_each_strategy_holds_constant_reference(strategy):
     assert np.all(np.isfinite(rec.command_v)) and rec.command_v.min() >= 0 and rec.command_v.max() <= 10
 
 
+@pytest.mark.parametrize("like", ["ol", "ol_hc", "pid_hc", "ff_pid_g"])
+def test_a_strategy_is_what_its_registry_entry_says_not_its_name(monkeypatch, like):
+    """The controller and the tuner ask the registry what a law does (where its inverse is, whether it feeds back,
+    what its error is taken against), never its name: a law registered under a new name with an existing law's
+    entry commands the valve bit for bit as that law does, through a switch to it and the oscillation guard's
+    fallback, and the tuner ranks gains for it as for that law.  The derived lists follow the registry."""
+    from piezo_valve_ros.core.control import strategies
+    from piezo_valve_ros.core.tuning.tuner import plant_gain_range
+    assert strategies.STRATEGIES == tuple(strategies.REGISTRY)
+    assert set(strategies.FEEDBACK_STRATEGIES) == {n for n, s in strategies.REGISTRY.items() if s.feedback}
+    assert all(not strategies.REGISTRY[f].feedback for f in strategies.FALLBACK_LAW.values())
+    monkeypatch.setitem(strategies.REGISTRY, "copy", replace(strategies.REGISTRY[like], name="copy"))
+    if strategies.REGISTRY[like].feedback:
+        monkeypatch.setitem(strategies.FALLBACK_LAW, "copy", strategies.REGISTRY[like].fallback)
+    gains = PIDGains(1.1987, 474.509)
+    t = np.arange(int(0.2 / DT)) * DT
+    ref = 40e-6 * np.sin(2 * np.pi * 3 * t) + 60e-6
+
+    def commands(strategy):
+        ctl = ValveController(ControllerConfig(strategy="pid", gains=gains))
+        sim = SimulatedValve(ValveSimConfig(seed=3))
+        y, out = sim.step(5.0), []
+        for k, r in enumerate(ref):
+            if k == len(ref) // 4:
+                ctl.set_strategy(strategy)
+            if k == len(ref) // 2 and strategies.REGISTRY[strategy].feedback:
+                ctl.set_gains(PIDGains(40.0, 40000.0))   # far too fast: the guard trips, falls back, comes back
+            out.append(ctl.step(r, y))
+            y = sim.step(out[-1])
+        return np.array(out), ctl.guard_trips
+    (copied, trips_copy), (original, trips) = commands("copy"), commands(like)
+    np.testing.assert_array_equal(copied, original)
+    assert trips_copy == trips and (trips > 0) == strategies.REGISTRY[like].feedback
+    model = CompensationModel()
+    assert plant_gain_range("copy", model, 0.0, 10.0) == plant_gain_range(like, model, 0.0, 10.0)
+
+
 @pytest.mark.parametrize("new", STRATEGIES)
 @pytest.mark.parametrize("old", ["pid", "pid_hc", "ol_hc", "ff_pid_g"])
 def test_strategy_switch_mid_run_is_bumpless(old, new):

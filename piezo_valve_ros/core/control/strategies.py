@@ -51,13 +51,41 @@ from ..model.hysteresis import GPIM, NotInvertibleError
 from ..model.rate_dependence import hysteresis_inverse, swap_inverse, take_over_state
 from ..model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
-__all__ = ["STRATEGIES", "PIDGains", "ControllerConfig", "ValveController", "TABLE1_GAINS", "gain_set",
+__all__ = ["STRATEGIES", "REGISTRY", "Strategy", "NO_INVERSE", "FEEDFORWARD_INVERSE", "IN_LOOP_INVERSE", "PIDGains", "ControllerConfig", "ValveController", "TABLE1_GAINS", "gain_set",
            "SAFE_PERIOD_S", "default_gain_set", "NO_SAFE_SET_STRATEGY",
            "LOOP_SETTINGS", "loop_settings",
            "nominal_static_gain", "FEEDBACK_STRATEGIES", "has_feedback"]
 
-STRATEGIES = ("ol", "ol_hc", "pid", "pid_hc", "ff_pid", "ff_pid_g")
-FALLBACK_LAW = {"pid": "ol", "pid_hc": "ol_hc", "ff_pid": "ol_hc", "ff_pid_g": "ol_hc"}  # feedback -> feedforward
+NO_INVERSE, FEEDFORWARD_INVERSE, IN_LOOP_INVERSE = "none", "feedforward", "in_loop"   # where a law puts the inverse
+
+
+@dataclass(frozen=True)
+class Strategy:
+    """One of the paper's control laws, as the controller, the tuner, the nodes and the benches ask for it."""
+
+    name: str
+    label: str                  # the paper's name
+    inverse: str                # NO_INVERSE, FEEDFORWARD_INVERSE (the demand through it) or IN_LOOP_INVERSE (the
+                                # PID's output through it)
+    fallback: Optional[str]     # a feedback law: the feedforward law the oscillation guard holds it on; else None
+    shaped_reference: bool = False   # the error is taken against the G_v-shaped reference (FF PID G)
+
+    @property
+    def feedback(self) -> bool:
+        """Whether it closes a feedback loop (its PID gains are used, and tuned)."""
+        return self.fallback is not None
+
+
+REGISTRY: dict[str, Strategy] = {s.name: s for s in (
+    Strategy("ol", "OL", NO_INVERSE, None),
+    Strategy("ol_hc", "OL HC", FEEDFORWARD_INVERSE, None),
+    Strategy("pid", "PID", NO_INVERSE, "ol"),
+    Strategy("pid_hc", "PID HC", IN_LOOP_INVERSE, "ol_hc"),
+    Strategy("ff_pid", "FF PID", FEEDFORWARD_INVERSE, "ol_hc"),
+    Strategy("ff_pid_g", "FF PID G", FEEDFORWARD_INVERSE, "ol_hc", shaped_reference=True),
+)}
+STRATEGIES = tuple(REGISTRY)
+FALLBACK_LAW = {s.name: s.fallback for s in REGISTRY.values() if s.feedback}   # feedback -> feedforward
 FEEDBACK_STRATEGIES = tuple(FALLBACK_LAW)   # the strategies with a feedback loop: their gains are used (and tuned)
 REFERENCE_CLAMP_SHARE = 0.05  # a reference this share of the reachable span outside it is clamped; further: refused
 GUARD_WINDOW_S = 0.02     # commands on both rails within this long: the loop oscillates
@@ -122,7 +150,7 @@ NO_SAFE_SET_STRATEGY = "ol_hc"   # beyond every set's safe period: open loop wit
 
 def has_feedback(strategy: str) -> bool:
     """Whether ``strategy`` closes a feedback loop (its PID gains are used)."""
-    return strategy in FEEDBACK_STRATEGIES
+    return strategy in REGISTRY and REGISTRY[strategy].feedback
 
 
 def default_gain_set(period_s: float) -> Optional[str]:
@@ -157,8 +185,8 @@ class ControllerConfig:
 
     def problems(self) -> list[str]:
         out = []
-        if self.strategy not in STRATEGIES:
-            out.append(f"unknown strategy {self.strategy!r}; choose one of {', '.join(STRATEGIES)}")
+        if self.strategy not in REGISTRY:
+            out.append(f"unknown strategy {self.strategy!r}; choose one of {', '.join(REGISTRY)}")
         out += self.gains.problems()
         for name in ("dt", "derivative_filter_s", "bump_time_constant_s"):
             x = getattr(self, name)
@@ -329,7 +357,7 @@ class ValveController:
         self.guard_trips += 1
         self._bump_v = 0.0      # no continuity with a rail-to-rail swing: straight to the feedforward command
         self.integrator_um = 0.0
-        if c.strategy == "pid_hc":
+        if REGISTRY[c.strategy].inverse == IN_LOOP_INVERSE:
             # the swing has moved the valve's operators far from where the demand history puts the feedforward
             # inverse's; pid_hc's in-loop inverse has followed every command applied: the feedforward takes
             # over its states (otherwise the fallback is off by up to the hysteresis width until the demand's
@@ -430,37 +458,41 @@ class ValveController:
     def _transfer(self, old_strategy: str) -> None:
         """Make the next command continuous with the last one after a law, gain or model change."""
         c = self.config
-        s = c.strategy
+        law = REGISTRY[c.strategy]
         v_last = self.last_command_v
         # the error the new law would have seen in the last period
-        e = (self._last_gv_out if s == "ff_pid_g" else self._last_ref_um) - self._last_measured_um
+        e = (self._last_gv_out if law.shaped_reference else self._last_ref_um) - self._last_measured_um
         self._last_error = e
-        if s == "pid_hc" and old_strategy != "pid_hc":
+        if law.inverse == IN_LOOP_INVERSE and REGISTRY[old_strategy].inverse != IN_LOOP_INVERSE:
             # the in-loop inverse takes over the valve's state as the demand history describes it
             take_over_state(self.loop_inverse, self.ff_inverse, self.last_command_v)
-        if s in ("pid", "ff_pid", "ff_pid_g"):
-            base = c.centre_voltage_v if s == "pid" else self._last_ff_v
+        if law.feedback and law.inverse != IN_LOOP_INVERSE:
+            base = c.centre_voltage_v if law.inverse == NO_INVERSE else self._last_ff_v
             self.integrator_um = (v_last - base) * self._k - c.gains.kp * e - self._d_state
             self._bump_v = 0.0
-        elif s == "pid_hc":
+        elif law.feedback:
             h_target = self.loop_inverse.peek_forward(v_last)
             self._loop_h = h_target
             u_target = self._map.value(h_target) if self._map is not None else h_target
             self.integrator_um = u_target - c.gains.kp * e - self._d_state
             self._bump_v = 0.0
-        else:  # ol, ol_hc have no state that could absorb the difference: let it decay
+        else:  # the open-loop laws have no state that could absorb the difference: let it decay
             self.integrator_um = 0.0
-            predicted = c.centre_voltage_v + self._last_ref_um / self._k if s == "ol" else self._last_ff_v
+            predicted = (c.centre_voltage_v + self._last_ref_um / self._k if law.inverse == NO_INVERSE
+                         else self._last_ff_v)
             self._bump_v = v_last - predicted
 
     def _take_over_swap(self, law: str, difference_v: float) -> None:
         """First period after a model swap: the old model's feedforward voltage minus the new one's, handed to
         the law's state (decaying bump, integrator) so the command continues as the old model would."""
         self._swap_from = None
-        if law == "ol_hc":
-            self._bump_v += difference_v
-        elif law in ("ff_pid", "ff_pid_g"):
+        strategy = REGISTRY[law]
+        if strategy.inverse != FEEDFORWARD_INVERSE:
+            return
+        if strategy.feedback:
             self.integrator_um += difference_v * self._k
+        else:
+            self._bump_v += difference_v
 
     # ------------------------------------------------------------------ the loop
     @property
@@ -512,18 +544,18 @@ class ValveController:
         self._last_gv_out = gv_out
         y = measured_m * 1e6
         self._last_measured_um = y
-        if s == "ol":
-            return self._finish(c.centre_voltage_v + y_ref / self._k, 0.0, 0.0)
-        if s == "ol_hc":
-            return self._finish(ff_v, 0.0, 0.0)
-        e = (gv_out if s == "ff_pid_g" else y_ref) - y
+        law = REGISTRY[s]
+        if not law.feedback:
+            return self._finish(ff_v if law.inverse == FEEDFORWARD_INVERSE else c.centre_voltage_v + y_ref / self._k,
+                                0.0, 0.0)
+        e = (gv_out if law.shaped_reference else y_ref) - y
         g = c.gains
         if g.kd:
             self._d_state += self._d_alpha * (g.kd * (e - self._last_error) / c.dt - self._d_state)
         self._last_error = e
         di = g.ki * e * c.dt
         u = g.kp * e + self.integrator_um + di + self._d_state
-        if s == "pid_hc":
+        if law.inverse == IN_LOOP_INVERSE:
             u_c = min(max(u, self._loop_min_um), self._loop_max_um)
             if self._map is not None:
                 h_c = self._loop_h = self._map.solve(u_c, self._loop_h, 0.0, self._demand_min_um,
@@ -533,7 +565,7 @@ class ValveController:
             v = self._finish(self.loop_inverse.step(h_c), e, di, int(u > u_c) - int(u < u_c),
                              min(max(y_ref, self._loop_min_um), self._loop_max_um))
         else:
-            base = c.centre_voltage_v if s == "pid" else ff_v
+            base = c.centre_voltage_v if law.inverse == NO_INVERSE else ff_v
             v = self._finish(base + u / self._k, e, di)
         self._guard()
         return v

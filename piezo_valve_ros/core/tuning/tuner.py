@@ -59,7 +59,8 @@ from ..model.dynamics import ContinuousTF, first_order_lag, scipy_signal
 from ..sim.experiments import responses, run_closed_loop
 from ..metrics import StepMetrics, step_metrics
 from ..sim.signals import PAPER_STEPS_UM, step_reference_m
-from ..control.strategies import FEEDBACK_STRATEGIES, TABLE1_GAINS, ControllerConfig, PIDGains, ValveController, nominal_static_gain
+from ..control.strategies import (FEEDBACK_STRATEGIES, FEEDFORWARD_INVERSE, IN_LOOP_INVERSE, REGISTRY, TABLE1_GAINS,
+                                  ControllerConfig, PIDGains, ValveController, nominal_static_gain)
 
 __all__ = ["TUNABLE_STRATEGIES", "TuningLimits", "LoopMargins", "StepScore", "TuningResult", "TuningError",
            "plant_gain_range", "loop_margins", "linear_step", "step_score", "dynamics_variants",
@@ -296,7 +297,7 @@ def plant_gain_range(strategy: str, model: CompensationModel, command_min_v: flo
     """(lowest, highest) gain of the plant the PID sees [um/um]: 1 for ``pid_hc`` (it acts through the
     inverse); for the others the local slope of map(GPIM) over the nominal static gain k: one operator's
     weight on the flattest envelope just after a reversal, all weights on the steepest on a long sweep."""
-    if strategy == "pid_hc":
+    if REGISTRY[strategy].inverse == IN_LOOP_INVERSE:   # it acts through the inverse
         return 1.0, 1.0
     g = model.gpim
     v = np.linspace(command_min_v, command_max_v, 201)
@@ -427,11 +428,12 @@ def linear_step(strategy: str, gains: PIDGains, model: CompensationModel, dt: fl
     loop_num, loop_den = plant_gain * _poly_mul(cnum, pnum), _poly_mul(cden, pden)
     char = _poly_add(loop_den, loop_num)
     lfilter = scipy_signal().lfilter
-    if strategy in ("ff_pid", "ff_pid_g"):
+    law = REGISTRY[strategy]
+    if law.feedback and law.inverse == FEEDFORWARD_INVERSE:
         shaping, inverse = reference_filters(model, dt)
         u_ff = ref if inverse is None else lfilter(inverse.b, inverse.a, ref)
         y_ff = lfilter(pnum, pden, u_ff)                      # the feedforward through the plant
-        demand = lfilter(shaping.b, shaping.a, ref) if strategy == "ff_pid_g" else ref
+        demand = lfilter(shaping.b, shaping.a, ref) if law.shaped_reference else ref
         y = lfilter(loop_den, char, y_ff) + lfilter(loop_num, char, demand)
     else:
         y = lfilter(loop_num, char, ref)
