@@ -31,16 +31,16 @@ from __future__ import annotations
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, replace
-from typing import Any, Callable, Dict, Type
+from typing import Any, Callable, Dict, Optional, Type
 
 import numpy as np
 
 from .core.sim.simulator import (AmplifierParams, CreepParams, DriftParams, RateDependenceParams, SaturationParams,
                              SensorParams, SimulatedValve, ValveSimConfig)
-from .core.validation import as_bool, as_float, as_int, whole_periods
+from .core.validation import ParameterSpec, as_bool, as_float, as_int, whole_periods
 from .core.model.drive import CENTRE_VOLTAGE_V
 
-__all__ = ["ValveBackend", "SimBackend", "BackendParameter", "register_backend", "backend_class",
+__all__ = ["ValveBackend", "SimBackend", "BackendParameter", "backend_parameters", "register_backend", "backend_class",
            "available_backends", "sim_config_from_parameters", "ENTRY_POINT_GROUP"]
 
 ENTRY_POINT_GROUP = "piezo_valve_ros.backends"
@@ -48,13 +48,19 @@ MAX_SENSOR_DELAY_S = 0.1
 _REGISTERED: Dict[str, Type["ValveBackend"]] = {}
 
 
-@dataclass(frozen=True)
-class BackendParameter:
-    """One parameter of a backend: declared by the node as ``<backend>.<name>``, read-only."""
+def BackendParameter(name: str, default: Any, description: str, low: Optional[float] = None,
+                     high: Optional[float] = None) -> ParameterSpec:
+    """One parameter of a backend (the nodes' own spec type): declared by the node as ``<backend>.<name>``,
+    read-only (``backend_parameters``)."""
+    return ParameterSpec(name, default, description, read_only=True, low=low, high=high)
 
-    name: str
-    default: Any
-    description: str
+
+def backend_parameters(name: str, backend_type: Optional[Type["ValveBackend"]] = None) -> tuple[ParameterSpec, ...]:
+    """The parameters of backend ``name`` (of ``backend_type``, else the registered class) as the hardware node
+    declares them: under ``<name>.``, read-only, described as that backend's."""
+    cls = backend_class(name) if backend_type is None else backend_type
+    return tuple(replace(p.under(f"{name}.", read_only=True), description=f"{name} backend: {p.description}")
+                 for p in cls.PARAMETERS)
 
 
 def register_backend(name: str) -> Callable[[Type["ValveBackend"]], Type["ValveBackend"]]:
@@ -98,7 +104,7 @@ class ValveBackend(ABC):
 
     sample_period_s: float = 1e-4
     supports_lockstep: bool = False
-    PARAMETERS: tuple = ()   # BackendParameter, ...: declared by the node as "<backend name>.<name>"
+    PARAMETERS: tuple = ()   # ParameterSpec (BackendParameter), ...: declared by the node as "<backend name>.<name>"
 
     @classmethod
     def from_parameters(cls, values: dict, safe_voltage_v: float) -> "ValveBackend":

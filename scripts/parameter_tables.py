@@ -17,15 +17,17 @@ def _cell(text: str) -> str:
 
 def tables() -> str:
     from piezo_valve_ros.nodes.controller import CONTROLLER_PARAMETERS
+    from piezo_valve_ros.backends import backend_parameters
     from piezo_valve_ros.nodes.hardware import HARDWARE_PARAMETERS
     from piezo_valve_ros.nodes.identification import IDENTIFICATION_PARAMETERS
     from piezo_valve_ros.nodes.monitor import MONITOR_PARAMETERS
     lines = ["# Node parameters", "",
              "Written by `scripts/parameter_tables.py` from each node's declaration (the one the node declares, "
              "checks and prints for `--help` from); do not edit by hand. Read-only parameters are taken at "
-             "start-up only. The simulated backend's own `sim.*` parameters and the controller's model "
-             "schema are described in [the interface](interface.md).", ""]
-    for node, specs in (("valve_hardware", HARDWARE_PARAMETERS), ("valve_controller", CONTROLLER_PARAMETERS),
+             "start-up only. `valve_hardware`'s table ends with the built-in simulated backend's own `sim.*` "
+             "parameters (a backend installed under the entry-point group adds its own; `valve_hardware --help` "
+             "lists them); the controller's model schema is described in [the interface](interface.md).", ""]
+    for node, specs in (("valve_hardware", HARDWARE_PARAMETERS + backend_parameters("sim")), ("valve_controller", CONTROLLER_PARAMETERS),
                         ("valve_identification", IDENTIFICATION_PARAMETERS), ("valve_monitor", MONITOR_PARAMETERS)):
         lines += [f"## `{node}`", "", "| name | type | default | range | read-only | description |",
                   "|---|---|---|---|---|---|"]

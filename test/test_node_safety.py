@@ -499,6 +499,10 @@ def test_help_lists_every_parameter_of_the_one_declaration_the_node_uses(executa
     default and range; the handbook's tables are written from the same tuples and are up to date."""
     import importlib
     specs = getattr(importlib.import_module(f"piezo_valve_ros.nodes.{module}"), f"{module.upper()}_PARAMETERS")
+    if module == "hardware":   # and the simulated backend's own, declared from the same spec type
+        from piezo_valve_ros.backends import backend_parameters
+        specs = specs + backend_parameters("sim")
+        assert all(s.name.startswith("sim.") and s.read_only for s in backend_parameters("sim"))
     exe = os.path.join(os.path.dirname(sys.executable), executable)
     text = subprocess.run([exe, "--help"], env=ros_env(), capture_output=True, text=True, timeout=60).stdout
     for s in specs:
@@ -513,6 +517,20 @@ def test_help_lists_every_parameter_of_the_one_declaration_the_node_uses(executa
     script = os.path.join(os.path.dirname(__file__), "..", "scripts", "parameter_tables.py")
     check = subprocess.run([sys.executable, script, "--check"], capture_output=True, text=True, timeout=60)
     assert check.returncode == 0, check.stderr
+
+
+def test_the_composed_process_lists_both_nodes_parameters_under_their_names():
+    """valve_composed --help lists every parameter of both nodes (and the simulated backend's), each under the node
+    name a command line addresses it with (valve_hardware:clock:=realtime)."""
+    from piezo_valve_ros.backends import backend_parameters
+    from piezo_valve_ros.nodes.controller import CONTROLLER_PARAMETERS
+    from piezo_valve_ros.nodes.hardware import HARDWARE_PARAMETERS
+    exe = os.path.join(os.path.dirname(sys.executable), "valve_composed")
+    text = subprocess.run([exe, "--help"], env=ros_env(), capture_output=True, text=True, timeout=60).stdout
+    for node, specs in (("valve_hardware", HARDWARE_PARAMETERS + backend_parameters("sim")),
+                        ("valve_controller", CONTROLLER_PARAMETERS)):
+        for s in specs:
+            assert f"  {node}:{s.name} ({s.type_name}, default {s.default!r}" in text, (node, s.name)
 
 
 def test_every_node_shares_the_one_control_period_declaration():

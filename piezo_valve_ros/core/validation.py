@@ -3,9 +3,11 @@ ValueError naming the parameter and what was wrong."""
 from __future__ import annotations
 
 import math
-from typing import Any
+from dataclasses import dataclass, replace
+from typing import Any, Optional
 
-__all__ = ["as_float", "as_int", "as_float_list", "as_bool", "PERIOD_TOLERANCE", "whole_periods", "same_period"]
+__all__ = ["as_float", "as_int", "as_float_list", "as_bool", "PERIOD_TOLERANCE", "whole_periods", "same_period",
+           "ParameterSpec"]
 
 PERIOD_TOLERANCE = 1e-6   # times [s] closer than this share of the longer one are equal (rounding, not a choice)
 
@@ -58,3 +60,50 @@ def whole_periods(span_s: float, period_s: float) -> int | None:
 def same_period(a_s: float, b_s: float) -> bool:
     """Whether two periods [s] are the same (to PERIOD_TOLERANCE)."""
     return abs(a_s - b_s) <= PERIOD_TOLERANCE * max(abs(a_s), abs(b_s))
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    """One node (or backend) parameter, declared once: the node declares it from here (typed descriptor, range,
+    read-only), ``--help`` lists it, and the handbook's parameter tables are written from it
+    (``scripts/parameter_tables.py``).  ``low``/``high``: the admissible range of a number, where it has one.
+    ROS-free: backends declare theirs with it too."""
+
+    name: str
+    default: Any
+    description: str
+    read_only: bool = False
+    low: Optional[float] = None
+    high: Optional[float] = None
+
+    @property
+    def type_name(self) -> str:
+        d = self.default
+        if isinstance(d, bool):
+            return "bool"
+        if isinstance(d, str):
+            return "string"
+        if isinstance(d, int):
+            return "integer"
+        if isinstance(d, (list, tuple)):
+            return "double array"
+        return "double"
+
+    def range_text(self) -> str:
+        if self.low is None and self.high is None:
+            return ""
+        return f"{'' if self.low is None else format(self.low, 'g')}..{'' if self.high is None else format(self.high, 'g')}"
+
+    def help_line(self) -> str:
+        extras = [self.type_name, f"default {self.default!r}"]
+        if self.range_text():
+            extras.append(f"range {self.range_text()}")
+        if self.read_only:
+            extras.append("read-only")
+        return f"  {self.name} ({', '.join(extras)})\n      {self.description}"
+
+
+    def under(self, prefix: str, read_only: Optional[bool] = None) -> "ParameterSpec":
+        """This parameter named ``prefix`` + its name (a backend's under ``<backend>.``, a composed process's node's
+        under ``<node>:``)."""
+        return replace(self, name=prefix + self.name, read_only=self.read_only if read_only is None else read_only)

@@ -21,7 +21,7 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 from ..core.defaults import CONTROL_PERIOD_S
 from ..samples import SAMPLES_LABEL, decode_samples
-from ..core.validation import as_float
+from ..core.validation import ParameterSpec, as_float
 
 MAX_CONTROL_PERIOD_S = 0.1      # slower than 10 Hz is no control loop for this valve
 
@@ -56,46 +56,6 @@ def declare(node: Node, name: str, default: Any, description: str, *, read_only:
         if low is not None and high is not None:
             descriptor.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high))]
     return node.declare_parameter(name, default, descriptor)
-
-
-@dataclass(frozen=True)
-class ParameterSpec:
-    """One node parameter, declared once: the node declares it from here (typed descriptor, range, read-only),
-    ``--help`` lists it, and the handbook's parameter tables are written from it
-    (``scripts/parameter_tables.py``).  ``low``/``high``: the admissible range of a number, where it has one."""
-
-    name: str
-    default: Any
-    description: str
-    read_only: bool = False
-    low: Optional[float] = None
-    high: Optional[float] = None
-
-    @property
-    def type_name(self) -> str:
-        d = self.default
-        if isinstance(d, bool):
-            return "bool"
-        if isinstance(d, str):
-            return "string"
-        if isinstance(d, int):
-            return "integer"
-        if isinstance(d, (list, tuple)):
-            return "double array"
-        return "double"
-
-    def range_text(self) -> str:
-        if self.low is None and self.high is None:
-            return ""
-        return f"{'' if self.low is None else format(self.low, 'g')}..{'' if self.high is None else format(self.high, 'g')}"
-
-    def help_line(self) -> str:
-        extras = [self.type_name, f"default {self.default!r}"]
-        if self.range_text():
-            extras.append(f"range {self.range_text()}")
-        if self.read_only:
-            extras.append("read-only")
-        return f"  {self.name} ({', '.join(extras)})\n      {self.description}"
 
 
 CONTROL_PERIOD = ParameterSpec(

@@ -16,8 +16,8 @@ import sys
 from ..core.validation import same_period
 from ..processes import die_with_parent
 from .common import close, init_ros, print_help, spin, wants_help
-from .controller import ValveControllerNode
-from .hardware import ValveHardwareNode
+from .controller import CONTROLLER_PARAMETERS, ValveControllerNode
+from .hardware import ValveHardwareNode, hardware_parameters_with_backends
 
 
 def build(hardware_overrides=(), controller_overrides=(), **node_kwargs) -> tuple[ValveHardwareNode,
@@ -45,7 +45,9 @@ def build(hardware_overrides=(), controller_overrides=(), **node_kwargs) -> tupl
 
 def main(args=None) -> int:
     if wants_help(args):
-        print_help("valve_composed", __doc__)
+        print_help("valve_composed", __doc__,
+                   tuple(p.under("valve_hardware:") for p in hardware_parameters_with_backends())
+                   + tuple(p.under("valve_controller:") for p in CONTROLLER_PARAMETERS))
         return 0
     die_with_parent()
     init_ros(args)

@@ -29,7 +29,7 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64, Float64MultiArray, String
 from std_srvs.srv import Trigger
 
-from ..backends import ValveBackend, available_backends, backend_class
+from ..backends import ValveBackend, available_backends, backend_class, backend_parameters
 from ..faults import Fault, FaultLimits, SampleCheck
 from ..loop_timing import LoopTiming
 from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, MAX_CONTROL_PERIOD_S, Diagnostics, period_parameter, SAMPLES_QOS, SENSOR_QOS, STATE_QOS, Pacing, ParameterSpec,
@@ -99,9 +99,7 @@ class ValveHardwareNode(Node):
         declare_all(self, HARDWARE_PARAMETERS)
         backend_name = str(self.get_parameter("backend").value)
         backend_type = type(backend) if backend is not None else backend_class(backend_name)
-        for prm in backend_type.PARAMETERS:  # each backend's own parameters, under its name
-            declare(self, f"{backend_name}.{prm.name}", prm.default, f"{backend_name} backend: {prm.description}",
-                    read_only=True)
+        declare_all(self, backend_parameters(backend_name, backend_type))   # each backend's own, under its name
         self._refuse_unknown(backend_name, backend_type, kwargs.get("parameter_overrides") or ())
         p = parameter_values(self)
         stats_period = self._read_settings(p)
@@ -641,9 +639,21 @@ class _StandaloneHardwareNode(ValveHardwareNode):
     STANDALONE = True
 
 
+def hardware_parameters_with_backends() -> tuple[ParameterSpec, ...]:
+    """The node's own parameters and every backend's this process can make (``<backend>.<name>``), as ``--help``
+    lists them; a backend that cannot be loaded is left out (``backend:=`` then says why)."""
+    specs = list(HARDWARE_PARAMETERS)
+    for name in available_backends():
+        try:
+            specs += backend_parameters(name)
+        except ValueError:
+            continue
+    return tuple(specs)
+
+
 def main(args=None) -> int:
     return run_node(_StandaloneHardwareNode, "valve_hardware", args, on_exit_of=lambda n: n.shutdown_safely,
-                    specs=HARDWARE_PARAMETERS)
+                    specs=hardware_parameters_with_backends())
 
 
 if __name__ == "__main__":
