@@ -81,6 +81,10 @@ def test_a_record_that_cannot_separate_two_effects_says_which_and_why():
     assert rms["with_creep"] <= rms["with_drift"] < rms["without_either"]
     assert pair["share"] >= residual.SEPARATION_SHARE
     assert "drift cuts the held-out RMS" in pair["why"]
+    # the experiment that would tell them apart, from each effect's own description of what shows it
+    from piezo_valve_ros.core.identification.effects import Creep, Drift
+    assert pair["experiment"].startswith("to tell creep from drift, record ")
+    assert Creep.telling_experiment in pair["experiment"] and Drift.telling_experiment in pair["experiment"]
     assert check_report(report) == []          # the typed schema, its indistinguishable entries too
 
 
@@ -781,3 +785,12 @@ def test_a_transport_delay_in_fractional_samples_shifts_the_prediction_by_that_m
     middle = slice(100, 3900)
     expected = 0.5 * (np.roll(plain, 2) + np.roll(plain, 3))
     assert np.allclose(late[middle], expected[middle], atol=1e-9)
+
+
+def test_every_catalogue_effect_says_what_it_looks_like_and_what_experiment_shows_it():
+    """Each effect's one home carries its residual signature and the excitation that tells it from its
+    look-alikes (the report's indistinguishable entries quote them)."""
+    from piezo_valve_ros.core.identification.effects import CATALOGUE
+    for effect in CATALOGUE:
+        assert effect.signature and effect.telling_experiment, effect.name
+    assert len({e.telling_experiment for e in CATALOGUE}) == len(CATALOGUE)

@@ -53,6 +53,7 @@ class Indistinguishable(TypedDict):
     held_out_rms_um: dict
     share: Optional[float]
     why: str
+    experiment: str
 
 
 class ResidualStructure(TypedDict):
@@ -242,6 +243,8 @@ FIELD_DESCRIPTIONS: dict[str, str] = {
     "linear search otherwise)", "Decision.margin": "statistic - threshold: how far from the knife edge",
     "Decision.explained_rms_um": "RMS the effect explains [um]", "Decision.evidence": "the decision in words",
     "Indistinguishable.share": "the alternative's cut as a share of the added effect's",
+    "Indistinguishable.experiment": "the excitation that would tell the two apart, from each effect's own "
+                                    "telling_experiment",
     "Indistinguishable.held_out_rms_um": "without either, with the effect, with the alternative [um]",
     "ResidualStructure.held_out_noise_peak_um": "the held-out measurement's own deviation from its 2 ms local "
     "cubic: the peak its noise alone puts there [um]",

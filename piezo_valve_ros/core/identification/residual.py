@@ -678,7 +678,7 @@ class _Loop:
         (None: every added effect is the better of its pair).  The search's first-order ranking chose the
         added one; the exact refits decide."""
         best = None
-        for alt in _alternatives(current, self.names, verdicts, self.search, self.refit_many):
+        for alt in _alternatives(current, self.names, verdicts, self.search, self.refit_many, self.by_name):
             a, b, held = alt["effect"], alt["alternative"], alt["held_out_rms_um"]
             swapped = [n for n in self.names if n in (set(current) - {a}) | {b}]
             if held["with_" + b] < held["with_" + a] and frozenset(swapped) not in tried \
@@ -808,7 +808,8 @@ class _Loop:
         unique = list({id(m): m for m in (baseline, final, paper.model)}.values())
         figured = {id(m): f for m, f in zip(unique, self.each([lambda m=m: self.figures(m) for m in unique]))}  # once each
         diagnosis = self.diagnosis()
-        alternatives = _alternatives(self.added, self.names, self.verdicts, self.search, self.refit_many)
+        alternatives = _alternatives(self.added, self.names, self.verdicts, self.search, self.refit_many,
+                                     self.by_name)
         for a in alternatives:
             self.log(f"cannot tell apart: {a['effect']} and {a['alternative']}: {a['why']}")
         held_out_text = (f"held-out last {100 * HELD_OUT_FRACTION:.0f} % of the training record" if split.held_out
@@ -925,7 +926,7 @@ def _detrended(error: np.ndarray) -> np.ndarray:
 
 
 def _alternatives(added: list[str], names: list[str], verdicts: dict, search: "SubsetSearch",
-                  refit_many: Callable) -> list[dict]:
+                  refit_many: Callable, by_name: dict[str, Effect]) -> list[dict]:
     """Effects the record cannot tell apart: for each added effect a, each effect b outside the final set that,
     put in a's place, explains at least SEPARATION_SHARE of what a explains (its held-out RMS cut from the
     final model without a), by the linear search and then by an exact refit.  The loop names the better of
@@ -952,8 +953,9 @@ def _alternatives(added: list[str], names: list[str], verdicts: dict, search: "S
                     "why": f"in {a}'s place {b} cuts the held-out RMS {without:.4f} -> {swapped.rms:.4f} um against "
                            f"{with_:.4f} um with {a} ({100 * cut_b / max(cut_a, 1e-30):.0f} % of its cut, "
                            f"threshold {100 * SEPARATION_SHARE:.0f} %): both signatures fit what this record shows; "
-                           f"{a} is named as the better, a record that excites them differently (other rates, levels "
-                           f"or holds) would separate them"})
+                           f"{a} is named as the better",
+                    "experiment": f"to tell {a} from {b}, record {by_name[a].telling_experiment} (for {a}), and "
+                                  f"{by_name[b].telling_experiment} (for {b})"})
     return found
 
 

@@ -28,6 +28,8 @@ MIN_SLOPE_SHARE = 0.2   # the descending envelope's slope stays >= 0.2 of the as
 @dataclass(frozen=True)
 class Asymmetry(Effect):
     name = "asymmetry"
+    telling_experiment = ("slow full cycles and minor loops at both ends of the range: asymmetric envelopes bend one "
+                          "branch more than the other, at any rate and level")
     signature = ("ascending and descending branches differ: the residual follows the operators' sensitivity to a "
                  "descending envelope of another shift, slope and curvature")
     centre_v: float = 5.0

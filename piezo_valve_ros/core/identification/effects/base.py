@@ -47,6 +47,7 @@ class Effect:
 
     name: ClassVar[str] = ""
     signature: ClassVar[str] = ""
+    telling_experiment: ClassVar[str] = ""   # the excitation that shows this effect and not its look-alikes
     ridge: ClassVar[float] = EFFECT_RIDGE
 
     @classmethod

@@ -27,6 +27,8 @@ HEATING_TIME_CONSTANTS_S = (10.0, 40.0)
 @dataclass(frozen=True)
 class Drift(Effect):
     name = "drift"
+    telling_experiment = ("the same cycle repeated before and after a long hold: drift moves with the time since the "
+                          "start whatever the input did, creep and hysteresis do not")
     signature = ("slow change of offset or gain: the residual trends with the time since the start or with how "
                  "hard the valve has been driven (self-heating)")
     duration_s: float = 1.0

@@ -40,6 +40,9 @@ EXTRA_START = 3.0   # the extra pole pair starts this factor above G_v's natural
 @dataclass(frozen=True)
 class Dynamics(Effect):
     name = "dynamics"
+    telling_experiment = ("the same loop at several rates (0.1 to 10 Hz) and fast steps: a delay or a lag shows in "
+                          "the first milliseconds after a step, rate-dependent hysteresis in a loop that widens with "
+                          "the rate; a play or a static effect looks the same at every rate")
     signature = ("lag or ringing after fast moves beyond the second-order G_v, or a loop that widens with the "
                  "input rate: the residual follows fast lags (0.3-3 ms) of the model output, or the operators' "
                  "sensitivity to thresholds that grow with the input rate")
