@@ -2,6 +2,7 @@
 command-line tool.  Read from the source (every import, also those inside functions and under
 TYPE_CHECKING), so an arrow cannot hide in a lazy import."""
 import ast
+import os
 from pathlib import Path
 
 import pytest
@@ -187,3 +188,31 @@ def test_every_typed_error_shares_the_one_base():
     def fails():
         raise PiezoValveError("bad input")
     assert run_tool("valve_x", fails) == 2
+
+
+LIBRARY_PARTS = ("core.model", "core.control", "core.sim", "core.identification", "core.tuning", "core.monitoring")
+
+
+@pytest.mark.parametrize("part", LIBRARY_PARTS)
+def test_each_part_of_the_core_exports_its_everyday_names_lazily(part):
+    """``from piezo_valve_ros.core.<part> import <name>`` gives the object its submodule defines, for every name
+    the part exports; importing the part alone imports none of its submodules (a node that needs one module of
+    a part does not pay for the rest)."""
+    import subprocess
+    import sys
+    package = f"piezo_valve_ros.{part}"
+    code = (f"import sys, importlib; m = importlib.import_module({package!r}); "
+            f"print(sorted(k for k in sys.modules if k.startswith({package!r} + '.')))")
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                            cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert loaded.returncode == 0, loaded.stderr
+    assert loaded.stdout.strip() == "[]", loaded.stdout
+    import importlib
+    module = importlib.import_module(package)
+    assert module.__all__
+    for name in module.__all__:
+        value = getattr(module, name)
+        if isinstance(value, type) or callable(value):   # defined in the part (constants: by their submodule)
+            assert value.__module__.startswith(package + "."), (name, value.__module__)
+    with pytest.raises(AttributeError, match="has no attribute 'no_such_name'"):
+        getattr(module, "no_such_name")

@@ -1,0 +1,19 @@
+"""Identification and the residual loop: records, the effect catalogue, the analysis and its report, and the
+model it hands to the controller."""
+from __future__ import annotations
+
+from .. import lazy_exports
+
+__all__, __getattr__ = lazy_exports(__name__, {
+    "analyse": "residual",
+    "Analysis": "residual",
+    "Record": "records",
+    "read_csv": "records",
+    "IdentificationError": "records",
+    "HELD_OUT_FRACTION": "records",
+    "MAX_ANALYSED_S": "records",
+    "CATALOGUE": "effects",
+    "compensation": "to_controller",
+    "Compensation": "to_controller",
+    "check_report": "report",
+})

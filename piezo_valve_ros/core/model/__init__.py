@@ -1,0 +1,15 @@
+"""The valve's models: the GPIM and its inverse, G_v, the drive, the output map, rate dependence."""
+from __future__ import annotations
+
+from .. import lazy_exports
+
+__all__, __getattr__ = lazy_exports(__name__, {
+    "GPIM": "hysteresis",
+    "GPIMParams": "hysteresis",
+    "PAPER_GPIM": "hysteresis",
+    "PlayOperatorBank": "hysteresis",
+    "play_batch": "hysteresis",
+    "NotInvertibleError": "hysteresis",
+    "ContinuousTF": "dynamics",
+    "PAPER_VALVE_MODEL": "dynamics",
+})
