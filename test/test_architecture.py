@@ -216,3 +216,29 @@ def test_each_part_of_the_core_exports_its_everyday_names_lazily(part):
             assert value.__module__.startswith(package + "."), (name, value.__module__)
     with pytest.raises(AttributeError, match="has no attribute 'no_such_name'"):
         getattr(module, "no_such_name")
+
+
+def test_a_parameter_spec_checks_type_range_and_choices_with_one_line_naming_it():
+    """ParameterSpec.checked: the value as the default's type, within its range or choices; every refusal is one
+    line that names the parameter and the value."""
+    from piezo_valve_ros.core.validation import ParameterSpec
+    clock = ParameterSpec("clock", "realtime", "", choices=("realtime", "lockstep"))
+    assert clock.checked("lockstep") == "lockstep"
+    batch = ParameterSpec("samples_batch", 1000, "", low=1)
+    assert batch.checked(20.0) == 20 and isinstance(batch.checked(20.0), int)
+    period = ParameterSpec("period_s", 1.0, "", low=0.0, high=60.0)
+    assert period.checked(3) == 3.0
+    flag = ParameterSpec("push", True, "")
+    refused = [(clock, "wallclock", "clock must be one of realtime, lockstep, got 'wallclock'"),
+               (clock, 3, "clock must be a string, got 3"),
+               (batch, 0, "samples_batch must be >= 1, got 0"),
+               (batch, 2.5, "samples_batch"),
+               (period, 61, "period_s must lie in [0, 60], got 61.0"),
+               (period, float("nan"), "period_s"),
+               (period, "1", "period_s must be a number"),
+               (flag, "false", "push must be true or false")]
+    for spec, value, message in refused:
+        with pytest.raises(ValueError) as info:
+            spec.checked(value)
+        assert str(info.value).startswith(message) and "\n" not in str(info.value), str(info.value)
+    assert "one of realtime, lockstep" in clock.help_line() and clock.range_text() == "realtime or lockstep"

@@ -87,6 +87,9 @@ def controller(ros_context):
     ({"control_period_s": -0.001}, "out of range"),
     ({"control_period_s": 0.00015}, "not a whole number"),
     ({"lockstep__step_budget": 5}, "applies only to clock lockstep"),
+    ({"clock": "wallclock"}, "clock must be one of realtime, lockstep, got 'wallclock'"),
+    ({"samples_batch": 0}, "samples_batch must be >= 1, got 0"),
+    ({"samples_batch": 2.5}, "samples_batch must be an integer"),
     ({"lockstep__step_budget": -2, "clock": "lockstep"}, "must be -1"),
     ({"safe_voltage": 11.0}, "safe_voltage must lie within"),
     ({"command_min_v": 5.0, "command_max_v": 5.0, "safe_voltage": 5.0}, "must be below"),
@@ -465,6 +468,8 @@ def identification(ros_context, tmp_path):
 @pytest.mark.parametrize("overrides, says", [
     ({"tune_strategy": "ol_hc"}, "tune_strategy must be one of pid, pid_hc, ff_pid, ff_pid_g"),
     ({"tune_strategy": "dance"}, "tune_strategy must be one of"),
+    ({"validation_strategy": "pid_h"}, "validation_strategy must be one of ol, ol_hc, pid, pid_hc"),
+    ({"storage": "zip"}, "storage must be one of mcap, sqlite3, got 'zip'"),
     ({"tune_max_overshoot_pct": -1.0}, "max_overshoot_pct must be a finite number >= 0"),
     ({"tune_max_overshoot_pct": float("nan")}, "tune_max_overshoot_pct must be finite"),
     ({"tune_max_overshoot_pct": "abc"}, "tune_max_overshoot_pct must be a number"),

@@ -66,8 +66,9 @@ def same_period(a_s: float, b_s: float) -> bool:
 class ParameterSpec:
     """One node (or backend) parameter, declared once: the node declares it from here (typed descriptor, range,
     read-only), ``--help`` lists it, and the handbook's parameter tables are written from it
-    (``scripts/parameter_tables.py``).  ``low``/``high``: the admissible range of a number, where it has one.
-    ROS-free: backends declare theirs with it too."""
+    (``scripts/parameter_tables.py``).  ``low``/``high``: the admissible range of a number, where it has one;
+    ``choices``: the admissible values of a string.  :meth:`checked` applies them.  ROS-free: backends declare
+    theirs with it too."""
 
     name: str
     default: Any
@@ -75,6 +76,33 @@ class ParameterSpec:
     read_only: bool = False
     low: Optional[float] = None
     high: Optional[float] = None
+    choices: tuple[str, ...] = ()
+
+    def checked(self, value: Any) -> Any:
+        """``value`` as this parameter's type (a number as int or float like the default, a bool, a string, a list
+        of numbers) within its range or choices; ValueError with a one-line reason naming the parameter."""
+        d = self.default
+        if isinstance(d, bool):
+            out: Any = as_bool(self.name, value)
+        elif isinstance(d, str):
+            if not isinstance(value, str):
+                raise ValueError(f"{self.name} must be a string, got {value!r}")
+            out = value
+        elif isinstance(d, int):
+            out = as_int(self.name, value)
+        elif isinstance(d, (list, tuple)):
+            return as_float_list(self.name, value)
+        else:
+            out = as_float(self.name, value)
+        if self.choices and out not in self.choices:
+            raise ValueError(f"{self.name} must be one of {', '.join(self.choices)}, got {out!r}")
+        if self.low is not None and self.high is not None and not self.low <= out <= self.high:
+            raise ValueError(f"{self.name} must lie in [{self.low:g}, {self.high:g}], got {out!r}")
+        if self.low is not None and out < self.low:
+            raise ValueError(f"{self.name} must be >= {self.low:g}, got {out!r}")
+        if self.high is not None and out > self.high:
+            raise ValueError(f"{self.name} must be <= {self.high:g}, got {out!r}")
+        return out
 
     @property
     def type_name(self) -> str:
@@ -90,18 +118,21 @@ class ParameterSpec:
         return "double"
 
     def range_text(self) -> str:
+        if self.choices:
+            return " or ".join(self.choices)
         if self.low is None and self.high is None:
             return ""
         return f"{'' if self.low is None else format(self.low, 'g')}..{'' if self.high is None else format(self.high, 'g')}"
 
     def help_line(self) -> str:
         extras = [self.type_name, f"default {self.default!r}"]
-        if self.range_text():
+        if self.choices:
+            extras.append(f"one of {', '.join(self.choices)}")
+        elif self.range_text():
             extras.append(f"range {self.range_text()}")
         if self.read_only:
             extras.append("read-only")
         return f"  {self.name} ({', '.join(extras)})\n      {self.description}"
-
 
     def under(self, prefix: str, read_only: Optional[bool] = None) -> "ParameterSpec":
         """This parameter named ``prefix`` + its name (a backend's under ``<backend>.``, a composed process's node's

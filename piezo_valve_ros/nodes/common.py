@@ -38,15 +38,17 @@ STATE_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, history=
 
 
 def declare(node: Node, name: str, default: Any, description: str, *, read_only: bool = False,
-            low: Optional[float] = None, high: Optional[float] = None):
+            low: Optional[float] = None, high: Optional[float] = None, choices: tuple[str, ...] = ()):
     """Declare a parameter with a typed descriptor.
 
     Booleans and strings are statically typed (``enabled: 'false'`` is refused by rclpy with its reason);
     numbers and lists stay dynamically typed so ``kp: 1`` works as well as ``kp: 1.0`` (the node validates
     them itself).  ``read_only`` parameters can be given at start-up only; ``low``/``high`` document the
-    admissible range in the descriptor (``ros2 param describe``) and are checked by rclpy for doubles.
+    admissible range in the descriptor (``ros2 param describe``) and are checked by rclpy for doubles;
+    ``choices`` go into its additional constraints (the node checks them: ``ParameterSpec.checked``).
     """
-    descriptor = ParameterDescriptor(description=description, read_only=read_only)
+    descriptor = ParameterDescriptor(description=description, read_only=read_only,
+                                     additional_constraints=f"one of {', '.join(choices)}" if choices else "")
     if isinstance(default, bool):
         descriptor.type = ParameterType.PARAMETER_BOOL
     elif isinstance(default, str):
@@ -128,7 +130,8 @@ class Diagnostics:
 def declare_all(node: Node, specs) -> None:
     """Declare every parameter of ``specs`` on ``node`` (:func:`declare`)."""
     for s in specs:
-        declare(node, s.name, s.default, s.description, read_only=s.read_only, low=s.low, high=s.high)
+        declare(node, s.name, s.default, s.description, read_only=s.read_only, low=s.low, high=s.high,
+                choices=s.choices)
 
 
 def realtime_settings(p: dict):

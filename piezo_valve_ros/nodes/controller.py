@@ -16,6 +16,7 @@ Either way it resumes bumplessly from the applied voltage.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 import sys
 import time
 from typing import Any, Callable, Optional
@@ -88,7 +89,7 @@ DEFAULT_GAIN_SET = default_gain_set(CONTROL_PERIOD.default)   # the node's defau
 _GAINS = TABLE1_GAINS[DEFAULT_GAIN_SET][1]
 CONTROLLER_PARAMETERS: tuple[ParameterSpec, ...] = tuple(
     ParameterSpec(name, default, text) for name, default, text in [
-        ("strategy", "pid_hc", f"one of {', '.join(STRATEGIES)}"),
+        ("strategy", "pid_hc", "the control law (the paper's six)"),
         ("gain_set", "", "Table 1 gain set name: sets strategy/kp/ki/kd (which read back its values); '' = none"),
         ("kp", _GAINS.kp, f"proportional gain (normalised, um/um; default: {DEFAULT_GAIN_SET}'s, safe at the default "
                           "control period)"), ("ki", _GAINS.ki, "integral gain [1/s]"),
@@ -111,6 +112,8 @@ CONTROLLER_PARAMETERS: tuple[ParameterSpec, ...] = tuple(
     STATE_PERIOD,
     DIAGNOSTICS_PERIOD,
 )
+CONTROLLER_PARAMETERS = tuple(replace(s, choices=STRATEGIES) if s.name == "strategy" else s
+                              for s in CONTROLLER_PARAMETERS)
 CONTROLLER_STATE_COLUMNS = ("time_s", "reference_m", "measured_m", "error_m", "command_v", "strategy_index",
                             "guard_active", "enabled")   # ~/controller_state: one row; strategy_index into STRATEGIES
 

@@ -49,9 +49,10 @@ UNANSWERED_REPEAT_S = 1.0     # lockstep: an unanswered position is sent again a
 HARDWARE_PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("backend", "sim", "valve backend: sim (default) or one installed under the entry-point group "
                   "piezo_valve_ros.backends", read_only=True),
-    ParameterSpec("clock", "realtime", "realtime (wall clock) or lockstep (one period per command)", read_only=True),
+    ParameterSpec("clock", "realtime", "realtime (wall clock) or lockstep (one period per command)", read_only=True,
+                  choices=("realtime", "lockstep")),
     CONTROL_PERIOD,
-    ParameterSpec("samples_batch", 1000, "rows per samples message", read_only=True),
+    ParameterSpec("samples_batch", 1000, "rows per samples message", read_only=True, low=1),
     ParameterSpec("command_timeout_s", 0.5, "no valid command for this long -> safe_voltage [s] "
                   f"(> 0, at least {MIN_TIMEOUT_PERIODS} control periods, at most {MAX_COMMAND_TIMEOUT_S} s)",
                   low=0.0, high=MAX_COMMAND_TIMEOUT_S),
@@ -77,6 +78,7 @@ HARDWARE_PARAMETERS: tuple[ParameterSpec, ...] = (
                   "0: only at shutdown", read_only=True),
     DIAGNOSTICS_PERIOD,
 )
+SPECS = {s.name: s for s in HARDWARE_PARAMETERS}
 IN_TIME_WARN_SHARE = 0.99   # /diagnostics: WARN when fewer commands than this share came within their period
 
 
@@ -129,9 +131,7 @@ class ValveHardwareNode(Node):
     def _read_settings(self, p: dict) -> float:
         """The start-up parameters that do not depend on the backend, checked (ValueError with the reason);
         returns loop_stats_period_s."""
-        self.clock_mode = str(p["clock"])
-        if self.clock_mode not in ("realtime", "lockstep"):
-            raise ValueError(f"clock must be realtime or lockstep, got {self.clock_mode!r}")
+        self.clock_mode = SPECS["clock"].checked(p["clock"])
         self.safe_voltage = as_float("safe_voltage", p["safe_voltage"])
         self.command_min_v = as_float("command_min_v", p["command_min_v"])
         self.command_max_v = as_float("command_max_v", p["command_max_v"])
@@ -140,9 +140,7 @@ class ValveHardwareNode(Node):
                              f"({self.command_max_v} V)")
         if not self.command_min_v <= self.safe_voltage <= self.command_max_v:
             raise ValueError("safe_voltage must lie within [command_min_v, command_max_v]")
-        self.samples_batch = as_int("samples_batch", p["samples_batch"])
-        if self.samples_batch < 1:
-            raise ValueError("samples_batch must be >= 1")
+        self.samples_batch = SPECS["samples_batch"].checked(p["samples_batch"])
         self.step_budget = self._step_budget(p["lockstep.step_budget"])
         stats_period = as_float("loop_stats_period_s", p["loop_stats_period_s"])
         if stats_period < 0:

@@ -37,6 +37,7 @@ import math
 import sys
 import threading
 import time
+from dataclasses import replace
 from datetime import datetime
 from pathlib import Path
 from typing import Optional
@@ -54,7 +55,7 @@ from ..bagio import STORAGES, BagError
 from ..core.identification.records import IdentificationError
 from ..core.metrics import error_figures
 from ..core.sim.signals import rig_training_voltage, validation_reference_m
-from ..core.control.strategies import LOOP_SETTINGS, loop_settings
+from ..core.control.strategies import LOOP_SETTINGS, STRATEGIES, loop_settings
 from ..core.tuning.tuner import OVERSHOOT_LIMIT_PCT, TUNABLE_STRATEGIES, TuningError, TuningLimits, tune
 from ..identify import (summary_json, compensation, controller_parameters, controller_parameters_yaml, identify_bags, report_json,
                         write_atomically)
@@ -103,11 +104,11 @@ IDENTIFICATION_PARAMETERS: tuple[ParameterSpec, ...] = (CONTROL_PERIOD,) + tuple
         ("validation_s", 30.0, "length of the validation demand (eq. 12) [s]"),
         ("validation_amplitude_m", 50e-6, "peak of the validation demand [m]"),
         ("validation_strategy", "ol_hc", "controller strategy during validate"),
-        ("tune_strategy", "pid_hc", f"strategy the tune step chooses gains for: {', '.join(TUNABLE_STRATEGIES)}"),
+        ("tune_strategy", "pid_hc", "strategy the tune step chooses gains for"),
         ("tune_max_overshoot_pct", OVERSHOOT_LIMIT_PCT, "tune: largest overshoot of any paper step [%]"),
         ("time_scale", 1.0, "< 1 compresses the experiments in time (quick runs); 1 = the paper's signals"),
         ("bag_dir", "identification_runs", "one bag per experiment is written below this directory"),
-        ("storage", BAG_STORAGE, f"bag storage: {' or '.join(STORAGES)}"),
+        ("storage", BAG_STORAGE, "bag storage"),
         ("params_out", "", "parameters file written by refit (default: <bag_dir>/fitted.yaml)"),
         ("push", True, "push refitted parameters to the controller"),
         ("controller", "valve_controller", "name of the controller node (relative to this namespace)"),
@@ -116,6 +117,9 @@ IDENTIFICATION_PARAMETERS: tuple[ParameterSpec, ...] = (CONTROL_PERIOD,) + tuple
         ("exit_when_done", False, "shut down after the plan (a failed plan always shuts the node down, exit 1)"),
         ("progress_period_s", PROGRESS_PERIOD_S, "a running experiment logs its progress this often [s]"),
     ])
+_CHOICES = {"storage": tuple(STORAGES), "tune_strategy": TUNABLE_STRATEGIES, "validation_strategy": STRATEGIES}
+IDENTIFICATION_PARAMETERS = tuple(replace(s, choices=_CHOICES.get(s.name, ())) for s in IDENTIFICATION_PARAMETERS)
+SPECS = {s.name: s for s in IDENTIFICATION_PARAMETERS}
 
 
 class ValveIdentificationNode(Node):
@@ -131,9 +135,7 @@ class ValveIdentificationNode(Node):
             raise ValueError("plan: refit needs a train step before it (it refits on that run's bag)")
         if "tune" in self.plan and ("refit" not in self.plan or self.plan.index("refit") > self.plan.index("tune")):
             raise ValueError("plan: tune needs a refit step before it (it tunes on that model)")
-        self.tune_strategy = str(p["tune_strategy"])
-        if self.tune_strategy not in TUNABLE_STRATEGIES:
-            raise ValueError(f"tune_strategy must be one of {', '.join(TUNABLE_STRATEGIES)}, got {self.tune_strategy!r}")
+        self.tune_strategy = SPECS["tune_strategy"].checked(p["tune_strategy"])
         self.tune_limits = TuningLimits(max_overshoot_pct=as_float("tune_max_overshoot_pct",
                                                                    p["tune_max_overshoot_pct"]))
         problems = self.tune_limits.problems()
@@ -148,11 +150,9 @@ class ValveIdentificationNode(Node):
         if not (self.period_s > 0 and self.time_scale > 0 and self.training_s > 0 and self.validation_s > 0
                 and self.progress_period_s > 0):
             raise ValueError("control_period_s, time_scale, training_s, validation_s and progress_period_s must be > 0")
-        self.validation_strategy = str(p["validation_strategy"])
+        self.validation_strategy = SPECS["validation_strategy"].checked(p["validation_strategy"])
         self.bag_dir = Path(str(p["bag_dir"]))
-        self.storage = str(p["storage"])
-        if self.storage not in STORAGES:
-            raise ValueError(f"storage must be {' or '.join(STORAGES)}, got {self.storage!r}")
+        self.storage = SPECS["storage"].checked(p["storage"])
         self.params_out = Path(str(p["params_out"]) or self.bag_dir / "fitted.yaml")
         self.push = bool(p["push"])
         self.exit_when_done = bool(p["exit_when_done"])
