@@ -30,13 +30,12 @@ from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any, Callable, Dict, Optional, Type
 
 import numpy as np
 
-from .core.sim.simulator import (AmplifierParams, CreepParams, DriftParams, RateDependenceParams, SaturationParams,
-                             SensorParams, SimulatedValve, ValveSimConfig)
+from .core.sim.simulator import STAGE_SWITCHES, DriftParams, SimulatedValve, ValveSimConfig
 from .core.validation import ParameterSpec, as_bool, as_float, as_int, whole_periods
 from .core.model.drive import CENTRE_VOLTAGE_V
 
@@ -155,24 +154,19 @@ def sim_config_from_parameters(values: dict, initial_voltage_v: float = CENTRE_V
     dt = as_float("sim.sample_period_s", v["sample_period_s"])
     if not dt > 0:
         raise ValueError(f"sim.sample_period_s must be > 0, got {dt}")
-    switch = {name: as_bool(f"sim.{name}", v[name]) for name in
-              ("slew_limit", "creep", "saturation", "noise", "dynamics", "rate_dependence", "drift", "asymmetry")}
-    return replace(
+    config = replace(
         base,
         gpim=gpim,
         dt=dt,
         seed=as_int("sim.seed", v["seed"]),
-        amplifier=replace(AmplifierParams(), enabled=switch["slew_limit"]),
-        creep=replace(CreepParams(), enabled=switch["creep"]),
-        saturation=replace(SaturationParams(), enabled=switch["saturation"]),
-        rate=replace(RateDependenceParams(), enabled=switch["rate_dependence"]),
-        drift=replace(DriftParams(), enabled=switch["drift"], **_drift_values(v)),
-        sensor=replace(SensorParams(), noise_enabled=switch["noise"],
+        drift=replace(base.drift, **_drift_values(v)),
+        sensor=replace(base.sensor,
                        delay_samples=_sensor_delay_samples(as_float("sim.sensor_delay_s", v["sensor_delay_s"]), dt)),
-        dynamics_enabled=switch["dynamics"],
-        descending_envelope=(0.95, 0.2) if switch["asymmetry"] else None,
         initial_voltage_v=float(initial_voltage_v),
     )
+    for switch in STAGE_SWITCHES:   # each stage's switch, from its one declaration
+        config = switch.set(config, as_bool(f"sim.{switch.name}", v[switch.name]))
+    return config
 
 
 def _drift_values(v: dict) -> dict:
@@ -190,13 +184,9 @@ def _drift_values(v: dict) -> dict:
 
 def _sim_parameters() -> tuple:
     from .core.model.hysteresis import PAPER_GPIM
-    switches = [("slew_limit", True, "amplifier current limit"), ("creep", True, "creep"),
-                ("saturation", True, "loop-end flattening"), ("noise", True, "LVDT noise"),
-                ("dynamics", True, "G_v(s)"), ("rate_dependence", False, "rate dependence"),
-                ("drift", False, "thermal drift"), ("asymmetry", False, "asymmetry")]
     return (BackendParameter("seed", 0, "noise seed"),
             BackendParameter("sample_period_s", ValveSimConfig().dt, "sampling period [s]"),
-            *(BackendParameter(n, d, t) for n, d, t in switches),
+            *(BackendParameter(s.name, s.is_on(ValveSimConfig()), s.description) for s in STAGE_SWITCHES),
             BackendParameter("sensor_delay_s", 0.0, "LVDT transport delay [s] (whole samples; e.g. a "
                                                     "conditioning filter)"),
             BackendParameter("drift_offset_um", DriftParams().offset_um, "thermal drift: offset it approaches [um]"),

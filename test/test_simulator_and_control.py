@@ -500,3 +500,19 @@ def test_error_figures_give_rms_peak_and_the_nrmse_fit():
     off = error_figures(y, y + 0.5, 20.0)
     assert off.rms_um == pytest.approx(0.5) and off.peak_um == pytest.approx(0.5) and off.peak_pct == pytest.approx(2.5)
     assert 0.0 < off.fit_pct < 100.0 and set(off.as_dict()) == {"rms_um", "peak_um", "peak_pct", "fit_pct"}
+
+
+def test_each_switchable_stage_is_declared_once_and_the_backend_follows_it():
+    """STAGE_SWITCHES is the one list of the chain's switches: the sim backend declares a parameter per switch
+    with the default config's state as its default, and each parameter turns exactly its stage on or off."""
+    from piezo_valve_ros.backends import SimBackend, sim_config_from_parameters
+    from piezo_valve_ros.core.sim.simulator import STAGE_SWITCHES
+    defaults = declared = {p.name: p.default for p in SimBackend.PARAMETERS}
+    base = sim_config_from_parameters(defaults)
+    assert base == ValveSimConfig()
+    for switch in STAGE_SWITCHES:
+        assert declared[switch.name] == switch.is_on(ValveSimConfig())
+        flipped = sim_config_from_parameters({**defaults, switch.name: not declared[switch.name]})
+        assert switch.is_on(flipped) != switch.is_on(base)
+        assert all(other.is_on(flipped) == other.is_on(base) for other in STAGE_SWITCHES if other is not switch)
+        assert switch.set(base, not switch.is_on(base)) == flipped

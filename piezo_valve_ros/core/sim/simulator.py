@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -36,6 +36,9 @@ __all__ = [
     "DriftParams",
     "SensorParams",
     "ValveSimConfig",
+    "StageSwitch",
+    "STAGE_SWITCHES",
+    "ASYMMETRIC_ENVELOPE",
     "SimulatedValve",
 ]
 
@@ -149,6 +152,36 @@ class ValveSimConfig:
             b0, b1 = self.descending_envelope
             m = GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, float(b0), float(b1))
         return m
+
+
+@dataclass(frozen=True)
+class StageSwitch:
+    """A stage of the chain that can be switched on and off, in one place: the simulated backend's parameter
+    ``sim.<name>`` and its description, whether a config has it on, and a config with it on or off."""
+
+    name: str
+    description: str
+    is_on: Callable[[ValveSimConfig], bool]
+    set: Callable[[ValveSimConfig, bool], ValveSimConfig]
+
+
+ASYMMETRIC_ENVELOPE = (0.95, 0.2)   # (b0, b1) of the descending envelope when the asymmetry switch is on
+
+STAGE_SWITCHES: tuple[StageSwitch, ...] = (
+    StageSwitch("slew_limit", "amplifier current limit", lambda c: c.amplifier.enabled,
+                lambda c, on: replace(c, amplifier=replace(c.amplifier, enabled=on))),
+    StageSwitch("creep", "creep", lambda c: c.creep.enabled, lambda c, on: replace(c, creep=replace(c.creep, enabled=on))),
+    StageSwitch("saturation", "loop-end flattening", lambda c: c.saturation.enabled,
+                lambda c, on: replace(c, saturation=replace(c.saturation, enabled=on))),
+    StageSwitch("noise", "LVDT noise", lambda c: c.sensor.noise_enabled,
+                lambda c, on: replace(c, sensor=replace(c.sensor, noise_enabled=on))),
+    StageSwitch("dynamics", "G_v(s)", lambda c: c.dynamics_enabled, lambda c, on: replace(c, dynamics_enabled=on)),
+    StageSwitch("rate_dependence", "rate dependence", lambda c: c.rate.enabled,
+                lambda c, on: replace(c, rate=replace(c.rate, enabled=on))),
+    StageSwitch("drift", "thermal drift", lambda c: c.drift.enabled, lambda c, on: replace(c, drift=replace(c.drift, enabled=on))),
+    StageSwitch("asymmetry", "asymmetry", lambda c: c.descending_envelope is not None,
+                lambda c, on: replace(c, descending_envelope=ASYMMETRIC_ENVELOPE if on else None)),
+)
 
 
 class _Amplifier:
