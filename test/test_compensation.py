@@ -20,6 +20,37 @@ FLATTENING = OutputMap(0.0, 70.0, (0.0, -6.0, 0.0, 0.0, -3.0, 0.0, 0.0, 3.0))
 CREEP = CreepModel((0.05, 0.5, 5.0), (0.03, 0.03, 0.03))
 
 
+def test_each_term_declares_writes_and_reads_its_own_parameters():
+    """The compensator's terms (``control.terms``): each writes exactly the parameters it declares, reads back
+    what it wrote, and the controller's model schema is the GPIM's entries and the terms' together; a refused
+    parameter of one term is named, the others still read."""
+    from dataclasses import fields
+    from piezo_valve_ros.core.control.terms import TERMS
+    model = CompensationModel(PAPER_GPIM.model(), ContinuousTF((4.0e6,), (1.0, 3000.0, 4.0e6)), CREEP, FLATTENING,
+                              True, (0.5, 0.0, 1.0, -0.2, 0.0, 0.3), (0.0, 10.0))
+    assert {t.field for t in TERMS} == {f.name for f in fields(CompensationModel)} - {"gpim"}
+    declared = [name for t in TERMS for name in t.parameters]
+    assert len(declared) == len(set(declared)) and set(declared) <= set(MODEL_PARAMETERS)
+    assert set(MODEL_PARAMETERS) - set(declared) == {n for n in MODEL_PARAMETERS if n.startswith("gpim.")} - \
+        {"gpim.rate_widening_v"}
+    for term in TERMS:
+        value = getattr(model, term.field)
+        written = term.write(value)
+        assert set(written) == set(term.parameters), term.field
+        refused = []
+
+        def get(name, conv):
+            try:
+                return conv(name, written[name])
+            except ValueError as exc:
+                refused.append(str(exc))
+                return None
+        assert term.read(get) == value and not refused, term.field
+        assert term.read(lambda name, conv: get(name, conv) if name != next(iter(written)) else
+                         refused.append(name)) is None
+        assert refused == [next(iter(written))]
+
+
 def test_the_schema_round_trips_and_covers_every_declared_parameter():
     g = PAPER_GPIM.model()
     model = CompensationModel(GPIM(g.thresholds, g.weights, g.a0, g.a1, g.offset_um, 0.95, 0.2),

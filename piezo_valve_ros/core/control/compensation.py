@@ -31,48 +31,20 @@ from ..defaults import CONTROL_PERIOD_S
 from ..model.drive import COMMAND_MAX_V, COMMAND_MIN_V
 from ..model.dynamics import PAPER_VALVE_MODEL, ContinuousTF, DiscreteFilter, sections
 from ..model.hysteresis import GPIM, PAPER_GPIM, GPIMParams, inverse_problems
-from ..model.output_map import TERM_COUNT, OutputMap
-from ..model.rate_dependence import RATE_FILTERS_S, RATE_SCALES_V_S, TERM_COUNT as RATE_TERM_COUNT, widening_problems
-from ..validation import as_bool, as_float, as_float_list, as_int
+from ..model.output_map import OutputMap
+from ..model.rate_dependence import widening_problems
+from ..validation import as_float, as_float_list, as_int
+from .terms import TERMS
+from .terms.creep import MAX_CREEP_GAIN_SUM, CreepModel
 
 __all__ = ["CreepModel", "OutputMap", "DynamicFeedforward", "CompensationModel", "StaticInverse", "reference_filters",
            "MODEL_PARAMETERS", "GPIM_FORM_KEYS", "FF_BANDWIDTH_RATIO", "FF_NYQUIST_SHARE", "MAX_CREEP_GAIN_SUM"]
 
-MAX_CREEP_GAIN_SUM = 0.9     # creep gains must sum below this (the inverse divides by 1 - sum)
 FF_BANDWIDTH_RATIO = 3.0     # F's poles this factor above each of G's sections ...
 FF_NYQUIST_SHARE = 0.5       # ... and at most this share of the Nyquist frequency pi/dt
 GPIM_FORM_KEYS = ("alpha", "rho", "tau", "n")   # the paper's 5-parameter form (with a0, a1, offset_um)
 FITTED_RANGE_MARGIN = 0.25   # commands may go this share of the fitted span beyond the voltages a model was fitted on
 MIN_FITTED_SPAN_SHARE = 0.25  # ... and must span at least this share of them (else: another amplifier's model)
-
-
-@dataclass(frozen=True)
-class CreepModel:
-    """Creep as identified: ``S = H + sum_i g_i (lag_{tau_i}[H] - H)`` (H: hysteresis output [um])."""
-
-    time_constants_s: tuple[float, ...] = ()
-    gains: tuple[float, ...] = ()
-
-    def problems(self) -> list[str]:
-        taus, gains = self.time_constants_s, self.gains
-        if len(taus) != len(gains):
-            return [f"creep: {len(taus)} time constants but {len(gains)} gains"]
-        if not all(math.isfinite(x) for x in tuple(taus) + tuple(gains)):
-            return ["creep: non-finite value"]
-        out = []
-        if any(t <= 0 for t in taus):
-            out.append("creep: time constants must be > 0")
-        if sum(gains) >= MAX_CREEP_GAIN_SUM:
-            out.append(f"creep: gains sum to {sum(gains):.3g}; compensation needs a sum < {MAX_CREEP_GAIN_SUM}")
-        return out
-
-    @property
-    def active(self) -> bool:
-        return any(g != 0.0 for g in self.gains)
-
-    @property
-    def gain_sum(self) -> float:
-        return float(sum(self.gains))
 
 
 class StaticInverse:
@@ -285,22 +257,15 @@ class CompensationModel:
     # ------------------------------------------------------------------ the parameter schema
     def to_parameters(self) -> dict[str, Any]:
         """``valve_controller`` parameters (name -> value); every model parameter is written, so applying them
-        replaces a whole older model."""
+        replaces a whole older model.  The GPIM's here, each other term's by its own module (``terms``)."""
         g = self.gpim
         b = [float(g.a0), float(g.a1), 0.0] if g.symmetric else [float(g.b0), float(g.b1), float(g.b2)]
-        return {"gpim.thresholds": _floats(g.thresholds), "gpim.weights": _floats(g.weights),
-                "gpim.a0": float(g.a0), "gpim.a1": float(g.a1), "gpim.offset_um": float(g.offset_um),
-                "gpim.descending_envelope": b,
-                "valve_model.num": _floats(self.valve_model.num), "valve_model.den": _floats(self.valve_model.den),
-                "creep.time_constants_s": _floats(self.creep.time_constants_s) or [1.0],
-                "creep.gains": _floats(self.creep.gains) or [0.0],
-                "saturation.centre_um": float(self.output_map.centre_um),
-                "saturation.half_range_um": float(self.output_map.half_range_um),
-                # zeros rather than []: an empty list has no element type for a ROS parameter
-                "saturation.coefficients_um": _floats(self.output_map.coefficients_um) or [0.0] * TERM_COUNT,
-                "gpim.rate_widening_v": _floats(self.rate_widening_v) or [0.0] * RATE_TERM_COUNT,
-                "feedforward.dynamics": bool(self.dynamic_feedforward),
-                "model.fitted_range_v": _floats(self.fitted_range_v) or [0.0, 0.0]}
+        out: dict[str, Any] = {"gpim.thresholds": _floats(g.thresholds), "gpim.weights": _floats(g.weights),
+                               "gpim.a0": float(g.a0), "gpim.a1": float(g.a1), "gpim.offset_um": float(g.offset_um),
+                               "gpim.descending_envelope": b}
+        for term in TERMS:
+            out.update(term.write(getattr(self, term.field)))
+        return out
 
     @classmethod
     def from_parameters(cls, p: dict[str, Any], v_min: float = COMMAND_MIN_V, v_max: float = COMMAND_MAX_V,
@@ -336,18 +301,10 @@ class CompensationModel:
                     gpim = GPIM(gpim.thresholds, gpim.weights, a0, a1, offset, *descending)
             except ValueError as exc:
                 problems.append(str(exc))
-        num, den = get("valve_model.num", as_float_list), get("valve_model.den", as_float_list)
-        taus, gains = get("creep.time_constants_s", as_float_list), get("creep.gains", as_float_list)
-        centre, half = get("saturation.centre_um", as_float), get("saturation.half_range_um", as_float)
-        coefs = get("saturation.coefficients_um", as_float_list)
-        dynamic = get("feedforward.dynamics", as_bool)
-        widening = get("gpim.rate_widening_v", as_float_list)
-        fitted = get("model.fitted_range_v", as_float_list)
+        values = {term.field: term.read(get) for term in TERMS}   # each term reads its own parameters
         if problems:
             raise ValueError("; ".join(problems))
-        model = cls(gpim, ContinuousTF(tuple(num), tuple(den)), CreepModel(tuple(taus), tuple(gains)),
-                    OutputMap(centre, half, tuple(coefs)), dynamic,
-                    tuple(widening) if any(widening) else (), tuple(fitted) if any(fitted) else ())
+        model = cls(gpim, **values)
         problems = model.problems(v_min, v_max, dt)
         if problems:
             raise ValueError("; ".join(problems))
@@ -355,7 +312,8 @@ class CompensationModel:
 
 
 _PAPER = PAPER_GPIM
-# name -> (default, description): the controller declares these; from_parameters reads them
+# name -> (default, description): the controller declares these; from_parameters reads them.  The GPIM's here, then
+# each other term's from its own module (``terms``)
 MODEL_PARAMETERS: dict[str, tuple[Any, str]] = {
     "gpim.a0": (_PAPER.a0, "envelope slope [1]"),
     "gpim.a1": (_PAPER.a1, "envelope offset [V]"),
@@ -369,22 +327,6 @@ MODEL_PARAMETERS: dict[str, tuple[Any, str]] = {
     "gpim.descending_envelope": ([], "asymmetric GPIM: descending envelope [b0, b1] or [b0, b1, b2] (b0 v + b1 + "
                                      "b2 v^2, at or above the ascending one on the command range; empty or equal "
                                      "to [a0, a1]: the ascending one)"),
-    "gpim.rate_widening_v": ([], f"rate-dependent GPIM: every threshold widens by sum c rho_f / (rho_f + s_k) [V], "
-                                 f"rho_f = |dv/dt| through the lags {list(RATE_FILTERS_S)} s, s_k = "
-                                 f"{list(RATE_SCALES_V_S)} V/s; {RATE_TERM_COUNT} coefficients c [V], filter-major "
-                                 "(empty or all 0: none)"),
-    "valve_model.num": (list(PAPER_VALVE_MODEL.num), "G_v(s) numerator"),
-    "valve_model.den": (list(PAPER_VALVE_MODEL.den), "G_v(s) denominator"),
-    "creep.time_constants_s": ([], "creep compensation (feedforward path): lag time constants [s]"),
-    "creep.gains": ([], "creep compensation: gains [-] (empty or all 0: none)"),
-    "saturation.centre_um": (0.0, "saturation map: centre of the normalised output [um]"),
-    "saturation.half_range_um": (1.0, "saturation map: half range of the normalised output [um]"),
-    "saturation.coefficients_um": ([], f"saturation map: {TERM_COUNT} coefficients [um] of h^2, h^3 and the end "
-                                       "hinges (empty or all 0: none)"),
-    "feedforward.dynamics": (False, "the feedforward also inverts G_v (W = F/G_v, F critically damped 3x faster); "
-                                    "ff_pid_g then shapes its reference with F"),
-    "model.fitted_range_v": ([0.0, 0.0], "voltages [lo, hi] the model was fitted on [V] ([0, 0]: unknown); the "
-                                         "command range must lie within them (a quarter of their span beyond at most) "
-                                         "and span at least a quarter of them"),
+    **{name: entry for term in TERMS for name, entry in term.parameters.items()},
 }
 MODEL_DEFAULTS = {name: default for name, (default, _) in MODEL_PARAMETERS.items()}

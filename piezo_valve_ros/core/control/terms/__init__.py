@@ -1,0 +1,17 @@
+"""The compensator's terms besides the GPIM, one module each: the ``CompensationModel`` field it fills, its
+``valve_controller`` parameters and how its value is written to and read from them (``base.Term``).
+``CompensationModel.to_parameters``/``from_parameters`` and ``MODEL_PARAMETERS`` fold over ``TERMS``: a new
+compensable term is a module here and an entry below (and its field on ``CompensationModel``)."""
+from __future__ import annotations
+
+from .base import Term
+from .creep import TERM as CREEP
+from .feedforward import TERM as FEEDFORWARD
+from .fitted_range import TERM as FITTED_RANGE
+from .rate_widening import TERM as RATE_WIDENING
+from .saturation import TERM as SATURATION
+from .valve_model import TERM as VALVE_MODEL
+
+__all__ = ["Term", "TERMS"]
+
+TERMS: tuple[Term, ...] = (RATE_WIDENING, VALVE_MODEL, CREEP, SATURATION, FEEDFORWARD, FITTED_RANGE)
