@@ -172,7 +172,10 @@ def test_a_measured_csv_record_from_another_lab(tmp_path):
     assert (tmp_path / "hysteresis_loop.png").exists() and not (tmp_path / "step_hold.png").exists()
     assert "no step_hold.png: the held-out input never holds still" in out.stdout
     report = json.loads((tmp_path / "r.json").read_text())
+    window = report["source"].pop("train_window")   # the whole record: no window asked, all of it analysed
     assert report["source"] == {"train_bag": REAL_CSV, "validate_bag": None, "topic": None}
+    assert window["from_s"] is None and window["to_s"] is None and window["samples"] == 1529
+    assert report["analysed"]["train"]["samples"] == report["analysed"]["train"]["of_samples"] == 1529
     assert report["baseline_fits"]["initial_state"]["chosen"] == "cycled"
     params = yaml.safe_load((tmp_path / "p.yaml").read_text())["/**/valve_controller"]["ros__parameters"]
     assert min(params["gpim.weights"]) >= 0.0
