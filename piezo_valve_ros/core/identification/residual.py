@@ -626,16 +626,14 @@ class _Loop:
                 if 1.0 - self.search.score(frozenset(current) | {n}).rms / max(linear_base.rms, 1e-30) >= EXACT_CHECK_GAIN]
 
     def confirm(self, current: list[str]) -> tuple[ValveModel, dict, dict, list[str]]:
-        """Backward elimination with exact refits: (final model, drop-one models, verdicts, effects kept).  The
-        exact checks that follow a confirmed set are refitted beside its drop-one refits (speculatively: if an
-        effect is dropped they were not needed)."""
+        """Backward elimination with exact refits: (final model, drop-one models, verdicts, effects kept)."""
         for _ in range(CONFIRM_ROUNDS):
             if not current:
                 return self.baseline, {}, {}, []
             (model, score_model), = self.refit_many([(current, None)])
-            requests = [([m for m in current if m != n], model) for n in current]
-            dropped = self.refit_many(requests + [(current + [n], model) for n in self.exact_options(current)]
-                                      )[:len(current)]
+            # the drop-one refits alone: the exact checks that follow a set are refitted only once it is confirmed
+            # (refitted beside them, they were lost whenever an effect was dropped: a dynamics check is six forms)
+            dropped = self.refit_many([([m for m in current if m != n], model) for n in current])
             drops, verdicts, withouts = {}, {}, {}
             for n, (without_model, without) in zip(current, dropped):
                 drops[n], withouts[n] = without_model, without
