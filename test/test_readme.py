@@ -141,8 +141,9 @@ def _expect_tour(k: int, out: str, workdir: Path) -> None:
     if k == 1:   # record, command, plot: the step table shows the step, the error is that of a rig that tracks
         # the step table shows the step with its figures (their values hold where the recorder got the references
         # as the controller did: on a machine as loaded as the suite's, a lockstep rig's references and positions
-        # reach the recorder in bursts seconds apart, which no receive time undoes; test_tools checks the map)
-        assert re.search(r"20\.00 -> +-20\.00 +\d+\.\d +\d+\.\d+", out), out
+        # reach the recorder in bursts seconds apart, which no receive time undoes, and the step then reads as not
+        # settled within its hold, "> N" ms; test_tools checks the map)
+        assert re.search(r"20\.00 -> +-20\.00 +(\d+\.\d|> \d+) +\d+\.\d+", out), out
         assert re.search(r"tracking error .*?RMS [\d.]+ um", out), out
         assert (workdir / "runs/day1_plots/run_time.png").exists()
     elif k == 2:   # identify: report and parameters written
