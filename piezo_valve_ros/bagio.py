@@ -24,7 +24,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from .core.defaults import BAG_STORAGE
 from .core.errors import PiezoValveError
-from .core.runs import WHOLE_RECORD, TimeWindow
+from .core.runs import WHOLE_RECORD, TimeWindow, receive_to_sample_time
 from .params_yaml import dump as dump_yaml, load as load_yaml
 from .samples import SAMPLES_COLUMNS, SAMPLES_LABEL, SamplesLayoutError, decode_samples
 
@@ -345,7 +345,7 @@ def read_samples(path, topic: Optional[str] = None, skipped: Optional[list[str]]
         decode = _SamplesDecoder(name)
         parts: list[np.ndarray] = []
         first_s = last_s = math.nan
-        lo, hi = -math.inf, math.inf
+        hi = math.inf
         past: Optional[tuple] = None   # the last message past the window, undecoded
         try:
             for conn, _, raw in reader.messages(connections=chosen):
@@ -357,14 +357,14 @@ def read_samples(path, topic: Optional[str] = None, skipped: Optional[list[str]]
                     continue
                 if math.isnan(first_s):
                     first_s = float(block[0, 0])
-                    lo, hi = window.bounds(first_s)
+                    hi = window.bounds(first_s)[1]
                 last_s = max(float(block[-1, 0]), last_s) if not math.isnan(last_s) else float(block[-1, 0])
                 if block[0, 0] > hi:   # messages come in time order: the rest lies past the window
                     if extent is None:
                         break
                     past = (raw, conn.msgtype)
                     continue
-                parts.append(block if window.whole else block[(block[:, 0] >= lo) & (block[:, 0] <= hi)])
+                parts.append(block if window.whole else window.rows(block, first_s))
             if past is not None:
                 tail = decode(*past)
                 last_s = max(last_s, float(tail[-1, 0])) if tail.shape[0] else last_s
@@ -394,7 +394,6 @@ def read_run(path, topic: Optional[str] = None,
     message, and each ``samples`` message's last row.  Piecewise, so the map follows a lockstep rig whose
     simulated time runs at a varying share of the wall clock.  No reference topic or no messages: empty arrays.
     """
-    from .core.runs import receive_to_sample_time
     rows, name = read_samples(path, topic, window=window)
     namespace = name.rsplit("/", 1)[0]
     ref_topic, position_topic, clock_topic = (f"{namespace}/position_reference", f"{namespace}/spool_position",

@@ -207,9 +207,9 @@ class _Loop:
         self.log, self.pool = log, pool
         self.warnings: list[str] = []
         self.analysed: dict = {}   # what of each record the loop analysed (the report's "analysed")
-        train_full = self.representative_part(train_full, "training record")
+        train_full = self.representative_part(train_full, "train", "training record")
         if validate_full is not None:
-            validate_full = self.representative_part(validate_full, "validation record")
+            validate_full = self.representative_part(validate_full, "validate", "validation record")
         self.split = split_records(train_full, validate_full, max_rate_hz)
         split = self.split
         self.full = full = split.fit_full
@@ -239,12 +239,11 @@ class _Loop:
         self.final: Optional[ValveModel] = None
 
     # ------------------------------------------------------------------ helpers
-    def representative_part(self, record: Record, what: str) -> Record:
+    def representative_part(self, record: Record, key: str, what: str) -> Record:
         """The part of ``record`` the loop analyses: its first MAX_ANALYSED_S (a record of repeated experiments
         shows its valve in its first minutes as well as in hours; the loop's memory grows with what it analyses);
-        kept in ``analysed`` and said in a warning where that is not all of it."""
+        kept in ``analysed[key]`` and said in a warning where that is not all of it."""
         part = record.first(MAX_ANALYSED_S)
-        key = "train" if what.startswith("training") else "validate"
         self.analysed[key] = {"from_s": float(part.time_s[0]), "to_s": float(part.time_s[-1]),
                               "samples": len(part), "of_samples": len(record),
                               "record_duration_s": record.duration_s}
