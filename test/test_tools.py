@@ -468,3 +468,55 @@ def test_valve_record_summary_says_what_went_into_the_bag(tmp_path):
     assert (s["samples_rows"], s["dropped"], s["messages"], s["duration_s"]) == (998, 2, {"/v/samples": 1}, 2.5)
     assert s["bytes"] > 0 and "samples rows 998, dropped 2" in summary_line(tmp_path / "bag", 2.5, {"/v/samples": 1})
     assert parse_args(["out", "--json"]).json
+
+
+def test_valve_record_reads_references_only_once_it_records_samples(tmp_path):
+    """valve_record's reader of position_reference opens with the first recorded samples message: a sender that
+    waits for it (valve_command --wait-readers) sends nothing the bag cannot place on the samples' time axis, however
+    late discovery matches the samples topic on a loaded computer."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from std_msgs.msg import Float64, Float64MultiArray
+    from piezo_valve_ros.bagio import read_run
+    from piezo_valve_ros.nodes.common import REFERENCE_QOS, SAMPLES_QOS, samples_message
+    from piezo_valve_ros.nodes.recording import RigRecorder
+    ns = f"/deferred{os.getpid()}"
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    recorder_node = rclpy.create_node("recorder", namespace=ns, context=context)
+    rig = rclpy.create_node("rig", namespace=ns, context=context)
+    executor = SingleThreadedExecutor(context=context)
+    for node in (recorder_node, rig):
+        executor.add_node(node)
+    reference = rig.create_publisher(Float64, "position_reference", REFERENCE_QOS)
+    recorder = RigRecorder(recorder_node, reference_after_samples=True)
+    try:
+        recorder.start(tmp_path / "bag")
+        deadline = time.monotonic() + 2.0            # no samples yet: nobody reads the references
+        while time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        assert not recorder.reading_references and reference.get_subscription_count() == 0
+        samples = rig.create_publisher(Float64MultiArray, "samples", SAMPLES_QOS)
+        rows = np.column_stack([np.arange(100) * 1e-3, np.full(100, 5.0), np.zeros(100)])
+        deadline = time.monotonic() + 20.0
+        while time.monotonic() < deadline and reference.get_subscription_count() == 0:
+            samples.publish(samples_message(rows))
+            rows[:, 0] += 0.1
+            executor.spin_once(timeout_sec=0.05)
+        assert recorder.reading_references and reference.get_subscription_count() == 1
+        time.sleep(0.3)
+        reference.publish(Float64(data=20e-6))
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:
+            samples.publish(samples_message(rows))
+            rows[:, 0] += 0.1
+            executor.spin_once(timeout_sec=0.05)
+    finally:
+        counts = recorder.stop()
+        executor.shutdown()
+        for node in (recorder_node, rig):
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    assert counts[f"{ns}/position_reference"] == 1, counts
+    rows, ref_t, ref_m, _ = read_run(tmp_path / "bag")
+    assert ref_m.tolist() == [20e-6] and rows[0, 0] < ref_t[0] < rows[-1, 0]

@@ -9,6 +9,10 @@ only a lockstep rig publishes) with their offered QoS and the time DDS received 
 ``valve_identify``, ``valve_plot`` and ``ros2 bag info`` read it) and ends with one line: duration,
 messages per topic, size on disk, and the rows of ``samples`` missing between the first and the last one
 (dropped).
+
+It reads ``position_reference`` from the first recorded ``samples`` message on (or 5 s after start without
+one), so a ``valve_command --wait-readers`` that counts it sends only references the bag places on the samples'
+time axis.
 """
 from __future__ import annotations
 
@@ -92,7 +96,7 @@ def main(argv=None) -> int:
     node = rclpy.create_node("valve_record", namespace=args.namespace or None)
     executor = SingleThreadedExecutor()  # passes message info: each message keeps DDS's receive time
     executor.add_node(node)
-    recorder = RigRecorder(node, args.storage, with_clock=True, dds_receive_time=True)
+    recorder = RigRecorder(node, args.storage, with_clock=True, dds_receive_time=True, reference_after_samples=True)
     started = time.monotonic()
     try:
         recorder.start(out)

@@ -28,6 +28,8 @@ RIG_TOPICS = {"samples": (SAMPLES_TYPE, SAMPLES_QOS, True),
               "position_reference": (FLOAT64_TYPE, REFERENCE_QOS, True)}
 CLOCK_QOS_DEPTH = 10                      # the lockstep hardware's /clock publisher
 RECORDER_HISTORY = 1000                   # messages a recorder's reader holds while its executor is busy
+REFERENCE_AFTER_SAMPLES_WAIT_S = 5.0      # a deferred reference reader opens this long after start without samples
+DEFERRED_TOPIC = "position_reference"
 _MESSAGE_CLASSES = {SAMPLES_TYPE: Float64MultiArray, FLOAT64_TYPE: Float64, CLOCK_TYPE: Clock}
 
 
@@ -36,11 +38,21 @@ class RigRecorder:
     bag, :meth:`stop` closes it.  Messages arriving while no bag is open are not kept."""
 
     def __init__(self, node: Node, storage: str = BAG_STORAGE, with_clock: bool = False, roll_period_s: float = 0.2,
-                 dds_receive_time: bool = False):
+                 dds_receive_time: bool = False, reference_after_samples: bool = False):
         """``dds_receive_time``: stamp each message with the time DDS received it (what rosbag2 stores),
         not the time the callback ran, which lags whenever the executor is busy; needs an executor that
-        passes message info (rclpy's SingleThreadedExecutor does, the EventsExecutor does not)."""
+        passes message info (rclpy's SingleThreadedExecutor does, the EventsExecutor does not).
+
+        ``reference_after_samples``: the ``position_reference`` reader opens only once a ``samples`` message has
+        been recorded (or ``REFERENCE_AFTER_SAMPLES_WAIT_S`` after :meth:`start` without one).  A sender that
+        waits for its readers (``valve_command --wait-readers``) then sends nothing the bag cannot place on the
+        samples' time axis: on a loaded computer discovery matches the topics one by one, seconds apart."""
         self.node = node
+        self.reference_after_samples = reference_after_samples
+        self._deferred: Optional[tuple] = None
+        self._samples_recorded = False
+        self._started_at: Optional[float] = None
+        self._samples_topic = node.resolve_topic_name("samples")
         self.dds_receive_time = dds_receive_time
         self.storage = storage
         self._lock = threading.Lock()
@@ -57,26 +69,49 @@ class RigRecorder:
             # behind now and then, and a reader's full history drops the oldest message
             reader_qos = QoSProfile(depth=max(depth, RECORDER_HISTORY), history=HistoryPolicy.KEEP_LAST,
                                     reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT)
-            node.create_subscription(_MESSAGE_CLASSES[msgtype], topic, self._callback(full), reader_qos, raw=True)
+            subscription = (_MESSAGE_CLASSES[msgtype], topic, self._callback(full), reader_qos)
+            if reference_after_samples and topic == DEFERRED_TOPIC:
+                self._deferred = subscription
+            else:
+                node.create_subscription(*subscription, raw=True)
         node.create_timer(roll_period_s, self._roll)
 
     def _callback(self, topic: str):
+        is_samples = topic == self._samples_topic
+
         def on_message(data: bytes) -> None:
             with self._lock:
                 if self._recorder is not None:
                     self._recorder.write(topic, time.time_ns(), data)
+                    self._samples_recorded |= is_samples
 
         def on_message_with_info(data: bytes, info: dict) -> None:
             stamp = info.get("received_timestamp") or time.time_ns()
             with self._lock:
                 if self._recorder is not None:
                     self._recorder.write(topic, stamp, data)
+                    self._samples_recorded |= is_samples
         return on_message_with_info if self.dds_receive_time else on_message
 
     def _roll(self) -> None:
         with self._lock:
             if self._recorder is not None:
                 self._recorder.maybe_roll()
+            open_reference = self._deferred is not None and self._started_at is not None and (
+                self._samples_recorded or time.monotonic() - self._started_at >= REFERENCE_AFTER_SAMPLES_WAIT_S)
+        if open_reference:
+            self.reference_reader_open()
+
+    def reference_reader_open(self) -> None:
+        """Open a deferred ``position_reference`` reader now (see ``reference_after_samples``)."""
+        if self._deferred is not None:
+            subscription, self._deferred = self._deferred, None
+            self.node.create_subscription(*subscription, raw=True)
+
+    @property
+    def reading_references(self) -> bool:
+        """Whether the ``position_reference`` reader is open."""
+        return self._deferred is None
 
     @property
     def recording(self) -> bool:
@@ -97,6 +132,7 @@ class RigRecorder:
                 recorder.close()
                 raise RuntimeError("a bag is open already")
             self._recorder = recorder
+            self._started_at = time.monotonic()
         return path
 
     def stop(self) -> dict[str, int]:
