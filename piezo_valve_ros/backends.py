@@ -35,7 +35,7 @@ from typing import Any, Callable, Dict, Optional, Type
 
 import numpy as np
 
-from .core.sim.simulator import STAGE_SWITCHES, DriftParams, SimulatedValve, ValveSimConfig
+from .core.sim.simulator import STAGE_SWITCHES, BacklashParams, DriftParams, SimulatedValve, ValveSimConfig
 from .core.validation import ParameterSpec, as_bool, as_float, as_int, whole_periods
 from .core.model.drive import CENTRE_VOLTAGE_V
 
@@ -160,6 +160,7 @@ def sim_config_from_parameters(values: dict, initial_voltage_v: float = CENTRE_V
         dt=dt,
         seed=as_int("sim.seed", v["seed"]),
         drift=replace(base.drift, **_drift_values(v)),
+        backlash=replace(base.backlash, width_um=_backlash_width(v)),
         sensor=replace(base.sensor,
                        delay_samples=_sensor_delay_samples(as_float("sim.sensor_delay_s", v["sensor_delay_s"]), dt)),
         initial_voltage_v=float(initial_voltage_v),
@@ -167,6 +168,13 @@ def sim_config_from_parameters(values: dict, initial_voltage_v: float = CENTRE_V
     for switch in STAGE_SWITCHES:   # each stage's switch, from its one declaration
         config = switch.set(config, as_bool(f"sim.{switch.name}", v[switch.name]))
     return config
+
+
+def _backlash_width(v: dict) -> float:
+    width = as_float("sim.backlash_width_um", v["backlash_width_um"])
+    if width < 0:
+        raise ValueError(f"sim.backlash_width_um must be >= 0, got {width}")
+    return width
 
 
 def _drift_values(v: dict) -> dict:
@@ -194,6 +202,8 @@ def _sim_parameters() -> tuple:
                                                                                "approaches [-]"),
             BackendParameter("drift_time_constant_s", DriftParams().time_constant_s, "thermal drift: time "
                                                                                      "constant [s]"),
+            BackendParameter("backlash_width_um", BacklashParams().width_um, "backlash: clearance either side of the "
+                                                                             "spool [um] (a play of this half-width)"),
             BackendParameter("drift_start_s", 0.0, "thermal drift: sets in this long after the backend opens [s] "
                                                    "(a drift that appears during operation)"),
             *(BackendParameter(f"gpim.{k}", getattr(PAPER_GPIM, k), "the valve's own GPIM (paper units)")

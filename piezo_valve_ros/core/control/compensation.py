@@ -4,8 +4,10 @@ The identified valve model (``valve_model.ValveModel``) is ``y = G(s)[S]`` with 
 ``S = M(H) + sum_i g_i (lag_i[H] - H)`` (H: the GPIM's output, M: the saturation map, the sum: creep).
 The controller inverts it along the feedforward path::
 
-    y_ref --W(s) = F(s)/G(s)--> S_ref --creep and M inverse--> H_ref --inverse GPIM--> v
+    y_ref --backlash inverse--> --W(s) = F(s)/G(s)--> S_ref --creep and M inverse--> H_ref --inverse GPIM--> v
 
+* the backlash inverse (``terms.backlash.PlayInverse``): the clearance added in the direction the reference
+  moves (the model's play after G, ``y = P_r(G[S])``);
 * ``W`` (``feedforward.dynamics``): G's poles cancelled and replaced by the critically damped F
   (:class:`DynamicFeedforward`); off, W = 1 (the paper's OL HC).  FF PID G then shapes the
   feedback's reference with F instead of G (the response the feedforward aims at);
@@ -35,6 +37,7 @@ from ..model.output_map import OutputMap
 from ..model.rate_dependence import widening_problems
 from ..validation import as_float, as_float_list, as_int
 from .terms import TERMS
+from .terms.backlash import BacklashModel
 from .terms.creep import MAX_CREEP_GAIN_SUM, CreepModel
 
 __all__ = ["CreepModel", "OutputMap", "DynamicFeedforward", "CompensationModel", "StaticInverse", "reference_filters",
@@ -224,8 +227,8 @@ def command_range_for(fitted_range_v: tuple[float, ...], v_min: float, v_max: fl
 @dataclass(frozen=True)
 class CompensationModel:
     """Everything ``valve_controller`` inverts: GPIM (both envelopes, thresholds widening with the input rate
-    by ``rate_widening_v`` [V], see ``rate_dependence``), G_v, creep, the saturation map and whether the
-    feedforward inverts G_v too.  Units: V, um, s."""
+    by ``rate_widening_v`` [V], see ``rate_dependence``), G_v, creep, the saturation map, backlash on the spool's
+    path and whether the feedforward inverts G_v too.  Units: V, um, s."""
 
     gpim: GPIM = field(default_factory=PAPER_GPIM.model)
     valve_model: ContinuousTF = PAPER_VALVE_MODEL
@@ -234,6 +237,7 @@ class CompensationModel:
     dynamic_feedforward: bool = False
     rate_widening_v: tuple[float, ...] = ()
     fitted_range_v: tuple[float, ...] = ()   # (lo, hi) [V] the model was fitted on; empty: unknown
+    backlash: BacklashModel = BacklashModel()
 
     @property
     def rate_dependent(self) -> bool:
@@ -249,6 +253,9 @@ class CompensationModel:
         if not out and not map_problems:
             lo, hi = self.gpim.output_range(v_min, v_max)
             map_problems = self.output_map.problems(lo, hi, floor=self.creep.gain_sum if self.creep.active else 0.0)
+            map_problems += self.backlash.problems(hi - lo)
+        else:
+            map_problems += self.backlash.problems()
         out += map_problems
         if self.dynamic_feedforward and not self.valve_model.problems():
             out += DynamicFeedforward(self.valve_model, CONTROL_PERIOD_S if dt is None else dt).problems()

@@ -47,6 +47,7 @@ from typing import Optional
 
 from ..defaults import CONTROL_PERIOD_S, PAPER_CONTROL_PERIOD_S
 from .compensation import CompensationModel, StaticInverse, reference_filters
+from .terms.backlash import PlayInverse
 from ..model.hysteresis import GPIM, NotInvertibleError
 from ..model.rate_dependence import hysteresis_inverse, swap_inverse, take_over_state
 from ..model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
@@ -289,6 +290,8 @@ class ValveController:
         s0 = self._static.forward(y0) if self._static is not None else y0
         self._loop_h = y0                   # pid_hc's last hysteresis demand (where the map's inverse starts)
         self._last_ref_um = s0 if reference_m is None else reference_m * 1e6
+        self._play = PlayInverse(self.compensation.backlash, self._last_ref_um) if self.compensation.backlash.active \
+            else None                       # the backlash inverse on the reference path (None without backlash)
         self._gv.reset(self._last_ref_um)
         if self._dyn is not None:
             self._dyn.reset(self._last_ref_um)
@@ -438,6 +441,10 @@ class ValveController:
         self.compensation, self.ff_inverse, self.loop_inverse = compensation, ff, loop
         if (compensation.creep, compensation.output_map) != (old.creep, old.output_map):
             self._static = self._static_inverse(ff.peek_forward(self._last_ff_v))
+        if compensation.backlash != old.backlash:   # the reference's direction carried into the new clearance
+            direction = self._play.direction if self._play is not None else 0
+            self._play = PlayInverse(compensation.backlash, self._last_ref_um, direction) \
+                if compensation.backlash.active else None
         self._setup_model()
         # the next period's feedforward voltage is taken over from the old model (its inverse, as it stands,
         # asked for that period's demand) and the difference handed to the integrator or the decaying bump:
@@ -533,7 +540,8 @@ class ValveController:
                 self._transfer(FALLBACK_LAW[s])
         y_ref = reference_m * 1e6
         self._last_ref_um = y_ref
-        s_ref = self._dyn.step(y_ref) if self._dyn is not None else y_ref
+        x_ref = self._play.step(y_ref) if self._play is not None else y_ref
+        s_ref = self._dyn.step(x_ref) if self._dyn is not None else x_ref
         h_ref = self._static.step(s_ref) if self._static is not None else s_ref
         ff_demand = min(max(h_ref, self._demand_min_um), self._demand_max_um)
         ff_v = self.ff_inverse.step(ff_demand)

@@ -141,7 +141,7 @@ def _design(ctx: Context, effects: Sequence[Effect], with_sensitivities: bool):
     structures' sensitivities; with the layout, lower bounds and ridge of the whole design (GPIM first)."""
     y_slope = max(float(np.ptp(ctx.record.position_um)) / max(float(np.ptp(ctx.v)), 1e-12), 1e-12)
     n = ctx.model.gpim.n
-    blocks = [e.columns(ctx) for e in effects]
+    blocks = [np.zeros((len(ctx.record), e.after_dynamics)) if e.after_dynamics else e.columns(ctx) for e in effects]
     sens_blocks = [e.sensitivities(ctx) if with_sensitivities else None for e in effects]
     widths = [b.shape[1] for b in blocks] + [0 if b is None else b.shape[1] for b in sens_blocks]
     rows = np.empty((1 + sum(widths), len(ctx.record)))
@@ -155,10 +155,10 @@ def _design(ctx: Context, effects: Sequence[Effect], with_sensitivities: bool):
     terms, sens = [], []
     row = 1
     for e, c in zip(effects, blocks):
-        rows[row:row + c.shape[1]] = c.T
+        rows[row:row + c.shape[1]] = c.T   # an output map's rows: zero here, its columns after G (_after_dynamics)
         terms.append(slice(n + row, n + row + c.shape[1]))
         row += c.shape[1]
-        lower.append(np.full(c.shape[1], -np.inf))
+        lower.append(np.full(c.shape[1], e.coefficient_floor))
         ridge.append(np.full(c.shape[1], e.ridge))
     for c in sens_blocks:
         width = 0 if c is None else c.shape[1]
@@ -201,11 +201,20 @@ def _settled(train: Record, model: ValveModel, cache: FitCache) -> tuple[ValveMo
     none = np.zeros(2 * len(model.sections), bool)
     model, sse, _ = _linear_solve(train, model, steps=False, free=none, cache=cache)
     for _ in range(SETTLE_ROUNDS - 1 if model.effects else 0):
-        before = model.gpim.weights
-        model, sse, _ = _linear_solve(train, model, steps=False, free=none, cache=cache)
-        if np.linalg.norm(model.gpim.weights - before) <= SETTLE_TOLERANCE * np.linalg.norm(before):
+        before = _settling(model)
+        trial, trial_sse, _ = _linear_solve(train, model, steps=False, free=none, cache=cache)
+        if model.output_maps and trial_sse > sse:   # an output map's contacts flip between two patterns: the better
+            break
+        model, sse = trial, trial_sse
+        if np.linalg.norm(_settling(model) - before) <= SETTLE_TOLERANCE * np.linalg.norm(before):
             break
     return model, sse
+
+
+def _settling(model: ValveModel) -> np.ndarray:
+    """What a settled fit holds still: the GPIM weights [um/V] and an output map's coefficients [um], which set the
+    contacts the next solve is linear in."""
+    return np.concatenate([model.gpim.weights] + [c for _, c in model.output_maps])
 
 
 POLE_STEP_LIMIT = 0.3      # a Gauss-Newton step moves log(omega) or log(zeta) of a pole pair by at most this
@@ -282,6 +291,9 @@ def _linear_solve(train: Record, model: ValveModel, *, steps: bool, free: np.nda
         rest = np.vstack((rest, poles.T))
     basis, basis_gram, basis_rhs = cache.basis(ctx)
     y = train.position_um
+    if model.output_maps:
+        basis, rest = _after_dynamics(ctx, model, layout, basis, rest)
+        basis_gram, basis_rhs = basis @ basis.T, basis @ y
     cross = basis @ rest.T
     gram = np.block([[basis_gram, cross], [cross.T, rest @ rest.T]])
     x = solve_gram(gram, np.concatenate((basis_rhs, rest @ y)), len(train), lower, ridge)
@@ -291,6 +303,25 @@ def _linear_solve(train: Record, model: ValveModel, *, steps: bool, free: np.nda
         e = y - x[:n] @ basis - x[n:] @ rest
         return fitted, float(e @ e), None
     return fitted, None, (x, layout, x[x.size - n_poles:] if n_poles else np.zeros(0))
+
+
+def _after_dynamics(ctx: Context, model: ValveModel, layout: _Layout, basis: np.ndarray,
+                    rest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The design's rows (through G) carried through the model's output maps after G (``Effect.output_linear``:
+    each exact for the contacts G's present output makes), with each map's own columns in its rows."""
+    x = ctx.through_dynamics(*model.static_output_and_rest(ctx))
+    index = np.arange(x.size)
+    own = []
+    for e, c in model.output_maps:
+        at, columns = e.output_linear(x, c)
+        index = index[at]
+        own = [(sl, col[at]) for sl, col in own]
+        own.append((layout.terms[model.effects.index(e)], columns))
+        x = e.output(x, c)
+    basis, rest = basis[:, index], rest[:, index]
+    for sl, columns in own:
+        rest[sl.start - layout.n:sl.stop - layout.n] = columns.T
+    return basis, rest
 
 
 def _step_nonlinear(model: ValveModel, x: np.ndarray, layout: "_Layout", pole_step: np.ndarray, free: np.ndarray,
@@ -380,7 +411,9 @@ def _fit(train: Record, start: ValveModel, effects: Sequence[Effect], *, poles: 
         starts = _place_extra_poles(train, model, len(start.sections), cache)
     # G_v's own poles come from the baseline (fitted on differences, so slow structure cannot bend them);
     # a joint refit moves them only together with an extra pole pair
-    free = _free_poles(model) if poles == "joint" and len(model.sections) > 1 else none
+    # (and with an output map after G whose settled structure says so: a play's holds, taken for G's lag in the baseline)
+    frees = len(model.sections) > 1 or any(e.frees_poles(c) for e, c in model.output_maps)
+    free = _free_poles(model) if poles == "joint" and frees else none
     if not (nonlinear or free.any()):
         return min(starts, key=lambda f: f[1])
     # from each start; the lowest training SSE wins (a placement's own SSE does not rank where it ends)

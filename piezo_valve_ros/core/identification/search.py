@@ -43,13 +43,22 @@ class SubsetSearch:
         def design(ctx) -> tuple[np.ndarray, list[int]]:
             """The columns through the baseline's G, and each effect's width (``each`` runs fit and score
             records side by side)."""
-            blocks = [ctx.states - z_first, np.ones((len(ctx.record), 1))] + [e.search_columns(ctx) for e in effects]
+            before = [e for e in effects if not e.after_dynamics]
+            blocks = [ctx.states - z_first, np.ones((len(ctx.record), 1))] + [e.search_columns(ctx) for e in before]
             columns = np.column_stack(blocks)
             rest = None
             if ctx.rest_states is not None:   # G at rest before the first move: each column's rest value
                 rest = np.concatenate([ctx.rest_states - z_first, [1.0]]
-                                      + [e.rest_columns(ctx, b) for e, b in zip(effects, blocks[2:])])
-            return ctx.through_dynamics(columns, rest), [b.shape[1] for b in blocks[2:]]
+                                      + [e.rest_columns(ctx, b) for e, b in zip(before, blocks[2:])])
+            through = ctx.through_dynamics(columns, rest)
+            if len(before) == len(effects):
+                return through, [b.shape[1] for b in blocks[2:]]
+            # an output map after G: its search columns on the baseline's output, after G, in the catalogue's order
+            x = ctx.through_dynamics(*ctx.model.static_output_and_rest(ctx))
+            n_basis = blocks[0].shape[1] + 1
+            filtered = iter(np.split(through[:, n_basis:], np.cumsum([b.shape[1] for b in blocks[2:]])[:-1], axis=1))
+            own = [e.output_search_columns(x) if e.after_dynamics else next(filtered) for e in effects]
+            return np.column_stack([through[:, :n_basis]] + own), [b.shape[1] for b in own]
 
         (A, widths), (B, _) = each([lambda: design(ctx_f), lambda: design(ctx_s)])
         n_basis = z_first.size + 1

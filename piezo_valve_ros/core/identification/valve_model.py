@@ -32,8 +32,11 @@ class ModelTerm(Protocol):
     (N, k), the columns' values at rest before it (k,), and a description of its coefficients."""
 
     name: str
+    after_dynamics: int
 
     def columns(self, ctx: "Context") -> np.ndarray: ...
+
+    def output(self, x: np.ndarray, coefs: np.ndarray) -> np.ndarray: ...
 
     def rest_columns(self, ctx: "Context", columns: np.ndarray) -> np.ndarray: ...
 
@@ -182,7 +185,7 @@ class ValveModel:
         static = ctx.H.copy()
         rest = ctx.H_before if ctx.rest_states is not None else None
         for e, c in zip(self.effects, self.coefs):
-            if c.size:
+            if c.size and not e.after_dynamics:
                 columns = e.columns(ctx)
                 static += columns @ c
                 if rest is not None:
@@ -195,7 +198,19 @@ class ValveModel:
         """Position [um] for the record's voltages (operators in the ``history`` state; G at rest at the first
         sample, or before it where the valve rested at another voltage)."""
         ctx = self.context(record, t0)
-        return ctx.through_dynamics(*self.static_output_and_rest(ctx))
+        return self.after_dynamics(ctx.through_dynamics(*self.static_output_and_rest(ctx)))
+
+    def after_dynamics(self, x: np.ndarray) -> np.ndarray:
+        """The position [um] for G's output ``x`` [um]: the output maps of effects on the spool's path after G."""
+        for e, c in zip(self.effects, self.coefs):
+            if e.after_dynamics:
+                x = e.output(x, c)
+        return x
+
+    @property
+    def output_maps(self) -> list[tuple[ModelTerm, np.ndarray]]:
+        """The effects that act after G, with their coefficients."""
+        return [(e, c) for e, c in zip(self.effects, self.coefs) if e.after_dynamics]
 
     def without(self, name: str) -> "ValveModel":
         keep = [(e, c) for e, c in zip(self.effects, self.coefs) if e.name != name]

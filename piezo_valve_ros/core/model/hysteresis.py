@@ -280,6 +280,21 @@ def last_contact(states: np.ndarray, lower_drive: np.ndarray, upper_drive: np.nd
     return side_last, index
 
 
+def output_play(x: np.ndarray, width: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One play operator of half-width ``width`` >= 0 on a signal ``x`` (N,) (backlash: the output follows ``x``
+    only where ``x`` is ``width`` away from it, and holds between), starting at ``x[0]``.
+    Returns ``(y, index, side)``, each (N,): the output, the sample of the last contact (0 before any) and its
+    side (+1 = the upper bound ``x + width``, -1 = the lower ``x - width``, 0 = none yet), so that
+    ``y = x[index] + side * width`` exactly: linear in ``x`` and ``width`` for given contacts.  Units: those of
+    ``x``."""
+    x = np.asarray(x, dtype=float)
+    width = max(float(width), 0.0)
+    states = play_batch(x, x, np.array([width]), x[:1].copy())[0]
+    side, index = last_contact(states, x, x, np.array([width]))
+    index, side = index[:, 0], side[:, 0]
+    return states[:, 0], np.maximum(index, 0), side.astype(float)
+
+
 class PlayOperatorBank:
     """Streaming bank of play operators with preallocated buffers (no allocation per step)."""
 

@@ -7,14 +7,15 @@ Signal chain (each stage has its own switch and parameters)::
       -> creep (sum of slow first-order elements, unity DC gain)
       -> rate dependence (part of the output through a fast lag)
       -> loop-end flattening (friction/end stop, s*tanh(y/s))
-      -> G_v(s) (exact ZOH)  -> thermal drift (offset and gain, exponential in time)
+      -> G_v(s) (exact ZOH)  -> backlash (a play on the spool's path)
+      -> thermal drift (offset and gain, exponential in time)
       -> LVDT noise and quantisation -> position [m]
 
 Each stage is a small class with ``step`` (per sample) and ``run`` (a whole record, vectorised) on one
 state; ``SimulatedValve`` chains the stages that are switched on, so ``step`` and ``run`` go through the
 same chain and give the same result, and a run repeats bit for bit from ``seed``.  Default effects: slew limit, creep, flattening,
 noise, quantisation.  Off by default (for identification work): asymmetry, rate
-dependence, drift.
+dependence, backlash, drift.
 """
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..model.dynamics import PAPER_VALVE_MODEL, ContinuousTF, first_order_lag
-from ..model.hysteresis import GPIM, GPIMParams, PAPER_GPIM
+from ..model.hysteresis import GPIM, GPIMParams, PAPER_GPIM, PlayOperatorBank
 from ..model.drive import CENTRE_VOLTAGE_V
 
 __all__ = [
@@ -34,6 +35,7 @@ __all__ = [
     "RateDependenceParams",
     "SaturationParams",
     "DriftParams",
+    "BacklashParams",
     "SensorParams",
     "ValveSimConfig",
     "StageSwitch",
@@ -107,6 +109,15 @@ class DriftParams:
 
 
 @dataclass(frozen=True)
+class BacklashParams:
+    """Backlash on the spool's path: a clearance of ``width_um`` either side [um] (a play of that half-width) between
+    the actuator and the spool."""
+
+    enabled: bool = False
+    width_um: float = 0.5
+
+
+@dataclass(frozen=True)
 class SensorParams:
     """LVDT: white noise and quantisation; optionally a transport delay (a conditioning filter or a DAQ
     pipeline: the position read at sample k is the spool's at sample k - delay_samples)."""
@@ -133,6 +144,7 @@ class ValveSimConfig:
     rate: RateDependenceParams = RateDependenceParams()
     saturation: SaturationParams = SaturationParams()
     drift: DriftParams = DriftParams()
+    backlash: BacklashParams = BacklashParams()
     sensor: SensorParams = SensorParams()
     initial_voltage_v: float = CENTRE_VOLTAGE_V
 
@@ -143,6 +155,7 @@ class ValveSimConfig:
                        rate=replace(self.rate, enabled=False),
                        saturation=replace(self.saturation, enabled=False),
                        drift=replace(self.drift, enabled=False),
+                       backlash=replace(self.backlash, enabled=False),
                        sensor=SensorParams(noise_enabled=False, quantisation_enabled=False),
                        descending_envelope=None)
 
@@ -179,6 +192,8 @@ STAGE_SWITCHES: tuple[StageSwitch, ...] = (
     StageSwitch("rate_dependence", "rate dependence", lambda c: c.rate.enabled,
                 lambda c, on: replace(c, rate=replace(c.rate, enabled=on))),
     StageSwitch("drift", "thermal drift", lambda c: c.drift.enabled, lambda c, on: replace(c, drift=replace(c.drift, enabled=on))),
+    StageSwitch("backlash", "backlash on the spool's path", lambda c: c.backlash.enabled,
+                lambda c, on: replace(c, backlash=replace(c.backlash, enabled=on))),
     StageSwitch("asymmetry", "asymmetry", lambda c: c.descending_envelope is not None,
                 lambda c, on: replace(c, descending_envelope=ASYMMETRIC_ENVELOPE if on else None)),
 )
@@ -317,6 +332,21 @@ class _Dynamics:
         return self.filter.run(y)
 
 
+class _Backlash:
+    """A play of half-width ``width_um`` [um]: the spool moves once the actuator has taken up the clearance."""
+
+    def __init__(self, p: BacklashParams, y0: float):
+        if not (p.width_um >= 0 and math.isfinite(p.width_um)):
+            raise ValueError(f"backlash width_um must be a finite width >= 0, got {p.width_um}")
+        self.play = PlayOperatorBank([p.width_um], [y0])
+
+    def step(self, x: float, k: int) -> float:
+        return float(self.play.step(x, x)[0])
+
+    def run(self, x: np.ndarray, k0: int) -> np.ndarray:
+        return self.play.run(x, x)[:, 0]
+
+
 class _Drift:
     """Offset and gain approaching new values exponentially from ``start_s`` (time = sample index x dt)."""
 
@@ -444,6 +474,7 @@ class SimulatedValve:
                   _RateDependence(c.rate, c.dt, y0) if c.rate.enabled else None,
                   saturation,
                   _Dynamics(c.valve_model, c.dt, y_static) if c.dynamics_enabled else None,
+                  _Backlash(c.backlash, y_static) if c.backlash.enabled else None,
                   _Drift(c.drift, c.dt) if c.drift.enabled else None,
                   self._spool,
                   _SensorDelay(d, y_static) if d else None,

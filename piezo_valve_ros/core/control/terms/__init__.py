@@ -4,6 +4,7 @@
 compensable term is a module here and an entry below (and its field on ``CompensationModel``)."""
 from __future__ import annotations
 
+from .backlash import TERM as BACKLASH
 from .base import Term
 from .creep import TERM as CREEP
 from .feedforward import TERM as FEEDFORWARD
@@ -14,4 +15,4 @@ from .valve_model import TERM as VALVE_MODEL
 
 __all__ = ["Term", "TERMS"]
 
-TERMS: tuple[Term, ...] = (RATE_WIDENING, VALVE_MODEL, CREEP, SATURATION, FEEDFORWARD, FITTED_RANGE)
+TERMS: tuple[Term, ...] = (RATE_WIDENING, VALVE_MODEL, CREEP, SATURATION, BACKLASH, FEEDFORWARD, FITTED_RANGE)

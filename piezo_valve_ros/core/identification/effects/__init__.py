@@ -5,6 +5,7 @@ A new effect is one module with one class, added to ``CATALOGUE`` below.
 from __future__ import annotations
 
 from .asymmetry import Asymmetry
+from .backlash import Backlash
 from .base import EFFECT_RIDGE, Effect, NotCompensable
 from .creep import Creep
 from .drift import Drift
@@ -13,7 +14,7 @@ from .saturation import Saturation
 
 __all__ = ["CATALOGUE", "Effect", "NotCompensable", "EFFECT_RIDGE", "effect_class"]
 
-CATALOGUE: tuple[type[Effect], ...] = (Creep, Dynamics, Asymmetry, Drift, Saturation)
+CATALOGUE: tuple[type[Effect], ...] = (Creep, Dynamics, Asymmetry, Drift, Saturation, Backlash)
 
 
 def effect_class(name: str) -> type[Effect]:

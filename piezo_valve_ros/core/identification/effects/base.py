@@ -9,6 +9,8 @@ An effect knows
   columns and ``step`` applies a Gauss-Newton step to it;
 * its **search columns**: what the subset search uses to judge it from the baseline in one linear
   solve (its columns and sensitivities, plus any first-order proxy of its structure);
+* or, for an effect on the spool's path after G (``after_dynamics``: backlash), an **output map** of G's output
+  that is linear in it and in its coefficients for a given structure (``output_linear``);
 * its **description** for the report and its **compensation** (controller parameters), or the reason
   the controller cannot use it.
 """
@@ -49,6 +51,8 @@ class Effect:
     signature: ClassVar[str] = ""
     telling_experiment: ClassVar[str] = ""   # the excitation that shows this effect and not its look-alikes
     ridge: ClassVar[float] = EFFECT_RIDGE
+    after_dynamics: ClassVar[int] = 0        # coefficients of an output map after G (0: the effect acts before G)
+    coefficient_floor: ClassVar[float] = -np.inf   # the lower bound of its coefficients in a fit
 
     @classmethod
     def prepare(cls, train: Record, H: np.ndarray) -> Optional["Effect"]:
@@ -94,6 +98,26 @@ class Effect:
         """Whether this form has every structure of ``other`` (a form of the same effect): the combined last form
         starts from the best of the forms it contains."""
         return True
+
+    # -- an output map after G (``after_dynamics`` coefficients)
+    def output(self, x: np.ndarray, coefs: np.ndarray) -> np.ndarray:
+        """The position [um] (N,) for G's output ``x`` [um] (N,)."""
+        return x
+
+    def output_linear(self, x: np.ndarray, coefs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The output map at its structure for ``x`` and ``coefs`` (empty: at its neutral value) as ``(index (N,),
+        columns (N, after_dynamics))``: position = ``x[index] + columns @ coefs``, exact for that structure."""
+        return np.arange(x.size), np.zeros((x.size, 0))
+
+    def frees_poles(self, coefs: np.ndarray) -> bool:
+        """Whether an output map, settled at ``coefs``, is large enough that G_v's own poles are refitted with it
+        (the baseline fitted them with its structure absorbed)."""
+        return False
+
+    def output_search_columns(self, x: np.ndarray) -> np.ndarray:
+        """What the subset search fits for an output map, from the baseline's G output ``x`` (N,): (N, k) columns
+        added to the position.  Default: its linear form at its neutral value."""
+        return self.output_linear(x, np.zeros(0))[1]
 
     def search_columns(self, ctx: "Context") -> np.ndarray:
         """What the subset search fits for this effect (from the baseline, one linear solve)."""
