@@ -16,7 +16,7 @@ import argparse
 import sys
 import time
 
-from piezo_valve_ros.core.evaluation import SIMULATED_EFFECTS, compare_compensations
+from evaluation import SIMULATED_EFFECTS, compare_compensations
 from piezo_valve_ros.core.sim.simulator import ValveSimConfig
 from piezo_valve_ros.core.control.strategies import ControllerConfig, PIDGains, gain_set
 

@@ -11,7 +11,7 @@ import time
 import numpy as np
 
 from piezo_valve_ros.core.control.compensation import CompensationModel
-from piezo_valve_ros.core.evaluation import simulated_analysis
+from evaluation import simulated_analysis
 from piezo_valve_ros.core.sim.experiments import DEFAULT_SWEEP_HZ, frequency_response, paper_step_tests
 from piezo_valve_ros.core.sim.simulator import ValveSimConfig
 from piezo_valve_ros.core.control.strategies import REGISTRY, TABLE1_GAINS, ControllerConfig, PIDGains, has_feedback

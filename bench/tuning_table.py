@@ -12,7 +12,7 @@ import argparse
 import time
 from dataclasses import replace
 
-from piezo_valve_ros.core.evaluation import SIMULATED_EFFECTS, compare_tuning, simulated_analysis
+from evaluation import SIMULATED_EFFECTS, compare_tuning, simulated_analysis
 from piezo_valve_ros.core.sim.simulator import ValveSimConfig
 from piezo_valve_ros.core.control.strategies import TABLE1_GAINS
 from piezo_valve_ros.identify import compensation

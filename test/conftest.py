@@ -1,8 +1,10 @@
 import os
 import sys
 
-# the package is installed editable (scripts/setup_venv.sh); the tests' own helpers live beside them
+# the package is installed editable (scripts/setup_venv.sh); the tests' own helpers live beside them, and the
+# benches' harness of the whole loop (identify, compensate, track: bench/evaluation.py) beside the benches
 sys.path.insert(0, os.path.dirname(__file__))
+sys.path.insert(1, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "bench"))
 
 import pytest  # noqa: E402
 

@@ -20,7 +20,6 @@ MAY_IMPORT = {
     "core.tuning": {"core.model", "core.control", "core.sim"},
     "core.monitoring": {"core.model", "core.control", "core.identification"},
     "core.runs": set(),
-    "core.evaluation": {"core.model", "core.control", "core.sim", "core.identification", "core.tuning"},
 }
 CLI_MODULES = {"identify_cli", "plot_cli", "tune_cli", "tool"}
 

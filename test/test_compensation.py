@@ -243,7 +243,7 @@ def test_identify_compensate_track_halves_the_ol_hc_error_on_a_saturating_valve(
     """The whole loop on one of the battery table's valves (shorter): the extended model (creep and the end
     flattening found, inverted, dynamic feedforward on) at least halves OL HC's held-out RMS error against
     the paper's model, and PID HC's does not get worse."""
-    from piezo_valve_ros.core.evaluation import SIMULATED_EFFECTS, compare_compensations
+    from evaluation import SIMULATED_EFFECTS, compare_compensations
     sim = SIMULATED_EFFECTS["saturation"](ValveSimConfig(dt=1e-3))
     strategies = {"OL HC": ControllerConfig(strategy="ol_hc", gains=PIDGains(0.0, 0.0)),
                   "PID HC 1": ControllerConfig(strategy="pid_hc", gains=PIDGains(0.4823, 190.9162))}

@@ -733,7 +733,7 @@ def test_a_valve_slower_than_its_g_v_gets_the_extra_pole_pair():
     section held only found a resonance near 1400 rad/s (held-out RMS cut 14 %, dropped: the valve was
     left "unexplained").  Placed with G_v's poles free as well, the fit finds the 60 Hz section and the
     dynamics effect is added."""
-    from piezo_valve_ros.core.evaluation import SIMULATED_EFFECTS, simulated_analysis
+    from evaluation import SIMULATED_EFFECTS, simulated_analysis
     a = simulated_analysis(SIMULATED_EFFECTS["slow dynamics"](ValveSimConfig(dt=1e-3)), log=lambda s: None)
     r = a.report
     assert "dynamics" in r["effects_added"] and not r["unexplained"], r["residual"]
@@ -746,7 +746,7 @@ def test_a_valve_slower_than_its_g_v_gets_the_extra_pole_pair():
 def test_a_fast_creep_does_not_bend_the_identified_g_v():
     """Creep with a 30 ms lag takes part of the static gain away within a few samples, which bent the
     baseline's poles to 462/3248 rad/s; refitted with creep in the model they are the valve's 500/2400."""
-    from piezo_valve_ros.core.evaluation import simulated_analysis
+    from evaluation import simulated_analysis
     a = simulated_analysis(ValveSimConfig(dt=1e-3), log=lambda s: None)
     assert "creep" in a.report["effects_added"]
     true = [500.0, 2400.0]

@@ -9,7 +9,7 @@ import yaml
 from shared import computed_once
 
 from piezo_valve_ros.core.control.compensation import CompensationModel
-from piezo_valve_ros.core.evaluation import SIMULATED_EFFECTS
+from evaluation import SIMULATED_EFFECTS
 from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
 from piezo_valve_ros.core.control.strategies import TABLE1_GAINS, ControllerConfig, PIDGains
 from piezo_valve_ros.core.control.forward import ModelValve
@@ -246,7 +246,7 @@ def test_a_step_run_gives_up_after_a_step_past_the_limit_and_never_wins():
 
 def test_the_comparison_says_why_a_faster_table1_set_is_not_the_tuners_choice():
     """TuningComparison's verdict: beaten, or not beaten and why (outside the tuner's limits)."""
-    from piezo_valve_ros.core.evaluation import TuningComparison
+    from evaluation import TuningComparison
     from piezo_valve_ros.core.metrics import StepMetrics
     from piezo_valve_ros.core.tuning.tuner import LoopMargins, TuningResult
 
@@ -276,7 +276,7 @@ def test_the_comparison_says_why_a_faster_table1_set_is_not_the_tuners_choice():
 @pytest.fixture
 def default_valve_identified():
     """The default simulated valve at 1 kHz and the controller's model of it from identification (once per run)."""
-    from piezo_valve_ros.core.evaluation import simulated_analysis
+    from evaluation import simulated_analysis
     from piezo_valve_ros.identify import compensation
     sim = ValveSimConfig(dt=DT)
     return sim, computed_once("test_tuning.default_valve_identified",
@@ -289,7 +289,7 @@ def test_identify_tune_and_beat_table1_on_the_default_valve(strategy, default_va
     """The issue's loop end to end at the rig's 1 kHz: identify the default simulated valve (creep, flattening,
     slew, noise nobody declares), tune the strategy on what identification found, run the paper's steps on
     the valve: faster than every Table 1 set of the strategy, at equal or lower overshoot than the best."""
-    from piezo_valve_ros.core.evaluation import compare_tuning
+    from evaluation import compare_tuning
     sim, model = default_valve_identified
     cmp = compare_tuning(strategy, sim, model, log=lambda s: None)
     assert cmp.verdict().startswith("tuned beats"), cmp.verdict()
