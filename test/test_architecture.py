@@ -241,3 +241,16 @@ def test_a_parameter_spec_checks_type_range_and_choices_with_one_line_naming_it(
             spec.checked(value)
         assert str(info.value).startswith(message) and "\n" not in str(info.value), str(info.value)
     assert "one of realtime, lockstep" in clock.help_line() and clock.range_text() == "realtime or lockstep"
+
+
+def test_identification_hands_the_controller_typed_values_not_parameter_names():
+    """The seam between identification and control is typed (``Effect.compensation`` fills ``CompensationModel``
+    fields): no controller parameter name is written in the identification's source; they belong to the node's and
+    the files' edge (``CompensationModel.to_parameters``/``from_parameters``)."""
+    from piezo_valve_ros.core.control.compensation import MODEL_PARAMETERS
+    found = []
+    for path in (ROOT / "core" / "identification").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in MODEL_PARAMETERS:
+                found.append(f"{path.relative_to(ROOT)}:{node.lineno}: {node.value!r}")
+    assert found == []

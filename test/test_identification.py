@@ -595,10 +595,10 @@ def test_asymmetry_is_compensated_only_where_the_controller_can_invert_it():
     m = PAPER_GPIM.model()
     effect = Asymmetry()
     above = GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, m.a0 * 1.03, m.a1 + 0.08, 0.0)
-    assert effect.compensation(SimpleNamespace(gpim=above), None) == {
-        "gpim.descending_envelope": [above.b0, above.b1, 0.0]}
+    # the controller's model takes the GPIM with its envelope (typed: no parameter names in the handoff)
+    assert effect.compensation(SimpleNamespace(gpim=above), None)["gpim"] is above
     crossing = GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, 0.95, 0.2)   # inverted step by step
-    assert effect.compensation(SimpleNamespace(gpim=crossing), None) == {"gpim.descending_envelope": [0.95, 0.2, 0.0]}
+    assert effect.compensation(SimpleNamespace(gpim=crossing), None)["gpim"] is crossing
     falling = GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, 1.0, 0.5, -0.06)
     with pytest.raises(NotCompensable, match="asymmetry: descending envelope not rising"):
         effect.compensation(SimpleNamespace(gpim=falling), None)

@@ -90,7 +90,7 @@ def test_a_rate_dependent_slope_is_left_to_the_feedback():
     with pytest.raises(NotCompensable, match="rate-dependent slope"):
         Dynamics(form="rates").compensation(model, np.array([0.0, 0.2, 0.0, 0.0, 0.0, 0.0]))
     assert Dynamics(form="rates").compensation(model, np.zeros(6)) == {
-        "gpim.rate_widening_v": [0.1, 0.0, 0.0, 0.0, 0.0, 0.0]}
+        "rate_widening_v": (0.1, 0.0, 0.0, 0.0, 0.0, 0.0)}
 
 
 @pytest.mark.slow

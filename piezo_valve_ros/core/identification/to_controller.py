@@ -2,7 +2,7 @@
 controller's :class:`CompensationModel` and its parameters (ROS-free, no files: ``identify`` writes them)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -14,7 +14,7 @@ from .fitting import fit_model
 from .residual import Analysis
 from .valve_model import ValveModel
 
-__all__ = ["Compensation", "compensation", "baseline_compensation", "base_parameters", "controller_parameters",
+__all__ = ["Compensation", "compensation", "baseline_compensation", "base_model", "base_parameters", "controller_parameters",
            "fitted_range"]
 
 
@@ -34,55 +34,68 @@ def fitted_range(analysis: Analysis) -> tuple[float, float]:
     return float(np.min(v)), float(np.max(v))
 
 
-def base_parameters(model: ValveModel, dynamic_feedforward: bool, fitted_range_v: tuple[float, ...] = ()) -> dict:
-    """The controller parameters of a model's GPIM and G (all its sections) with no effect compensated, and the
-    voltages [V] it was fitted on; every model parameter written (``CompensationModel.to_parameters``), so a
-    push replaces a whole older model."""
+def base_model(model: ValveModel, dynamic_feedforward: bool, fitted_range_v: tuple[float, ...] = ()) -> CompensationModel:
+    """The controller's model of a model's GPIM and G (all its sections) with no effect compensated, and the
+    voltages [V] it was fitted on."""
     g = model.gpim
     symmetric = GPIM(g.thresholds, g.weights, g.a0, g.a1, g.offset_um)  # the asymmetry effect adds the envelope
     return CompensationModel(symmetric, unity_dc_poles(list(model.sections)), dynamic_feedforward=dynamic_feedforward,
-                             fitted_range_v=tuple(fitted_range_v)).to_parameters()
+                             fitted_range_v=tuple(fitted_range_v))
+
+
+def base_parameters(model: ValveModel, dynamic_feedforward: bool, fitted_range_v: tuple[float, ...] = ()) -> dict:
+    """``base_model``'s controller parameters; every model parameter written (``CompensationModel.to_parameters``),
+    so a push replaces a whole older model."""
+    return base_model(model, dynamic_feedforward, fitted_range_v).to_parameters()
 
 
 def compensation(analysis: Analysis, dynamic_feedforward: bool = True) -> Compensation:
     """The final model reduced to what the controller compensates.
 
-    Each effect's ``compensation`` gives its controller parameters or the reason it has none; an effect is
-    taken only if the model with it still passes ``CompensationModel.from_parameters`` as a whole (e.g. a
-    saturation map that stays invertible together with the creep).  When anything is left out the model is
-    refitted without it, so the GPIM the controller inverts is the best one without that structure.  With
-    ``dynamic_feedforward`` the feedforward also inverts the fitted G (``compensation.DynamicFeedforward``).
+    Each effect's ``compensation`` gives the parts of the controller's model it fills (typed values) or the reason
+    it has none; an effect is taken only if the model with it still passes ``CompensationModel.problems`` as a
+    whole on the fitted voltages (e.g. a saturation map that stays invertible together with the creep).  When
+    anything is left out the model is refitted without it, so the GPIM the controller inverts is the best one
+    without that structure.  With ``dynamic_feedforward`` the feedforward also inverts the fitted G
+    (``compensation.DynamicFeedforward``).
     """
     final = analysis.final
     drive = fitted_range(analysis)
-    params = base_parameters(final, dynamic_feedforward, drive)
+    controller = base_model(final, dynamic_feedforward, drive)
     usable, refused = [], {}
     for e, c in zip(final.effects, final.coefs):
         try:
-            trial = {**params, **e.compensation(final, c)}
-            CompensationModel.from_parameters(trial, *drive)
+            trial = replace(controller, **e.compensation(final, c))
         except NotCompensable as exc:
             refused[e.name] = str(exc)
             continue
-        except ValueError as exc:
-            refused[e.name] = f"{e.name}: with the rest of the model: {exc}"
+        problems = trial.problems(*drive)
+        if problems:
+            refused[e.name] = f"{e.name}: with the rest of the model: {'; '.join(problems)}"
             continue
         usable.append(e)
-        params = trial
+        controller = trial
     if not refused:
-        return Compensation(final, CompensationModel.from_parameters(params, *drive), refused)
+        return Compensation(final, controller, refused)
     model = fit_model(analysis.split.fit, analysis.baseline, usable, try_forms=False) if usable else analysis.baseline
-    params = base_parameters(model, dynamic_feedforward, drive)
+    controller = base_model(model, dynamic_feedforward, drive)
     for e, c in zip(model.effects, model.coefs):
-        params.update(e.compensation(model, c))
-    return Compensation(model, CompensationModel.from_parameters(params, *drive), refused)
+        controller = replace(controller, **e.compensation(model, c))
+    problems = controller.problems(*drive)
+    if problems:
+        raise ValueError("; ".join(problems))
+    return Compensation(model, controller, refused)
 
 
 def baseline_compensation(analysis: Analysis) -> Compensation:
     """The paper's compensation of the paper's model: the baseline GPIM (G_v for ff_pid_g), no effect, no
     dynamic feedforward."""
     base, drive = analysis.baseline, fitted_range(analysis)
-    return Compensation(base, CompensationModel.from_parameters(base_parameters(base, False, drive), *drive), {})
+    controller = base_model(base, False, drive)
+    problems = controller.problems(*drive)
+    if problems:
+        raise ValueError("; ".join(problems))
+    return Compensation(base, controller, {})
 
 
 def controller_parameters(comp: Compensation) -> dict:

@@ -104,7 +104,7 @@ class Asymmetry(Effect):
         envelope_problems = [x for x in inverse_problems(g) if "envelope" in x]
         if envelope_problems:
             raise NotCompensable(f"asymmetry: {'; '.join(envelope_problems)}")
-        return {"gpim.descending_envelope": [float(g.b0), float(g.b1), float(g.b2)]}
+        return {"gpim": g}
 
     def plot_axis(self, ctx):
         return ctx.v, "voltage [V]", False

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...control.terms.backlash import BacklashModel
 from ...model.hysteresis import output_play
 from .base import Effect
 
@@ -71,4 +72,4 @@ class Backlash(Effect):
         return np.gradient(ctx.H, ctx.dt), "model output rate [um/s]", False
 
     def compensation(self, model, coefs) -> dict:
-        return {"backlash.width_um": self.width_um(coefs)}
+        return {"backlash": BacklashModel(self.width_um(coefs))}

@@ -11,8 +11,9 @@ An effect knows
   solve (its columns and sensitivities, plus any first-order proxy of its structure);
 * or, for an effect on the spool's path after G (``after_dynamics``: backlash), an **output map** of G's output
   that is linear in it and in its coefficients for a given structure (``output_linear``);
-* its **description** for the report and its **compensation** (controller parameters), or the reason
-  the controller cannot use it.
+* its **description** for the report and its **compensation** (the ``CompensationModel`` fields it fills, typed
+  values: no parameter names, which belong to the controller's and the files' edge), or the reason the controller
+  cannot use it.
 """
 from __future__ import annotations
 
@@ -132,5 +133,6 @@ class Effect:
         return ctx.H, "model output [um]", False
 
     def compensation(self, model: "ValveModel", coefs: np.ndarray) -> dict:
-        """Controller parameters that compensate this effect; raises NotCompensable with the reason."""
+        """What compensates this effect: ``CompensationModel`` field -> typed value (a ``CreepModel``, an ``OutputMap``,
+        ...); raises NotCompensable with the reason."""
         raise NotCompensable(f"{self.name}: the controller has no compensation for it")

@@ -15,6 +15,7 @@ from typing import Optional
 
 import numpy as np
 
+from ...control.terms.creep import CreepModel
 from ...model.dynamics import lag_bank
 from ..records import Record
 from .base import Effect, normalised
@@ -87,5 +88,5 @@ class Creep(Effect):
     def compensation(self, model, coefs) -> dict:
         """The controller's creep compensator inverts the plain terms (its exact inverse); the direction- and
         level-dependent parts are left to the feedback."""
-        return {"creep.time_constants_s": [float(x) for x in self.time_constants_s],
-                "creep.gains": [float(c) for c in coefs[:len(self.time_constants_s)]]}
+        return {"creep": CreepModel(tuple(float(x) for x in self.time_constants_s),
+                                    tuple(float(c) for c in coefs[:len(self.time_constants_s)]))}

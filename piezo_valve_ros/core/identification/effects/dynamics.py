@@ -155,5 +155,5 @@ class Dynamics(Effect):
             raise NotCompensable("dynamics: the controller's inverse has no rate-dependent slope (the loading "
                                  "curve steepening with the input rate); left to the feedback")
         if any(c != 0.0 for c in model.rate_widening_v):
-            return {"gpim.rate_widening_v": [float(c) for c in model.rate_widening_v]}
+            return {"rate_widening_v": tuple(float(c) for c in model.rate_widening_v)}
         return {}

@@ -59,5 +59,4 @@ class Saturation(Effect):
         problems = out_map.problems(lo, hi)
         if problems:
             raise NotCompensable("; ".join(problems))
-        return {"saturation.centre_um": out_map.centre_um, "saturation.half_range_um": out_map.half_range_um,
-                "saturation.coefficients_um": list(out_map.coefficients_um)}
+        return {"output_map": out_map}
