@@ -13,6 +13,7 @@ import time
 import numpy as np
 
 from piezo_valve_ros.core.control.compensation import CompensationModel
+from piezo_valve_ros.core.control.terms.backlash import BacklashModel
 from piezo_valve_ros.core.model.hysteresis import GPIM, PAPER_GPIM
 from piezo_valve_ros.core.model.rate_dependence import hysteresis_inverse, hysteresis_stream
 from piezo_valve_ros.core.sim.signals import training_voltage
@@ -52,7 +53,8 @@ def controller_cost(n=50_000):
     large = CompensationModel(gpim=finer(PAPER_GPIM.model(), max(CAPACITY_EXTENSION)))
     cases = ([(s, CompensationModel(), "") for s in STRATEGIES]
              + [(s, rate_model, " rate") for s in ("ol_hc", "pid_hc")]
-             + [(s, large, f" n={large.gpim.n}") for s in ("ol_hc", "pid_hc")])
+             + [(s, large, f" n={large.gpim.n}") for s in ("ol_hc", "pid_hc")]
+             + [("ff_pid", CompensationModel(backlash=BacklashModel(0.5)), " backlash")])
     for s, model, label in cases:
         def loop():
             ctl = ValveController(ControllerConfig(strategy=s, gains=PIDGains(1.1987, 474.509)), model)
