@@ -18,7 +18,7 @@ from piezo_valve_ros.core.sim.experiments import run_closed_loop, simulate_rows
 from piezo_valve_ros.core.sim.signals import identification_voltage, validation_voltage
 from piezo_valve_ros.core.sim.simulator import BacklashParams, SensorParams, SimulatedValve, ValveSimConfig
 
-DT = 5e-4
+DT = 1e-3       # 1 kHz: G_v resolved, half the samples of the battery's 2 kHz
 WIDTH_UM = 1.5
 VALVE = replace(ValveSimConfig(dt=DT).ideal(), dynamics_enabled=True, sensor=SensorParams(),
                 backlash=BacklashParams(True, WIDTH_UM))
