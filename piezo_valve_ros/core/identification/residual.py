@@ -597,7 +597,17 @@ class _Loop:
         confirmed = self.confirm(searched)
         if set(confirmed[3]) == set(forward[3]):
             return forward
-        with_search, with_forward = self.held_out(confirmed[0]).rms, self.held_out(forward[0]).rms
+        search_score, forward_score = self.held_out(confirmed[0]), self.held_out(forward[0])
+        with_search, with_forward = search_score.rms, forward_score.rms
+        # effects supported only together must, together, pass the rule an effect added last passes
+        together = support(search_score, forward_score, self.noise)[2]
+        if with_search < with_forward and not together:
+            self.log(f"exact selection: the search's {', '.join(searched)}, confirmed as {', '.join(confirmed[3])}, "
+                     f"leaves a held-out RMS of {with_search:.4f} um against {with_forward:.4f} um with "
+                     f"{', '.join(forward[3]) or 'nothing'} chosen one at a time; together they are not supported "
+                     f"({unsupported_because(search_score, forward_score, self.noise)}); "
+                     f"{', '.join(forward[3]) or 'nothing'} kept")
+            return forward
         if with_search < with_forward:
             self.log(f"exact selection: the search's {', '.join(searched)}, confirmed as "
                      f"{', '.join(confirmed[3]) or 'nothing'}, leaves a held-out RMS of {with_search:.4f} um against "
