@@ -48,7 +48,6 @@ class RigRecorder:
         waits for its readers (``valve_command --wait-readers``) then sends nothing the bag cannot place on the
         samples' time axis: on a loaded computer discovery matches the topics one by one, seconds apart."""
         self.node = node
-        self.reference_after_samples = reference_after_samples
         self._deferred: Optional[tuple] = None
         self._samples_recorded = False
         self._started_at: Optional[float] = None

@@ -16,7 +16,7 @@ import math
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, replace
-from typing import Collection, Optional, Sequence
+from typing import Callable, Collection, Optional, Sequence
 
 import numpy as np
 from scipy import linalg, optimize
@@ -120,6 +120,11 @@ class FitCache:
                 rows += np.multiply.outer(ctx.rest_states - ctx.states[0], ctx.free_response)
             return rows, rows @ rows.T, rows @ ctx.record.position_um
         return self._get(self._basis, key, make)
+
+
+def run_in_order(jobs: list[Callable[[], object]]) -> list:
+    """Independent jobs run one after another in this thread; their results in order."""
+    return [job() for job in jobs]
 
 
 # --------------------------------------------------------------------------- linear step
@@ -341,11 +346,14 @@ def _step_nonlinear(model: ValveModel, x: np.ndarray, layout: "_Layout", pole_st
 
 def fit_model(train: Record, start: ValveModel, effects: Sequence[Effect] = (), *, poles: str = "joint",
               rounds: Optional[int] = None, try_forms: bool | Collection[str] = True,
-              cache: Optional[FitCache] = None, warm: Optional[ValveModel] = None) -> ValveModel:
+              cache: Optional[FitCache] = None, warm: Optional[ValveModel] = None,
+              each: Callable[[list[Callable[[], object]]], list] = run_in_order) -> ValveModel:
     """The model ``start`` extended by ``effects``, fitted to ``train`` (see ``_fit``); with ``try_forms`` (True,
     or the names of the effects to try) an effect with several forms (``Effect.forms``) is fitted in each and
     the form with the lowest training error kept (otherwise each effect keeps the form it has).  ``warm``: a
-    fitted model whose nonlinear structures of these effects the fit starts from (``Effect.carry``)."""
+    fitted model whose nonlinear structures of these effects the fit starts from (``Effect.carry``).  ``each``
+    runs independent fits (the forms) and returns their results in order: on threads, where a pool is free
+    (the result does not depend on it)."""
     cache = FitCache() if cache is None else cache
     if warm is not None:
         for e in effects:
@@ -357,10 +365,8 @@ def fit_model(train: Record, start: ValveModel, effects: Sequence[Effect] = (), 
     best = None
     for i in multi:  # (one effect with forms in practice: dynamics)
         forms = effects[i].forms()
-        fits = []
-        for f in forms[:-1]:
-            fits.append(_fit(train, start, [f if j == i else e for j, e in enumerate(effects)], poles=poles,
-                             rounds=rounds, cache=cache))
+        fits = each([lambda f=f: _fit(train, start, [f if j == i else e for j, e in enumerate(effects)], poles=poles,
+                                      rounds=rounds, cache=cache) for f in forms[:-1]])
         # the last form combines others: it starts from the best of those it contains
         seed = min((fit for f, fit in zip(forms[:-1], fits) if forms[-1].contains(f)), key=lambda f: f[1])[0]
         seeded = replace(seed, effects=(), coefs=())

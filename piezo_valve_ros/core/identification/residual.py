@@ -175,9 +175,11 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
     """
     if threads < 1:
         raise ValueError(f"threads must be >= 1, got {threads}")
+    # the forms of one refit run on a pool of their own: a refit on the first pool waits for them there
     with threadpool_limits(limits=1, user_api="blas"), \
-            ThreadPoolExecutor(threads, thread_name_prefix="refit") as pool:
-        return _Loop(train_full, validate_full, max_rate_hz, log, pool).run()
+            ThreadPoolExecutor(threads, thread_name_prefix="refit") as pool, \
+            ThreadPoolExecutor(threads, thread_name_prefix="form") as forms_pool:
+        return _Loop(train_full, validate_full, max_rate_hz, log, pool, forms_pool).run()
 
 
 @dataclass(frozen=True)
@@ -202,9 +204,9 @@ class _Loop:
     start, the cut after the wipe)."""
 
     def __init__(self, train_full: Record, validate_full: Optional[Record], max_rate_hz: float,
-                 log: Callable[[str], None], pool: ThreadPoolExecutor):
+                 log: Callable[[str], None], pool: ThreadPoolExecutor, forms_pool: ThreadPoolExecutor):
         self.started = time.monotonic()
-        self.log, self.pool = log, pool
+        self.log, self.pool, self.forms_pool = log, pool, forms_pool
         self.warnings: list[str] = []
         self.analysed: dict = {}   # what of each record the loop analysed (the report's "analysed")
         train_full = self.representative_part(train_full, "train", "training record")
@@ -234,6 +236,7 @@ class _Loop:
             f"{len(split.score_full) - split.start_full} samples ({held_out_text}); "
             f"analysis at {split.fit.rate_hz:.0f} Hz; sensor noise {self.noise:.4f} um")
         self.cache = FitCache()  # operator states etc. shared by every fit on the fit record
+        self.polishes: dict[int, tuple[ValveModel, ValveModel]] = {}   # id(model) -> (model, its poles refitted)
         self.sessions: dict[int, tuple[ValveModel, SessionStart]] = {}   # each model's start on a validation session
         self.session_bounds: dict = {}   # the operators' clamp bounds there, per hysteresis structure
         self.final: Optional[ValveModel] = None
@@ -261,6 +264,11 @@ class _Loop:
     def each(self, jobs: list[Callable[[], object]]) -> list:
         """Independent jobs on the pool, results in order (a job never waits for another)."""
         return [f.result() for f in [self.pool.submit(job) for job in jobs]]
+
+    def each_form(self, jobs: list[Callable[[], object]]) -> list:
+        """The forms of one refit (``fit_model``'s ``each``) on their own pool: a refit running on ``pool``
+        waits for them, so they cannot queue behind it there."""
+        return [f.result() for f in [self.forms_pool.submit(job) for job in jobs]]
 
     def session(self, model: ValveModel, on: Optional[Split] = None) -> Optional[SessionStart]:
         """``model``'s start and offset on a separate validation session (estimated once per model, the same way for
@@ -495,7 +503,7 @@ class _Loop:
             chosen = {e.name: e for e in like.effects} if like is not None else {}
             effects = [chosen.get(n, self.by_name[n]) for n in subset]
             m = fit_model(self.fit, self.baseline, effects, try_forms={n for n in subset if n not in chosen},
-                          cache=self.cache, warm=like)
+                          cache=self.cache, warm=like, each=self.each_form)
             return m, self.held_out(m)
 
         missing = {}
@@ -658,6 +666,13 @@ class _Loop:
             current = [n for n in current if n != weakest]
         return self.baseline, {}, {}, []
 
+    def polished(self, model: ValveModel) -> ValveModel:
+        """``model`` with G_v's poles fitted again through its effects (``refit_poles_with_effects``), once per
+        model: the exact checks score against it and the end of ``extend`` takes it."""
+        if id(model) not in self.polishes:
+            self.polishes[id(model)] = (model, refit_poles_with_effects(self.fit, model, self.cache))
+        return self.polishes[id(model)][1]
+
     def exact_addition(self, current: list[str], final: ValveModel, tried: set[frozenset]) -> Optional[list[str]]:
         """The search judged nonlinear structures to first order, which can underrate a large one: effects whose
         linear estimate shows some gain are refitted exactly on top of the confirmed set; the set with the best
@@ -666,11 +681,12 @@ class _Loop:
             return None
         # against the set as it ends if nothing is added: with G_v's poles fitted again through it (an effect
         # added here must do more than the poles' refit at the end would do anyway)
-        base_score = min(self.held_out(final), self.held_out(refit_poles_with_effects(self.fit, final, self.cache)),
-                         key=lambda s: s.rms)
+        polishing = self.pool.submit(self.polished, final)   # beside the refits (it waits for nothing)
         options = [n for n in self.exact_options(current) if frozenset(current + [n]) not in tried]
+        refits = self.refit_many([(current + [n], final) for n in options])
+        base_score = min(self.held_out(final), self.held_out(polishing.result()), key=lambda s: s.rms)
         best = None
-        for n, (_, score) in zip(options, self.refit_many([(current + [n], final) for n in options])):
+        for n, (_, score) in zip(options, refits):
             if support(score, base_score, self.noise)[2] and (best is None or score.rms < best[1].rms):
                 best = (n, score)
         if best is None:
@@ -720,7 +736,7 @@ class _Loop:
                 continue
             final, drop_one, verdicts, current = confirmed
         # G_v's poles again through the effects found (creep's fast share bends the baseline's poles)
-        polished = refit_poles_with_effects(self.fit, final, self.cache)
+        polished = self.polished(final)
         if polished is not final:
             before, after = self.held_out(final).rms, self.held_out(polished).rms
             if after <= before:

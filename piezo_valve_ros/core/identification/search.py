@@ -69,7 +69,9 @@ class SubsetSearch:
             self.groups.append(np.arange(col, col + width))
             ridge.append(np.full(width, e.ridge))
             col += width
-        self.B = B[split.start:]
+        # the held-out columns one contiguous block per group: a subset's error sums the blocks it has (no copy
+        # of the columns it picks, which cost more than the products)
+        self.B_groups = [np.ascontiguousarray(B[split.start:, g]) for g in self.groups]
         y = split.fit.position_um
         self.y_score = split.score.position_um[split.start:]
         self.own_offset = session is not None   # a separate session: each subset is scored about its own zero there
@@ -87,10 +89,15 @@ class SubsetSearch:
 
     def score(self, subset: frozenset) -> "Score":
         if subset not in self._cache:
-            idx = np.concatenate([self.groups[0]] + [self.groups[1 + i] for i, e in enumerate(self.effects)
-                                                     if e.name in subset])
+            chosen = [0] + [1 + i for i, e in enumerate(self.effects) if e.name in subset]
+            idx = np.concatenate([self.groups[g] for g in chosen])
             x = linalg.solve(self.gram[np.ix_(idx, idx)], self.rhs[idx], assume_a="pos") / self.scale[idx]
-            error = self.y_score - self.B[:, idx] @ x
+            error = self.y_score.copy()
+            start = 0
+            for g in chosen:
+                width = self.groups[g].size
+                error -= self.B_groups[g] @ x[start:start + width]
+                start += width
             self._cache[subset] = Score.of(error - np.mean(error) if self.own_offset else error)
         return self._cache[subset]
 

@@ -30,7 +30,9 @@ from .base import Effect, NotCompensable, normalised
 __all__ = ["Dynamics", "FAST_LAGS_S", "MAX_WIDENING_V", "EXTRA_START", "MAX_DELAY_S"]
 
 FAST_LAGS_S = (3e-4, 1e-3, 3e-3)   # first-order proxies of extra poles, for the subset search
-FORMS = ("delay", "poles", "rate", "slope", "rates", "all")   # see Dynamics.has
+# see Dynamics.has; the costliest fits first (they run side by side on a pool, the longest started first),
+# "all" last (it starts from the best of those it contains)
+FORMS = ("rates", "poles", "rate", "slope", "delay", "all")
 STRUCTURES = ("delay", "poles", "rate", "slope")
 MAX_DELAY_S = 0.05                          # a transport delay of at most this long [s]
 SEARCH_DELAY_SAMPLES = (1, 2, 4)            # the subset search's delay proxies: H this many samples late
