@@ -44,6 +44,8 @@ __all__ = ["play_bounds",
 
 OUTPUT_RANGE_POINTS = 401     # major-loop points behind GPIM.output_range
 ORDER_TOLERANCE_V = 1e-12     # breakpoints out of the operators' order by no more than rounding count as in order
+HOLD_TOLERANCE_UM = 1e-12   # a demand this close to the present output [um] holds the input (the output summed
+                            # operator by operator differs from the model's dot product in the last bits)
 
 
 class NotInvertibleError(PiezoValveError, ValueError):
@@ -811,7 +813,7 @@ class MonotoneInverseGPIM:
             points.append(-q0 / q1)
         return np.concatenate(points)
 
-    def _solve_on_one_envelope(self, y: float, rising: bool, state: np.ndarray, now: float) -> Optional[float]:
+    def _solve_on_one_envelope(self, y: float, rising: bool, state, now: float) -> Optional[float]:
         """The usual step, in closed form, from a state the last step left (so no operator lies outside its
         bounds at the last input) with the operators in order (``z_j + r_j`` rising and ``z_j - r_j`` falling
         with j, as every step keeps them): rising, each operator's next state is ``max(z_j, L(v) - r_j)``;
@@ -819,7 +821,7 @@ class MonotoneInverseGPIM:
         in L(v) (U(v)) with breakpoints ``z_j + r_j`` (``z_j - r_j``) in the operators' order; a demand a
         step away passes a few of them, so a plain loop from the first finds the piece and solves it.  None
         when the step is not of this kind (the general solve then takes it).  ``state``: the operators at the
-        last input under the present thresholds, ``now``: the output there [um]."""
+        last input under the present thresholds (array or list), ``now``: the output there [um]."""
         # one envelope (L = U): an operator whose threshold the rate narrowed below 0 has crossed bounds for good
         # and follows L(v) - r_j = U(v) - r_j; with two, any crossing on the way down is the general solve's
         crossed_for_good = not rising and self._one_envelope
@@ -827,7 +829,8 @@ class MonotoneInverseGPIM:
                 self._gap_range(min(self.v_min, self._v_last), self._v_last)[1] > \
                 2.0 * (self._base_list[0] + self._shift):
             return None   # some operator's bounds may cross on the way down
-        z, p, base, w = state.tolist(), self._p_list, self._base_list, self._shift
+        z = state if isinstance(state, list) else state.tolist()
+        p, base, w = self._p_list, self._base_list, self._shift
         off = self.model.offset_um
         sign = 1.0 if rising else -1.0    # the breakpoints are z_j + sign r_j
         held = now - off                  # sum_j p_j z_j over the operators held
@@ -863,25 +866,46 @@ class MonotoneInverseGPIM:
         gaps = [q2 * u * u + q1 * u + q0 for u in points]
         return min(gaps), max(gaps)
 
+    def _state_at_last_input(self) -> tuple[list, float, float, bool]:
+        """The operators at the last input under the present thresholds, after the thresholds changed (rate
+        dependence) or the state was set: (states, output there [um], the largest 2 r_j of an operator above
+        both its bounds (-inf: none), whether one lies below its lower bound with bounds that do not cross).
+        One pass over the operators in floats: a bank is a few dozen operators, where numpy's per-call cost
+        is most of a step."""
+        m, v_last, w = self.model, self._v_last, self._shift
+        low, high = float(m.ascending_envelope(v_last)), float(m.descending_envelope(v_last))
+        state, f_now = [], m.offset_um
+        above_r2, below = -math.inf, False
+        for z_j, base_j, p_j in zip(self._z.tolist(), self._base_list, self._p_list):
+            r_j = base_j + w
+            lo, hi = low - r_j, high + r_j
+            s_j = hi if z_j > hi else z_j
+            if s_j < lo:
+                s_j = lo
+            state.append(s_j)
+            f_now += p_j * s_j
+            if z_j > (hi if hi > lo else lo) and 2.0 * r_j > above_r2:
+                above_r2 = 2.0 * r_j
+            elif z_j < lo <= hi:
+                below = True
+        return state, f_now, above_r2, below
+
     def _solve(self, y: float) -> float:
         v_last = self._v_last
         if self._consistent:
-            state, f_now = self._z, self._y_now
+            state, f_now, usual = self._z, self._y_now, self._ordered
         else:  # the thresholds changed since the last step (rate dependence) or the state was set
-            m = self.model
-            lo, hi = m.ascending_envelope(v_last) - self._r, m.descending_envelope(v_last) + self._r
-            state = np.maximum(np.minimum(self._z, hi), lo)
-            f_now = float(self._p @ state) + m.offset_um
-        if y == f_now:
+            state, f_now, above_r2, below = self._state_at_last_input()
+        if abs(y - f_now) <= HOLD_TOLERANCE_UM:
             return v_last
         rising = y > f_now
         # an operator pushed against the motion by the new thresholds would follow its other bound for a while:
         # not the usual step (one pushed along the motion follows anyway, and so does one whose bounds cross
         # all the way up: rising, it stays on its lower bound)
-        if self._ordered and (self._consistent or not (
-                np.any((self._z > np.maximum(hi, lo))
-                       & (2.0 * self._r >= self._gap_range(v_last, max(self.v_max, v_last))[0]))
-                if rising else np.any((self._z < lo) & (lo <= hi)))):
+        if not self._consistent:
+            usual = self._ordered and not (
+                above_r2 >= self._gap_range(v_last, max(self.v_max, v_last))[0] if rising else below)
+        if usual:
             v = self._solve_on_one_envelope(y, rising, state, f_now)
             if v is not None:
                 return v
