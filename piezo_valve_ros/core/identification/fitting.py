@@ -115,9 +115,9 @@ class FitCache:
         key = (id(ctx.record), ctx.model.structure_key, ctx.model.sections, ctx.model.delay_s)
 
         def make():
-            rows = filter_rows_at_rest(*ctx.filter, np.ascontiguousarray((ctx.states - ctx.states[0]).T))
-            if ctx.rest_states is not None:   # G at rest before the first move (Context.through_dynamics)
-                rows += np.multiply.outer(ctx.rest_states - ctx.states[0], ctx.free_response)
+            # G at rest before the first move where the valve rested elsewhere (Context.through_dynamics)
+            rest = None if ctx.rest_states is None else ctx.rest_states - ctx.states[0]
+            rows = filter_rows_at_rest(*ctx.filter, ctx.state_rows, rest)
             return rows, rows @ rows.T, rows @ ctx.record.position_um
         return self._get(self._basis, key, make)
 
@@ -288,10 +288,7 @@ def _linear_solve(train: Record, model: ValveModel, *, steps: bool, free: np.nda
         poles = _pole_columns(train, model, static, free)
         lower = np.concatenate((lower, np.full(n_poles, -np.inf)))
         ridge = np.concatenate((ridge, np.full(n_poles, SENSITIVITY_RIDGE)))
-    first = rest[:, 0].copy()
-    rest = filter_rows_at_rest(*ctx.filter, rest)
-    if at_rest is not None:   # G at rest before the first move (Context.through_dynamics)
-        rest += np.multiply.outer(at_rest - first, ctx.free_response)
+    rest = filter_rows_at_rest(*ctx.filter, rest, at_rest)   # at rest before the first move: at_rest
     if n_poles:
         rest = np.vstack((rest, poles.T))
     basis, basis_gram, basis_rhs = cache.basis(ctx)

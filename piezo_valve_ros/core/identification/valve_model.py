@@ -298,6 +298,12 @@ class Context:
             return play_batch(lower, upper, self.model.gpim.thresholds, self.initial_state)[0]
         return self._structural("states", compute)
 
+    @property
+    def state_rows(self) -> np.ndarray:
+        """(n, N) the operator states less their first row, one contiguous row per operator: the GPIM's columns
+        before G as the fits filter them (the same for every G, so kept with the structure)."""
+        return self._structural("state_rows", lambda: np.ascontiguousarray((self.states - self.states[0]).T))
+
     @cached_property
     def H(self) -> np.ndarray:
         """Hysteresis output [um] (N,)."""
@@ -374,13 +380,15 @@ class Context:
 
     def through_dynamics(self, x: np.ndarray, rest=None) -> np.ndarray:
         """G(s) applied to x (N,) or to each column of x (N, k), at rest at the first sample, or at rest at
-        ``rest`` (a value, or one per column) before it: G is linear, so that adds (rest - x[0]) times G's
-        free response."""
-        y = filter_at_rest(*self.filter, x)
-        if rest is not None:
-            x = np.asarray(x, float)
-            y = y + np.multiply.outer(self.free_response, np.asarray(rest, float) - x[0])
-        return y
+        ``rest`` (a value, or one per column) before it: G started from its steady state there (the same as
+        adding (rest - x[0]) times G's free response, G being linear)."""
+        if rest is None:
+            return filter_at_rest(*self.filter, x)
+        x = np.asarray(x, float)
+        if x.ndim == 1:
+            return filter_rows_at_rest(*self.filter, x[None, :], np.reshape(rest, 1))[0]
+        rest = np.broadcast_to(np.asarray(rest, float), (x.shape[1],))
+        return filter_rows_at_rest(*self.filter, np.ascontiguousarray(x.T), rest).T
 
     @cached_property
     def free_response(self) -> np.ndarray:
@@ -431,7 +439,9 @@ def filter_at_rest(b: np.ndarray, a: np.ndarray, x: np.ndarray) -> np.ndarray:
     return filter_rows_at_rest(b, a, np.ascontiguousarray(x.T)).T
 
 
-def filter_rows_at_rest(b: np.ndarray, a: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """lfilter of each row of ``rows`` (k, N), started at rest at its first sample; (k, N)."""
+def filter_rows_at_rest(b: np.ndarray, a: np.ndarray, rows: np.ndarray, rest: Optional[np.ndarray] = None) -> np.ndarray:
+    """lfilter of each row of ``rows`` (k, N), started at rest at its first sample, or at rest at ``rest`` (k,)
+    before it (the same as adding ``(rest - first) x`` G's free response: G is linear); (k, N)."""
     zi = steady_state(b, a)
-    return scipy_signal().lfilter(b, a, rows, axis=1, zi=rows[:, :1] * zi[None, :])[0]
+    start = rows[:, :1] if rest is None else np.asarray(rest, float).reshape(-1, 1)
+    return scipy_signal().lfilter(b, a, rows, axis=1, zi=start * zi[None, :])[0]
