@@ -744,8 +744,9 @@ class MonotoneInverseGPIM:
     the last input towards the demand where the output reaches it, and solves there: forward(inverse(y)) = y
     to rounding, inputs limited to ``v_min..v_max`` [V] (the demand is clamped to the reachable output).
 
-    Same interface as :class:`InverseGPIM`; the state is the forward model's (``forward_state``).  A step
-    costs a few dozen microseconds (numpy over 3n breakpoints): fine at 1-2 kHz.
+    Same interface as :class:`InverseGPIM`; the state is the forward model's (``forward_state``).  The usual
+    step (on one envelope) is solved in closed form in a few microseconds; the general solve (numpy over 3n
+    breakpoints) costs a few dozen (``bench/core_speed.py``).
     """
 
     def __init__(self, model: GPIM, forward_state: Optional[np.ndarray] = None, v0: float = CENTRE_VOLTAGE_V,
