@@ -197,6 +197,11 @@ class CapacityFit:
         return self.about_trend_um if about_trend else self.held_out_um
 
 
+def _on_pool(pool: ThreadPoolExecutor, jobs: list[Callable[[], object]]) -> list:
+    """Independent jobs on ``pool``, their results in order."""
+    return [f.result() for f in [pool.submit(job) for job in jobs]]
+
+
 class _Loop:
     """One run of the residual loop on one pair of records; ``run`` takes the stages of the module's
     docstring in order and returns the :class:`Analysis`.  What a stage finds is kept on the instance for
@@ -263,12 +268,12 @@ class _Loop:
 
     def each(self, jobs: list[Callable[[], object]]) -> list:
         """Independent jobs on the pool, results in order (a job never waits for another)."""
-        return [f.result() for f in [self.pool.submit(job) for job in jobs]]
+        return _on_pool(self.pool, jobs)
 
     def each_form(self, jobs: list[Callable[[], object]]) -> list:
         """The forms of one refit (``fit_model``'s ``each``) on their own pool: a refit running on ``pool``
         waits for them, so they cannot queue behind it there."""
-        return [f.result() for f in [self.forms_pool.submit(job) for job in jobs]]
+        return _on_pool(self.forms_pool, jobs)
 
     def session(self, model: ValveModel, on: Optional[Split] = None) -> Optional[SessionStart]:
         """``model``'s start and offset on a separate validation session (estimated once per model, the same way for

@@ -11,7 +11,7 @@ from scipy import linalg
 
 from ..metrics import rms
 from .effects import Effect
-from .fitting import BASIS_RIDGE
+from .fitting import BASIS_RIDGE, run_in_order
 from .split import SessionStart, Split
 from .valve_model import ValveModel
 
@@ -30,7 +30,7 @@ class SubsetSearch:
     """
 
     def __init__(self, baseline: ValveModel, split: Split, effects: list[Effect],
-                 each: Callable[[list[Callable[[], object]]], list] = lambda jobs: [job() for job in jobs],
+                 each: Callable[[list[Callable[[], object]]], list] = run_in_order,
                  session: Optional[SessionStart] = None):
         """``session``: on a separate session, the baseline's start and the session's offset there (every subset is
         scored from them)."""

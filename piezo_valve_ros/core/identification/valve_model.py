@@ -382,13 +382,7 @@ class Context:
         """G(s) applied to x (N,) or to each column of x (N, k), at rest at the first sample, or at rest at
         ``rest`` (a value, or one per column) before it: G started from its steady state there (the same as
         adding (rest - x[0]) times G's free response, G being linear)."""
-        if rest is None:
-            return filter_at_rest(*self.filter, x)
-        x = np.asarray(x, float)
-        if x.ndim == 1:
-            return filter_rows_at_rest(*self.filter, x[None, :], np.reshape(rest, 1))[0]
-        rest = np.broadcast_to(np.asarray(rest, float), (x.shape[1],))
-        return filter_rows_at_rest(*self.filter, np.ascontiguousarray(x.T), rest).T
+        return filter_at_rest(*self.filter, x, rest)
 
     @cached_property
     def free_response(self) -> np.ndarray:
@@ -430,13 +424,17 @@ def delay_taps(samples: float) -> np.ndarray:
     return taps
 
 
-def filter_at_rest(b: np.ndarray, a: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """lfilter of x (N,) or each column of x (N, k), started at rest at the first sample.  Columns are
-    filtered as contiguous rows of the transpose (about twice as fast as strided columns)."""
+def filter_at_rest(b: np.ndarray, a: np.ndarray, x: np.ndarray, rest=None) -> np.ndarray:
+    """lfilter of x (N,) or each column of x (N, k), started at rest at the first sample, or at rest at ``rest``
+    (a value, or one per column) before it.  Columns are filtered as contiguous rows of the transpose (about
+    twice as fast as strided columns)."""
     x = np.asarray(x, float)
     if x.ndim == 1:
-        return scipy_signal().lfilter(b, a, x, zi=steady_state(b, a) * x[0])[0]
-    return filter_rows_at_rest(b, a, np.ascontiguousarray(x.T)).T
+        start = x[0] if rest is None else float(np.asarray(rest, float).reshape(-1)[0])
+        return scipy_signal().lfilter(b, a, x, zi=steady_state(b, a) * start)[0]
+    if rest is not None:
+        rest = np.broadcast_to(np.asarray(rest, float), (x.shape[1],))
+    return filter_rows_at_rest(b, a, np.ascontiguousarray(x.T), rest).T
 
 
 def filter_rows_at_rest(b: np.ndarray, a: np.ndarray, rows: np.ndarray, rest: Optional[np.ndarray] = None) -> np.ndarray:
