@@ -19,6 +19,7 @@ from piezo_valve_ros.core.sim.signals import step_reference_m
 from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
 from piezo_valve_ros.core.control.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set
 from piezo_valve_ros.nodes.common import COMMAND_QOS
+from piezo_valve_ros.nodes.hardware import MAX_COMMAND_TIMEOUT_S
 from piezo_valve_ros.nodes.client import RigClient, run_in_background
 from piezo_valve_ros.processes import ProcessGroup, node_command
 
@@ -56,7 +57,10 @@ def procs():
 
 
 def start_rig(procs, tmp_path, ns, hw=None, ctl=None, controller=True):
-    hw_params = {"clock": "lockstep", "control_period_s": DT, "lockstep.step_budget": 0, "sim.seed": 3}
+    # the watchdog runs on the wall clock even in lockstep: at its longest, a controller stalled by a busy
+    # machine does not get the safe voltage mid-run (the watchdog test sets its own timeout)
+    hw_params = {"clock": "lockstep", "control_period_s": DT, "lockstep.step_budget": 0, "sim.seed": 3,
+                 "command_timeout_s": MAX_COMMAND_TIMEOUT_S}
     hw_params.update(hw or {})
     start(procs, "hardware", node_command("valve_hardware", hw_params, ns), str(tmp_path))
     if controller:
