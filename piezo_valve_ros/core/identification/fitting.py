@@ -185,10 +185,6 @@ def _apply(model: ValveModel, x: np.ndarray, layout: _Layout, z_first: np.ndarra
     return replace(model, gpim=gpim, coefs=tuple(x[s].copy() for s in layout.terms))
 
 
-def _has_sensitivities(e: Effect) -> bool:
-    return type(e).sensitivities is not Effect.sensitivities
-
-
 SETTLE_ROUNDS = 10         # linear solves at most until the weights agree with the effects' columns they made ...
 SETTLE_TOLERANCE = 1e-3    # ... i.e. until a solve moves the GPIM weights by less than this share of their norm
 
@@ -393,7 +389,7 @@ def _fit(train: Record, start: ValveModel, effects: Sequence[Effect], *, poles: 
     model = replace(start, effects=tuple(effects), coefs=tuple(np.zeros(0) for _ in effects))
     for e in effects:
         model = e.switch_on(model)
-    nonlinear = any(_has_sensitivities(e) for e in effects)
+    nonlinear = any(e.nonlinear for e in effects)
     none = np.zeros(2 * len(model.sections), bool)
     if poles == "baseline":  # alternate weights and G_v's poles until the poles settle
         for i in range(rounds or BASELINE_ROUNDS):

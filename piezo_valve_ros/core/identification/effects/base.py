@@ -86,6 +86,12 @@ class Effect:
         """(N, m) first-order columns of the nonlinear parameters (before G); m = 0 without any."""
         return np.zeros((len(ctx.record), 0))
 
+    @property
+    def nonlinear(self) -> bool:
+        """Whether this effect, in its form, has nonlinear parameters (``sensitivities`` with columns) for a
+        Gauss-Newton step to move: a subclass that has some overrides ``sensitivities``."""
+        return type(self).sensitivities is not Effect.sensitivities
+
     def step(self, model: "ValveModel", delta: np.ndarray) -> "ValveModel":
         """Apply a Gauss-Newton step (coefficients of ``sensitivities``) to the nonlinear parameters."""
         return model

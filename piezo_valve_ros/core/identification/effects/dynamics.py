@@ -109,6 +109,11 @@ class Dynamics(Effect):
             return np.zeros((len(ctx.record), 0))
         return normalised(ctx.H, self.centre_um, self.half_um)[:, None] * ctx.rate_terms
 
+    @property
+    def nonlinear(self) -> bool:
+        """A delay that is fitted, or rate-dependent thresholds (the slope form and a held delay are linear)."""
+        return (self.has("delay") and not self.delay_held) or self.has("rate")
+
     def sensitivities(self, ctx) -> np.ndarray:
         columns = []
         if self.has("delay") and not self.delay_held:   # y(t - d): dy/dd = -dy/dt: G applied to -dS/dt
