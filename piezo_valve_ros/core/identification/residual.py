@@ -509,7 +509,7 @@ class _Loop:
             effects = [chosen.get(n, self.by_name[n]) for n in subset]
             m = fit_model(self.fit, self.baseline, effects, try_forms={n for n in subset if n not in chosen},
                           cache=self.cache, warm=like, each=self.each_form)
-            return m, self.held_out(m)
+            return self.held_out_form(m, [n for n in subset if n not in chosen])
 
         missing = {}
         for subset, like in requests:
@@ -518,6 +518,25 @@ class _Loop:
         for key, result in zip(missing, self.each([lambda r=r: job(*r) for r in missing.values()])):
             self.refits[key] = result
         return [self.refits[frozenset(subset)] for subset, _ in requests]
+
+    def held_out_form(self, model: ValveModel, free: list[str]) -> tuple[ValveModel, Score]:
+        """``model`` with each effect of ``free`` that has nested forms (``Effect.held_out_forms``) in the one
+        that leaves the lowest held-out RMS, the other effects as ``model`` fitted them (training error cannot
+        choose among nested forms: the richest always fits best); with its held-out score."""
+        best = (model, self.held_out(model))
+        for name in free:
+            effect = best[0].term(name)[0]
+            others = [f for f in effect.held_out_forms() if f != effect]
+            if not others:
+                continue
+            fits = self.each_form([lambda f=f: fit_model(
+                self.fit, self.baseline, [f if e.name == name else e for e in best[0].effects], try_forms=False,
+                cache=self.cache, warm=best[0]) for f in others])
+            for fit in fits:
+                score = self.held_out(fit)
+                if score.rms < best[1].rms:
+                    best = (fit, score)
+        return best
 
     def search_untrusted(self, current: list[str]) -> bool:
         """Whether the first-order search cannot be trusted to choose or rank effects here: a short record (exact

@@ -101,6 +101,12 @@ class Effect:
         last form combines others and is fitted starting from the best of those it ``contains``."""
         return [self]
 
+    def held_out_forms(self) -> list["Effect"]:
+        """Nested structures of this effect, the simplest first and this one last: each richer one fits the training
+        record at least as well, so training error cannot choose among them and a refit chooses on held-out data
+        (``[self]``: one structure)."""
+        return [self]
+
     def contains(self, other: "Effect") -> bool:
         """Whether this form has every structure of ``other`` (a form of the same effect): the combined last form
         starts from the best of the forms it contains."""
