@@ -63,7 +63,7 @@ def controller_cost(n=50_000):
                 step(r, y)
         sec = best_of(loop)
         name = s + label
-        print(f"  {name:14s} {sec / n * 1e6:6.2f} us/sample  (target < 20 us; max rate {n / sec / 1e3:5.1f} kHz)")
+        print(f"  {name:14s} {sec / n * 1e6:6.2f} us/sample  (target < 15 us; max rate {n / sec / 1e3:5.1f} kHz)")
 
 
 def inverse_cost(n=20_000, dt=5e-4):

@@ -16,6 +16,7 @@ vectorised clip over all samples.  The streaming ``step`` is the plain recursion
 from __future__ import annotations
 
 import math
+import operator
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
@@ -756,7 +757,7 @@ class MonotoneInverseGPIM:
             raise NotInvertibleError("; ".join(problems))
         self.model = model
         self.v_min, self.v_max = float(v_min), float(v_max)
-        self._r, self._p = model.thresholds, model.weights
+        self._p = model.weights
         symmetric = model.b0 is None
         self._b0 = float(model.a0 if symmetric else model.b0)
         self._b1 = float(model.a1 if symmetric else model.b1)
@@ -769,17 +770,28 @@ class MonotoneInverseGPIM:
         self._y_now = 0.0
         self.set_forward_state(model.virgin_state(v0) if forward_state is None else forward_state, v0)
 
-    # -- state
+    # -- state: the operators as floats (a bank is a few dozen; numpy's per-call cost would be most of a step)
+    @property
+    def _z(self) -> np.ndarray:
+        """The operators' states [V] (n,), a new array."""
+        return np.array(self._state)
+
+    @property
+    def _r(self) -> np.ndarray:
+        """The thresholds now [V] (n,): the model's, each widened by ``_shift``."""
+        return self.model.thresholds + self._shift
+
     def forward_state(self) -> np.ndarray:
-        return self._z.copy()
+        return self._z
 
     def set_forward_state(self, z: np.ndarray, v_now: Optional[float] = None) -> None:
-        self._z = np.array(z, dtype=float)
+        z = np.array(z, dtype=float)
+        self._state = z.tolist()
         if v_now is not None:
             self._v_last = float(v_now)
         # the operators in order (steps keep it): z_j + r_j rises and z_j - r_j falls with j
         r = self.model.thresholds
-        up, down = self._z + r, self._z - r
+        up, down = z + r, z - r
         self._ordered = bool(np.all(up[1:] >= up[:-1] - ORDER_TOLERANCE_V)
                              and np.all(down[1:] <= down[:-1] + ORDER_TOLERANCE_V))
         self._consistent = False
@@ -836,6 +848,7 @@ class MonotoneInverseGPIM:
         sign = 1.0 if rising else -1.0    # the breakpoints are z_j + sign r_j
         held = now - off                  # sum_j p_j z_j over the operators held
         following = before = 0.0          # sum p_j and sum p_j r_j over the operators that follow
+        moving = len(z)                   # the operators that follow: a prefix (the thresholds rise with j)
         for i in range(len(z)):
             r_i = base[i] + w
             if crossed_for_good and r_i < 0.0:    # follows from the start, on its lower bound U(v) - r_i
@@ -845,6 +858,7 @@ class MonotoneInverseGPIM:
                 held -= p_i * z[i]
                 continue
             if sign * (off + held + following * (z[i] + sign * r_i) - sign * before - y) >= 0.0:
+                moving = i
                 break                     # the demand is reached before this operator starts to follow
             p_i = p[i]
             following += p_i
@@ -852,6 +866,7 @@ class MonotoneInverseGPIM:
             held -= p_i * z[i]
         if following <= 0.0:
             return None
+        self._moving = (moving, z)
         drive = (y - off - held + sign * before) / following     # L(v) rising, U(v) falling
         if rising:
             return min((drive - self.model.a1) / self.model.a0, self.v_max)
@@ -877,7 +892,18 @@ class MonotoneInverseGPIM:
         low, high = float(m.ascending_envelope(v_last)), float(m.descending_envelope(v_last))
         state, f_now = [], m.offset_um
         above_r2, below = -math.inf, False
-        for z_j, base_j, p_j in zip(self._z.tolist(), self._base_list, self._p_list):
+        if high >= low and self._base_list[0] + w >= 0.0:   # no bounds cross here: lo_j <= hi_j for every j
+            for z_j, base_j in zip(self._state, self._base_list):
+                r_j = base_j + w
+                if z_j > high + r_j:
+                    z_j = high + r_j
+                    above_r2 = 2.0 * r_j   # the thresholds rise with j: the last one above is the largest
+                elif z_j < low - r_j:
+                    z_j = low - r_j
+                    below = True
+                state.append(z_j)
+            return state, sum(map(operator.mul, self._p_list, state)) + f_now, above_r2, below
+        for z_j, base_j, p_j in zip(self._state, self._base_list, self._p_list):
             r_j = base_j + w
             lo, hi = low - r_j, high + r_j
             s_j = hi if z_j > hi else z_j
@@ -892,9 +918,10 @@ class MonotoneInverseGPIM:
         return state, f_now, above_r2, below
 
     def _solve(self, y: float) -> float:
+        self._moving = None
         v_last = self._v_last
         if self._consistent:
-            state, f_now, usual = self._z, self._y_now, self._ordered
+            state, f_now, usual = self._state, self._y_now, self._ordered
         else:  # the thresholds changed since the last step (rate dependence) or the state was set
             state, f_now, above_r2, below = self._state_at_last_input()
         if abs(y - f_now) <= HOLD_TOLERANCE_UM:
@@ -945,11 +972,30 @@ class MonotoneInverseGPIM:
     def step(self, y_um: float) -> float:
         """Voltage [V] that makes the forward model output ``y_um``; advances the state."""
         v = self._solve(float(y_um))
-        m, z = self.model, self._z
-        np.minimum(z, m.descending_envelope(v) + self._r, out=z)
-        np.maximum(z, m.ascending_envelope(v) - self._r, out=z)
+        m, w, base = self.model, self._shift, self._base_list
+        high, low = float(m.descending_envelope(v)), float(m.ascending_envelope(v))
+        if self._moving is not None:   # the closed form's step: only its prefix of operators moves
+            moving, state = self._moving
+            for j in range(moving):
+                r_j = base[j] + w
+                z_j = state[j]
+                if z_j > high + r_j:
+                    z_j = high + r_j
+                if z_j < low - r_j:    # after the upper clamp: the lower bound wins where they cross
+                    z_j = low - r_j
+                state[j] = z_j
+        else:
+            state = []
+            for z_j, base_j in zip(self._state, base):
+                r_j = base_j + w
+                if z_j > high + r_j:
+                    z_j = high + r_j
+                if z_j < low - r_j:
+                    z_j = low - r_j
+                state.append(z_j)
+        self._state = state
         self._v_last = v
-        self._y_now = float(self._p @ z) + m.offset_um
+        self._y_now = sum(map(operator.mul, self._p_list, state)) + m.offset_um
         self._consistent = True
         return v
 

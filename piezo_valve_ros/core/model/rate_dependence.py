@@ -170,8 +170,6 @@ class RateDependentInverseGPIM(MonotoneInverseGPIM):
                  follow: Optional["RateDependentInverseGPIM"] = None):
         self.rate = RateWidening(widening_v, dt, v0)
         self.follow = follow
-        self._base = model.thresholds
-        self._widened = np.empty_like(self._base)
         super().__init__(model, forward_state, v0, v_min, v_max)
         self.applied_widening_v = self.rate.value   # the widening the present state was reached with
         self._use_widening()
@@ -179,8 +177,6 @@ class RateDependentInverseGPIM(MonotoneInverseGPIM):
     def _use_widening(self, w: Optional[float] = None) -> None:
         """Thresholds for the next step: r + w (default: this inverse's own widening)."""
         w = self.rate.value if w is None else w
-        np.add(self._base, w, out=self._widened)
-        self._r = self._widened
         # the state stays what the last step left only in a band at least as wide, where no bounds cross (a
         # crossed operator sits on its lower bound, which moves with w)
         self._consistent = (self._consistent and w >= self.applied_widening_v and self._dead_band
