@@ -768,6 +768,7 @@ class MonotoneInverseGPIM:
         self._shift = 0.0              # every threshold widened by this [V] (rate_dependence sets it)
         self._consistent = False       # the state is what the last step left at _v_last (output _y_now)
         self._y_now = 0.0
+        self._moving: Optional[tuple[int, list]] = None   # the closed form's last solve: (operators moving, states)
         self.set_forward_state(model.virgin_state(v0) if forward_state is None else forward_state, v0)
 
     # -- state: the operators as floats (a bank is a few dozen; numpy's per-call cost would be most of a step)
@@ -826,7 +827,7 @@ class MonotoneInverseGPIM:
             points.append(-q0 / q1)
         return np.concatenate(points)
 
-    def _solve_on_one_envelope(self, y: float, rising: bool, state, now: float) -> Optional[float]:
+    def _solve_on_one_envelope(self, y: float, rising: bool, z: list, now: float) -> Optional[float]:
         """The usual step, in closed form, from a state the last step left (so no operator lies outside its
         bounds at the last input) with the operators in order (``z_j + r_j`` rising and ``z_j - r_j`` falling
         with j, as every step keeps them): rising, each operator's next state is ``max(z_j, L(v) - r_j)``;
@@ -834,7 +835,8 @@ class MonotoneInverseGPIM:
         in L(v) (U(v)) with breakpoints ``z_j + r_j`` (``z_j - r_j``) in the operators' order; a demand a
         step away passes a few of them, so a plain loop from the first finds the piece and solves it.  None
         when the step is not of this kind (the general solve then takes it).  ``state``: the operators at the
-        last input under the present thresholds (array or list), ``now``: the output there [um]."""
+        last input under the present thresholds (a list, which the step updates), ``now``: the output there [um];
+        sets ``_moving`` (how many operators follow, that list)."""
         # one envelope (L = U): an operator whose threshold the rate narrowed below 0 has crossed bounds for good
         # and follows L(v) - r_j = U(v) - r_j; with two, any crossing on the way down is the general solve's
         crossed_for_good = not rising and self._one_envelope
@@ -842,7 +844,6 @@ class MonotoneInverseGPIM:
                 self._gap_range(min(self.v_min, self._v_last), self._v_last)[1] > \
                 2.0 * (self._base_list[0] + self._shift):
             return None   # some operator's bounds may cross on the way down
-        z = state if isinstance(state, list) else state.tolist()
         p, base, w = self._p_list, self._base_list, self._shift
         off = self.model.offset_um
         sign = 1.0 if rising else -1.0    # the breakpoints are z_j + sign r_j
@@ -974,25 +975,16 @@ class MonotoneInverseGPIM:
         v = self._solve(float(y_um))
         m, w, base = self.model, self._shift, self._base_list
         high, low = float(m.descending_envelope(v)), float(m.ascending_envelope(v))
-        if self._moving is not None:   # the closed form's step: only its prefix of operators moves
-            moving, state = self._moving
-            for j in range(moving):
-                r_j = base[j] + w
-                z_j = state[j]
-                if z_j > high + r_j:
-                    z_j = high + r_j
-                if z_j < low - r_j:    # after the upper clamp: the lower bound wins where they cross
-                    z_j = low - r_j
-                state[j] = z_j
-        else:
-            state = []
-            for z_j, base_j in zip(self._state, base):
-                r_j = base_j + w
-                if z_j > high + r_j:
-                    z_j = high + r_j
-                if z_j < low - r_j:
-                    z_j = low - r_j
-                state.append(z_j)
+        # the closed form's step moves only its prefix of operators; after the general solve or a hold, any may
+        moving, state = self._moving if self._moving is not None else (len(self._state), self._state[:])
+        for j in range(moving):
+            r_j = base[j] + w
+            z_j = state[j]
+            if z_j > high + r_j:
+                z_j = high + r_j
+            if z_j < low - r_j:    # after the upper clamp: the lower bound wins where they cross
+                z_j = low - r_j
+            state[j] = z_j
         self._state = state
         self._v_last = v
         self._y_now = sum(map(operator.mul, self._p_list, state)) + m.offset_um
