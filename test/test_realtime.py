@@ -319,15 +319,18 @@ def test_valve_composed_process_runs_10khz_on_the_wall_clock_and_stops_on_sigter
             assert time.monotonic() < deadline, open(tmp_path / "composed.log").read()
             ref.publish(Float64(data=-25e-6))
             spin_for(executor, 0.2)
-        moved_at = rows[-1][-1, 0]   # then 0.3 s of the valve's time (the samples' stamps: 3000 ticks at 10 kHz)
-        while rows[-1][-1, 0] < moved_at + 0.3:
-            assert time.monotonic() < deadline + 30, open(tmp_path / "composed.log").read()
+        # then at least 0.3 s of the valve's time (the samples' stamps: 3000 ticks at 10 kHz), until the spool
+        # sits on the reference: a loaded machine may stall the process for seconds (the valve runs on, the
+        # watchdog may apply the safe voltage meanwhile), which delays settling but cannot prevent it
+        moved_at = rows[-1][-1, 0]
+        deadline = time.monotonic() + 60
+        while rows[-1][-1, 0] < moved_at + 0.3 or abs(rows[-1][-1, 2] * 1e6 + 25.0) >= 1.0:
+            assert time.monotonic() < deadline, (rows[-1][-1], open(tmp_path / "composed.log").read())
             executor.spin_once(timeout_sec=0.05)
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(10) == 0
     data = np.concatenate(rows)
     log = open(tmp_path / "composed.log").read()
-    assert abs(data[-1, 2] * 1e6 + 25.0) < 1.0, log  # settled on the reference (the loop ran at 10 kHz)
     np.testing.assert_allclose(np.diff(data[:, 0]), 1e-4, atol=1e-12)
     assert "position and command pass by function call" in log
     assert "safe_voltage 5.0 V applied; loop:" in log and "unanswered 0, late 0" in log
