@@ -20,7 +20,7 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(exclude=["test", "bench"]),
-    package_data={package_name: ["fast_ack_profile.xml"]},   # read by Fast DDS from the installed package
+    package_data={package_name + ".runtime": ["fast_ack_profile.xml"]},   # read by Fast DDS from the installed package
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
@@ -42,14 +42,14 @@ setup(
         "console_scripts": [
             "valve_hardware = piezo_valve_ros.nodes.hardware:main",
             "valve_controller = piezo_valve_ros.nodes.controller:main",
-            "valve_rig = piezo_valve_ros.nodes.rig:main",
+            "valve_rig = piezo_valve_ros.cli.rig:main",
             "valve_composed = piezo_valve_ros.nodes.composed:main",
             "valve_identification = piezo_valve_ros.nodes.identification:main",
-            "valve_identify = piezo_valve_ros.identify_cli:main",
-            "valve_tune = piezo_valve_ros.tune_cli:main",
-            "valve_record = piezo_valve_ros.nodes.record:main",
-            "valve_command = piezo_valve_ros.nodes.command:main",
-            "valve_plot = piezo_valve_ros.plot_cli:main",
+            "valve_identify = piezo_valve_ros.cli.identify:main",
+            "valve_tune = piezo_valve_ros.cli.tune:main",
+            "valve_record = piezo_valve_ros.cli.record:main",
+            "valve_command = piezo_valve_ros.cli.command:main",
+            "valve_plot = piezo_valve_ros.cli.plot:main",
             "valve_monitor = piezo_valve_ros.nodes.monitor:main",
         ],
         "piezo_valve_ros.backends": [

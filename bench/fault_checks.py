@@ -1,4 +1,4 @@
-"""The hardware's sample checks (``piezo_valve_ros.faults``) on long healthy operation: do they ever trip?
+"""The hardware's sample checks (``piezo_valve_ros.backends.faults``) on long healthy operation: do they ever trip?
 
     python bench/fault_checks.py [--hours 1.0] [--markdown docs/results/fault_checks.md]
 
@@ -24,7 +24,7 @@ sys.path.insert(0, os.path.join(HERE, "..", "test"))
 
 from monitor_health import operation  # noqa: E402  (the operating run)
 from piezo_valve_ros.core.sim.simulator import SensorParams, ValveSimConfig  # noqa: E402
-from piezo_valve_ros.faults import FaultLimits, SampleCheck  # noqa: E402
+from piezo_valve_ros.backends.faults import FaultLimits, SampleCheck  # noqa: E402
 
 DT = 1e-3
 

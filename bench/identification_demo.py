@@ -17,8 +17,8 @@ import sys
 import tempfile
 from dataclasses import replace
 
-from piezo_valve_ros import identify_cli
-from piezo_valve_ros.bagio import write_samples_bag
+from piezo_valve_ros.cli import identify as identify_cli
+from piezo_valve_ros.io.bags import write_samples_bag
 from piezo_valve_ros.core.sim.experiments import simulate_rows
 from piezo_valve_ros.core.sim.signals import identification_voltage, validation_voltage
 from piezo_valve_ros.core.sim.simulator import ValveSimConfig

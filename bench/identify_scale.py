@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from piezo_valve_ros.bagio import SAMPLES_TYPE, BagRecorder, qos_profile, serialize_samples
+from piezo_valve_ros.io.bags import SAMPLES_TYPE, BagRecorder, qos_profile, serialize_samples
 from piezo_valve_ros.core.identification.records import MAX_ANALYSED_S
 from piezo_valve_ros.core.sim.signals import identification_voltage
 from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig

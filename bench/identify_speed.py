@@ -24,7 +24,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from piezo_valve_ros.bagio import read_samples, write_samples_bag
+from piezo_valve_ros.io.bags import read_samples, write_samples_bag
 from piezo_valve_ros.core.identification.effects import CATALOGUE
 from piezo_valve_ros.core.sim.experiments import simulate_rows
 from piezo_valve_ros.core.identification.fitting import FitCache, fit_model

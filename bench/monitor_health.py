@@ -123,7 +123,7 @@ def main() -> int:
     print("\n".join(lines[-len(rows) - 2:]), flush=True)
     os.makedirs(args.out, exist_ok=True)
     try:
-        from piezo_valve_ros.plots import require
+        from piezo_valve_ros.io.plots import require
         plt = require()
         fig, (ax, ax2) = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
         t = np.array([h.end_s for h in dhealth]) / 60.0

@@ -43,7 +43,7 @@ from std_msgs.msg import Float64
 
 from piezo_valve_ros.nodes.common import (COMMAND_QOS, SENSOR_QOS, claim_pacing, make_executor,
                                           spin_loop)
-from piezo_valve_ros.processes import ProcessGroup, node_command
+from piezo_valve_ros.runtime.processes import ProcessGroup, node_command
 
 from harness import Lines
 
@@ -205,7 +205,7 @@ BUSY_LOOP = "import signal\nsignal.signal(signal.SIGINT, signal.SIG_DFL)\nwhile 
 
 def back_to_normal_scheduling() -> None:
     """Undo what a case's hardware node (in this process) asked for: any CPU, the normal scheduler."""
-    from piezo_valve_ros.realtime import available_cpus, pin
+    from piezo_valve_ros.runtime.realtime import available_cpus, pin
     for tid in os.listdir("/proc/self/task"):
         try:
             os.sched_setscheduler(int(tid), os.SCHED_OTHER, os.sched_param(0))

@@ -1,7 +1,7 @@
 """Identification as a library: bags (or CSV records) -> analysis -> the model the controller can use -> its
 parameters.
 
-``valve_identify`` (``identify_cli``) and the ``valve_identification`` node are thin faces over this
+``valve_identify`` (``cli.identify``) and the ``valve_identification`` node are thin faces over this
 module.  No ROS import: it runs wherever ``rosbags`` does.
 """
 from __future__ import annotations
@@ -17,11 +17,11 @@ from typing import Callable, Optional
 import numpy as np
 
 from .core.errors import PiezoValveError
-from .bagio import read_samples
+from .io.bags import read_samples
 from .core.control.compensation import CompensationModel, command_range_for
 from .core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 from .core.monitoring.health import Health, HealthLimits, HealthMonitor, Level
-from .params_yaml import node_section, yaml_value
+from .io.params_yaml import node_section, yaml_value
 from .core.identification.records import MAX_ANALYSED_S, Record, read_csv
 from .core.runs import WHOLE_RECORD, TimeWindow, WindowError
 from .core.identification.residual import Analysis, analyse

@@ -15,7 +15,7 @@ from ros_helpers import ros_env  # noqa: E402
 os.environ.update({k: ros_env()[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
 
 # ... and a reference a test publishes is acknowledged within milliseconds, as in valve_command and valve_rig
-from piezo_valve_ros.dds import use_fast_acknowledgements  # noqa: E402
+from piezo_valve_ros.runtime.dds import use_fast_acknowledgements  # noqa: E402
 use_fast_acknowledgements()
 
 

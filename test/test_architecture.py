@@ -3,6 +3,7 @@ command-line tool.  Read from the source (every import, also those inside functi
 TYPE_CHECKING), so an arrow cannot hide in a lazy import."""
 import ast
 import os
+import re
 from pathlib import Path
 
 import pytest
@@ -21,7 +22,18 @@ MAY_IMPORT = {
     "core.monitoring": {"core.model", "core.control", "core.identification"},
     "core.runs": set(),
 }
-CLI_MODULES = {"identify_cli", "plot_cli", "tune_cli", "tool"}
+# what each folder outside the core may import from the package besides the core and itself (the layout's
+# layers: io, runtime and backends on the core; nodes.common the ROS plumbing; rig on it; the nodes; the tools)
+FOLDER_MAY_IMPORT = {
+    "io": set(),
+    "runtime": {"io"},
+    "backends": set(),
+    "rig": {"io", "runtime", "nodes.common"},
+    "nodes": {"io", "runtime", "backends", "rig", "identify"},
+    "identify": {"io"},
+    "cli": {"io", "runtime", "backends", "rig", "nodes", "identify"},
+}
+TOP_LEVEL = {"__init__.py", "identify.py"}   # the package's own modules: the library face of identification
 
 
 def _module_name(path: Path) -> str:
@@ -118,10 +130,44 @@ def test_the_core_is_ros_free_and_points_one_way(module):
         assert other in MAY_IMPORT.get(part, set()), f"{_short(module)} ({part}) imports {_short(target)} ({other})"
 
 
-def test_nodes_never_import_a_command_line_tool():
-    for module, targets in EDGES.items():
-        if _short(module).startswith("nodes"):
-            assert not {_short(t) for t in targets} & CLI_MODULES, (module, targets)
+def _folder(module: str) -> str:
+    """The folder outside the core a module belongs to (``nodes.common`` stands apart: the ROS plumbing)."""
+    short = _short(module)
+    return "nodes.common" if short == "nodes.common" else short.split(".")[0]
+
+
+def test_the_layout_explains_itself():
+    """Folders by kind: the top level holds the library face only; nodes/ the nodes (each a ROS process with a
+    ``main``) and their plumbing; cli/ every other command-line tool (each with a ``main``) and what they share."""
+    assert {p.name for p in ROOT.glob("*.py")} == TOP_LEVEL
+    folders = {p.name for p in ROOT.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
+    assert folders == {"core", "io", "runtime", "backends", "rig", "nodes", "cli"}, folders
+    for path in sorted((ROOT / "nodes").glob("*.py")):
+        if path.stem in ("__init__", "common"):
+            continue
+        text = path.read_text()
+        assert "def main(" in text and re.search(r"Node\b", text), path.name
+    for path in sorted((ROOT / "cli").glob("*.py")):
+        if path.stem not in ("__init__", "tool"):
+            assert "def main(" in path.read_text(), path.name
+    scripts = re.findall(r'"(valve_\w+) = piezo_valve_ros\.(\w+)\.(\w+):main"', (ROOT.parent / "setup.py").read_text())
+    assert len(scripts) >= 11
+    for executable, folder, module in scripts:   # a tool is cli/<what follows valve_>.py; a node lives in nodes/
+        assert (folder, module) in {("nodes", executable[len("valve_"):]), ("cli", executable[len("valve_"):])} or \
+            (folder == "nodes" and executable == "valve_identification" and module == "identification"), executable
+
+
+@pytest.mark.parametrize("module", sorted(m for m in EDGES if not _short(m).startswith("core") and m != PACKAGE))
+def test_each_folder_imports_only_the_layers_below_it(module):
+    """Nothing imports a command-line tool but a tool; no library imports a node."""
+    folder = _folder(module)
+    allowed = ({"io", "runtime"} if folder == "nodes.common" else FOLDER_MAY_IMPORT[folder]) | {folder}
+    for target in EDGES[module]:
+        other = _folder(target)
+        if other == "core" or other == folder:
+            continue
+        assert (other in allowed or "nodes" in allowed) if other == "nodes.common" else other in allowed, \
+            f"{_short(module)} ({folder}) imports {_short(target)} ({other})"
 
 
 def test_every_relative_link_in_the_docs_points_at_a_file():
@@ -174,7 +220,7 @@ def test_every_typed_error_shares_the_one_base():
     """Each ``...Error`` class the package defines derives from ``core.errors.PiezoValveError`` (besides the
     built-in class it always was), so one ``except`` serves the tools' error handling."""
     from piezo_valve_ros.core.errors import PiezoValveError
-    from piezo_valve_ros.tool import run_tool
+    from piezo_valve_ros.cli.tool import run_tool
     errors = {}
     for path in ROOT.rglob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):

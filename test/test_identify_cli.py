@@ -12,7 +12,7 @@ import pytest
 import yaml
 from shared import directory_made_once
 
-from piezo_valve_ros.bagio import (FLOAT64_TYPE, BagRecorder, qos_profile, read_samples, serialize_float64,
+from piezo_valve_ros.io.bags import (FLOAT64_TYPE, BagRecorder, qos_profile, read_samples, serialize_float64,
                                    write_samples_bag)
 from piezo_valve_ros.core.control.compensation import CompensationModel
 from piezo_valve_ros.core.identification.report import check_report
@@ -25,7 +25,7 @@ ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 
 def run_cli(*args, timeout=300):
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    return subprocess.run([sys.executable, "-m", "piezo_valve_ros.identify_cli", *map(str, args)],
+    return subprocess.run([sys.executable, "-m", "piezo_valve_ros.cli.identify", *map(str, args)],
                           capture_output=True, text=True, timeout=timeout, env=env)
 
 
@@ -204,7 +204,7 @@ def test_two_samples_topics_need_a_choice(tmp_path):
     # merge a second namespace into the same bag by writing both topics through one recorder
     rec = BagRecorder(tmp_path / "two", {"/v1/samples": ("std_msgs/msg/Float64MultiArray", qos_profile(True, 100)),
                                          "/v2/samples": ("std_msgs/msg/Float64MultiArray", qos_profile(True, 100))})
-    from piezo_valve_ros.bagio import serialize_samples
+    from piezo_valve_ros.io.bags import serialize_samples
     rec.write("/v1/samples", 1, serialize_samples(rows[:1000]))
     rec.write("/v2/samples", 2, serialize_samples(rows[:1000]))
     rec.close()
@@ -216,7 +216,7 @@ def test_two_samples_topics_need_a_choice(tmp_path):
 RECORDER_SCRIPT = r"""
 import sys, time
 import numpy as np
-from piezo_valve_ros.bagio import BagRecorder, SAMPLES_TYPE, qos_profile, serialize_samples
+from piezo_valve_ros.io.bags import BagRecorder, SAMPLES_TYPE, qos_profile, serialize_samples
 rec = BagRecorder(sys.argv[1], {"/samples": (SAMPLES_TYPE, qos_profile(True, 100))}, segment_s=0.5)
 t0 = time.monotonic()
 k = 0
@@ -285,7 +285,7 @@ def test_report_keeps_every_key_earlier_reports_had(identified_10khz):
 
 def _segmented_bag(path, rows, storage, messages_per_segment=5, batch=1000):
     """A recorder's multi-file bag: a new storage file every ``messages_per_segment`` messages."""
-    from piezo_valve_ros.bagio import SAMPLES_TYPE, serialize_samples
+    from piezo_valve_ros.io.bags import SAMPLES_TYPE, serialize_samples
     clock = [0.0]
     rec = BagRecorder(path, {"/valve1/samples": (SAMPLES_TYPE, qos_profile(True, 100))}, storage,
                       segment_s=float(messages_per_segment), clock=lambda: clock[0])
@@ -400,7 +400,7 @@ def _two_valve_day(path):
 def test_a_window_of_a_long_bag_is_read_alone(tmp_path):
     """read_samples keeps only the rows of the window (from the record's first sample, or on the samples' own
     time axis); a window that holds nothing or is malformed is refused with one line naming the record's extent."""
-    from piezo_valve_ros.bagio import BagError
+    from piezo_valve_ros.io.bags import BagError
     from piezo_valve_ros.core.runs import TimeWindow
     day = _two_valve_day(tmp_path / "day")
     t0 = day[0, 0]
@@ -442,12 +442,12 @@ def test_valve_identify_and_valve_plot_take_a_window_of_a_long_run(tmp_path):
         assert usage.returncode == 2 and needle in usage.stderr.splitlines()[-1] and "Traceback" not in usage.stderr
     _one_error_line(run_cli(tmp_path / "day", "--from", "500"), "no samples from 500 to its end")
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    plot = subprocess.run([sys.executable, "-m", "piezo_valve_ros.plot_cli", str(tmp_path / "day"), "--to", "30",
+    plot = subprocess.run([sys.executable, "-m", "piezo_valve_ros.cli.plot", str(tmp_path / "day"), "--to", "30",
                            "--json", "--out", str(tmp_path / "figs")], capture_output=True, text=True, env=env,
                           timeout=120)
     assert plot.returncode == 0, plot.stderr
     assert abs(json.loads(plot.stdout)["samples"] - 30001) <= 1
-    bad = subprocess.run([sys.executable, "-m", "piezo_valve_ros.plot_cli", str(tmp_path / "day"), "--from", "nan"],
+    bad = subprocess.run([sys.executable, "-m", "piezo_valve_ros.cli.plot", str(tmp_path / "day"), "--from", "nan"],
                          capture_output=True, text=True, env=env, timeout=120)
     assert bad.returncode == 2 and "finite" in bad.stderr
 
@@ -455,7 +455,7 @@ def test_valve_identify_and_valve_plot_take_a_window_of_a_long_run(tmp_path):
 def _sine_bag(path, seconds, rate_hz=1000.0, batch=1000):
     """A bag of a 1 Hz sine drive and a position that follows it, written a message at a time (its rows are never
     all in memory here)."""
-    from piezo_valve_ros.bagio import SAMPLES_TYPE, serialize_samples
+    from piezo_valve_ros.io.bags import SAMPLES_TYPE, serialize_samples
     rec = BagRecorder(path, {"/samples": (SAMPLES_TYPE, qos_profile(True, 100))}, segment_s=float("inf"),
                       clock=lambda: 0.0)
     for k0 in range(0, int(seconds * rate_hz), batch):

@@ -121,7 +121,7 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
     from rclpy.executors import SingleThreadedExecutor
     from std_msgs.msg import Float64MultiArray
     from ros_helpers import ros_env, wait_for_text
-    from piezo_valve_ros.processes import ProcessGroup
+    from piezo_valve_ros.runtime.processes import ProcessGroup
     bin_dir = os.path.dirname(sys.executable)
     ns = f"/monitor{os.getpid()}"
     params = tmp_path / "rig.yaml"
@@ -215,7 +215,7 @@ def test_valve_identify_monitor_judges_a_recorded_day_offline(tmp_path):
     import os
     import subprocess
     import sys
-    from piezo_valve_ros.bagio import write_samples_bag
+    from piezo_valve_ros.io.bags import write_samples_bag
     from piezo_valve_ros.identify import parameters_yaml
     write_samples_bag(tmp_path / "day", operating_rows(replace(PLAIN, drift=DRIFT), 120.0))
     (tmp_path / "fitted.yaml").write_text(parameters_yaml(CompensationModel().to_parameters(), ["the paper's model"]))

@@ -601,7 +601,7 @@ def test_valve_command_loads_a_fitted_model_atomically_where_set_refuses_it(cont
     from piezo_valve_ros.core.control.compensation import CompensationModel
     from piezo_valve_ros.core.model.hysteresis import GPIMParams
     from piezo_valve_ros.identify import parameters_yaml
-    from piezo_valve_ros.nodes.client import run_in_background
+    from piezo_valve_ros.rig.client import run_in_background
     ctl = controller()
     thread, stop, executor = run_in_background([ctl])
     exe = os.path.join(os.path.dirname(sys.executable), "valve_command")

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import yaml
 
-from piezo_valve_ros.nodes.rig import parse_args, rig_parameters
-from piezo_valve_ros.processes import NODE_MODULES
+from piezo_valve_ros.cli.rig import parse_args, rig_parameters
+from piezo_valve_ros.runtime.processes import NODE_MODULES
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -17,10 +17,10 @@ from std_msgs.msg import Float64, Float64MultiArray
 
 from piezo_valve_ros.backends import SimBackend
 from piezo_valve_ros.core.sim.simulator import ValveSimConfig
-from piezo_valve_ros.loop_timing import LoopTiming
+from piezo_valve_ros.runtime.loop_timing import LoopTiming
 from piezo_valve_ros.nodes.common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, claim_pacing,
                                           make_executor, samples_from_message, spin_loop)
-from piezo_valve_ros.processes import ProcessGroup, node_command
+from piezo_valve_ros.runtime.processes import ProcessGroup, node_command
 
 
 # ---------------------------------------------------------------------------- ROS-free pieces

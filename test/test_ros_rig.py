@@ -20,8 +20,8 @@ from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
 from piezo_valve_ros.core.control.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set
 from piezo_valve_ros.nodes.common import COMMAND_QOS
 from piezo_valve_ros.nodes.hardware import MAX_COMMAND_TIMEOUT_S
-from piezo_valve_ros.nodes.client import RigClient, run_in_background
-from piezo_valve_ros.processes import ProcessGroup, node_command
+from piezo_valve_ros.rig.client import RigClient, run_in_background
+from piezo_valve_ros.runtime.processes import ProcessGroup, node_command
 
 DT = 1e-4
 GAINS = {"pid": "pid_1", "pid_hc": "pid_hc_5", "ff_pid": "ff_pid_1", "ff_pid_g": "ff_pid_g_2"}
@@ -171,7 +171,7 @@ def run_rig_until_signal(tmp_path, args, sig, run_s=0.5) -> str:
     """Start ``valve_rig --demo none ARGS`` in its own process group, send ``sig`` once it runs; it
     must exit 0 and leave no process behind.  Returns its output."""
     log = open(tmp_path / "rig.log", "w")
-    rig = subprocess.Popen([sys.executable, "-m", "piezo_valve_ros.nodes.rig", "--demo", "none", *args],
+    rig = subprocess.Popen([sys.executable, "-m", "piezo_valve_ros.cli.rig", "--demo", "none", *args],
                            env=ros_env(), stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         wait_for_text(tmp_path / "rig.log", "running; Ctrl-C", timeout_s=30)
@@ -212,7 +212,7 @@ def test_nodes_die_with_a_rig_killed_by_sigkill(tmp_path):
     """SIGKILL gives the rig no chance to stop its children: they get SIGTERM from the kernel
     (PR_SET_PDEATHSIG), apply the safe voltage and exit."""
     log = open(tmp_path / "rig.log", "w")
-    rig = subprocess.Popen([sys.executable, "-m", "piezo_valve_ros.nodes.rig", "--demo", "none", "--clock", "realtime",
+    rig = subprocess.Popen([sys.executable, "-m", "piezo_valve_ros.cli.rig", "--demo", "none", "--clock", "realtime",
                             "--control-period-s", "0.001"], env=ros_env(), stdout=log, stderr=subprocess.STDOUT,
                            start_new_session=True)
     try:
@@ -265,7 +265,7 @@ def test_step_demo_prints_the_same_table_in_separate_processes_and_composed(tmp_
     whether the nodes run in separate processes or composed in one."""
     tables = []
     for extra in ([], ["--composed"]):
-        out = subprocess.run([sys.executable, "-m", "piezo_valve_ros.nodes.rig", *extra], env=ros_env(),
+        out = subprocess.run([sys.executable, "-m", "piezo_valve_ros.cli.rig", *extra], env=ros_env(),
                              capture_output=True, text=True, timeout=120)
         assert out.returncode == 0, out.stderr[-2000:]
         assert "Paper step tests under pid_hc_5" in out.stdout
@@ -281,7 +281,7 @@ def test_step_demo_counts_control_periods_not_sample_rows():
     """At 2 ms a control period holds 20 samples: settling times and the period count are in periods; the rig
     runs in the namespace it is given."""
     ns = f"demo{os.getpid()}"
-    out = subprocess.run([sys.executable, "-m", "piezo_valve_ros.nodes.rig", "--control-period-s", "0.002",
+    out = subprocess.run([sys.executable, "-m", "piezo_valve_ros.cli.rig", "--control-period-s", "0.002",
                           "--hold-s", "0.2", "--namespace", f"/{ns}"], env=ros_env(), capture_output=True, text=True,
                          timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
@@ -300,9 +300,9 @@ def test_fast_acknowledgements_are_chosen_for_tools_and_not_passed_to_nodes():
     """The profile is chosen where nothing else is (Fast DDS, no profiles file of the user's), and dropped
     from the environment of the nodes a launcher starts; its writers' heartbeat is 20 ms."""
     import xml.etree.ElementTree as ET
-    from piezo_valve_ros.dds import (FAST_ACK_PROFILE, HEARTBEAT_PERIOD_S, use_fast_acknowledgements,
+    from piezo_valve_ros.runtime.dds import (FAST_ACK_PROFILE, HEARTBEAT_PERIOD_S, use_fast_acknowledgements,
                                      without_fast_acknowledgements)
-    from piezo_valve_ros.processes import ProcessGroup
+    from piezo_valve_ros.runtime.processes import ProcessGroup
     env = {}
     assert use_fast_acknowledgements(env) and env == {"FASTRTPS_DEFAULT_PROFILES_FILE": str(FAST_ACK_PROFILE)}
     assert use_fast_acknowledgements(env)                                   # chosen twice: still ours

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from ros_helpers import ros_env, wait_for_text
 
-from piezo_valve_ros.bagio import FLOAT64_TYPE, TYPESTORE, read_samples
+from piezo_valve_ros.io.bags import FLOAT64_TYPE, TYPESTORE, read_samples
 from piezo_valve_ros.core.sim.signals import load_profile, ramp_profile, sine_profile
-from piezo_valve_ros.nodes.command import parse_assignment
-from piezo_valve_ros.nodes.record import dropped_sample_rows
-from piezo_valve_ros.processes import ProcessGroup
+from piezo_valve_ros.cli.command import parse_assignment
+from piezo_valve_ros.cli.record import dropped_sample_rows
+from piezo_valve_ros.runtime.processes import ProcessGroup
 
 BIN = os.path.dirname(sys.executable)  # the console scripts of the installed package
 
@@ -27,7 +27,7 @@ def tool(name: str, *args: str, timeout_s: float = 60.0) -> subprocess.Completed
 # ---------------------------------------------------------------------------- no ROS
 def test_valve_plot_puts_its_figures_beside_the_bag_named_as_the_user_named_it():
     from pathlib import Path
-    from piezo_valve_ros.plot_cli import default_figures_dir
+    from piezo_valve_ros.cli.plot import default_figures_dir
     assert default_figures_dir("run1") == Path("run1_plots") == default_figures_dir("run1/")
     assert default_figures_dir("/data/day2/run1") == Path("/data/day2/run1_plots")
     assert default_figures_dir(".") == Path(os.getcwd() + "_plots")
@@ -91,7 +91,7 @@ def test_references_are_put_on_the_samples_time_axis_where_simulated_time_runs_a
     """A lockstep rig's time runs at a varying share of the wall clock (here 0.25x, then 2x): a reference is placed by
     the messages around it that pair a receive time with a sample time, not by one constant offset (which put a
     tour's step seconds away from where it happened and reported a tracking error of 5-11 um)."""
-    from piezo_valve_ros.bagio import BagRecorder, CLOCK_TYPE, SAMPLES_TYPE, qos_profile, serialize_float64, \
+    from piezo_valve_ros.io.bags import BagRecorder, SAMPLES_TYPE, qos_profile, serialize_float64, \
         serialize_samples, read_run
     from piezo_valve_ros.core.runs import find_steps, reference_on_samples, receive_to_sample_time
     dt = 1e-3
@@ -241,7 +241,7 @@ def test_record_command_and_identify_a_running_rig(tmp_path):
     assert [(round(s["start_um"], 2), round(s["end_um"], 2)) for s in figures["steps"]][-1] == (-10.0, 5.0)
     assert figures["tracking"]["rms_um"] > 0 and len(figures["figures"]) == 2
     no_mpl = subprocess.run([sys.executable, "-c", "import sys; sys.modules['matplotlib'] = None; "
-                             "from piezo_valve_ros.plot_cli import main; sys.exit(main(sys.argv[1:]))",
+                             "from piezo_valve_ros.cli.plot import main; sys.exit(main(sys.argv[1:]))",
                              str(bag), "--out", str(tmp_path / "none")], capture_output=True, text=True, timeout=300)
     assert no_mpl.returncode == 1 and "no figures: plots need matplotlib" in no_mpl.stderr
     assert "tracking error over" in no_mpl.stdout and not (tmp_path / "none").exists()
@@ -252,8 +252,8 @@ def test_record_command_and_identify_a_running_rig(tmp_path):
 
 
 def test_valve_rig_asks_for_priority_and_cpus_only_on_the_real_time_clock():
-    from piezo_valve_ros.nodes.rig import parse_args, rig_parameters
-    from piezo_valve_ros.realtime import available_cpus
+    from piezo_valve_ros.cli.rig import parse_args, rig_parameters
+    from piezo_valve_ros.runtime.realtime import available_cpus
     cpus = sorted(available_cpus())
     hw, ctl = rig_parameters(parse_args(["--demo", "none", "--clock", "realtime", "--control-period-s", "0.0005"]))
     assert hw["realtime.busy_poll_s"] == 0.0005 and hw["realtime.priority"] == 0 and "realtime.cpus" not in hw
@@ -357,7 +357,7 @@ def test_valve_rig_stops_when_its_identification_plan_ends(tmp_path):
 
 def test_one_samples_decoder_for_bags_and_messages():
     from types import SimpleNamespace as NS
-    from piezo_valve_ros.samples import SamplesLayoutError, decode_samples
+    from piezo_valve_ros.io.samples import SamplesLayoutError, decode_samples
     data = [1.0, 5.0, 2e-6, 9.0, 1.1, 6.0, 3e-6, 9.0]  # columns in another order, and an extra one
     dims = [NS(size=2, label="sample"), NS(size=4, label="time,voltage_command,spool_position,extra")]
     np.testing.assert_array_equal(decode_samples(dims, data), [[1.0, 5.0, 2e-6], [1.1, 6.0, 3e-6]])
@@ -447,7 +447,7 @@ def test_valve_rig_brings_up_your_backend_from_one_parameters_file(tmp_path):
 def test_valve_rig_knows_which_options_the_command_line_gave():
     """A parameters file's values give way only to options the command line gave, even when given at their
     default value (--clock lockstep), never to the rig's defaults."""
-    from piezo_valve_ros.nodes.rig import given_options, merged_parameters, parse_args, rig_parameters
+    from piezo_valve_ros.cli.rig import given_options, merged_parameters, parse_args, rig_parameters
     assert given_options([]) == set()
     given = given_options(["--clock", "lockstep", "--pin", "--params-file", "f.yaml"])
     assert given == {"clock", "pin", "params_file"}
@@ -459,8 +459,8 @@ def test_valve_rig_knows_which_options_the_command_line_gave():
 def test_valve_record_summary_says_what_went_into_the_bag(tmp_path):
     """valve_record's closing summary (the line, and the object --json prints): duration, messages per topic,
     size, samples rows and rows dropped between the first and the last."""
-    from piezo_valve_ros.bagio import write_samples_bag
-    from piezo_valve_ros.nodes.record import parse_args, summary, summary_line
+    from piezo_valve_ros.io.bags import write_samples_bag
+    from piezo_valve_ros.cli.record import parse_args, summary, summary_line
     rows = np.column_stack([np.arange(1000) * 1e-3, np.full(1000, 5.0), np.zeros(1000)])
     rows = np.delete(rows, [500, 501], axis=0)                    # two rows lost
     write_samples_bag(tmp_path / "bag", rows, topic="/v/samples")
@@ -477,9 +477,9 @@ def test_valve_record_reads_references_only_once_it_records_samples(tmp_path):
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from std_msgs.msg import Float64, Float64MultiArray
-    from piezo_valve_ros.bagio import read_run
+    from piezo_valve_ros.io.bags import read_run
     from piezo_valve_ros.nodes.common import REFERENCE_QOS, SAMPLES_QOS, samples_message
-    from piezo_valve_ros.nodes.recording import RigRecorder
+    from piezo_valve_ros.rig.recording import RigRecorder
     ns = f"/deferred{os.getpid()}"
     context = rclpy.Context()
     rclpy.init(context=context)

@@ -18,7 +18,7 @@ from piezo_valve_ros.core.tuning.tuner import (DERIVATIVE_STARTS_S, StepScore, T
                                          step_score, time_scaled, tune)
 from piezo_valve_ros.identify import ParametersFileError, parameters_yaml, read_parameters_file
 from piezo_valve_ros.nodes.controller import settings_from_parameters
-from piezo_valve_ros.tune_cli import main as valve_tune
+from piezo_valve_ros.cli.tune import main as valve_tune
 
 DT = 1e-3
 PAPER = CompensationModel()

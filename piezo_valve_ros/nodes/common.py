@@ -20,7 +20,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 from ..core.defaults import CONTROL_PERIOD_S
-from ..samples import SAMPLES_LABEL, decode_samples
+from ..io.samples import SAMPLES_LABEL, decode_samples
 from ..core.validation import ParameterSpec, as_float
 
 MAX_CONTROL_PERIOD_S = 0.1      # slower than 10 Hz is no control loop for this valve
@@ -68,7 +68,7 @@ CONTROL_PERIOD = ParameterSpec(
 
 def realtime_specs() -> tuple[ParameterSpec, ...]:
     """The read-only ``realtime.*`` scheduling parameters of a real-time node (see :mod:`..realtime`)."""
-    from ..realtime import DEFAULT_SWITCH_INTERVAL_S, PRIORITY_RANGE, SWITCH_INTERVAL_RANGE_S
+    from ..runtime.realtime import DEFAULT_SWITCH_INTERVAL_S, PRIORITY_RANGE, SWITCH_INTERVAL_RANGE_S
     lo, hi = SWITCH_INTERVAL_RANGE_S
     return (
         ParameterSpec("realtime.switch_interval_s", DEFAULT_SWITCH_INTERVAL_S,
@@ -136,7 +136,7 @@ def declare_all(node: Node, specs) -> None:
 
 def realtime_settings(p: dict):
     """Validated :class:`..realtime.RealtimeSettings` from a node's parameter values (ValueError)."""
-    from ..realtime import RealtimeSettings
+    from ..runtime.realtime import RealtimeSettings
     return RealtimeSettings.from_values(p["realtime.switch_interval_s"], p["realtime.priority"],
                                         p["realtime.cpus"])
 
@@ -276,7 +276,7 @@ def given_parameter_names(node_name: str, argv=None) -> tuple[set[str], set[str]
     for this node alone, then ``-p NAME:=VALUE`` (every node of the process takes it; a file's ``/**`` sections,
     which serve every node of every process, are left out).  rclpy ignores a name a node does not declare without
     a word: the nodes refuse it (a misspelt parameter)."""
-    from ..params_yaml import node_section
+    from ..io.params_yaml import node_section
     tokens = list(_ROS_ARGV if argv is None else argv)
     own: set[str] = set()
     shared: set[str] = set()
@@ -411,7 +411,7 @@ def run_node(factory: Callable[[], Node], name: str, args=None, on_exit_of=None,
     ``on_exit_of(node)`` gives the callable run when spinning ends (e.g. apply safe_voltage).
     """
     import sys
-    from ..processes import die_with_parent
+    from ..runtime.processes import die_with_parent
     if wants_help(args):
         print_help(name, sys.modules[getattr(factory, "__module__", __name__)].__doc__, specs)
         return 0

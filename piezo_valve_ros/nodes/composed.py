@@ -14,7 +14,7 @@ from __future__ import annotations
 import sys
 
 from ..core.validation import same_period
-from ..processes import die_with_parent
+from ..runtime.processes import die_with_parent
 from .common import close, init_ros, print_help, spin, wants_help
 from .controller import CONTROLLER_PARAMETERS, ValveControllerNode
 from .hardware import ValveHardwareNode, hardware_parameters_with_backends

@@ -128,7 +128,7 @@ class ValveControllerNode(Node):
         p = parameter_values(self)
         config, model = settings_from_parameters(p)
         self.handback_timeout_s = self._handback_timeout(p["handback_timeout_s"])
-        from ..realtime import apply
+        from ..runtime.realtime import apply
         self.realtime = realtime_settings(p)
         apply(self.realtime)
         self.controller = ValveController(config, model)

@@ -29,13 +29,13 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64, Float64MultiArray, String
 from std_srvs.srv import Trigger
 
-from ..backends import ValveBackend, available_backends, backend_class, backend_parameters
-from ..faults import Fault, FaultLimits, SampleCheck
-from ..loop_timing import LoopTiming
-from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, MAX_CONTROL_PERIOD_S, Diagnostics, period_parameter, SAMPLES_QOS, SENSOR_QOS, STATE_QOS, Pacing, ParameterSpec,
-                     as_float, declare, declare_all, given_parameter_names, parameter_values, realtime_settings,
-                     realtime_specs, refuse,
-                     run_node, samples_message, tighten_timer_slack)
+from ..backends.base import ValveBackend, available_backends, backend_class, backend_parameters
+from ..backends.faults import Fault, FaultLimits, SampleCheck
+from ..runtime.loop_timing import LoopTiming
+from .common import (COMMAND_QOS, CONTROL_PERIOD, DIAGNOSTICS_PERIOD, MAX_CONTROL_PERIOD_S, SAMPLES_QOS, SENSOR_QOS,
+                     STATE_QOS, Diagnostics, Pacing, ParameterSpec, as_float, declare_all, given_parameter_names,
+                     parameter_values, period_parameter, realtime_settings, realtime_specs, refuse, run_node,
+                     samples_message, tighten_timer_slack)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 from ..core.validation import as_int, whole_periods
 
@@ -171,7 +171,7 @@ class ValveHardwareNode(Node):
                              "priority starves every other thread of its CPU, DDS's included; sleep "
                              "(realtime.busy_poll_s 0) or use priority 0")
         if self.clock_mode == "realtime":
-            from ..realtime import apply
+            from ..runtime.realtime import apply
             apply(self.realtime)
 
     def _create_interfaces(self) -> None:

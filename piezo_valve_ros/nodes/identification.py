@@ -51,7 +51,7 @@ from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Float64
 
 from ..core.defaults import BAG_STORAGE
-from ..bagio import STORAGES, BagError
+from ..io.bags import STORAGES, BagError
 from ..core.identification.records import IdentificationError
 from ..core.metrics import error_figures
 from ..core.sim.signals import rig_training_voltage, validation_reference_m
@@ -59,8 +59,8 @@ from ..core.control.strategies import LOOP_SETTINGS, STRATEGIES, loop_settings
 from ..core.tuning.tuner import OVERSHOOT_LIMIT_PCT, TUNABLE_STRATEGIES, TuningError, TuningLimits, tune
 from ..identify import (summary_json, compensation, controller_parameters, controller_parameters_yaml, identify_bags, report_json,
                         write_atomically)
-from .client import get_parameter_values, wait_future, wait_until_answering
-from .recording import RigRecorder
+from ..rig.client import get_parameter_values, wait_future, wait_until_answering
+from ..rig.recording import RigRecorder
 from .common import (CONTROL_PERIOD, COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, ParameterSpec, as_float, declare_all,
                      parameter_values, run_node)
 from ..core.model.drive import CENTRE_VOLTAGE_V

@@ -30,7 +30,7 @@ from std_msgs.msg import Float64MultiArray
 from ..core.control.compensation import MODEL_PARAMETERS, CompensationModel
 from ..core.monitoring.health import (ERROR_RATIO, MIN_SPAN_V, STEP_S, WARN_RATIO, WINDOW_S, Health, HealthLimits,
                                       HealthMonitor, Level)
-from ..samples import SamplesLayoutError
+from ..io.samples import SamplesLayoutError
 from .common import SAMPLES_QOS, Diagnostics, ParameterSpec, as_float, declare_all, parameter_values, run_node, \
     samples_from_message, samples_message
 

@@ -17,10 +17,10 @@ import argparse
 import sys
 from dataclasses import replace
 
-from .core.identification.records import HELD_OUT_FRACTION
-from .core.monitoring.health import WINDOW_S, HealthLimits
+from ..core.identification.records import HELD_OUT_FRACTION
+from ..core.monitoring.health import WINDOW_S, HealthLimits
 from .tool import add_window_arguments, run_tool, window_from
-from .identify import (command_range_note, compensation, controller_parameters_yaml, health_json,
+from ..identify import (command_range_note, compensation, controller_parameters_yaml, health_json,
                        identify_bags, monitor_record, report_json, write_outputs)
 
 __all__ = ["main"]
@@ -83,7 +83,7 @@ def main(argv=None) -> int:
 
     def work() -> list[str]:
         if args.plots:
-            from . import plots  # fail before the work, with the reason
+            from ..io import plots  # fail before the work, with the reason
             plots.require()
         analysis, name = identify_bags(args.train_bag, args.validate, args.topic, log, window)
         report = analysis.report

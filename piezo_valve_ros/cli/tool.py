@@ -9,8 +9,8 @@ import argparse
 import sys
 from typing import Callable
 
-from .core.errors import PiezoValveError
-from .core.runs import TimeWindow
+from ..core.errors import PiezoValveError
+from ..core.runs import TimeWindow
 
 __all__ = ["run_tool", "add_window_arguments", "window_from"]
 

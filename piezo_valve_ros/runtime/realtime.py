@@ -13,8 +13,8 @@ import sys
 from dataclasses import dataclass
 from typing import Any, Sequence
 
-from .core.errors import PiezoValveError
-from .core.validation import as_float, as_int
+from ..core.errors import PiezoValveError
+from ..core.validation import as_float, as_int
 
 DEFAULT_SWITCH_INTERVAL_S = 5e-5           # CPython's GIL switch interval in real-time processes (its default: 5 ms)
 SWITCH_INTERVAL_RANGE_S = (1e-6, 0.005)

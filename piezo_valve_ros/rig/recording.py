@@ -1,4 +1,4 @@
-"""Recording a rig's topics into crash-safe rosbag2 bags (``bagio.BagRecorder``): one recorder for
+"""Recording a rig's topics into crash-safe rosbag2 bags (``io.bags.BagRecorder``): one recorder for
 ``valve_record`` and the identification node.
 
 Messages are taken as serialized CDR (``raw=True`` subscriptions) and written with their receive time; a
@@ -18,8 +18,8 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64, Float64MultiArray
 
 from ..core.defaults import BAG_STORAGE
-from ..bagio import CLOCK_TYPE, FLOAT64_TYPE, SAMPLES_TYPE, BagRecorder, qos_profile
-from .common import COMMAND_QOS, REFERENCE_QOS, SAMPLES_QOS, SENSOR_QOS
+from ..io.bags import CLOCK_TYPE, FLOAT64_TYPE, SAMPLES_TYPE, BagRecorder, qos_profile
+from ..nodes.common import COMMAND_QOS, REFERENCE_QOS, SAMPLES_QOS, SENSOR_QOS
 
 # topic (relative to the rig's namespace) -> (message type, QoS it is offered with, reliable)
 RIG_TOPICS = {"samples": (SAMPLES_TYPE, SAMPLES_QOS, True),

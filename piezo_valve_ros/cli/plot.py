@@ -8,7 +8,7 @@ Writes ``run_time.png`` (position and reference, command, tracking error) and ``
 (command vs position), prints the run's extent and the tracking error, and for every step found in the
 reference (a change of at least 1 um held at least 50 ms) its settling time (5 % band) and overshoot.
 Needs matplotlib for the figures (the numbers are printed without it, with a one-line note).  No ROS
-import; a thin face over ``bagio.read_run``, ``core.runs`` and ``plots.write_run``.
+import; a thin face over ``io.bags.read_run``, ``core.runs`` and ``io.plots.write_run``.
 """
 from __future__ import annotations
 
@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .bagio import BagError, read_run
-from .core.metrics import error_figures
-from .core.runs import STEP_MIN_HOLD_S, STEP_MIN_JUMP_M, align_jumps, find_steps, reference_on_samples
+from ..io.bags import BagError, read_run
+from ..core.metrics import error_figures
+from ..core.runs import STEP_MIN_HOLD_S, STEP_MIN_JUMP_M, align_jumps, find_steps, reference_on_samples
 from .tool import add_window_arguments, window_from
 
 __all__ = ["main"]
@@ -97,7 +97,7 @@ def main(argv=None) -> int:
     out = Path(args.out) if args.out else default_figures_dir(args.bag)
     if args.json:
         try:
-            from .plots import write_run
+            from ..io.plots import write_run
             written = write_run(rows[:, 0], rows[:, 1], rows[:, 2], reference, out,
                                 title=f"{Path(args.bag).name} ({topic})")
         except RuntimeError:  # no matplotlib: the numbers without figures
@@ -118,7 +118,7 @@ def main(argv=None) -> int:
     elif np.isfinite(reference).any():
         print("no steps in the reference")
     try:
-        from .plots import write_run
+        from ..io.plots import write_run
         written = write_run(rows[:, 0], rows[:, 1], rows[:, 2], reference, out, title=f"{Path(args.bag).name} ({topic})")
     except RuntimeError as exc:  # no matplotlib
         print(f"valve_plot: no figures: {exc}", file=sys.stderr)

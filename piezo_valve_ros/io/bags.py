@@ -22,9 +22,9 @@ from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.rosbag2.metadata import dump_qos_v9
 from rosbags.typesys import Stores, get_typestore
 
-from .core.defaults import BAG_STORAGE
-from .core.errors import PiezoValveError
-from .core.runs import WHOLE_RECORD, TimeWindow, receive_to_sample_time
+from ..core.defaults import BAG_STORAGE
+from ..core.errors import PiezoValveError
+from ..core.runs import WHOLE_RECORD, TimeWindow, receive_to_sample_time
 from .params_yaml import dump as dump_yaml, load as load_yaml
 from .samples import SAMPLES_COLUMNS, SAMPLES_LABEL, SamplesLayoutError, decode_samples
 

@@ -19,14 +19,14 @@ import json
 from dataclasses import replace
 import sys
 
-from .core.defaults import CONTROL_PERIOD_S
-from .core.control.compensation import CompensationModel
-from .core.control.strategies import TABLE1_GAINS, loop_settings
-from .core.control.forward import ModelValve
-from .core.tuning.tuner import (MAX_NOISE_GAIN, MIN_CROSSOVER_HZ, MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG, OVERSHOOT_LIMIT_PCT,
+from ..core.defaults import CONTROL_PERIOD_S
+from ..core.control.compensation import CompensationModel
+from ..core.control.strategies import TABLE1_GAINS, loop_settings
+from ..core.control.forward import ModelValve
+from ..core.tuning.tuner import (MAX_NOISE_GAIN, MIN_CROSSOVER_HZ, MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG, OVERSHOOT_LIMIT_PCT,
                           TUNABLE_STRATEGIES, TuningLimits, loop_margins, step_score, tune)
-from .core.sim.signals import PAPER_STEPS_UM
-from .identify import ParametersFileError, parameters_yaml, read_parameters_file, write_outputs
+from ..core.sim.signals import PAPER_STEPS_UM
+from ..identify import ParametersFileError, parameters_yaml, read_parameters_file, write_outputs
 from .tool import run_tool
 
 __all__ = ["main"]

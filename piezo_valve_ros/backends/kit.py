@@ -1,6 +1,6 @@
 """A contract test kit for hardware backends, for a DAQ vendor's own tests, and a fault-injecting wrapper.
 
-    from piezo_valve_ros.backend_kit import check_backend
+    from piezo_valve_ros.backends.kit import check_backend
 
     def test_my_daq_keeps_the_backend_contract():
         assert check_backend(lambda: MyDaqBackend.from_parameters(defaults, 5.0)) == []
@@ -21,8 +21,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .core.defaults import CONTROL_PERIOD_S
-from .backends import ValveBackend
+from ..core.defaults import CONTROL_PERIOD_S
+from .base import ValveBackend
 
 __all__ = ["check_backend", "FaultInjectingBackend", "INJECTABLE_FAULTS"]
 

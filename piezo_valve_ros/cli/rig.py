@@ -22,14 +22,14 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from ..core.errors import PiezoValveError
-from ..dds import use_fast_acknowledgements
+from ..runtime.dds import use_fast_acknowledgements
 from ..core.metrics import step_metrics
 from ..core.sim.signals import PAPER_STEPS_UM
 from ..core.control.strategies import NO_SAFE_SET_STRATEGY, default_gain_set
 from ..core.sim.simulator import ValveSimConfig
-from ..processes import ProcessGroup, node_command
-from .client import RigClient, run_in_background
-from .common import close
+from ..runtime.processes import ProcessGroup, node_command
+from ..rig.client import RigClient, run_in_background
+from ..nodes.common import close
 
 
 # ---------------------------------------------------------------------------- demo
@@ -133,7 +133,7 @@ def rig_parameters(args) -> tuple[dict, dict]:
     if args.clock == "realtime":
         hw["realtime.priority"] = ctl["realtime.priority"] = args.priority
         if args.pin:
-            from ..realtime import available_cpus
+            from ..runtime.realtime import available_cpus
             cpus = sorted(available_cpus())
             # separate processes: one CPU each; composed: one process, one CPU (the last, away from CPU 0's chores)
             hw["realtime.cpus"] = [cpus[-1]] if args.composed else [cpus[0]]
@@ -161,7 +161,7 @@ def apply_parameters_file(args, given: set[str], hw: dict, ctl: dict, ident: dic
     """The nodes' parameters with ``args.params_file``'s sections merged in (``merged_parameters``); the loop
     the file chose (clock, control period) becomes the rig's, in ``args`` too; ``monitor`` takes the
     valve_monitor section.  UsageError when the file cannot be read or a node's section is wrong."""
-    from ..params_yaml import node_section
+    from ..io.params_yaml import node_section
     sections = {}
     for node in ("valve_hardware", "valve_controller", "valve_identification", "valve_monitor"):
         try:
@@ -286,7 +286,7 @@ def main(argv=None) -> int:
     code = 0
     try:
         if args.composed:
-            from .composed import build
+            from ..nodes.composed import build
             hardware, controller = build([Parameter(k, value=v) for k, v in hw_params.items()],
                                          [Parameter(k, value=v) for k, v in ctl_params.items()],
                                          **({"namespace": args.namespace} if args.namespace else {}))

@@ -6,7 +6,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .core.errors import PiezoValveError
+from ..core.errors import PiezoValveError
 
 __all__ = ["SAMPLES_COLUMNS", "SAMPLES_LABEL", "SamplesLayoutError", "decode_samples"]
 

@@ -15,7 +15,7 @@ import sys
 import time
 
 from .dds import without_fast_acknowledgements
-from .params_yaml import yaml_value
+from ..io.params_yaml import yaml_value
 
 PARENT_PID_ENV = "PIEZO_VALVE_PARENT_PID"   # set by ProcessGroup: the pid the child must not outlive
 STOP_GRACE_S = 3.0                          # each of SIGINT, SIGTERM, SIGKILL gets this long

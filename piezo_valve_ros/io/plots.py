@@ -9,7 +9,7 @@ from typing import Callable
 
 import numpy as np
 
-from .core.identification.residual import Analysis
+from ..core.identification.residual import Analysis
 
 __all__ = ["require", "write_all", "write_run", "MIN_HOLD_SAMPLES", "MAX_PLOT_POINTS"]
 

@@ -5,7 +5,7 @@ found by name: the ``sim`` backend here, and any class another installed package
 group ``piezo_valve_ros.backends`` (so a DAQ needs no change to this package)::
 
     # my_daq/backend.py
-    from .backends import BackendParameter, ValveBackend
+    from .base import BackendParameter, ValveBackend
 
     class MyDaqBackend(ValveBackend):
         PARAMETERS = (BackendParameter("device", "/dev/daq0", "DAQ device"),)   # -> my_daq.device
@@ -35,9 +35,9 @@ from typing import Any, Callable, Dict, Optional, Type
 
 import numpy as np
 
-from .core.sim.simulator import STAGE_SWITCHES, BacklashParams, DriftParams, SimulatedValve, ValveSimConfig
-from .core.validation import ParameterSpec, as_bool, as_float, as_int, whole_periods
-from .core.model.drive import CENTRE_VOLTAGE_V
+from ..core.sim.simulator import STAGE_SWITCHES, BacklashParams, DriftParams, SimulatedValve, ValveSimConfig
+from ..core.validation import ParameterSpec, as_bool, as_float, as_int, whole_periods
+from ..core.model.drive import CENTRE_VOLTAGE_V
 
 __all__ = ["ValveBackend", "SimBackend", "BackendParameter", "backend_parameters", "register_backend", "backend_class",
            "available_backends", "sim_config_from_parameters", "ENTRY_POINT_GROUP"]
@@ -191,7 +191,7 @@ def _drift_values(v: dict) -> dict:
 
 
 def _sim_parameters() -> tuple:
-    from .core.model.hysteresis import PAPER_GPIM
+    from ..core.model.hysteresis import PAPER_GPIM
     return (BackendParameter("seed", 0, "noise seed"),
             BackendParameter("sample_period_s", ValveSimConfig().dt, "sampling period [s]"),
             *(BackendParameter(s.name, s.is_on(ValveSimConfig()), s.description) for s in STAGE_SWITCHES),

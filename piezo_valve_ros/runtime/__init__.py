@@ -1,0 +1,15 @@
+"""How the package's processes run: the real-time settings a loop asks the operating system for (``realtime``),
+the loop's timing as the hardware sees it (``loop_timing``), the middleware setting for acknowledged references
+(``dds``) and child processes that die with their parent (``processes``).  No ROS import."""
+from __future__ import annotations
+
+from ..core import lazy_exports
+
+__all__, __getattr__ = lazy_exports(__name__, {
+    "RealtimeSettings": "realtime",
+    "LoopTiming": "loop_timing",
+    "LoopSummary": "loop_timing",
+    "use_fast_acknowledgements": "dds",
+    "ProcessGroup": "processes",
+    "node_command": "processes",
+})
