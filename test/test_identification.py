@@ -283,12 +283,12 @@ def test_confirmation_drops_an_effect_its_exact_drop_one_refit_does_not_support(
 
     weak_drift = Refits({frozenset({"creep", "drift"}): 0.50, frozenset({"creep"}): 0.51, frozenset({"drift"}): 1.0,
                          frozenset(): 1.2})
-    model, _, verdicts, kept = residual._Loop.confirm(weak_drift, ["creep", "drift"])
+    model, _, verdicts, kept = residual._EffectChoice.confirm(weak_drift, ["creep", "drift"])
     assert kept == ["creep"] and model == frozenset({"creep"}) and verdicts["creep"][2]
     assert len(weak_drift.lines) == 1 and weak_drift.lines[0].startswith("confirm: drift not supported by the exact "
                                                                            "refit (held-out RMS cut 2.0 % < 20 %")
     both = Refits({frozenset({"creep", "drift"}): 0.50, frozenset({"creep"}): 0.8, frozenset({"drift"}): 1.0})
-    assert residual._Loop.confirm(both, ["creep", "drift"])[3] == ["creep", "drift"] and not both.lines
+    assert residual._EffectChoice.confirm(both, ["creep", "drift"])[3] == ["creep", "drift"] and not both.lines
 
 
 def test_held_out_figures_are_at_the_record_s_rate():

@@ -127,3 +127,23 @@ def test_a_linear_drift_is_named_drift_alone_in_its_linear_form():
     assert report["effects_added"] == ["drift"] and not report["unexplained"], (report["effects_added"], lines)
     drift = report["final_model"]["drift"]
     assert drift["form"] == "linear" and drift["functions"] == ["t/T"], drift
+
+
+@pytest.mark.slow
+def test_an_effect_standing_in_for_the_grid_at_a_knife_edge_is_dropped():
+    """The asymmetric valve's seed-3 record: on the (symmetric) baseline the paper's 15-operator grid beats 12
+    operators by 2.1 %, just outside the capacity tolerance; with it the asymmetry leaves 0.14 um and creep takes a
+    share of it (creep and asymmetry named).  Two effects found where a smaller size scored within 5 %: the effects
+    are chosen again on 12 operators, where the asymmetry alone explains more, and that story (a part of the first
+    one's names) is kept."""
+    case = CASES["asymmetric envelopes (generalized PI)"]
+    train, validate = case.records(3, 1.0)
+    lines: list[str] = []
+    report = analyse(Record(train[:, 0], train[:, 1], train[:, 2]),
+                     Record(validate[:, 0], validate[:, 1], validate[:, 2]), log=lines.append).report
+    assert report["effects_added"] == ["asymmetry"] and not report["unexplained"], (report["effects_added"], lines)
+    assert any(line.startswith("capacity: creep, asymmetry found on paper grid") and
+               "the effects chosen again on 12 operators" in line for line in lines), lines
+    assert report["baseline"]["fit"] == report["baseline_fits"]["chosen"] == "12 operators"
+    assert "with the effects found, 12 operators (asymmetry" in report["baseline_fits"]["chosen_on"]
+    assert report["final"]["validate"]["rms_um"] < 0.11

@@ -27,7 +27,12 @@ How it decides (every figure on data the fit has not seen: a validation record, 
    structure); the best supported one joins and all are confirmed again.  G_v's poles are then fitted
    again through the effects found (``fitting.refit_poles_with_effects``: a fast creep bends the
    baseline's) and kept when the held-out error does not rise.  The final model is never worse on
-   held-out data than the baseline.
+   held-out data than the baseline.  Where it names two effects or more and a smaller GPIM scored within
+   ``CAPACITY_REVISIT`` of the chosen one (a knife edge), an effect may stand in for the grid (a grid that fits
+   a symmetric baseline best leaves part of an asymmetric valve's envelopes to creep): on the smaller one the
+   story less each effect is refitted, and where the best leaves a held-out RMS within ``CAPACITY_TOLERANCE`` of
+   the story's, step 3 runs again from it (``revisit_capacity``).  A story that names a part of the first
+   one's effects and explains as much replaces it.
 4. **Unexplained.**  The final held-out residual's structured part (its RMS above the noise measured
    on the residual itself, at the analysis rate) is compared with the sensor noise at the record's rate:
    above ``UNEXPLAINED_NOISE_RATIO`` times it, structure remains that no catalogue effect explains.  So
@@ -52,7 +57,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from .effects import CATALOGUE, Effect
-from .fitting import FitCache, fit_model, fit_paper_gpim, refit_poles_with_effects, with_poles, uniform_thresholds
+from .fitting import FitCache, PaperFit, fit_model, fit_paper_gpim, refit_poles_with_effects, with_poles, uniform_thresholds
 from ..model.hysteresis import GPIM
 from .initial_state import ESTIMATE_ROUNDS, ESTIMATE_STATE_GAIN, WIPE_STATE_GAIN, estimate_state, session_start
 from .report import IdentificationReport
@@ -73,6 +78,8 @@ CAPACITY_EXTENSION = (90, 135)              # ... then these, one at a time, whi
                                             # by more than CAPACITY_TOLERANCE over the size below it
 MID_CAPACITY = 27                           # the size G_v's poles are first fitted with
 CAPACITY_TOLERANCE = 0.02                   # a smaller GPIM within 2 % of the best held-out RMS is preferred
+CAPACITY_REVISIT = 0.05                     # a smaller size within this share of the chosen one's score is a
+                                            # knife edge: the effects are chosen again on it (_Loop.revisit_capacity)
 TREND_DOMINANCE = 0.5                       # when the best size's held-out error about its quadratic trend is
                                             # below this share of its RMS, a trend (a drift) swamps what the
                                             # sizes differ in, and they are compared about their trends
@@ -197,6 +204,49 @@ class CapacityFit:
         return self.about_trend_um if about_trend else self.held_out_um
 
 
+@dataclass(frozen=True)
+class StartChoice:
+    """Stage 1: the operators' state at the record's first sample."""
+    first: ValveModel          # the model fitted from the chosen start (MID_CAPACITY operators, G_v's poles fitted)
+    chosen: str                # rest, cycled, estimated or wiped
+    held_out_rms_um: dict      # each start tried -> the held-out RMS fitted from it [um]
+    assumed: dict              # what was assumed (in words), where the fit starts, what was estimated
+
+
+@dataclass(frozen=True)
+class CapacityChoice:
+    """Stage 1b: the GPIM's number of thresholds, and the baseline fitted with it."""
+    fits: tuple                # CapacityFit of every size tried
+    label: str                 # the chosen one's
+    about_trend: bool          # the sizes were compared about their held-out error's trend (TREND_DOMINANCE)
+    chosen_on: str             # what they were compared on, in words
+    baseline: ValveModel
+    paper: PaperFit            # the paper's 5-parameter fit
+
+    def chosen(self) -> CapacityFit:
+        return next(c for c in self.fits if c.label == self.label)
+
+
+@dataclass(frozen=True)
+class Story:
+    """Stages 2 and 3 on one baseline: the effects added and the models that show them."""
+    baseline: ValveModel
+    final: ValveModel
+    added: list                # effect names, in catalogue order
+    drop_one: dict             # effect name -> the final model refitted without it
+    verdicts: dict             # effect name -> its exact drop-one support figures
+    confirm_log: list          # the exact refits and drop-one checks, round by round
+    choice: "_EffectChoice"    # its search and refits (the report's diagnosis and alternatives use them)
+
+
+@dataclass(frozen=True)
+class Remains:
+    """Stage 4: what the final model leaves in the held-out residual."""
+    structure: dict
+    unexplained: bool
+    seen: str                  # in words
+
+
 def _on_pool(pool: ThreadPoolExecutor, jobs: list[Callable[[], object]]) -> list:
     """Independent jobs on ``pool``, their results in order."""
     return [f.result() for f in [pool.submit(job) for job in jobs]]
@@ -204,9 +254,10 @@ def _on_pool(pool: ThreadPoolExecutor, jobs: list[Callable[[], object]]) -> list
 
 class _Loop:
     """One run of the residual loop on one pair of records; ``run`` takes the stages of the module's
-    docstring in order and returns the :class:`Analysis`.  What a stage finds is kept on the instance for
-    the stages after it; ``split`` is replaced as the initial state is settled (a validation record's own
-    start, the cut after the wipe)."""
+    docstring in order and returns the :class:`Analysis`.  Each stage returns what it found (``StartChoice``,
+    ``CapacityChoice``, ``Story``, ``Remains``) to the stages after it; the instance holds what they all share:
+    the records and their split (``split`` is replaced once, as the initial state is settled: the cut after
+    the wipe), the noise, the caches and the warnings."""
 
     def __init__(self, train_full: Record, validate_full: Optional[Record], max_rate_hz: float,
                  log: Callable[[str], None], pool: ThreadPoolExecutor, forms_pool: ThreadPoolExecutor):
@@ -244,7 +295,6 @@ class _Loop:
         self.polishes: dict[int, tuple[ValveModel, ValveModel]] = {}   # id(model) -> (model, its poles refitted)
         self.sessions: dict[int, tuple[ValveModel, SessionStart]] = {}   # each model's start on a validation session
         self.session_bounds: dict = {}   # the operators' clamp bounds there, per hysteresis structure
-        self.final: Optional[ValveModel] = None
 
     # ------------------------------------------------------------------ helpers
     def representative_part(self, record: Record, key: str, what: str) -> Record:
@@ -315,29 +365,30 @@ class _Loop:
         return replace(self.start_model(uniform_thresholds(on.fit.voltage_v, MID_CAPACITY), like), history=history)
 
     # ------------------------------------------------------------------ 1. the initial state
-    def choose_initial_state(self) -> None:
+    def choose_initial_state(self) -> StartChoice:
         """The operators' state at the first sample: a valve started from rest, a record cut from running
         operation, estimated from the first rows, or unknown (a valve left off its loop by an unrecorded
-        excitation): then the fit starts where the record's own input has wiped it out.  Sets ``first`` (the
-        model fitted from the chosen start), ``start_rms``, ``chosen_state`` and ``assumed``."""
-        self._rest_or_cycled()
-        self._estimated_start()
-        self._wiped_start()
-        self._describe_start()
+        excitation): then the fit starts where the record's own input has wiped it out (``split`` is replaced by
+        the cut).  ``starts`` and ``start_rms`` (each start tried -> its model, its held-out RMS) grow as the
+        starts are tried."""
+        starts, start_rms, chosen = self._rest_or_cycled()
+        chosen, estimate = self._estimated_start(starts, start_rms, chosen)
+        chosen, before_wipe = self._wiped_start(starts, start_rms, chosen)
+        return self._describe_start(starts, start_rms, chosen, estimate, before_wipe)
 
-    def _rest_or_cycled(self) -> None:
+    def _rest_or_cycled(self) -> tuple[dict, dict, str]:
         candidates = {"rest": REST, "cycled": InitialState("cycled")}
         fits = self.each([lambda h=h: self.fitted_and_scored(
             self.start_model(uniform_thresholds(self.fit.voltage_v, MID_CAPACITY), history=h), "baseline")
             for h in candidates.values()])
-        self.starts = {h: m for h, (m, _) in zip(candidates, fits)}
-        self.start_rms = {h: r for h, (_, r) in zip(candidates, fits)}
-        self.chosen_state = ("cycled" if self.start_rms["cycled"] < (1 - INITIAL_STATE_TOLERANCE) * self.start_rms["rest"]
-                             else "rest")
+        starts = {h: m for h, (m, _) in zip(candidates, fits)}
+        start_rms = {h: r for h, (_, r) in zip(candidates, fits)}
+        return starts, start_rms, ("cycled" if start_rms["cycled"] < (1 - INITIAL_STATE_TOLERANCE) * start_rms["rest"]
+                                   else "rest")
 
-    def _estimated_start(self) -> None:
-        """A state estimated from the rows before the input wiped it (rested elsewhere, or left off the loop)."""
-        starts, start_rms = self.starts, self.start_rms
+    def _estimated_start(self, starts: dict, start_rms: dict, chosen: str) -> tuple[str, dict]:
+        """A state estimated from the rows before the input wiped it (rested elsewhere, or left off the loop):
+        (the start chosen, what the estimate found)."""
         first_rows = self.split.first_rows(self.fit)
         estimated, estimate = estimate_state(starts["rest"], first_rows, self.fit)
         if estimate["rms_before_wipe_um"] > (1 - ESTIMATE_STATE_GAIN) * estimate["rms_before_wipe_from_rest_um"]:
@@ -346,7 +397,7 @@ class _Loop:
             if estimated.kind != "remanent":
                 break
             starts["estimated"], start_rms["estimated"] = self.fitted_and_scored(
-                self.mid_capacity_start(starts[self.chosen_state], estimated), "fixed")
+                self.mid_capacity_start(starts[chosen], estimated), "fixed")
             if round_ == ESTIMATE_ROUNDS - 1:
                 break
             again, estimate_again = estimate_state(starts["estimated"], first_rows, self.fit)
@@ -354,7 +405,6 @@ class _Loop:
                 estimate = estimate_again if again == estimated else estimate
                 break
             estimated, estimate = again, estimate_again
-        self.estimate = estimate
         if "estimated" in start_rms:
             # as for the wipe below: a clear gain, and the state must explain the start (a slow effect cannot);
             # a valve that rested at one voltage until the record's first command moved it (a closed-loop record)
@@ -362,7 +412,7 @@ class _Loop:
             # whatever the baseline's held-out RMS says (a baseline that lacks an effect, creep say, bends its
             # weights to the wrong start and scores better from it; the effect fitted later needs the right one)
             explains = estimate["rms_before_wipe_um"] / max(estimate["rms_before_wipe_from_rest_um"], 1e-12)
-            clear_gain = (start_rms["estimated"] < (1 - WIPE_GAIN) * start_rms[self.chosen_state]
+            clear_gain = (start_rms["estimated"] < (1 - WIPE_GAIN) * start_rms[chosen]
                           and explains <= 1 - ESTIMATE_STATE_GAIN)
             rested_elsewhere = estimated.rested_at_v is not None and explains <= 1 - WIPE_STATE_GAIN
             # held-out data that cannot tell the starts apart (a separate session has its own start): the
@@ -372,79 +422,81 @@ class _Loop:
             self.log(f"initial state: estimated {estimate['estimate']}; first rows' RMS "
                      f"{estimate['rms_before_wipe_um']:.4f} um against {estimate['rms_before_wipe_from_rest_um']:.4f} from rest")
             if clear_gain or rested_elsewhere or indistinct:
-                self.chosen_state = "estimated"
+                chosen = "estimated"
                 if indistinct and not (clear_gain or rested_elsewhere):
                     self.log(f"initial state: held-out data cannot tell the starts apart (within "
                              f"{100 * INITIAL_STATE_TOLERANCE:g} %); the estimate leaves {100 * explains:.0f} % of "
                              f"the training record's first rows' misfit from rest: estimated")
+        return chosen, estimate
 
-    def _wiped_start(self) -> None:
+    def _wiped_start(self, starts: dict, start_rms: dict, chosen: str) -> tuple[str, Optional[dict]]:
         """Fitting only after the input has wiped out an unknown start, on the poles just fitted on the whole
-        record (only the initial state differs)."""
-        self.before_wipe = None
+        record (only the initial state differs): (the start chosen, the state before the record where that is
+        the wipe)."""
         wiped = self.split.after_wipe()
         if wiped is None:
-            return
+            return chosen, None
         cut, state = wiped
-        starts, start_rms = self.starts, self.start_rms
         starts["wiped"], start_rms["wiped"] = self.fitted_and_scored(
-            replace(self.mid_capacity_start(starts[self.chosen_state], state, cut), t0=cut.t0), "fixed", cut)
-        if start_rms["wiped"] < (1 - WIPE_GAIN) * start_rms[self.chosen_state]:
+            replace(self.mid_capacity_start(starts[chosen], state, cut), t0=cut.t0), "fixed", cut)
+        if start_rms["wiped"] < (1 - WIPE_GAIN) * start_rms[chosen]:
             # a start off the loop, or a slow effect (drift, creep) that the earlier rows show most: only an
             # initial state that explains the rows before the wipe makes it the former
             _, before_wipe = estimate_state(starts["wiped"], self.fit.slice(0, len(self.fit) - len(cut.fit)), self.fit)
             if before_wipe["rms_before_wipe_um"] <= (1 - WIPE_STATE_GAIN) * before_wipe["rms_before_wipe_from_rest_um"]:
-                self.chosen_state, self.split, self.before_wipe = "wiped", cut, before_wipe
+                self.split = cut
+                return "wiped", before_wipe
             else:
-                self.log(f"initial state: fitting from the wipe on cuts the held-out RMS {start_rms[self.chosen_state]:.4f} "
+                self.log(f"initial state: fitting from the wipe on cuts the held-out RMS {start_rms[chosen]:.4f} "
                          f"-> {start_rms['wiped']:.4f} um, but no state before the record explains the rows before it "
                          f"({before_wipe['rms_before_wipe_um']:.4f} um RMS against "
                          f"{before_wipe['rms_before_wipe_from_rest_um']:.4f} from rest): a slow effect, not the start; "
                          f"the whole record is fitted")
+        return chosen, None
 
-    def _describe_start(self) -> None:
-        split, chosen_state = self.split, self.chosen_state
-        self.first = self.starts[chosen_state]
-        assumed = {"assumed": self.first.history.describe(), "fit_starts_at_s": split.wiped_at_s}
+    def _describe_start(self, starts: dict, start_rms: dict, chosen_state: str, estimate: dict,
+                        before_wipe: Optional[dict]) -> StartChoice:
+        split = self.split
+        first = starts[chosen_state]
+        assumed = {"assumed": first.history.describe(), "fit_starts_at_s": split.wiped_at_s}
         if chosen_state == "estimated":
             assumed["assumed"] += ": estimated from the record's rows before its input wiped the state out"
-            assumed["before_the_record"] = self.estimate
+            assumed["before_the_record"] = estimate
         if chosen_state == "wiped":
             assumed = {"assumed": f"unknown before the record: the fit and every decision use the record from "
                                   f"t = {split.wiped_at_s:.6g} s, where its input has come within "
                                   f"{100 * WIPE_MARGIN:g} % of both its extremes and so wiped the state out; the "
                                   f"operators start there as the record's input since its first sample left them",
                        "fit_starts_at_s": split.wiped_at_s,
-                       "before_the_record": self.before_wipe}
+                       "before_the_record": before_wipe}
         if not split.held_out:
             assumed["validation_record_start"] = (
                 "a separate session: each model's operator states at its first sample and the output G had settled "
                 "to before it (estimated on the rows until the input has wiped them out) and the session's sensor "
                 "offset (the whole record) estimated for it; its held-out error taken from that start, less that offset")
-        self.assumed = assumed
-        self.log("initial state: " + ", ".join(f"{h} {r:.4f}" for h, r in self.start_rms.items())
+        self.log("initial state: " + ", ".join(f"{h} {r:.4f}" for h, r in start_rms.items())
                  + " um held-out RMS; chosen "
                  + (f"{chosen_state}: the state before the record is unknown, the fit starts at t = "
                     f"{split.wiped_at_s:.4g} s, where the input has wiped it out" if chosen_state == "wiped"
                     else chosen_state))
-        self.log(f"G_v: {self.first.dynamics_note}")
+        self.log(f"G_v: {first.dynamics_note}")
+        return StartChoice(first, chosen_state, start_rms, assumed)
 
     # ------------------------------------------------------------------ 1b. the GPIM's capacity
-    def choose_capacity(self) -> None:
+    def choose_capacity(self, start: StartChoice) -> CapacityChoice:
         """The GPIM's number of thresholds, chosen on held-out data among CAPACITY_OPERATORS and the paper's
-        5-parameter fit's grid; sets ``baseline``, ``paper``, ``capacity``, ``capacity_label`` and
-        ``capacity_score``.  The sizes are compared on their held-out RMS, or, where a slow trend dominates it
+        5-parameter fit's grid, from ``start``'s model.  The sizes are compared on their held-out RMS, or, where a slow trend dominates it
         (TREND_DOMINANCE: a drift the baseline cannot follow, which would make every size look alike and the
         smallest win), on their held-out error about its trend."""
-        fit, first, pool = self.fit, self.first, self.pool
+        fit, first, pool = self.fit, start.first, self.pool
         paper_job = pool.submit(fit_paper_gpim, fit, first.sections, history=first.history)
         grids = {f"{n} operators": uniform_thresholds(fit.voltage_v, n) for n in CAPACITY_OPERATORS}
-        jobs = {label: pool.submit(self.capacity_fit, grid) for label, grid in grids.items()}
-        self.paper = paper = paper_job.result()
+        jobs = {label: pool.submit(self.capacity_fit, grid, first) for label, grid in grids.items()}
+        paper = paper_job.result()
         if paper.failed is None:
             label = f"paper grid ({paper.params.n} operators, alpha {paper.params.alpha:.4g} V)"
             grids[label] = paper.model.gpim.thresholds
-            jobs[label] = pool.submit(self.capacity_fit, grids[label])
+            jobs[label] = pool.submit(self.capacity_fit, grids[label], first)
         fits = {label: job.result() for label, job in jobs.items()}
         about_trend = (min(f.about_trend_um for f in fits.values())
                        < TREND_DOMINANCE * min(f.held_out_um for f in fits.values()))
@@ -458,23 +510,269 @@ class _Loop:
             if not (score(largest) < (1 - CAPACITY_TOLERANCE) * score(below)
                     and score(largest) <= min(score(c) for c in capacity)):
                 break
-            ladder.append(replace(self.capacity_fit(uniform_thresholds(fit.voltage_v, n)), label=f"{n} operators"))
+            ladder.append(replace(self.capacity_fit(uniform_thresholds(fit.voltage_v, n), first), label=f"{n} operators"))
             capacity.append(ladder[-1])
         best = min(score(c) for c in capacity)
         chosen = min((c for c in capacity if score(c) <= (1 + CAPACITY_TOLERANCE) * best), key=lambda c: c.operators)
         label = chosen.label
-        self.baseline = fit_model(fit, chosen.model, poles="baseline", cache=self.cache)
-        self.capacity, self.capacity_label = capacity, label
-        self.capacity_score = "held-out RMS about its trend" if about_trend else "held-out RMS"
-        self.log("capacity: " + ", ".join(f"{c.label} {score(c):.4f}" for c in capacity) + f" um {self.capacity_score}"
+        baseline = fit_model(fit, chosen.model, poles="baseline", cache=self.cache)
+        chosen_on = "held-out RMS about its trend" if about_trend else "held-out RMS"
+        self.log("capacity: " + ", ".join(f"{c.label} {score(c):.4f}" for c in capacity) + f" um {chosen_on}"
                  + (" (a trend dominates the held-out error; as it is: " + ", ".join(f"{c.held_out_um:.4f}" for c in capacity)
                     + " um)" if about_trend else "") + f"; chosen {label}")
+        return CapacityChoice(tuple(capacity), label, about_trend, chosen_on, baseline, paper)
 
-    def capacity_fit(self, thresholds: np.ndarray) -> "CapacityFit":
-        """A GPIM on ``thresholds`` fitted from the chosen start (G_v fixed), with its held-out figures."""
-        m = fit_model(self.fit, self.start_model(thresholds, self.first), poles="fixed", cache=self.cache)
+    def revisit_capacity(self, capacity: CapacityChoice, story: Story) -> tuple[CapacityChoice, Story]:
+        """Where ``story`` names two effects or more and the best smaller size scored within CAPACITY_REVISIT of the
+        chosen one (a knife edge), one of the effects may stand in for the grid: on the smaller size's baseline the
+        story less each of its effects is refitted exactly; where the best of them leaves a held-out RMS within
+        CAPACITY_TOLERANCE of the story's, the effects are confirmed, checked and swapped from it (``story``), and
+        that second story replaces the first when it names a part of the first's effects and still explains as
+        much (fewer names that explain as much)."""
+        if len(story.added) < 2:
+            return capacity, story
+        limit = (1 + CAPACITY_REVISIT) * capacity.chosen().score(capacity.about_trend)
+        smaller = [c for c in capacity.fits if c.operators < capacity.chosen().operators
+                   and c.score(capacity.about_trend) <= limit]
+        if not smaller:
+            return capacity, story
+        other = min(smaller, key=lambda c: c.score(capacity.about_trend))
+        before, effects = self.held_out(story.final).rms, ", ".join(story.added)
+        baseline = fit_model(self.fit, other.model, poles="baseline", cache=self.cache)
+        choice = _EffectChoice(self, baseline, other.label)
+        fewer = [[n for n in story.added if n != e] for e in story.added]
+        refits = choice.refit_many([(f, None) for f in fewer])
+        tried = ", ".join(f"{', '.join(f)} {score.rms:.4f}" for f, (_, score) in zip(fewer, refits))
+        best, (_, best_score) = min(zip(fewer, refits), key=lambda t: t[1][1].rms)
+        if best_score.rms > (1 + CAPACITY_TOLERANCE) * before:
+            self.log(f"capacity: {effects} found on {capacity.label}, where {other.label} scored within "
+                     f"{100 * CAPACITY_REVISIT:.0f} %; on {other.label} with one effect fewer: {tried} um held-out RMS "
+                     f"against {before:.4f} um: {capacity.label} kept")
+            return capacity, story
+        self.log(f"capacity: {effects} found on {capacity.label}, where {other.label} scored within "
+                 f"{100 * CAPACITY_REVISIT:.0f} %; on {other.label} with one effect fewer: {tried} um held-out RMS "
+                 f"against {before:.4f} um: the effects chosen again on {other.label} from {', '.join(best)}")
+        second = choice.story(best)
+        after, names = self.held_out(second.final).rms, ", ".join(second.added) or "nothing"
+        if set(second.added) < set(story.added) and after <= (1 + CAPACITY_TOLERANCE) * before:
+            self.log(f"capacity: {names} on {other.label} explains as much as {effects} on {capacity.label} (held-out "
+                     f"RMS {after:.4f} against {before:.4f} um): {other.label} kept")
+            chosen_on = (f"{capacity.chosen_on}; with the effects found, {other.label} ({names}, {after:.4f} um) "
+                         f"explains as much as {capacity.label} ({effects}, {before:.4f} um) with fewer effects")
+            return replace(capacity, label=other.label, chosen_on=chosen_on, baseline=baseline), second
+        self.log(f"capacity: {names} on {other.label}, held-out RMS {after:.4f} um against {before:.4f} um with "
+                 f"{effects}: {capacity.label} kept")
+        return capacity, story
+
+    def capacity_fit(self, thresholds: np.ndarray, first: ValveModel) -> CapacityFit:
+        """A GPIM on ``thresholds`` fitted from the chosen start's model ``first`` (G_v fixed), with its held-out
+        figures."""
+        m = fit_model(self.fit, self.start_model(thresholds, first), poles="fixed", cache=self.cache)
         error = self.error(m)
         return CapacityFit("", thresholds.size, m, rms(error), rms(_detrended(error)))
+
+    # ------------------------------------------------------------------ 4. what remains
+    def what_remains(self, story: Story) -> Remains:
+        """Size, peaks and shape of ``story``'s final held-out residual."""
+        split, final, noise, search = self.split, story.final, self.noise, story.choice.search
+        e_score = self.error(final)
+        structure = _structure(e_score, split.score.dt, noise, self.range_val)
+        final_set = frozenset(story.added)
+        closest = {n: 1.0 - search.score(final_set | {n}).rms / max(search.score(final_set).rms, 1e-30)
+                   for n in story.choice.names if n not in final_set}
+        near = max(closest.items(), key=lambda kv: kv[1]) if closest else ("none", 0.0)
+        peaks = _peak_structure(self.error(final, full=True), split.score_full.dt, noise, self.range_val)
+        structure.update(peaks)
+        measured = split.score_full.position_um[split.start_full:]
+        structure["held_out_noise_peak_um"] = noise_peak_um(measured, split.score_full.dt)
+        structure["held_out_noise_peak_pct"] = (100.0 * structure["held_out_noise_peak_um"] / self.range_val
+                                                if self.range_val > 0 else 0.0)
+        by_rms = structure["ratio_to_noise"] > UNEXPLAINED_NOISE_RATIO and structure["pct_of_range"] > MIN_STRUCTURE_PCT
+        by_peak = peaks["peak_ratio"] > PEAK_NOISE_RATIO and peaks["peak_pct_of_range"] > MIN_STRUCTURE_PCT
+        seen = (
+            f"held-out residual RMS {structure['rms_um']:.4f} um at {split.score.rate_hz:.0f} Hz, of which "
+            f"{structure['structured_rms_um']:.4f} um structured ({structure['ratio_to_noise']:.1f}x the sensor noise "
+            f"{noise:.4f} um, threshold {UNEXPLAINED_NOISE_RATIO:g}x); peaks: the {_ordinal(PEAK_RANK)} largest "
+            f"{1e3 * PEAK_BLOCK_S:g} ms peak {peaks['peak_um']:.3f} um at {split.score_full.rate_hz:.0f} Hz is "
+            f"{peaks['peak_ratio']:.1f}x what the noise gives ({peaks['expected_noise_peak_um']:.3f} um, threshold "
+            f"{PEAK_NOISE_RATIO:g}x; the held-out measurement's own noise peaks at "
+            f"{structure['held_out_noise_peak_um']:.3f} um about its local cubic); lag-1 autocorrelation "
+            f"{structure['lag1']:.2f}; strongest spectral line {structure['line_hz']:.3g} Hz "
+            f"({100 * structure['line_share']:.0f} % of residual power); closest catalogue effect: {near[0]} "
+            f"(would cut the held-out RMS by {100 * max(near[1], 0):.1f} %)")
+        self.log(("structure remains: " if by_rms or by_peak else "residual: ") + seen)
+        return Remains(structure, by_rms or by_peak, seen)
+
+    # ------------------------------------------------------------------ 5. figures at the record's own rate, report
+    def figures(self, model: ValveModel) -> dict:
+        split = self.split
+        return {"train": error_figures(split.fit_full.position_um,
+                                       split.fit_full.position_um - split.fit_error(model, True), self.range_um).as_dict(),
+                "validate": error_figures(split.score_full.position_um[split.start_full:],
+                                          split.score_full.position_um[split.start_full:] - self.error(model, full=True),
+                                          self.range_val).as_dict(),
+                "validate_analysis_rate": error_figures(split.score.position_um[split.start:],
+                                                        split.score.position_um[split.start:] - self.error(model),
+                                                        self.range_val).as_dict()}
+
+    def diagnosis(self, story: Story) -> list[dict]:
+        """Each effect's decision with its statistic, threshold and margin: the added ones by their exact
+        drop-one refits, the others added last to the final set in the linear search."""
+        added, names, final_set, search = story.added, story.choice.names, frozenset(story.added), story.choice.search
+        diagnosis = []
+        for n in names:
+            exact = n in story.verdicts and n in added
+            if exact:
+                cut, explained, _, without, with_ = story.verdicts[n]
+            else:
+                with_s, without_s = search.score(final_set | {n}), search.score(final_set)
+                cut, explained, _ = support(with_s, without_s, self.noise)
+                with_, without = with_s.rms, without_s.rms
+            diagnosis.append({"effect": n, "added": exact, "statistic": round(cut, 4), "threshold": GAIN_THRESHOLD,
+                              "margin": round(cut - GAIN_THRESHOLD, 4),
+                              "held_out_gain": round(cut, 4), "explained_rms_um": round(explained, 5),
+                              "evidence": _evidence(story.choice.by_name[n], cut, explained, without, with_, self.noise,
+                                                    exact=exact)})
+        diagnosis.sort(key=lambda d: (not d["added"], added.index(d["effect"]) if d["added"] else names.index(d["effect"])))
+        return diagnosis
+
+    def report(self, start: StartChoice, capacity: CapacityChoice, story: Story, remains: Remains
+               ) -> IdentificationReport:
+        split, baseline, final, paper = self.split, capacity.baseline, story.final, capacity.paper
+        unique = list({id(m): m for m in (baseline, final, paper.model)}.values())
+        figured = {id(m): f for m, f in zip(unique, self.each([lambda m=m: self.figures(m) for m in unique]))}  # once each
+        diagnosis = self.diagnosis(story)
+        choice = story.choice
+        alternatives = _alternatives(story.added, choice.names, story.verdicts, choice.search, choice.refit_many,
+                                     choice.by_name)
+        for a in alternatives:
+            self.log(f"cannot tell apart: {a['effect']} and {a['alternative']}: {a['why']}")
+        held_out_text = (f"held-out last {100 * HELD_OUT_FRACTION:.0f} % of the training record" if split.held_out
+                         else "separate validation record")
+        sessions, final_start = self.sessions_report(start, final)
+        report = {
+            "range_um": round(self.range_um, 4),
+            "baseline": {"model": baseline.name, "fit": capacity.label, **figured[id(baseline)],
+                         "G_v": describe_dynamics(baseline.dynamics, baseline.dynamics_note),
+                         "operators": baseline.gpim.n},
+            "effects_added": story.added,
+            "diagnosis": diagnosis,
+            "indistinguishable": alternatives,
+            "final": {"model": final.name, **figured[id(final)]},
+            "unexplained": bool(remains.unexplained),
+            "residual": remains.seen,
+            "residual_structure": {k: round(v, 6) for k, v in remains.structure.items()},
+            "baseline_fits": {
+                "capacity": [{"grid": c.label, "operators": c.operators, "held_out_rms_um": round(c.held_out_um, 6),
+                              "held_out_rms_about_trend_um": round(c.about_trend_um, 6)} for c in capacity.fits],
+                "chosen": capacity.label,
+                "chosen_on": capacity.chosen_on,
+                "initial_state": {"held_out_rms_um": {h: round(r, 6) for h, r in start.held_out_rms_um.items()},
+                                  "chosen": start.chosen, **start.assumed, **final_start},
+                "linear": {**figured[id(baseline)], "operators": baseline.gpim.n, "invertible": True},
+                "paper_nls": {**figured[id(paper.model)],
+                              "params": {k: getattr(paper.params, k) for k in ("a0", "a1", "alpha", "rho", "tau", "n",
+                                                                               "offset_um")},
+                              "fixed": "a0 = 1, a1 = 0: the 5-parameter form has two exact invariances (a0 with "
+                                       "alpha, rho, tau; a1 with the offset)",
+                              "condition_number": paper.condition_number, "evaluations": paper.evaluations,
+                              "failed": paper.failed},
+            },
+            "search": sorted(choice.table, key=lambda t: t["held_out_rms_um"]),
+            "confirm": story.confirm_log,
+            "rounds": story.confirm_log,  # earlier reports' name for the rounds of decisions
+            "validation": held_out_text,
+            "held_out_fraction": HELD_OUT_FRACTION if split.held_out else None,
+            "held_out_samples": len(split.score_full) - split.start_full,
+            "analysed": self.analysed,
+            "validate_range_um": round(self.range_val, 4),
+            "sample_rate_hz": round(self.full.rate_hz, 3),
+            "analysis_rate_hz": round(self.fit.rate_hz, 3),
+            "noise_floor_um": round(self.noise, 6),
+            "thresholds": {"held_out_gain": GAIN_THRESHOLD, "signature": GAIN_THRESHOLD,
+                           "min_effect_noise_ratio": MIN_EFFECT_NOISE_RATIO, "peak_tolerance": PEAK_TOLERANCE,
+                           "unexplained_noise_ratio": UNEXPLAINED_NOISE_RATIO, "unexplained_pct": MIN_STRUCTURE_PCT,
+                           "unexplained_peak_ratio": PEAK_NOISE_RATIO, "peak_block_s": PEAK_BLOCK_S,
+                           "peak_rank": PEAK_RANK, "capacity_tolerance": CAPACITY_TOLERANCE,
+                           "initial_state_tolerance": INITIAL_STATE_TOLERANCE, "wipe_gain": WIPE_GAIN,
+                           "wipe_state_gain": WIPE_STATE_GAIN, "wipe_margin": WIPE_MARGIN,
+                           "separation_share": SEPARATION_SHARE},
+            "sessions": sessions,
+            "transport_delay_s": round(final.delay_s, 7),
+            "warnings": self.warnings,
+            "final_model": final.describe(),
+            "seconds": round(time.monotonic() - self.started, 3),
+        }
+        b, f = report["baseline"]["validate"], report["final"]["validate"]
+        self.log(f"added: {', '.join(story.added) or 'nothing'}; held-out RMS {b['rms_um']:.4f} -> {f['rms_um']:.4f} um, "
+                 f"peak {b['peak_um']:.3f} -> {f['peak_um']:.3f} um at {self.full.rate_hz:.0f} Hz; unexplained: "
+                 f"{str(remains.unexplained).lower()} ({report['seconds']:.1f} s)")
+        return report
+
+    def sessions_report(self, start: StartChoice, final: ValveModel) -> tuple[list[dict], dict]:
+        """Each record as a session of its own, for the final model (``Session`` in the report's schema), and how
+        the final model started on a validation record (for the initial state's description)."""
+        first = start.first.history.describe() if self.split.wiped_at_s is None else start.assumed["assumed"]
+        out = [{"record": "training", "offset_um": 0.0, "start": first, "start_rows": 0, "start_rows_rms_um": 0.0}]
+        final_start = {}
+        session = self.session(final)
+        if session is not None:
+            final_start["validation_record_start_final_model"] = session.history.describe()
+            out.append({"record": "validation", "offset_um": round(session.offset_um, 6),
+                        "start": "its own, estimated for the model: " + session.history.describe(),
+                        "start_rows": session.rows, "start_rows_rms_um": round(session.first_rows_rms_um, 6)})
+            self.log(f"validation session: sensor offset {session.offset_um:+.4f} um against the training record's; "
+                     f"start estimated on its first {session.rows} rows ({session.first_rows_rms_um:.4f} um RMS there)")
+        return out, final_start
+
+    def check_held_out_range(self) -> None:
+        """Warn when the held-out data drive the valve beyond the fit part's voltage range: the operators that
+        only the held-out part moves (and whatever the valve does there) are not identified by the fit, and the
+        held-out error there is extrapolation, which no effect explains."""
+        fit_v, held_v = self.split.fit.voltage_v, self.split.score.voltage_v[self.split.start:]
+        lo, hi = float(np.min(fit_v)), float(np.max(fit_v))
+        margin = HELD_OUT_RANGE_MARGIN * (hi - lo)
+        below, above = float(np.min(held_v)), float(np.max(held_v))
+        beyond = max(lo - below, above - hi)
+        if beyond > margin:
+            where = "the validation record" if not self.split.held_out else "the held-out part"
+            self.warnings.append(f"{where} drives the valve to {below:.4g} .. {above:.4g} V, {beyond:.3g} V beyond the fit "
+                                 f"part's {lo:.4g} .. {hi:.4g} V ({100 * beyond / (hi - lo):.0f} % of its range): the fit "
+                                 f"cannot know the valve there, and the held-out error from there is extrapolation, "
+                                 f"which no effect explains (a training record should span every voltage the valve "
+                                 f"will see)")
+            self.log("warning: " + self.warnings[-1])
+
+    def run(self) -> Analysis:
+        start = self.choose_initial_state()
+        self.check_held_out_range()
+        capacity = self.choose_capacity(start)
+        story = _EffectChoice(self, capacity.baseline, capacity.label).story()
+        capacity, story = self.revisit_capacity(capacity, story)
+        remains = self.what_remains(story)
+        report = self.report(start, capacity, story, remains)
+        return Analysis(report, capacity.baseline, story.final, self.split, story.drop_one, self.sessions)
+
+
+class _EffectChoice:
+    """Steps 2 and 3 of the module's docstring on one baseline: every subset of the catalogue scored by one linear
+    solve (at construction), then exact refits and drop-one checks (``story``).  The exact refits are cached per
+    set (``refits``); the loop's records, noise, pools and caches are shared."""
+
+    def __init__(self, loop: "_Loop", baseline: ValveModel, label: str):
+        self.loop, self.baseline, self.label = loop, baseline, label
+        self.fit, self.split, self.noise, self.cache = loop.fit, loop.split, loop.noise, loop.cache
+        self.log, self.pool, self.each, self.each_form = loop.log, loop.pool, loop.each, loop.each_form
+        self.held_out, self.session, self.polishes = loop.held_out, loop.session, loop.polishes
+        self.confirm_log: list[dict] = []
+        self.effects: list[Effect] = []
+        self.by_name: dict[str, Effect] = {}
+        self.names: list[str] = []
+        self.search: Optional[SubsetSearch] = None
+        self.table: list[dict] = []
+        self.chosen_set: frozenset = frozenset()
+        self.search_subsets()
+        self.refits: dict[frozenset, tuple[ValveModel, Score]] = {frozenset(): (baseline, self.held_out(baseline))}
 
     # ------------------------------------------------------------------ 2. every subset, one linear solve each
     def search_subsets(self) -> None:
@@ -495,7 +793,7 @@ class _Loop:
                           "supported": all(c[2] for c in checks.values())})
         supported = [(t["held_out_rms_um"], len(t["effects"]), frozenset(t["effects"])) for t in table if t["supported"]]
         self.table, self.chosen_set = table, min(supported)[2]
-        self.log(f"search: {len(subsets)} subsets of {', '.join(names)}; best supported: "
+        self.log(f"search on {self.label}: {len(subsets)} subsets of {', '.join(names)}; best supported: "
                  f"{', '.join(n for n in names if n in self.chosen_set) or 'none'}")
 
     # ------------------------------------------------------------------ 3. exact refits and drop-one checks
@@ -738,14 +1036,16 @@ class _Loop:
                  f"{a} (the first-order search ranked {a} first); {a} replaced by {b}")
         return swapped
 
-    def extend(self) -> None:
-        """The winning subset confirmed; then effects the linear search underrated, checked exactly, and effects
-        that do better in an added one's place, swapped in (each change confirmed again); then G_v's poles again
-        through the effects found.  Sets ``final``, ``drop_one``, ``verdicts``, ``current``."""
-        self.confirm_log: list[dict] = []
-        self.refits: dict[frozenset, tuple[ValveModel, Score]] = {frozenset(): (self.baseline, self.held_out(self.baseline))}
-        current = [n for n in self.names if n in self.chosen_set]
-        final, drop_one, verdicts, current = self.untrusted_or_confirmed(current)
+    def story(self, start: Optional[list[str]] = None) -> Story:
+        """The winning subset (or ``start``) confirmed; then effects the linear search underrated, checked exactly,
+        and effects that do better in an added one's place, swapped in (each change confirmed again); then G_v's
+        poles again through the effects found.  The final model is never worse on held-out data than the baseline
+        (by the one score every decision used: ``held_out``)."""
+        if start is None:
+            final, drop_one, verdicts, current = self.untrusted_or_confirmed(
+                [n for n in self.names if n in self.chosen_set])
+        else:
+            final, drop_one, verdicts, current = self.confirm([n for n in self.names if n in start])
         tried: set[frozenset] = set()   # sets already put to confirm: each once (an effect added here and dropped
         while True:                     # by confirm would be added again, and dropped again, forever)
             changed = self.exact_addition(current, final, tried) or self.better_swap(current, verdicts, tried)
@@ -773,195 +1073,11 @@ class _Loop:
             else:
                 self.log(f"G_v: refitted with {', '.join(current)} ({polished.dynamics_note}) but the held-out RMS "
                          f"rose {before:.4f} -> {after:.4f} um; poles kept")
-        self.final, self.drop_one, self.verdicts, self.current = final, drop_one, verdicts, current
-        self._never_worse()
-
-    def _never_worse(self) -> None:
-        """The final model is never worse on held-out data than the baseline (by the one score every decision
-        used: ``held_out``)."""
-        if self.held_out(self.final).rms > self.held_out(self.baseline).rms:
+        if self.held_out(final).rms > self.held_out(self.baseline).rms:
             self.log("the extended model is worse on held-out data than the baseline: baseline kept")
-            self.final, self.drop_one, self.current = self.baseline, {}, []
-        self.added = [n for n in self.names if n in self.current]
-
-    # ------------------------------------------------------------------ 4. what remains
-    def what_remains(self) -> None:
-        """Size, peaks and shape of the final held-out residual; sets ``structure``, ``unexplained``, ``seen``."""
-        split, final, noise = self.split, self.final, self.noise
-        e_score = self.error(final)
-        structure = _structure(e_score, split.score.dt, noise, self.range_val)
-        final_set = frozenset(self.added)
-        closest = {n: 1.0 - self.search.score(final_set | {n}).rms / max(self.search.score(final_set).rms, 1e-30)
-                   for n in self.names if n not in final_set}
-        near = max(closest.items(), key=lambda kv: kv[1]) if closest else ("none", 0.0)
-        peaks = _peak_structure(self.error(final, full=True), split.score_full.dt, noise, self.range_val)
-        structure.update(peaks)
-        measured = split.score_full.position_um[split.start_full:]
-        structure["held_out_noise_peak_um"] = noise_peak_um(measured, split.score_full.dt)
-        structure["held_out_noise_peak_pct"] = (100.0 * structure["held_out_noise_peak_um"] / self.range_val
-                                                if self.range_val > 0 else 0.0)
-        by_rms = structure["ratio_to_noise"] > UNEXPLAINED_NOISE_RATIO and structure["pct_of_range"] > MIN_STRUCTURE_PCT
-        by_peak = peaks["peak_ratio"] > PEAK_NOISE_RATIO and peaks["peak_pct_of_range"] > MIN_STRUCTURE_PCT
-        self.unexplained = by_rms or by_peak
-        self.structure = structure
-        self.seen = (
-            f"held-out residual RMS {structure['rms_um']:.4f} um at {split.score.rate_hz:.0f} Hz, of which "
-            f"{structure['structured_rms_um']:.4f} um structured ({structure['ratio_to_noise']:.1f}x the sensor noise "
-            f"{noise:.4f} um, threshold {UNEXPLAINED_NOISE_RATIO:g}x); peaks: the {_ordinal(PEAK_RANK)} largest "
-            f"{1e3 * PEAK_BLOCK_S:g} ms peak {peaks['peak_um']:.3f} um at {split.score_full.rate_hz:.0f} Hz is "
-            f"{peaks['peak_ratio']:.1f}x what the noise gives ({peaks['expected_noise_peak_um']:.3f} um, threshold "
-            f"{PEAK_NOISE_RATIO:g}x; the held-out measurement's own noise peaks at "
-            f"{structure['held_out_noise_peak_um']:.3f} um about its local cubic); lag-1 autocorrelation "
-            f"{structure['lag1']:.2f}; strongest spectral line {structure['line_hz']:.3g} Hz "
-            f"({100 * structure['line_share']:.0f} % of residual power); closest catalogue effect: {near[0]} "
-            f"(would cut the held-out RMS by {100 * max(near[1], 0):.1f} %)")
-        self.log(("structure remains: " if self.unexplained else "residual: ") + self.seen)
-
-    # ------------------------------------------------------------------ 5. figures at the record's own rate, report
-    def figures(self, model: ValveModel) -> dict:
-        split = self.split
-        return {"train": error_figures(split.fit_full.position_um,
-                                       split.fit_full.position_um - split.fit_error(model, True), self.range_um).as_dict(),
-                "validate": error_figures(split.score_full.position_um[split.start_full:],
-                                          split.score_full.position_um[split.start_full:] - self.error(model, full=True),
-                                          self.range_val).as_dict(),
-                "validate_analysis_rate": error_figures(split.score.position_um[split.start:],
-                                                        split.score.position_um[split.start:] - self.error(model),
-                                                        self.range_val).as_dict()}
-
-    def diagnosis(self) -> list[dict]:
-        """Each effect's decision with its statistic, threshold and margin: the added ones by their exact
-        drop-one refits, the others added last to the final set in the linear search."""
-        added, names, final_set = self.added, self.names, frozenset(self.added)
-        diagnosis = []
-        for n in names:
-            exact = n in self.verdicts and n in added
-            if exact:
-                cut, explained, _, without, with_ = self.verdicts[n]
-            else:
-                with_s, without_s = self.search.score(final_set | {n}), self.search.score(final_set)
-                cut, explained, _ = support(with_s, without_s, self.noise)
-                with_, without = with_s.rms, without_s.rms
-            diagnosis.append({"effect": n, "added": exact, "statistic": round(cut, 4), "threshold": GAIN_THRESHOLD,
-                              "margin": round(cut - GAIN_THRESHOLD, 4),
-                              "held_out_gain": round(cut, 4), "explained_rms_um": round(explained, 5),
-                              "evidence": _evidence(self.by_name[n], cut, explained, without, with_, self.noise,
-                                                    exact=exact)})
-        diagnosis.sort(key=lambda d: (not d["added"], added.index(d["effect"]) if d["added"] else names.index(d["effect"])))
-        return diagnosis
-
-    def report(self) -> IdentificationReport:
-        split, baseline, final, paper = self.split, self.baseline, self.final, self.paper
-        unique = list({id(m): m for m in (baseline, final, paper.model)}.values())
-        figured = {id(m): f for m, f in zip(unique, self.each([lambda m=m: self.figures(m) for m in unique]))}  # once each
-        diagnosis = self.diagnosis()
-        alternatives = _alternatives(self.added, self.names, self.verdicts, self.search, self.refit_many,
-                                     self.by_name)
-        for a in alternatives:
-            self.log(f"cannot tell apart: {a['effect']} and {a['alternative']}: {a['why']}")
-        held_out_text = (f"held-out last {100 * HELD_OUT_FRACTION:.0f} % of the training record" if split.held_out
-                         else "separate validation record")
-        sessions = self.sessions_report()   # (says in ``assumed`` how the final model started on a validation record)
-        report = {
-            "range_um": round(self.range_um, 4),
-            "baseline": {"model": baseline.name, "fit": self.capacity_label, **figured[id(baseline)],
-                         "G_v": describe_dynamics(baseline.dynamics, baseline.dynamics_note),
-                         "operators": baseline.gpim.n},
-            "effects_added": self.added,
-            "diagnosis": diagnosis,
-            "indistinguishable": alternatives,
-            "final": {"model": final.name, **figured[id(final)]},
-            "unexplained": bool(self.unexplained),
-            "residual": self.seen,
-            "residual_structure": {k: round(v, 6) for k, v in self.structure.items()},
-            "baseline_fits": {
-                "capacity": [{"grid": c.label, "operators": c.operators, "held_out_rms_um": round(c.held_out_um, 6),
-                              "held_out_rms_about_trend_um": round(c.about_trend_um, 6)} for c in self.capacity],
-                "chosen": self.capacity_label,
-                "chosen_on": self.capacity_score,
-                "initial_state": {"held_out_rms_um": {h: round(r, 6) for h, r in self.start_rms.items()},
-                                  "chosen": self.chosen_state, **self.assumed},
-                "linear": {**figured[id(baseline)], "operators": baseline.gpim.n, "invertible": True},
-                "paper_nls": {**figured[id(paper.model)],
-                              "params": {k: getattr(paper.params, k) for k in ("a0", "a1", "alpha", "rho", "tau", "n",
-                                                                               "offset_um")},
-                              "fixed": "a0 = 1, a1 = 0: the 5-parameter form has two exact invariances (a0 with "
-                                       "alpha, rho, tau; a1 with the offset)",
-                              "condition_number": paper.condition_number, "evaluations": paper.evaluations,
-                              "failed": paper.failed},
-            },
-            "search": sorted(self.table, key=lambda t: t["held_out_rms_um"]),
-            "confirm": self.confirm_log,
-            "rounds": self.confirm_log,  # earlier reports' name for the rounds of decisions
-            "validation": held_out_text,
-            "held_out_fraction": HELD_OUT_FRACTION if split.held_out else None,
-            "held_out_samples": len(split.score_full) - split.start_full,
-            "analysed": self.analysed,
-            "validate_range_um": round(self.range_val, 4),
-            "sample_rate_hz": round(self.full.rate_hz, 3),
-            "analysis_rate_hz": round(self.fit.rate_hz, 3),
-            "noise_floor_um": round(self.noise, 6),
-            "thresholds": {"held_out_gain": GAIN_THRESHOLD, "signature": GAIN_THRESHOLD,
-                           "min_effect_noise_ratio": MIN_EFFECT_NOISE_RATIO, "peak_tolerance": PEAK_TOLERANCE,
-                           "unexplained_noise_ratio": UNEXPLAINED_NOISE_RATIO, "unexplained_pct": MIN_STRUCTURE_PCT,
-                           "unexplained_peak_ratio": PEAK_NOISE_RATIO, "peak_block_s": PEAK_BLOCK_S,
-                           "peak_rank": PEAK_RANK, "capacity_tolerance": CAPACITY_TOLERANCE,
-                           "initial_state_tolerance": INITIAL_STATE_TOLERANCE, "wipe_gain": WIPE_GAIN,
-                           "wipe_state_gain": WIPE_STATE_GAIN, "wipe_margin": WIPE_MARGIN,
-                           "separation_share": SEPARATION_SHARE},
-            "sessions": sessions,
-            "transport_delay_s": round(final.delay_s, 7),
-            "warnings": self.warnings,
-            "final_model": final.describe(),
-            "seconds": round(time.monotonic() - self.started, 3),
-        }
-        b, f = report["baseline"]["validate"], report["final"]["validate"]
-        self.log(f"added: {', '.join(self.added) or 'nothing'}; held-out RMS {b['rms_um']:.4f} -> {f['rms_um']:.4f} um, "
-                 f"peak {b['peak_um']:.3f} -> {f['peak_um']:.3f} um at {self.full.rate_hz:.0f} Hz; unexplained: "
-                 f"{str(self.unexplained).lower()} ({report['seconds']:.1f} s)")
-        return report
-
-    def sessions_report(self) -> list[dict]:
-        """Each record as a session of its own, for the final model (``Session`` in the report's schema)."""
-        first = self.first.history.describe() if self.split.wiped_at_s is None else self.assumed["assumed"]
-        out = [{"record": "training", "offset_um": 0.0, "start": first, "start_rows": 0, "start_rows_rms_um": 0.0}]
-        session = self.session(self.final)
-        if session is not None:
-            self.assumed["validation_record_start_final_model"] = session.history.describe()
-            out.append({"record": "validation", "offset_um": round(session.offset_um, 6),
-                        "start": "its own, estimated for the model: " + session.history.describe(),
-                        "start_rows": session.rows, "start_rows_rms_um": round(session.first_rows_rms_um, 6)})
-            self.log(f"validation session: sensor offset {session.offset_um:+.4f} um against the training record's; "
-                     f"start estimated on its first {session.rows} rows ({session.first_rows_rms_um:.4f} um RMS there)")
-        return out
-
-    def check_held_out_range(self) -> None:
-        """Warn when the held-out data drive the valve beyond the fit part's voltage range: the operators that
-        only the held-out part moves (and whatever the valve does there) are not identified by the fit, and the
-        held-out error there is extrapolation, which no effect explains."""
-        fit_v, held_v = self.split.fit.voltage_v, self.split.score.voltage_v[self.split.start:]
-        lo, hi = float(np.min(fit_v)), float(np.max(fit_v))
-        margin = HELD_OUT_RANGE_MARGIN * (hi - lo)
-        below, above = float(np.min(held_v)), float(np.max(held_v))
-        beyond = max(lo - below, above - hi)
-        if beyond > margin:
-            where = "the validation record" if not self.split.held_out else "the held-out part"
-            self.warnings.append(f"{where} drives the valve to {below:.4g} .. {above:.4g} V, {beyond:.3g} V beyond the fit "
-                                 f"part's {lo:.4g} .. {hi:.4g} V ({100 * beyond / (hi - lo):.0f} % of its range): the fit "
-                                 f"cannot know the valve there, and the held-out error from there is extrapolation, "
-                                 f"which no effect explains (a training record should span every voltage the valve "
-                                 f"will see)")
-            self.log("warning: " + self.warnings[-1])
-
-    def run(self) -> Analysis:
-        self.choose_initial_state()
-        self.check_held_out_range()
-        self.choose_capacity()
-        self.search_subsets()
-        self.extend()
-        self.what_remains()
-        report = self.report()
-        return Analysis(report, self.baseline, self.final, self.split, self.drop_one, self.sessions)
+            final, drop_one, current = self.baseline, {}, []
+        return Story(self.baseline, final, [n for n in self.names if n in current], drop_one, verdicts,
+                     self.confirm_log, self)
 
 
 def _detrended(error: np.ndarray) -> np.ndarray:
