@@ -366,6 +366,17 @@ def test_every_executable_answers_help_without_starting_anything(executable):
     assert "[INFO]" not in proc.stdout + proc.stderr and "rig up" not in proc.stdout  # no node was started
 
 
+@pytest.mark.parametrize("executable", ["valve_hardware", "valve_composed", "valve_identify", "valve_command"])
+def test_help_into_a_reader_that_stops_early_ends_without_a_traceback(executable):
+    """``valve_hardware --help | head -1``: the reader closes the pipe before the help is written; the executable
+    ends quietly (exit 0), as a shell user expects."""
+    exe = os.path.join(os.path.dirname(sys.executable), executable)
+    proc = subprocess.Popen([exe, "--help"], env=ros_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()   # the reader is gone before the first byte
+    err = proc.stderr.read().decode()
+    assert proc.wait(60) == 0 and "Traceback" not in err and "BrokenPipe" not in err, err
+
+
 def test_hardware_applies_its_real_time_priority_and_cpus(tmp_path):
     """realtime.priority / realtime.cpus reach every thread of the process (DDS's included), or the node
     refuses to start with the OS's reason and what to do."""

@@ -166,9 +166,12 @@ def test_a_rate_dependent_model_swap_keeps_the_valves_memory(strategy):
         for k in range(n):
             if k == swap and new_model is not None:
                 before = ctl.ff_inverse.peek_forward(ctl._last_ff_v)
+                before_loop = ctl.loop_inverse.peek_forward(ctl.last_command_v)
                 ctl.set_model(new_model)
-                if same:   # the same model predicts the same output from the carried state
+                if same:   # the same model predicts the same output from the carried state (the in-loop inverse
+                    # too: a follower keeps the widening it was given, its own outputs' rate is never used)
                     assert abs(ctl.ff_inverse.peek_forward(ctl._last_ff_v) - before) < 1e-9
+                    assert abs(ctl.loop_inverse.peek_forward(ctl.last_command_v) - before_loop) < 1e-9
             v[k] = ctl.step(ref[k], y)
             y = sim.step(v[k])
         return v, ctl

@@ -4,6 +4,7 @@ from __future__ import annotations
 import array
 import gc
 import math
+import os
 import threading
 import time
 from dataclasses import dataclass
@@ -397,12 +398,17 @@ def wants_help(args=None) -> bool:
 def print_help(name: str, doc: Optional[str], specs=()) -> None:
     """What a node executable prints for ``--help`` (it does not start the node): usage, its docstring and
     every parameter of ``specs`` with type, default, range and whether it is read-only."""
-    print(f"usage: {name} [--ros-args [-p NAME:=VALUE]... [--params-file FILE] [-r __ns:=/NAMESPACE]]\n")
-    print((doc or "").strip())
+    import sys
+    lines = [f"usage: {name} [--ros-args [-p NAME:=VALUE]... [--params-file FILE] [-r __ns:=/NAMESPACE]]\n",
+             (doc or "").strip()]
     if specs:
-        print("\nparameters (read-only ones are taken at start-up only):")
-        for s in specs:
-            print(s.help_line())
+        lines.append("\nparameters (read-only ones are taken at start-up only):")
+        lines += [s.help_line() for s in specs]
+    try:
+        sys.stdout.write("\n".join(lines) + "\n")
+        sys.stdout.flush()
+    except BrokenPipeError:   # the reader stopped early (``--help | head``): nothing more to say, and no traceback
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
 def run_node(factory: Callable[[], Node], name: str, args=None, on_exit_of=None, specs=()) -> int:

@@ -76,7 +76,7 @@ def widening_problems(widening_v: Sequence[float]) -> list[str]:
 
 class RateWidening:
     """Streaming ``w`` [V]: ``value`` is the widening for the next sample; ``advance(v)`` after each input.
-    Allocation-free per sample; the same numbers as :func:`rate_terms` on the same inputs."""
+    No array per sample (a few floats); the same numbers as :func:`rate_terms` on the same inputs."""
 
     def __init__(self, widening_v: Sequence[float], dt: float, v0: float = CENTRE_VOLTAGE_V):
         problems = widening_problems(widening_v)
@@ -85,6 +85,11 @@ class RateWidening:
         self.coefficients = tuple(float(x) for x in widening_v) or (0.0,) * TERM_COUNT
         self.dt = float(dt)
         self._a = [_lag_pole(tau, self.dt) for tau in RATE_FILTERS_S]
+        self._b = [1.0 - a for a in self._a]
+        # (filter index, scale [V/s], coefficient [V]) of each non-zero term, filter-major
+        self._terms = [(i, s, self.coefficients[i * len(RATE_SCALES_V_S) + k])
+                       for i in range(len(RATE_FILTERS_S)) for k, s in enumerate(RATE_SCALES_V_S)
+                       if self.coefficients[i * len(RATE_SCALES_V_S) + k]]
         self.reset(v0)
 
     def reset(self, v0: float) -> None:
@@ -94,18 +99,13 @@ class RateWidening:
         self.value = self._widening()
 
     def _widening(self) -> float:
-        w, i, c = 0.0, 0, self.coefficients
-        for rho in self.rho:
-            for s in RATE_SCALES_V_S:
-                w += c[i] * (rho / (rho + s))
-                i += 1
-        return w
+        rho = self.rho
+        return sum([c * (rho[i] / (rho[i] + s)) for i, s, c in self._terms])
 
     def advance(self, v: float) -> float:
         """Take the input [V] applied this sample; returns the widening [V] for the next one."""
         rate = abs(v - self._last_v) / self.dt
-        for i, a in enumerate(self._a):
-            self.rho[i] = (1.0 - a) * rate + a * self.rho[i]
+        self.rho = [b * rate + a * rho for a, b, rho in zip(self._a, self._b, self.rho)]
         self._last_v = float(v)
         self.value = self._widening()
         return self.value
@@ -188,10 +188,13 @@ class RateDependentInverseGPIM(MonotoneInverseGPIM):
         if follow is not None:
             self._use_widening(follow.applied_widening_v)
         v = super().step(y_um)
-        self.applied_widening_v = follow.applied_widening_v if follow is not None else self.rate.value
-        self.rate.advance(v)
-        # until the next step: a follower keeps the widening it was just given (what peeks should see)
-        self._use_widening(self.applied_widening_v if follow is not None else None)
+        if follow is not None:   # a follower's own rate history is never used: it keeps the widening it was just
+            self.applied_widening_v = follow.applied_widening_v   # given until the next step (what peeks see)
+            self._use_widening(self.applied_widening_v)
+        else:
+            self.applied_widening_v = self.rate.value
+            self.rate.advance(v)
+            self._use_widening()
         return v
 
     def reset(self, v0: float = CENTRE_VOLTAGE_V) -> None:
@@ -205,7 +208,7 @@ class RateDependentInverseGPIM(MonotoneInverseGPIM):
         """Take over a rate history (``RateWidening.state``)."""
         self.rate.set_state(state)
         self.applied_widening_v = self.rate.value if applied_widening_v is None else float(applied_widening_v)
-        self._use_widening()
+        self._use_widening(self.applied_widening_v if self.follow is not None else None)
 
     def with_model(self, model: GPIM, v_now: float):
         return swap_inverse(self, model, self.rate.coefficients, self.rate.dt, v_now, self.v_min, self.v_max,
