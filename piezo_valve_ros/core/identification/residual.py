@@ -776,7 +776,8 @@ class _EffectChoice:
 
     # ------------------------------------------------------------------ 2. every subset, one linear solve each
     def search_subsets(self) -> None:
-        """Sets ``effects``, ``by_name``, ``names``, ``search``, ``table`` and ``chosen_set``."""
+        """Every subset of the catalogue scored by one linear solve from the baseline (at construction): sets
+        ``effects``, ``by_name``, ``names``, ``search``, ``table`` and ``chosen_set`` (the best supported subset)."""
         baseline, fit = self.baseline, self.fit
         H_fit = baseline.context(fit).H
         self.effects = [e for e in (cls.prepare(fit, H_fit) for cls in CATALOGUE) if e is not None]
