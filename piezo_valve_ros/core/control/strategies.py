@@ -467,6 +467,10 @@ class ValveController:
         c = self.config
         law = REGISTRY[c.strategy]
         v_last = self.last_command_v
+        if law.shaped_reference and not REGISTRY[old_strategy].shaped_reference:
+            # G_v ran only under a law that follows it: it starts settled at the reference (what was followed)
+            self._gv.reset(self._last_ref_um)
+            self._last_gv_out = self._last_ref_um
         # the error the new law would have seen in the last period
         e = (self._last_gv_out if law.shaped_reference else self._last_ref_um) - self._last_measured_um
         self._last_error = e
@@ -548,8 +552,8 @@ class ValveController:
         self._last_ff_v, self._last_ff_demand_um = ff_v, ff_demand
         if self._swap_from is not None:
             self._take_over_swap(s, self._swap_from.peek(ff_demand) - ff_v)
-        gv_out = self._gv.step(y_ref)
-        self._last_gv_out = gv_out
+        # G_v shapes the reference only for a law that follows it (the fallback of one keeps it running)
+        gv_out = self._last_gv_out = self._gv.step(y_ref) if REGISTRY[c.strategy].shaped_reference else y_ref
         y = measured_m * 1e6
         self._last_measured_um = y
         law = REGISTRY[s]
@@ -575,7 +579,8 @@ class ValveController:
         else:
             base = c.centre_voltage_v if law.inverse == NO_INVERSE else ff_v
             v = self._finish(base + u / self._k, e, di)
-        self._guard()
+        if self._rail or not self._away_from_rails:   # off the rails and already away from them: nothing to watch
+            self._guard()
         return v
 
     def _finish(self, v_raw: float, e: float, di: float, demand_clip: int = 0,
