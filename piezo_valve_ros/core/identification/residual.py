@@ -539,7 +539,7 @@ class _Loop:
         other = min(smaller, key=lambda c: c.score(capacity.about_trend))
         before, effects = self.held_out(story.final).rms, ", ".join(story.added)
         baseline = fit_model(self.fit, other.model, poles="baseline", cache=self.cache)
-        choice = _EffectChoice(self, baseline, other.label)
+        choice = _EffectChoice(self, baseline, other.label, search=False)   # the search only if it is taken further
         fewer = [[n for n in story.added if n != e] for e in story.added]
         refits = choice.refit_many([(f, None) for f in fewer])
         tried = ", ".join(f"{', '.join(f)} {score.rms:.4f}" for f, (_, score) in zip(fewer, refits))
@@ -552,6 +552,7 @@ class _Loop:
         self.log(f"capacity: {effects} found on {capacity.label}, where {other.label} scored within "
                  f"{100 * CAPACITY_REVISIT:.0f} %; on {other.label} with one effect fewer: {tried} um held-out RMS "
                  f"against {before:.4f} um: the effects chosen again on {other.label} from {', '.join(best)}")
+        choice.search_subsets()
         second = choice.story(best)
         after, names = self.held_out(second.final).rms, ", ".join(second.added) or "nothing"
         if set(second.added) < set(story.added) and after <= (1 + CAPACITY_TOLERANCE) * before:
@@ -759,31 +760,29 @@ class _EffectChoice:
     solve (at construction), then exact refits and drop-one checks (``story``).  The exact refits are cached per
     set (``refits``); the loop's records, noise, pools and caches are shared."""
 
-    def __init__(self, loop: "_Loop", baseline: ValveModel, label: str):
+    def __init__(self, loop: "_Loop", baseline: ValveModel, label: str, search: bool = True):
         self.loop, self.baseline, self.label = loop, baseline, label
         self.fit, self.split, self.noise, self.cache = loop.fit, loop.split, loop.noise, loop.cache
         self.log, self.pool, self.each, self.each_form = loop.log, loop.pool, loop.each, loop.each_form
         self.held_out, self.session, self.polishes = loop.held_out, loop.session, loop.polishes
         self.confirm_log: list[dict] = []
-        self.effects: list[Effect] = []
-        self.by_name: dict[str, Effect] = {}
-        self.names: list[str] = []
+        H_fit = baseline.context(self.fit).H
+        self.effects: list[Effect] = [e for e in (cls.prepare(self.fit, H_fit) for cls in CATALOGUE) if e is not None]
+        self.by_name: dict[str, Effect] = {e.name: e for e in self.effects}
+        self.names: list[str] = [e.name for e in self.effects]
         self.search: Optional[SubsetSearch] = None
         self.table: list[dict] = []
         self.chosen_set: frozenset = frozenset()
-        self.search_subsets()
+        if search:
+            self.search_subsets()
         self.refits: dict[frozenset, tuple[ValveModel, Score]] = {frozenset(): (baseline, self.held_out(baseline))}
 
     # ------------------------------------------------------------------ 2. every subset, one linear solve each
     def search_subsets(self) -> None:
-        """Every subset of the catalogue scored by one linear solve from the baseline (at construction): sets
-        ``effects``, ``by_name``, ``names``, ``search``, ``table`` and ``chosen_set`` (the best supported subset)."""
-        baseline, fit = self.baseline, self.fit
-        H_fit = baseline.context(fit).H
-        self.effects = [e for e in (cls.prepare(fit, H_fit) for cls in CATALOGUE) if e is not None]
-        self.by_name = {e.name: e for e in self.effects}
+        """Every subset of the catalogue scored by one linear solve from the baseline (at construction, unless
+        told not to): sets ``search``, ``table`` and ``chosen_set`` (the best supported subset)."""
+        baseline, names = self.baseline, self.names
         self.search = search = SubsetSearch(baseline, self.split, self.effects, self.each, self.session(baseline))
-        self.names = names = [e.name for e in self.effects]
         subsets = [frozenset(c) for r in range(len(names) + 1) for c in itertools.combinations(names, r)]
         table = []
         for s in subsets:
