@@ -531,9 +531,9 @@ class _Loop:
         much (fewer names that explain as much)."""
         if len(story.added) < 2:
             return capacity, story
-        limit = (1 + CAPACITY_REVISIT) * capacity.chosen().score(capacity.about_trend)
-        smaller = [c for c in capacity.fits if c.operators < capacity.chosen().operators
-                   and c.score(capacity.about_trend) <= limit]
+        chosen = capacity.chosen()
+        limit = (1 + CAPACITY_REVISIT) * chosen.score(capacity.about_trend)
+        smaller = [c for c in capacity.fits if c.operators < chosen.operators and c.score(capacity.about_trend) <= limit]
         if not smaller:
             return capacity, story
         other = min(smaller, key=lambda c: c.score(capacity.about_trend))
@@ -544,14 +544,13 @@ class _Loop:
         refits = choice.refit_many([(f, None) for f in fewer])
         tried = ", ".join(f"{', '.join(f)} {score.rms:.4f}" for f, (_, score) in zip(fewer, refits))
         best, (_, best_score) = min(zip(fewer, refits), key=lambda t: t[1][1].rms)
+        looked = (f"capacity: {effects} found on {capacity.label}, where {other.label} scored within "
+                  f"{100 * CAPACITY_REVISIT:.0f} %; on {other.label} with one effect fewer: {tried} um held-out RMS "
+                  f"against {before:.4f} um: ")
         if best_score.rms > (1 + CAPACITY_TOLERANCE) * before:
-            self.log(f"capacity: {effects} found on {capacity.label}, where {other.label} scored within "
-                     f"{100 * CAPACITY_REVISIT:.0f} %; on {other.label} with one effect fewer: {tried} um held-out RMS "
-                     f"against {before:.4f} um: {capacity.label} kept")
+            self.log(looked + f"{capacity.label} kept")
             return capacity, story
-        self.log(f"capacity: {effects} found on {capacity.label}, where {other.label} scored within "
-                 f"{100 * CAPACITY_REVISIT:.0f} %; on {other.label} with one effect fewer: {tried} um held-out RMS "
-                 f"against {before:.4f} um: the effects chosen again on {other.label} from {', '.join(best)}")
+        self.log(looked + f"the effects chosen again on {other.label} from {', '.join(best)}")
         choice.search_subsets()
         second = choice.story(best)
         after, names = self.held_out(second.final).rms, ", ".join(second.added) or "nothing"
@@ -757,11 +756,12 @@ class _Loop:
 
 class _EffectChoice:
     """Steps 2 and 3 of the module's docstring on one baseline: every subset of the catalogue scored by one linear
-    solve (at construction), then exact refits and drop-one checks (``story``).  The exact refits are cached per
-    set (``refits``); the loop's records, noise, pools and caches are shared."""
+    solve (``search_subsets``, at construction unless ``search`` is False), then exact refits and drop-one checks
+    (``story``).  The exact refits are cached per set (``refits``); the loop's records, noise, pools and caches
+    are shared."""
 
     def __init__(self, loop: "_Loop", baseline: ValveModel, label: str, search: bool = True):
-        self.loop, self.baseline, self.label = loop, baseline, label
+        self.baseline, self.label = baseline, label
         self.fit, self.split, self.noise, self.cache = loop.fit, loop.split, loop.noise, loop.cache
         self.log, self.pool, self.each, self.each_form = loop.log, loop.pool, loop.each, loop.each_form
         self.held_out, self.session, self.polishes = loop.held_out, loop.session, loop.polishes
