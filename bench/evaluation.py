@@ -149,7 +149,7 @@ def compare_compensations(sim_config: ValveSimConfig, strategies: dict[str, Cont
     reference = validation_reference_m(sim_config.dt, validation_s, amplitude_um)
     runs = {(name, label): tracking_test(config, model, sim_config, reference)
             for name, model in models.items() for label, config in strategies.items()}
-    return CompensationResult(list(analysis.report["effects_added"]), dict(extended.refused),
+    return CompensationResult(list(analysis.report.effects_added), dict(extended.refused),
                               {key: run.measured for key, run in runs.items()},
                               {key: run.spool for key, run in runs.items()}, strategies,
                               model_tracking_test(models["extended"], sim_config, reference))

@@ -69,7 +69,7 @@ def identify_one(bag: str) -> None:
     t0 = time.perf_counter()
     analysis, _ = identify_bags(bag, log=lambda s: None)
     seconds = time.perf_counter() - t0
-    r = analysis.report
+    r = analysis.report.to_json()
     print(json.dumps({"seconds": seconds, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                       "effects": r["effects_added"], "unexplained": r["unexplained"], "analysed": r["analysed"],
                       "held_out_rms_um": [r["baseline"]["validate"]["rms_um"], r["final"]["validate"]["rms_um"]]}))

@@ -132,14 +132,14 @@ def main():
                 train, val = make_pair(d, cfg, dt)
                 n = read_samples(train)[0].shape[0] + read_samples(val)[0].shape[0]
                 t_ours, (analysis, _) = timed(lambda: identify_bags(train, val, log=lambda s: None))
-                r = analysis.report
+                r = analysis.report.to_json()
                 print(f"{rate_hz:5d} Hz, {name}: {n} samples in the pair")
                 print(f"   ours                          {t_ours:6.2f} s  (target < 10 s): added {r['effects_added']}, "
                       f"held-out RMS {r['baseline']['validate']['rms_um']:.3f} -> {r['final']['validate']['rms_um']:.3f} um")
                 tr = Record.from_rows(read_samples(train)[0])
                 va = Record.from_rows(read_samples(val)[0])
                 t_one, one = timed(lambda: analyse(tr, va, threads=1))
-                same = one.report["effects_added"] == r["effects_added"]
+                same = one.report.to_json()["effects_added"] == r["effects_added"]
                 print(f"   ours, refits on one thread    {t_one:6.2f} s  ({t_one / t_ours:.1f}x; same effects: {same})")
                 if args.load:
                     t_load, _ = timed_under_load(lambda: identify_bags(train, val, log=lambda s: None))
@@ -149,7 +149,7 @@ def main():
                 if rate_hz == 10000:
                     t_full, full = timed(lambda: analyse(tr, va, max_rate_hz=float("inf")))
                     print(f"   straightforward, full rate    {t_full:6.2f} s  -> ours is {t_full / t_ours:4.1f}x faster; "
-                          f"added {full.report['effects_added']}")
+                          f"added {full.report.to_json()['effects_added']}")
                 else:
                     t_ex, scores = timed(lambda: exhaustive_exact(tr, va))
                     best = min(scores, key=lambda s: s[1])
@@ -160,13 +160,13 @@ def main():
         n = len(train) + (len(validate) if validate is not None else 0)
         t, a = timed(lambda: analyse(train, validate))
         t_one, _ = timed(lambda: analyse(train, validate, threads=1))
-        r = a.report
+        r = a.report.to_json()
         print(f"   {label}: {n} samples, {t:6.2f} s ({t_one:6.2f} s on one thread); added {r['effects_added']}, "
               f"held-out RMS {r['baseline']['validate']['rms_um']:.3f} -> {r['final']['validate']['rms_um']:.3f} um")
         if args.load:
             t_load, loaded = timed_under_load(lambda: analyse(train, validate))
             print(f"      two busy loops beside {t_load:6.2f} s ({t_load / t:.1f}x the quiet run; same effects: "
-                  f"{loaded.report['effects_added'] == r['effects_added']})")
+                  f"{loaded.report.to_json()['effects_added'] == r['effects_added']})")
     if args.markdown:
         print.write_markdown(args.markdown, "bench/identify_speed.py",
                              " (seconds on this shared 2-core machine; compare ratios within one run)")

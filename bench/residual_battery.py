@@ -118,11 +118,11 @@ def main():
         for name, valve, declared, drive in cases:
             train = Record.from_rows(valve.rows(drive(train_v), 1))
             validate = Record.from_rows(valve.rows(drive(valid_v), 2)) if mode == "validation record" else None
-            report = analyse(train, validate).report
+            report = analyse(train, validate).report.to_json()
             rows.append(row(f"{name} ({mode})", declared, report))
             print(" | ".join(rows[-1]), flush=True)
     for name, pre in vb.PRE_HISTORIES.items():
-        report = analyse(Record.from_rows(vb.rows_after(vb.NOMINAL, pre, train_v, 11))).report
+        report = analyse(Record.from_rows(vb.rows_after(vb.NOMINAL, pre, train_v, 11))).report.to_json()
         rows.append(row(f"nominal, driven {name} before the record (held-out last 30 %)", "none", report))
         print(" | ".join(rows[-1]), flush=True)
     from piezo_valve_ros.core.sim.simulator import CreepParams, SensorParams, ValveSimConfig
@@ -134,13 +134,13 @@ def main():
             train = Record.from_rows(vb.closed_loop_rows(config, strategy, gains, 1))
             for mode, validate in (("validation record", Record.from_rows(vb.closed_loop_rows(config, strategy, gains, 2))),
                                    ("held-out last 30 %", None)):
-                report = analyse(train, validate).report
+                report = analyse(train, validate).report.to_json()
                 rows.append(row(f"closed loop under {strategy}, {valve_name} valve ({mode})", declared, report))
                 print(" | ".join(rows[-1]), flush=True)
     data = os.path.join(TEST_DIR, "data", "smart_hysteresis")
     for label, path in (("measured piezo record, 1.5 s window, 1 kHz", "hysteresis_v_150_1hz_1khz.csv"),
                         ("measured piezo record, whole, 1 kHz means", "hysteresis_v_150_1hz_1khz_full.csv")):
-        report = analyse(read_csv(os.path.join(data, path))).report
+        report = analyse(read_csv(os.path.join(data, path))).report.to_json()
         rows.append(row(f"{label} (held-out last 30 %)", "unknown", report))
         print(" | ".join(rows[-1]), flush=True)
     notes = []
@@ -148,7 +148,7 @@ def main():
     a = np.genfromtxt(WHOLE_RECORD, delimiter=",")[:, 1:]   # the source's first column is empty
     full = Record(a[:, 0], a[:, 2], a[:, 1])
     analysis = analyse(full)
-    report = analysis.report
+    report = analysis.report.to_json()
     rows.append(row("measured piezo record, whole, 5 kHz (held-out last 30 %)", "unknown", report))
     print(" | ".join(rows[-1]), flush=True)
     start = report["baseline_fits"]["initial_state"]["fit_starts_at_s"] or float(full.time_s[0])

@@ -30,7 +30,7 @@ RECORDS = ((1, 1.0), (2, 0.85), (3, 1.0), (4, 0.9), (5, 0.95))   # (seed, traini
 def judge(train_rows, validate_rows) -> tuple[dict, float]:
     started = time.monotonic()
     report = analyse(Record(train_rows[:, 0], train_rows[:, 1], train_rows[:, 2]),
-                     Record(validate_rows[:, 0], validate_rows[:, 1], validate_rows[:, 2])).report
+                     Record(validate_rows[:, 0], validate_rows[:, 1], validate_rows[:, 2])).report.to_json()
     return report, time.monotonic() - started
 
 

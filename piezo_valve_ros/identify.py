@@ -10,6 +10,7 @@ import json
 import math
 import os
 import tempfile
+from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable, Optional
@@ -23,6 +24,7 @@ from .core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 from .core.monitoring.health import Health, HealthLimits, HealthMonitor, Level
 from .io.params_yaml import node_section, yaml_value
 from .core.identification.records import MAX_ANALYSED_S, Record, read_csv
+from .core.identification.report import IdentificationReport
 from .core.runs import WHOLE_RECORD, TimeWindow, WindowError
 from .core.identification.residual import Analysis, analyse
 from .core.identification.to_controller import (Compensation, base_parameters, baseline_compensation, compensation,
@@ -99,11 +101,10 @@ def identify_bags(train_bag, validate_bag=None, topic: Optional[str] = None,
     validate = (None if validate_bag is None
                 else read_record(validate_bag, topic, log, damaged, longest_s=MAX_ANALYSED_S)[0])
     analysis = analyse(train, validate, log=log)
-    analysis.report["warnings"] = damaged + list(analysis.report.get("warnings", []))
-    analysis.report["source"] = {"train_bag": str(train_bag), "validate_bag": None if validate_bag is None
-                                 else str(validate_bag), "topic": name,
-                                 "train_window": {**window.as_dict(), "first_sample_s": float(train.time_s[0]),
-                                                  "last_sample_s": float(train.time_s[-1]), "samples": len(train)}}
+    source = {"train_bag": str(train_bag), "validate_bag": None if validate_bag is None else str(validate_bag),
+              "topic": name, "train_window": {**window.as_dict(), "first_sample_s": float(train.time_s[0]),
+                                              "last_sample_s": float(train.time_s[-1]), "samples": len(train)}}
+    analysis.report = replace(analysis.report, warnings=tuple(damaged) + analysis.report.warnings, source=source)
     return analysis, name
 
 
@@ -176,14 +177,15 @@ def command_range_note(comp: Compensation) -> tuple[dict, str]:
             f"gives a model for the whole drive")
 
 
-def controller_parameters_yaml(comp: Compensation, source: str, report: dict, extra: Optional[dict] = None,
+def controller_parameters_yaml(comp: Compensation, source: str, report: IdentificationReport,
+                               extra: Optional[dict] = None,
                                extra_comments: Optional[list[str]] = None) -> str:
     """A ROS parameters file for ``valve_controller`` with the compensation model (and ``extra`` parameters,
     e.g. tuned gains), and comments that say what it is and what was left out.  Where the record drove only part
     of the 0..10 V drive, the file limits the commands to what the model knows (``command_range_note``)."""
     comments = [f"Fitted by valve_identify from {source}",
-                f"final model {report['final']['model']}; held-out RMS {report['baseline']['validate']['rms_um']:.4f} "
-                f"um (baseline {report['baseline']['model']}) -> {report['final']['validate']['rms_um']:.4f} um",
+                f"final model {report.final.model}; held-out RMS {report.baseline.validate.rms_um:.4f} "
+                f"um (baseline {report.baseline.model}) -> {report.final.validate.rms_um:.4f} um",
                 f"compensation model: {comp.model.name}"]
     limits, note = command_range_note(comp)
     comments += [f"not compensated: {why}" for why in comp.refused.values()] + ([note] if note else [])
@@ -278,5 +280,5 @@ def summary_json(steps: list[dict]) -> str:
 
 def report_json(analysis: Analysis) -> str:
     """The report as JSON, opened by what it is: schema name and version, the package's version, when."""
-    return json.dumps({"schema": _schema_block(REPORT_SCHEMA, REPORT_SCHEMA_VERSION), **analysis.report},
+    return json.dumps(replace(analysis.report, schema=_schema_block(REPORT_SCHEMA, REPORT_SCHEMA_VERSION)).to_json(),
                       indent=2) + "\n"

@@ -63,7 +63,7 @@ def test_a_clearance_is_checked_before_the_controller_uses_it():
 
 @pytest.mark.slow
 def test_a_valve_with_backlash_is_named_backlash_with_its_width_and_nothing_else():
-    report = _analysis().report
+    report = _analysis().report.to_json()
     assert report["effects_added"] == ["backlash"], (report["effects_added"], report["residual"])
     assert report["final"]["validate"]["rms_um"] < 1.5 * report["noise_floor_um"]
     assert report["final"]["validate"]["rms_um"] < 0.6 * report["baseline"]["validate"]["rms_um"]

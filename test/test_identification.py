@@ -58,7 +58,7 @@ CATALOGUE_CASES = [name for name, valve in BATTERY.items() if valve.effects]
 
 @pytest.mark.parametrize("name", CATALOGUE_CASES)
 def test_each_undeclared_effect_is_named_exactly_and_halves_the_held_out_peak(name):
-    report = analysis_of(name).report
+    report = analysis_of(name).report.to_json()
     assert sorted(report["effects_added"]) == sorted(BATTERY[name].effects), report["effects_added"]
     assert report["final"]["validate"]["peak_um"] <= 0.5 * report["baseline"]["validate"]["peak_um"]
     assert report["final"]["validate"]["rms_um"] < report["baseline"]["validate"]["rms_um"]
@@ -73,7 +73,7 @@ def test_a_record_that_cannot_separate_two_effects_says_which_and_why():
     t = np.arange(int(round(30.6 / DT))) * DT
     volts = np.clip((t - 0.2) / 0.1, 0.0, 1.0) * 3.0 + 5.0 + 0.3 * np.sin(2 * np.pi * 3.0 * t)
     valve = BATTERY["creep, level-dependent log kernel"]
-    report = analyse(Record.from_rows(valve.rows(volts, 1)), Record.from_rows(valve.rows(volts, 2))).report
+    report = analyse(Record.from_rows(valve.rows(volts, 1)), Record.from_rows(valve.rows(volts, 2))).report.to_json()
     assert report["effects_added"] == ["creep"]
     pair, = report["indistinguishable"]
     assert (pair["effect"], pair["alternative"]) == ("creep", "drift")
@@ -88,6 +88,33 @@ def test_a_record_that_cannot_separate_two_effects_says_which_and_why():
     assert check_report(report) == []          # the typed schema, its indistinguishable entries too
 
 
+def test_the_report_is_a_frozen_typed_tree_whose_json_is_report_json():
+    """``Analysis.report`` is the typed tree (attribute access, frozen); ``to_json`` gives what report.json holds:
+    the schema's keys and the earlier reports' aliases, JSON-serialisable, and a written report's own blocks
+    only where they are set."""
+    import dataclasses
+    import json
+    from piezo_valve_ros.core.identification.report import (ConfirmRound, Decision, ErrorFigures, IdentificationReport,
+                                                            SearchRow)
+    report = analysis_of("masking pair: creep + drift").report
+    assert isinstance(report, IdentificationReport) and report.effects_added == ("creep", "drift")
+    assert isinstance(report.final.validate, ErrorFigures) and report.final.validate.rms_um < report.baseline.validate.rms_um
+    assert all(isinstance(d, Decision) for d in report.diagnosis) and {d.effect for d in report.diagnosis if d.added} == {"creep", "drift"}
+    assert all(isinstance(r, SearchRow) for r in report.search) and all(isinstance(r, ConfirmRound) for r in report.confirm)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        report.unexplained = True
+    data = report.to_json()
+    assert json.loads(json.dumps(data)) == data and check_report(data) == []
+    assert "source" not in data and "schema" not in data
+    assert data["rounds"] == data["confirm"] and data["thresholds"]["signature"] == data["thresholds"]["held_out_gain"]
+    assert list(data)[list(data).index("confirm") + 1] == "rounds"
+    assert data["final"]["validate"] == dataclasses.asdict(report.final.validate)
+    written = dataclasses.replace(report, source={"train_bag": "a"}, schema={"name": "x"}).to_json()
+    assert list(written)[0] == "schema" and written["source"] == {"train_bag": "a"}
+    assert check_report(written) == []
+    assert check_report({**data, "diagnosis": [{"effect": "creep"}]})[0].startswith("report.diagnosis[0]: added missing")
+
+
 @pytest.mark.parametrize("name", ["nominal", "creep, level-dependent log kernel",
                                   "dynamics, lightly damped spool mode", "dynamics, loop width growing with the input rate",
                                   "asymmetry, curved descending envelope", "saturation, one-sided soft end stop",
@@ -97,7 +124,7 @@ def test_held_out_tail_gives_the_same_names(name):
     """(The drift cases: fitting only after the input's wipe cuts their held-out error too, since a drift
     shows most early on, but no state before the record explains their first rows: a slow effect, not a
     remanent start, so the whole record is fitted and the drift named.)"""
-    report = analysis_of(name, held_out=True).report
+    report = analysis_of(name, held_out=True).report.to_json()
     assert sorted(report["effects_added"]) == sorted(BATTERY[name].effects)
     if BATTERY[name].effects:
         assert report["final"]["validate"]["peak_um"] <= 0.5 * report["baseline"]["validate"]["peak_um"]
@@ -107,7 +134,7 @@ def test_held_out_tail_gives_the_same_names(name):
 @pytest.mark.parametrize("held_out", [False, True])
 def test_nominal_valve_adds_nothing_and_final_is_the_baseline(held_out):
     a = analysis_of("nominal", held_out)
-    report = a.report
+    report = a.report.to_json()
     assert report["effects_added"] == [] and report["unexplained"] is False
     for part in ("train", "validate"):
         assert report["final"][part] == report["baseline"][part]
@@ -120,14 +147,14 @@ def test_nominal_valve_adds_nothing_and_final_is_the_baseline(held_out):
 
 
 def test_the_baseline_fits_g_v_and_says_where_its_poles_came_from():
-    g = analysis_of("nominal").report["baseline"]["G_v"]
+    g = analysis_of("nominal").report.to_json()["baseline"]["G_v"]
     assert g["source"].startswith("paper (fitted poles")  # the valve has the paper's G_v: nothing to gain
     poles = sorted(abs(complex(*p)) for p in g["poles_rad_s"])
     assert poles == pytest.approx([500.0, 2400.0], rel=1e-6)
     # a valve whose G_v is not the paper's: fitted
     other = replace(NOMINAL, dynamics=replace(NOMINAL.dynamics, den=(1.0, 2150.0, 630000.0), num=(630000.0,)))
     train = Record.from_rows(other.rows(TRAIN_V, 1))
-    report = analyse(train).report
+    report = analyse(train).report.to_json()
     g = report["baseline"]["G_v"]
     assert g["source"].startswith("fitted")
     fitted = sorted(abs(complex(*p)) for p in g["poles_rad_s"])
@@ -138,7 +165,7 @@ def test_the_baseline_fits_g_v_and_says_where_its_poles_came_from():
 def test_a_slow_record_falls_back_to_the_paper_g_v_and_warns():
     valve = NOMINAL
     rows = valve.rows(training_voltage(2e-3), 1, dt=2e-3)  # 500 Hz
-    report = analyse(Record.from_rows(rows)).report
+    report = analyse(Record.from_rows(rows)).report.to_json()
     # G_v's poles are tried at any rate; the paper's (poles near 80 and 380 Hz) are kept where 500 Hz cannot tell
     assert report["baseline"]["G_v"]["source"].startswith("paper (")
     assert any(w.startswith("the record is sampled at 500 Hz, below 1000 Hz: what happens faster than its Nyquist "
@@ -146,7 +173,7 @@ def test_a_slow_record_falls_back_to_the_paper_g_v_and_warns():
 
 
 def test_capacity_is_chosen_on_held_out_data():
-    report = analysis_of("nominal").report
+    report = analysis_of("nominal").report.to_json()
     cap = report["baseline_fits"]["capacity"]
     assert len(cap) >= 5
     best = min(c["held_out_rms_um"] for c in cap)
@@ -172,7 +199,7 @@ def test_a_degenerate_paper_fit_is_reported_failed_and_not_used():
     # no hysteresis at all: a straight line; the 5-parameter fit can only run its thresholds to a bound
     t = np.arange(TRAIN_V.size) * DT
     y = 13.0 * (TRAIN_V - 5.0) + 0.05 * np.random.default_rng(3).standard_normal(t.size)
-    report = analyse(Record(t, TRAIN_V, y)).report
+    report = analyse(Record(t, TRAIN_V, y)).report.to_json()
     nls = report["baseline_fits"]["paper_nls"]
     assert nls["failed"] and "bound" in nls["failed"]
     assert not any(c["grid"].startswith("paper grid") for c in report["baseline_fits"]["capacity"])
@@ -180,7 +207,7 @@ def test_a_degenerate_paper_fit_is_reported_failed_and_not_used():
 
 
 def test_dead_zone_of_a_micrometre_is_flagged_unexplained():
-    report = analysis_of("dead zone, 1 um").report
+    report = analysis_of("dead zone, 1 um").report.to_json()
     assert report["unexplained"] is True
     assert report["residual_structure"]["ratio_to_noise"] > UNEXPLAINED_NOISE_RATIO
     assert "closest catalogue effect" in report["residual"]
@@ -193,7 +220,7 @@ def test_dead_zone_of_a_micrometre_is_flagged_unexplained():
 def test_backlash_of_a_micrometre_is_flagged_by_its_peaks_not_its_rms(held_out):
     """A backlash on the output leaves an RMS near the noise (no effect pays for it) but a peak at every
     reversal, three times what the noise gives: unexplained, and the report says it was the peaks."""
-    report = analysis_of("backlash, 1 um", held_out).report
+    report = analysis_of("backlash, 1 um", held_out).report.to_json()
     structure = report["residual_structure"]
     assert report["final"]["validate"]["rms_um"] < 1.5 * report["noise_floor_um"]
     assert structure["ratio_to_noise"] < UNEXPLAINED_NOISE_RATIO                  # not by its RMS ...
@@ -203,12 +230,12 @@ def test_backlash_of_a_micrometre_is_flagged_by_its_peaks_not_its_rms(held_out):
 
 def test_peaks_of_a_well_explained_valve_stay_at_the_noise():
     for name in ("nominal", "saturation, off-centre tanh", "masking pair: creep + drift"):
-        structure = analysis_of(name).report["residual_structure"]
+        structure = analysis_of(name).report.to_json()["residual_structure"]
         assert structure["peak_ratio"] < 0.8 * residual.PEAK_NOISE_RATIO, (name, structure)
 
 
 def test_structure_outside_the_catalogue_is_reported_with_its_spectral_line():
-    report = analysis_of("mechanical hum, 7.3 Hz").report
+    report = analysis_of("mechanical hum, 7.3 Hz").report.to_json()
     assert report["unexplained"] is True and report["effects_added"] == []
     assert report["residual_structure"]["line_hz"] == pytest.approx(7.3, abs=0.1)
 
@@ -216,12 +243,12 @@ def test_structure_outside_the_catalogue_is_reported_with_its_spectral_line():
 def test_held_out_split_is_the_contract_s_last_30_percent():
     assert HELD_OUT_FRACTION == 0.3  # CONTRACT.md: "holds out the last 30 % of the record in time"
     a = analysis_of("nominal", held_out=True)
-    report = a.report
+    report = a.report.to_json()
     n = len(TRAIN_V)
     assert report["held_out_fraction"] == 0.3
     assert abs(report["held_out_samples"] - 0.3 * n) <= a.split.fit.block + 1
     assert report["validation"] == "held-out last 30 % of the training record"
-    assert analysis_of("nominal").report["held_out_fraction"] is None
+    assert analysis_of("nominal").report.to_json()["held_out_fraction"] is None
 
 
 @pytest.mark.parametrize("rate_hz", [1000.0, 2000.0, 5000.0, 10000.0])
@@ -258,7 +285,7 @@ def test_the_held_out_figures_come_from_the_held_out_part():
         assert np.array_equal(spoilt.held_out_error(model, full=True), e)
         moved = replaced(split, score_full=Record(rec.time_s, rec.voltage_v, rec.position_um + np.where(tail, 0.3, 0.0)))
         assert np.allclose(moved.held_out_error(model, full=True), e + 0.3)
-    assert a.report["final"]["validate"]["rms_um"] == pytest.approx(float(np.sqrt(np.mean(
+    assert a.report.to_json()["final"]["validate"]["rms_um"] == pytest.approx(float(np.sqrt(np.mean(
         split.held_out_error(a.final, full=True) ** 2))), abs=5e-7)   # (the report gives 6 decimals)
 
 
@@ -294,7 +321,7 @@ def test_confirmation_drops_an_effect_its_exact_drop_one_refit_does_not_support(
 def test_held_out_figures_are_at_the_record_s_rate():
     a = analysis_of("nominal")
     e = a.held_out_error(full=True)
-    assert a.report["final"]["validate"]["rms_um"] == pytest.approx(float(np.sqrt(np.mean(e ** 2))), rel=1e-5)
+    assert a.report.to_json()["final"]["validate"]["rms_um"] == pytest.approx(float(np.sqrt(np.mean(e ** 2))), rel=1e-5)
     assert e.size == len(VALID_V)
 
 
@@ -333,7 +360,7 @@ def test_identified_creep_compensation_cuts_the_step_and_hold_error():
     train = Record.from_rows(simulate_rows(identification_voltage(dt), replace(config, seed=1)))
     validate = Record.from_rows(simulate_rows(validation_voltage(dt), replace(config, seed=2)))
     a = analyse(train, validate)
-    assert a.report["effects_added"] == ["creep"]
+    assert a.report.to_json()["effects_added"] == ["creep"]
     from piezo_valve_ros.identify import compensation
     with_creep = compensation(a, dynamic_feedforward=False).controller_model
     assert with_creep.creep.active
@@ -369,7 +396,7 @@ def test_a_real_piezo_record_is_fitted_to_its_noise_and_nothing_is_invented():
     README): the record is cut from running operation, so the operators must start "cycled" (from rest they
     get the first swing wrong by far more than the noise); the baseline then fits to about the sensor noise,
     and the loop neither adds an effect nor reports unexplained structure."""
-    report = analyse(read_csv(REAL_RECORD)).report
+    report = analyse(read_csv(REAL_RECORD)).report.to_json()
     start = report["baseline_fits"]["initial_state"]
     assert start["chosen"] == "cycled"
     assert start["held_out_rms_um"]["rest"] > 5 * start["held_out_rms_um"]["cycled"]
@@ -388,7 +415,7 @@ def test_a_real_record_that_starts_remanent_is_judged_after_its_input_wiped_the_
     an earlier, unrecorded excitation), then the 1 Hz sine.  Neither rest nor cycled describes that start;
     the fit starts where the sine has reached both extremes, the report says so and estimates the state
     before the record, nothing is added, and the held-out error is at the noise (the issue's bound)."""
-    report = analyse(read_csv(FULL_REAL_RECORD)).report
+    report = analyse(read_csv(FULL_REAL_RECORD)).report.to_json()
     start = report["baseline_fits"]["initial_state"]
     assert start["chosen"] == "wiped"
     assert 3.9 < start["fit_starts_at_s"] < 4.3                     # the sine reached -150 V then +150 V
@@ -411,7 +438,7 @@ def test_a_shorter_cut_of_the_real_record_is_judged_the_same(end_s):
     first cycle bent the weights, and dynamics + asymmetry or creep + saturation were "justified" against
     that poor baseline.)"""
     full = read_csv(FULL_REAL_RECORD)
-    report = analyse(full.slice(0, int(np.sum(full.time_s <= end_s)))).report
+    report = analyse(full.slice(0, int(np.sum(full.time_s <= end_s)))).report.to_json()
     assert report["baseline_fits"]["initial_state"]["chosen"] == "wiped"
     assert report["effects_added"] == [] and report["unexplained"] is False
     held_out = report["final"]["validate"]
@@ -426,7 +453,7 @@ def test_a_drift_on_the_real_record_does_not_hide_the_loop_structure_from_the_ca
     drift is named, and the held-out error comes down to the record's own (0.037 um without the drift)."""
     full = read_csv(FULL_REAL_RECORD)
     drifting = Record(full.time_s, full.voltage_v, full.position_um + 0.1 * (full.time_s - full.time_s[0]))
-    report = analyse(drifting).report
+    report = analyse(drifting).report.to_json()
     fits = report["baseline_fits"]
     assert fits["chosen_on"] == "held-out RMS about its trend"
     assert report["baseline"]["operators"] > max(CAPACITY_OPERATORS)
@@ -435,7 +462,7 @@ def test_a_drift_on_the_real_record_does_not_hide_the_loop_structure_from_the_ca
     assert "drift" in report["effects_added"]
     assert report["final"]["validate"]["rms_um"] < 0.045, report["final"]["validate"]
     # the record itself, without a trend to dominate, is compared as it is
-    assert analyse(full).report["baseline_fits"]["chosen_on"] == "held-out RMS"
+    assert analyse(full).report.to_json()["baseline_fits"]["chosen_on"] == "held-out RMS"
 
 
 SOURCE_RECORD = Path(__file__).parent / "data" / "smart_hysteresis" / "hysteresis_v_150_1hz.csv.xz"
@@ -448,7 +475,7 @@ def test_the_whole_real_record_at_its_own_5_khz_is_fitted_to_its_noise():
     on this record lies above 0.55 % of the range: no model reaches a lower peak, so that target cannot be
     met at 5 kHz, and the test says so rather than pinning a figure no predictor reaches."""
     a = np.genfromtxt(SOURCE_RECORD, delimiter=",")[:, 1:]         # the source's first column is empty
-    report = analyse(Record(a[:, 0], a[:, 2], a[:, 1])).report
+    report = analyse(Record(a[:, 0], a[:, 2], a[:, 1])).report.to_json()
     assert report["sample_rate_hz"] == pytest.approx(5000.0, rel=1e-3)
     start = report["baseline_fits"]["initial_state"]
     assert start["chosen"] == "wiped" and 3.9 < start["fit_starts_at_s"] < 4.3
@@ -474,9 +501,9 @@ def test_a_simulated_valve_with_an_unrecorded_pre_history_adds_nothing(pre_histo
     of the same valve's error on a record started from rest.  After the largest excursion (to the top of
     the range) the start is judged unknown, and the state before the record is estimated near 10 V."""
     rows = rows_after(NOMINAL, PRE_HISTORIES[pre_history], TRAIN_V, 11)
-    remanent = analyse(Record.from_rows(rows)).report
+    remanent = analyse(Record.from_rows(rows)).report.to_json()
     from_rest = computed_once("test_identification.from_rest",
-                              lambda: analyse(Record.from_rows(NOMINAL.rows(TRAIN_V, 11))).report)
+                              lambda: analyse(Record.from_rows(NOMINAL.rows(TRAIN_V, 11))).report.to_json())
     assert from_rest["baseline_fits"]["initial_state"]["chosen"] == "rest"
     assert remanent["effects_added"] == [] and remanent["unexplained"] is False
     assert remanent["final"]["validate"]["rms_um"] <= 1.5 * from_rest["final"]["validate"]["rms_um"]
@@ -501,7 +528,7 @@ def test_a_closed_loop_record_of_a_nominal_valve_adds_nothing(strategy, gains):
     from valve_battery import closed_loop_rows
     config = replace(ValveSimConfig(dt=1e-3).ideal(), dynamics_enabled=True, sensor=SensorParams())
     train, validate = (Record.from_rows(closed_loop_rows(config, strategy, gains, seed)) for seed in (1, 2))
-    report = analyse(train, validate).report
+    report = analyse(train, validate).report.to_json()
     assert report["effects_added"] == [] and report["unexplained"] is False
     start = report["baseline_fits"]["initial_state"]
     assert start["chosen"] == "estimated" and start["held_out_rms_um"]["estimated"] < 0.9 * start["held_out_rms_um"]["rest"]
@@ -528,7 +555,7 @@ def test_a_closed_loop_record_of_a_creeping_valve_names_creep(strategy, gains):
     plain = replace(ValveSimConfig(dt=1e-3).ideal(), dynamics_enabled=True, sensor=SensorParams())
     config = replace(plain, creep=CreepParams(True, (0.03, 0.03, 0.03), (0.1, 1.0, 10.0)))
     train, validate = (Record.from_rows(closed_loop_rows(config, strategy, gains, seed)) for seed in (1, 2))
-    report = analyse(train, validate).report
+    report = analyse(train, validate).report.to_json()
     assert report["effects_added"] == ["creep"]
     start = report["baseline_fits"]["initial_state"]
     assert start["chosen"] == "estimated"
@@ -555,7 +582,7 @@ def test_a_150_v_drive_is_judged_in_its_own_volts(case, held_out):
     valve = WIDE[name]
     train = Record.from_rows(valve.rows(wide_drive(TRAIN_V), 1))
     validate = None if held_out else Record.from_rows(valve.rows(wide_drive(VALID_V), 2))
-    report = analyse(train, validate).report
+    report = analyse(train, validate).report.to_json()
     assert report["effects_added"] == WIDE_CASES[case] and report["unexplained"] is False
     assert report["final"]["validate"]["rms_um"] < 1.6 * report["noise_floor_um"]
     assert_every_name_is_supported(report)
@@ -569,7 +596,7 @@ def test_a_mild_additive_rate_dependence_is_named_dynamics(held_out):
     from valve_battery import mild_rate_widening
     valve = replace(NOMINAL, threshold_add=mild_rate_widening(0.06))
     train = Record.from_rows(valve.rows(TRAIN_V, 1))
-    report = analyse(train, None if held_out else Record.from_rows(valve.rows(VALID_V, 2))).report
+    report = analyse(train, None if held_out else Record.from_rows(valve.rows(VALID_V, 2))).report.to_json()
     assert report["effects_added"] == ["dynamics"]
     assert report["final"]["validate"]["rms_um"] < 0.5 * report["baseline"]["validate"]["rms_um"]
     assert_every_name_is_supported(report)
@@ -579,7 +606,7 @@ def test_a_mild_additive_rate_dependence_is_named_dynamics(held_out):
 def test_the_report_does_not_depend_on_the_number_of_threads():
     """Refits run on a thread pool; the judgement and every figure must be the same on one thread."""
     train, validate = records("masking pair: creep + drift")
-    reports = [analyse(train, validate, threads=n).report for n in (1, 3)]
+    reports = [analyse(train, validate, threads=n).report.to_json() for n in (1, 3)]
     for r in reports:
         r.pop("seconds")
     assert reports[0] == reports[1]
@@ -671,7 +698,7 @@ def test_where_the_first_order_search_is_not_trusted_the_effects_are_chosen_by_e
     config = replace(base, gpim=replace(base.gpim, rho=6.6, tau=1.0, offset_um=-75.0))
     rows = simulate_rows(np.repeat(rig_training_voltage(1e-3, 30.0, 0.25), 10), config)
     said = []
-    report = analyse(Record.from_rows(rows), log=said.append).report
+    report = analyse(Record.from_rows(rows), log=said.append).report.to_json()
     chosen = [line.split(":")[1].split()[0] for line in said
               if line.startswith("exact selection: ") and " cuts the held-out RMS " in line]
     assert chosen == ["creep", "saturation", "dynamics"], said
@@ -691,11 +718,11 @@ def test_held_out_data_beyond_the_training_range_are_warned_of():
     the full range, the same validation record gives no warning."""
     squeezed = 5.0 + 0.5 * (TRAIN_V - 5.0)
     validate = Record.from_rows(NOMINAL.rows(VALID_V, 2))
-    report = analyse(Record.from_rows(NOMINAL.rows(squeezed, 1)), validate).report
+    report = analyse(Record.from_rows(NOMINAL.rows(squeezed, 1)), validate).report.to_json()
     warned = [w for w in report["warnings"] if "beyond the fit part's" in w]
     assert len(warned) == 1 and warned[0].startswith("the validation record drives the valve to "), report["warnings"]
     assert check_report(report) == []
-    assert analysis_of("nominal").report["warnings"] == []
+    assert analysis_of("nominal").report.to_json()["warnings"] == []
 
 
 def test_an_effects_refit_is_settled_not_one_solve_deep():
@@ -735,7 +762,7 @@ def test_a_valve_slower_than_its_g_v_gets_the_extra_pole_pair():
     dynamics effect is added."""
     from evaluation import SIMULATED_EFFECTS, simulated_analysis
     a = simulated_analysis(SIMULATED_EFFECTS["slow dynamics"](ValveSimConfig(dt=1e-3)), log=lambda s: None)
-    r = a.report
+    r = a.report.to_json()
     assert "dynamics" in r["effects_added"] and not r["unexplained"], r["residual"]
     assert len(a.final.sections) == 2
     resonant = min(a.final.sections, key=lambda s: s[1])
@@ -748,7 +775,7 @@ def test_a_fast_creep_does_not_bend_the_identified_g_v():
     baseline's poles to 462/3248 rad/s; refitted with creep in the model they are the valve's 500/2400."""
     from evaluation import simulated_analysis
     a = simulated_analysis(ValveSimConfig(dt=1e-3), log=lambda s: None)
-    assert "creep" in a.report["effects_added"]
+    assert "creep" in a.report.to_json()["effects_added"]
     true = [500.0, 2400.0]
     baseline = sorted(np.abs(np.roots(a.baseline.dynamics.den)))
     final = sorted(np.abs(np.roots(a.final.dynamics.den)))
@@ -756,7 +783,7 @@ def test_a_fast_creep_does_not_bend_the_identified_g_v():
     assert baseline != pytest.approx(true, rel=0.1)   # what the refit with the effects corrects
     assert a.final.dynamics_note.startswith("fitted with the effects")
     # each effect's drop-one model (the plots' "without it") is on the same poles: the difference is the effect
-    assert set(a.drop_one) == set(a.report["effects_added"])
+    assert set(a.drop_one) == set(a.report.to_json()["effects_added"])
     assert all(m.sections == a.final.sections for m in a.drop_one.values())
 
 
@@ -807,4 +834,5 @@ def test_the_handbooks_python_example_runs_as_written():
     exec(compile(block, "identification.md", "exec"), {"print": lambda *a, **k: None}, scope)
     from piezo_valve_ros.core.control import CompensationModel
     assert isinstance(scope["controller_model"], CompensationModel)
-    assert scope["analysis"].report["final"]["validate"]["rms_um"] < scope["analysis"].report["baseline"]["validate"]["rms_um"]
+    assert scope["analysis"].report.final.validate.rms_um < scope["analysis"].report.baseline.validate.rms_um
+    assert scope["report_json"] == scope["analysis"].report.to_json()

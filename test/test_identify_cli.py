@@ -364,7 +364,7 @@ def test_a_noise_free_record_is_judged_against_its_resolution_not_a_noise_of_1e_
     from piezo_valve_ros.core.identification.records import Record
     from piezo_valve_ros.core.identification.residual import analyse
     rows = simulate_rows(identification_voltage(5e-4, 10.0), ValveSimConfig(dt=5e-4, seed=5).ideal())
-    report = analyse(Record.from_rows(rows)).report
+    report = analyse(Record.from_rows(rows)).report.to_json()
     assert report["noise_floor_um"] == pytest.approx(1e-6 * report["range_um"], rel=1e-3)
     assert any("shows no sensor noise" in w for w in report["warnings"])
     assert report["residual_structure"]["ratio_to_noise"] < 1e7
@@ -499,13 +499,13 @@ def test_the_loop_analyses_the_first_part_of_a_long_record_and_says_so():
     n = rows.shape[0]
     reps = int(np.ceil(1.6 * MAX_ANALYSED_S / (n * 1e-3)))
     long = Record(np.arange(n * reps) * 1e-3, np.tile(rows[:, 1], reps), np.tile(rows[:, 2], reps) * 1e6)
-    report = analyse(long).report
+    report = analyse(long).report.to_json()
     a = report["analysed"]["train"]
     assert a["from_s"] == 0.0 and a["to_s"] == MAX_ANALYSED_S and a["samples"] == int(MAX_ANALYSED_S * 1000) + 1
     assert a["of_samples"] == n * reps
     assert any(f"its first {MAX_ANALYSED_S:.0f} s" in w for w in report["warnings"])
     assert report["held_out_samples"] == a["samples"] - int(round(0.7 * a["samples"])) or \
         abs(report["held_out_samples"] - 0.3 * a["samples"]) < 2000
-    short = analyse(Record(rows[:, 0], rows[:, 1], rows[:, 2] * 1e6)).report
+    short = analyse(Record(rows[:, 0], rows[:, 1], rows[:, 2] * 1e6)).report.to_json()
     assert short["analysed"]["train"]["samples"] == n == short["analysed"]["train"]["of_samples"]
     assert not any("were analysed" in w for w in short["warnings"])

@@ -23,7 +23,7 @@ def _run(case):
         lines: list[str] = []
         analysis = analyse(Record(train[:, 0], train[:, 1], train[:, 2]),
                            Record(validate[:, 0], validate[:, 1], validate[:, 2]), log=lines.append)
-        return analysis.report, lines
+        return analysis.report.to_json(), lines
     name = next(n for n, c in CASES.items() if c is case)
     return computed_once(f"test_zoo._run({name!r})", compute)
 
@@ -106,7 +106,7 @@ def test_another_record_of_the_same_valve_gets_the_same_names(name, seed, share)
     train, validate = case.records(seed, share)
     lines: list[str] = []
     report = analyse(Record(train[:, 0], train[:, 1], train[:, 2]),
-                     Record(validate[:, 0], validate[:, 1], validate[:, 2]), log=lines.append).report
+                     Record(validate[:, 0], validate[:, 1], validate[:, 2]), log=lines.append).report.to_json()
     assert report["effects_added"] == ["dynamics"] and not report["unexplained"], (report["effects_added"], lines)
     assert any(line.startswith("initial state: rest") and line.endswith("chosen estimated") for line in lines), lines
     _, validation = report["sessions"]
@@ -123,7 +123,7 @@ def test_a_linear_drift_is_named_drift_alone_in_its_linear_form():
     train, validate = case.records(5, 0.95)
     lines: list[str] = []
     report = analyse(Record(train[:, 0], train[:, 1], train[:, 2]),
-                     Record(validate[:, 0], validate[:, 1], validate[:, 2]), log=lines.append).report
+                     Record(validate[:, 0], validate[:, 1], validate[:, 2]), log=lines.append).report.to_json()
     assert report["effects_added"] == ["drift"] and not report["unexplained"], (report["effects_added"], lines)
     drift = report["final_model"]["drift"]
     assert drift["form"] == "linear" and drift["functions"] == ["t/T"], drift
@@ -140,7 +140,7 @@ def test_an_effect_standing_in_for_the_grid_at_a_knife_edge_is_dropped():
     train, validate = case.records(3, 1.0)
     lines: list[str] = []
     report = analyse(Record(train[:, 0], train[:, 1], train[:, 2]),
-                     Record(validate[:, 0], validate[:, 1], validate[:, 2]), log=lines.append).report
+                     Record(validate[:, 0], validate[:, 1], validate[:, 2]), log=lines.append).report.to_json()
     assert report["effects_added"] == ["asymmetry"] and not report["unexplained"], (report["effects_added"], lines)
     assert any(line.startswith("capacity: creep, asymmetry found on paper grid") and
                "the effects chosen again on 12 operators" in line for line in lines), lines

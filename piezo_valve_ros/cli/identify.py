@@ -18,6 +18,7 @@ import sys
 from dataclasses import replace
 
 from ..core.identification.records import HELD_OUT_FRACTION
+from ..core.identification.report import IdentificationReport
 from ..core.monitoring.health import WINDOW_S, HealthLimits
 from .tool import add_window_arguments, run_tool, window_from
 from ..identify import (command_range_note, compensation, controller_parameters_yaml, health_json,
@@ -26,17 +27,17 @@ from ..identify import (command_range_note, compensation, controller_parameters_
 __all__ = ["main"]
 
 
-def _summary(report: dict) -> str:
-    b, f = report["baseline"], report["final"]
-    rows = [(f"baseline {b['model']} ({b['operators']} operators)", b), (f["model"], f)]
-    out = [f"range {report['range_um']:.1f} um; effects added: {', '.join(report['effects_added']) or 'none'}; "
-           f"unexplained: {str(report['unexplained']).lower()}",
-           f"held-out errors at the record's rate ({report['sample_rate_hz']:.0f} Hz), {report['validation']}:",
+def _summary(report: IdentificationReport) -> str:
+    b, f = report.baseline, report.final
+    rows = [(f"baseline {b.model} ({b.operators} operators)", b), (f.model, f)]
+    out = [f"range {report.range_um:.1f} um; effects added: {', '.join(report.effects_added) or 'none'}; "
+           f"unexplained: {str(report.unexplained).lower()}",
+           f"held-out errors at the record's rate ({report.sample_rate_hz:.0f} Hz), {report.validation}:",
            f"{'model':36s} {'train rms':>10s} {'train peak':>11s} {'held-out rms':>13s} {'held-out peak':>14s} {'peak %':>7s}"]
     for label, r in rows:
-        out.append(f"{label:36s} {r['train']['rms_um']:10.4f} {r['train']['peak_um']:11.4f} "
-                   f"{r['validate']['rms_um']:13.4f} {r['validate']['peak_um']:14.4f} {r['validate']['peak_pct']:7.3f}")
-    for w in report.get("warnings", []):
+        out.append(f"{label:36s} {r.train.rms_um:10.4f} {r.train.peak_um:11.4f} "
+                   f"{r.validate.rms_um:13.4f} {r.validate.peak_um:14.4f} {r.validate.peak_pct:7.3f}")
+    for w in report.warnings:
         out.append(f"warning: {w}")
     return "\n".join(out)
 

@@ -12,7 +12,7 @@ Frequency response: gain and phase of the fundamental (correlation over whole pe
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -102,14 +102,19 @@ class ErrorFigures:
     reference): RMS and peak [um], the peak as % of a range, and the fit as NRMSE % (MATLAB ``compare``'s:
     100 (1 - |e| / |y - mean y|), 100 = perfect, 0 = no better than the mean)."""
 
-    rms_um: float
-    peak_um: float
-    peak_pct: float
-    fit_pct: float
+    rms_um: float = field(metadata={"doc": "RMS of the error [um]"})
+    peak_um: float = field(metadata={"doc": "largest |error| [um]"})
+    peak_pct: float = field(metadata={"doc": "peak_um as % of the range"})
+    fit_pct: float = field(metadata={"doc": "NRMSE fit, 100 (1 - |e| / |y - mean y|) [%]: 100 perfect, 0 no better "
+                                            "than the mean (MATLAB compare's)"})
+
+    def rounded(self) -> "ErrorFigures":
+        """The figures as reports give them (to 1e-6 um / %, the fit to 1e-4 %)."""
+        return ErrorFigures(round(self.rms_um, 6), round(self.peak_um, 6), round(self.peak_pct, 6),
+                            round(self.fit_pct, 4))
 
     def as_dict(self) -> dict:
-        return {"rms_um": round(self.rms_um, 6), "peak_um": round(self.peak_um, 6),
-                "peak_pct": round(self.peak_pct, 6), "fit_pct": round(self.fit_pct, 4)}
+        return asdict(self.rounded())
 
 
 def error_figures(actual_um: np.ndarray, predicted_um: np.ndarray, range_um: float) -> ErrorFigures:

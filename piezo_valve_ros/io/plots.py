@@ -92,8 +92,8 @@ def _loop_figure(figures: _FigureWriter, d: _HeldOut) -> None:
 def _residual_time_figure(figures: _FigureWriter, d: _HeldOut) -> None:
     report = d.analysis.report
     fig, ax = figures.plt.subplots(figsize=(9, 4))
-    ax.plot(d.t, d.y - d.y_base, lw=0.6, label=f"{d.label_base} (RMS {report['baseline']['validate']['rms_um']:.3f} um)")
-    ax.plot(d.t, d.y - d.y_final, lw=0.6, label=f"{d.label_final} (RMS {report['final']['validate']['rms_um']:.3f} um)")
+    ax.plot(d.t, d.y - d.y_base, lw=0.6, label=f"{d.label_base} (RMS {report.baseline.validate.rms_um:.3f} um)")
+    ax.plot(d.t, d.y - d.y_final, lw=0.6, label=f"{d.label_final} (RMS {report.final.validate.rms_um:.3f} um)")
     ax.set_xlabel("time [s]")
     ax.set_ylabel("residual [um]")
     ax.set_title("Residual before and after, held-out data")

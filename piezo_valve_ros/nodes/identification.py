@@ -53,6 +53,7 @@ from std_msgs.msg import Float64
 from ..core.defaults import BAG_STORAGE
 from ..io.bags import STORAGES, BagError
 from ..core.identification.records import IdentificationError
+from ..core.identification.report import to_json
 from ..core.metrics import error_figures
 from ..core.sim.signals import rig_training_voltage, validation_reference_m
 from ..core.control.strategies import LOOP_SETTINGS, STRATEGIES, loop_settings
@@ -354,8 +355,8 @@ class ValveIdentificationNode(Node):
                                    f"{self.params_out}")
         elif self.push:
             self.get_logger().warning(f"refit: model not pushed ({reason}); last good parameters file kept")
-        return {"step": "refit", "ok": True, "model": comp.model.name, "effects_added": report["effects_added"],
-                "baseline_validate": report["baseline"]["validate"], "final_validate": report["final"]["validate"],
+        return {"step": "refit", "ok": True, "model": comp.model.name, "effects_added": list(report.effects_added),
+                "baseline_validate": to_json(report.baseline.validate), "final_validate": to_json(report.final.validate),
                 "params_out": str(self.params_out), "pushed": pushed, "reason": reason}
 
     def _controller_values(self, names: list[str], timeout_s: float = 10.0) -> dict:

@@ -1,291 +1,323 @@
-"""The identification report's schema: one typed definition (TypedDicts with a description per key) from which
-``check_report`` checks a report and ``scripts/report_schema.py`` writes the handbook's report page.
+"""The identification report: one tree of frozen dataclasses (``IdentificationReport`` and the records in it),
+which the residual loop returns and ``to_json()`` turns into report.json.  The same definition checks a report
+read back from JSON (``check_report``) and gives the handbook's report page (``schema_tables``, written by
+``scripts/report_schema.py``): each field's ``doc`` metadata says what it holds.
 
-The report stays a plain mapping (it goes to JSON as it is); these types say what it holds.  Units: um, V, s,
-Hz; shares are fractions (0.2 = 20 %) unless a key ends in ``_pct``.  Nothing here imports ROS.
+Units: um, V, s, Hz; shares are fractions (0.2 = 20 %) unless a key ends in ``_pct``.  Mappings whose keys
+vary with the record (G_v, the initial state, the final model, the thresholds) stay dicts.  Nothing here
+imports ROS.
 """
 from __future__ import annotations
 
 import typing
-from typing import Optional, TypedDict, Union
+from dataclasses import dataclass, field, fields, is_dataclass
+from typing import Optional, Union
 
-__all__ = ["IdentificationReport", "DESCRIPTIONS", "check_report", "schema_tables"]
+from ..metrics import ErrorFigures
 
-
-class ErrorFigures(TypedDict):
-    rms_um: float
-    peak_um: float
-    peak_pct: float
-    fit_pct: float
+__all__ = ["IdentificationReport", "Figures", "Baseline", "Final", "Decision", "Indistinguishable",
+           "ResidualStructure", "Capacity", "SearchRow", "ConfirmRound", "Session", "BaselineFits", "ErrorFigures",
+           "check_report", "schema_tables", "to_json"]
 
 
-class Figures(TypedDict):
-    train: ErrorFigures
-    validate: ErrorFigures
-    validate_analysis_rate: ErrorFigures
+def _item(doc: str, **kwargs):
+    """A report field with what it holds (``doc``, for the report page)."""
+    return field(metadata={"doc": doc, **kwargs.pop("metadata", {})}, **kwargs)
 
 
+def _optional(doc: str):
+    """A field only written reports have (None in ``analyse``'s own, left out of its JSON)."""
+    return field(default=None, kw_only=True, metadata={"doc": doc, "optional": True})
+
+
+def to_json(value):
+    """``value`` as JSON data: a report dataclass as a mapping in field order (optional fields that are None
+    left out), tuples as lists; ``IdentificationReport`` adds its aliases."""
+    if isinstance(value, _Node):
+        return value.to_json()
+    if is_dataclass(value) and not isinstance(value, type):   # a record of the core's (ErrorFigures)
+        return {f.name: to_json(getattr(value, f.name)) for f in fields(value)}
+    if isinstance(value, (list, tuple)):
+        return [to_json(v) for v in value]
+    if isinstance(value, dict):
+        return {k: to_json(v) for k, v in value.items()}
+    return value
+
+
+class _Node:
+    def to_json(self) -> dict:
+        """This record as JSON data (field order)."""
+        return {f.name: to_json(getattr(self, f.name)) for f in fields(self)
+                if not (f.metadata.get("optional") and getattr(self, f.name) is None)}
+
+
+@dataclass(frozen=True)
+class Figures(_Node):
+    train: ErrorFigures = _item("on the training part (record rate)")
+    validate: ErrorFigures = _item("on the held-out data (record rate)")
+    validate_analysis_rate: ErrorFigures = _item("on the held-out data at the analysis rate")
+
+
+@dataclass(frozen=True)
 class Baseline(Figures):
-    model: str
-    fit: str
-    G_v: dict
-    operators: int
+    model: str = _item("model name")
+    fit: str = _item("the GPIM grid chosen")
+    G_v: dict = _item("num, den, poles_rad_s, source")
+    operators: int = _item("number of play operators")
 
 
+@dataclass(frozen=True)
 class Final(Figures):
-    model: str
+    model: str = _item("model name")
 
 
-class Decision(TypedDict):
-    effect: str
-    added: bool
-    statistic: float
-    threshold: float
-    margin: float
-    held_out_gain: float
-    explained_rms_um: float
-    evidence: str
+@dataclass(frozen=True)
+class Decision(_Node):
+    effect: str = _item("")
+    added: bool = _item("")
+    statistic: float = _item("held-out RMS cut the effect gives, added last (exactly for an added one, by the linear "
+                             "search otherwise)")
+    threshold: float = _item("")
+    margin: float = _item("statistic - threshold: how far from the knife edge")
+    held_out_gain: float = _item("")
+    explained_rms_um: float = _item("RMS the effect explains [um]")
+    evidence: str = _item("the decision in words")
 
 
-class Indistinguishable(TypedDict):
-    effect: str
-    alternative: str
-    held_out_rms_um: dict
-    share: Optional[float]
-    why: str
-    experiment: str
+@dataclass(frozen=True)
+class Indistinguishable(_Node):
+    effect: str = _item("")
+    alternative: str = _item("")
+    held_out_rms_um: dict = _item("without either, with the effect, with the alternative [um]")
+    share: Optional[float] = _item("the alternative's cut as a share of the added effect's")
+    why: str = _item("")
+    experiment: str = _item("the excitation that would tell the two apart, from each effect's own telling_experiment")
 
 
-class ResidualStructure(TypedDict):
-    rms_um: float
-    structured_rms_um: float
-    noise_here_um: float
-    lag1: float
-    line_hz: float
-    line_share: float
-    ratio_to_noise: float
-    pct_of_range: float
-    peak_um: float
-    expected_noise_peak_um: float
-    peak_ratio: float
-    peak_pct_of_range: float
-    held_out_noise_peak_um: float
-    held_out_noise_peak_pct: float
+@dataclass(frozen=True)
+class ResidualStructure(_Node):
+    rms_um: float = _item("")
+    structured_rms_um: float = _item("")
+    noise_here_um: float = _item("")
+    lag1: float = _item("")
+    line_hz: float = _item("")
+    line_share: float = _item("")
+    ratio_to_noise: float = _item("structured RMS over the sensor noise")
+    pct_of_range: float = _item("")
+    peak_um: float = _item("")
+    expected_noise_peak_um: float = _item("")
+    peak_ratio: float = _item("the 3rd largest 5 ms peak over what the noise gives")
+    peak_pct_of_range: float = _item("")
+    held_out_noise_peak_um: float = _item("the held-out measurement's own deviation from its 2 ms local cubic: the "
+                                          "peak its noise alone puts there [um]")
+    held_out_noise_peak_pct: float = _item("")
 
 
-class Capacity(TypedDict):
-    grid: str
-    operators: int
-    held_out_rms_um: float
-    held_out_rms_about_trend_um: float
+@dataclass(frozen=True)
+class Capacity(_Node):
+    grid: str = _item("")
+    operators: int = _item("")
+    held_out_rms_um: float = _item("")
+    held_out_rms_about_trend_um: float = _item("")
 
 
-class SearchRow(TypedDict):
-    effects: list
-    held_out_rms_um: float
-    held_out_peak_um: float
-    supported: bool
+@dataclass(frozen=True)
+class SearchRow(_Node):
+    effects: tuple[str, ...] = _item("")
+    held_out_rms_um: float = _item("")
+    held_out_peak_um: float = _item("")
+    supported: bool = _item("")
 
 
-class ConfirmRound(TypedDict):
-    effects: list
-    held_out_rms_um: float
-    drop_one: dict
+@dataclass(frozen=True)
+class ConfirmRound(_Node):
+    effects: tuple[str, ...] = _item("")
+    held_out_rms_um: float = _item("")
+    drop_one: dict = _item("")
 
 
-class Session(TypedDict):
-    record: str
-    offset_um: float
-    start: str
-    start_rows: int
-    start_rows_rms_um: float
+@dataclass(frozen=True)
+class Session(_Node):
+    record: str = _item("training or validation")
+    offset_um: float = _item("the session's sensor offset relative to the training record's [um] (0 for the "
+                             "training record)")
+    start: str = _item("how the session's unknown start was handled, in words")
+    start_rows: int = _item("rows (record rate) the start counts on: until the input wiped it out")
+    start_rows_rms_um: float = _item("the final model's held-out error RMS over those rows [um]")
 
 
-class BaselineFits(TypedDict):
-    capacity: list[Capacity]
-    chosen: str
-    chosen_on: str
-    initial_state: dict
-    linear: dict
-    paper_nls: dict
+@dataclass(frozen=True)
+class BaselineFits(_Node):
+    capacity: tuple[Capacity, ...] = _item("")
+    chosen: str = _item("")
+    chosen_on: str = _item("")
+    initial_state: dict = _item("held_out_rms_um per start tried, chosen, assumed (in words), fit_starts_at_s, "
+                                "before_the_record / validation_record_start where estimated")
+    linear: dict = _item("")
+    paper_nls: dict = _item("")
 
 
-class IdentificationReport(TypedDict, total=False):
-    range_um: float
-    baseline: Baseline
-    effects_added: list[str]
-    diagnosis: list[Decision]
-    indistinguishable: list[Indistinguishable]
-    final: Final
-    unexplained: bool
-    residual: str
-    residual_structure: ResidualStructure
-    baseline_fits: BaselineFits
-    search: list[SearchRow]
-    confirm: list[ConfirmRound]
-    rounds: list[ConfirmRound]
-    validation: str
-    held_out_fraction: Optional[float]
-    held_out_samples: int
-    analysed: dict
-    validate_range_um: float
-    sample_rate_hz: float
-    analysis_rate_hz: float
-    noise_floor_um: float
-    thresholds: dict
-    sessions: list[Session]
-    transport_delay_s: float
-    warnings: list[str]
-    final_model: dict
-    seconds: float
-    source: dict          # added by identify.identify_bags (bags and topic read)
-    schema: dict          # added by identify.report_json (name, version, package version, time)
+@dataclass(frozen=True)
+class IdentificationReport(_Node):
+    """What one run of the residual loop found (``residual.analyse``), as report.json holds it
+    (``to_json``)."""
+
+    schema: Optional[dict] = _optional("name, version, package_version, created_utc of the report file")
+    range_um: float = _item("range of the measured position the peak shares are taken of [um]")
+    baseline: Baseline = _item("the paper's model (GPIM + second-order G_v) fitted to the record: its error figures "
+                               "on the training part, the held-out data at the record's rate and at the analysis "
+                               "rate, G_v, operators")
+    effects_added: tuple[str, ...] = _item("the effects the loop added, in catalogue order")
+    diagnosis: tuple[Decision, ...] = _item("every catalogue effect's decision: the held-out RMS cut it gives "
+                                            "(statistic), the threshold, the margin (statistic - threshold) and the "
+                                            "evidence in words")
+    indistinguishable: tuple[Indistinguishable, ...] = _item(
+        "added effects the record cannot tell from another one (that one, in its place, does at least "
+        "SEPARATION_SHARE of the cut), with the figures and why")
+    final: Final = _item("the final model's error figures (as baseline)")
+    unexplained: bool = _item("structure remains in the held-out residual that no catalogue effect explains (by "
+                              "its RMS or its peaks)")
+    residual: str = _item("the final held-out residual described in words")
+    residual_structure: ResidualStructure = _item(
+        "its figures: RMS, structured RMS above the noise, lag-1 autocorrelation, strongest line, peaks against "
+        "what the noise gives, the held-out measurement's own noise peak")
+    baseline_fits: BaselineFits = _item("how the baseline was chosen: GPIM capacities tried, the initial state "
+                                        "(rest, cycled, estimated, wiped, with what was assumed), the linear fit, "
+                                        "the paper's 5-parameter fit")
+    search: tuple[SearchRow, ...] = _item("every subset of the catalogue scored by one linear solve from the "
+                                          "baseline")
+    confirm: tuple[ConfirmRound, ...] = _item("the exact refits and drop-one checks, round by round")
+    validation: str = _item("what the held-out data are: a separate validation record or the training record's "
+                            "tail")
+    held_out_fraction: Optional[float] = _item("the share held out of the training record (null with a validation "
+                                               "record)")
+    held_out_samples: int = _item("held-out samples at the record's rate")
+    analysed: dict = _item("what of each record the loop analysed: train (and validate) with from_s, to_s (sample "
+                           "times), samples, of_samples and record_duration_s; a record longer than MAX_ANALYSED_S "
+                           "(100 s) is analysed on its first 100 s, and a warning says so")
+    validate_range_um: float = _item("range of the held-out position [um]")
+    sample_rate_hz: float = _item("the record's sampling rate [Hz]")
+    analysis_rate_hz: float = _item("the rate fits and decisions run at (block means) [Hz]")
+    noise_floor_um: float = _item("the sensor noise measured on the record [um]")
+    thresholds: dict = _item("every threshold the decisions used, by name")
+    sessions: tuple[Session, ...] = _item(
+        "each record as a session of its own, for the final model: the training record (the model's own offset "
+        "and start), and a separate validation record with its sensor offset relative to the training record's "
+        "and how its unknown start was handled")
+    transport_delay_s: float = _item("the final model's transport delay between drive and sensor [s] (0: none; the "
+                                     "dynamics effect's)")
+    warnings: tuple[str, ...] = _item("what the reader should know (undersampled record, damaged bag files left "
+                                      "out)")
+    final_model: dict = _item("the final model: GPIM, G_v, initial state and one entry per added effect")
+    seconds: float = _item("wall time of the analysis [s]")
+    source: Optional[dict] = _optional("the bags (or CSV) and topic read, and the stretch of the training record "
+                                       "used (train_window: from_s, to_s, axis, first_sample_s, last_sample_s, "
+                                       "samples)")
+
+    # report.json keys that repeat a field under an earlier report's name (keys are never removed): key ->
+    # (the field it repeats, the key it follows in the file)
+    ALIASES: typing.ClassVar[dict[str, tuple[str, str]]] = {"rounds": ("confirm", "confirm")}
+
+    def to_json(self) -> dict:
+        """report.json's content (without the schema block unless set), the aliases included."""
+        out = {}
+        for key, value in _Node.to_json(self).items():
+            out[key] = value
+            for alias, (of, after) in self.ALIASES.items():
+                if after == key:
+                    out[alias] = value if of == key else to_json(getattr(self, of))
+        return out
 
 
-OPTIONAL_KEYS = {"source", "schema"}   # present in written reports, not in analyse()'s own
-
-DESCRIPTIONS: dict[str, str] = {
-    "schema": "name, version, package_version, created_utc of the report file",
-    "range_um": "range of the measured position the peak shares are taken of [um]",
-    "baseline": "the paper's model (GPIM + second-order G_v) fitted to the record: its error figures on the "
-                "training part, the held-out data at the record's rate and at the analysis rate, G_v, operators",
-    "effects_added": "the effects the loop added, in catalogue order",
-    "diagnosis": "every catalogue effect's decision: the held-out RMS cut it gives (statistic), the threshold, "
-                 "the margin (statistic - threshold) and the evidence in words",
-    "indistinguishable": "added effects the record cannot tell from another one (that one, in its place, does at "
-                         "least SEPARATION_SHARE of the cut), with the figures and why",
-    "final": "the final model's error figures (as baseline)",
-    "unexplained": "structure remains in the held-out residual that no catalogue effect explains (by its RMS "
-                   "or its peaks)",
-    "residual": "the final held-out residual described in words",
-    "residual_structure": "its figures: RMS, structured RMS above the noise, lag-1 autocorrelation, strongest "
-                          "line, peaks against what the noise gives, the held-out measurement's own noise peak",
-    "baseline_fits": "how the baseline was chosen: GPIM capacities tried, the initial state (rest, cycled, "
-                     "estimated, wiped, with what was assumed), the linear fit, the paper's 5-parameter fit",
-    "search": "every subset of the catalogue scored by one linear solve from the baseline",
-    "confirm": "the exact refits and drop-one checks, round by round",
-    "rounds": "the same as confirm (earlier reports' name)",
-    "validation": "what the held-out data are: a separate validation record or the training record's tail",
-    "held_out_fraction": "the share held out of the training record (null with a validation record)",
-    "held_out_samples": "held-out samples at the record's rate",
-    "analysed": "what of each record the loop analysed: train (and validate) with from_s, to_s (sample times), "
-                "samples, of_samples and record_duration_s; a record longer than MAX_ANALYSED_S (100 s) is "
-                "analysed on its first 100 s, and a warning says so",
-    "validate_range_um": "range of the held-out position [um]",
-    "sample_rate_hz": "the record's sampling rate [Hz]",
-    "analysis_rate_hz": "the rate fits and decisions run at (block means) [Hz]",
-    "noise_floor_um": "the sensor noise measured on the record [um]",
-    "thresholds": "every threshold the decisions used, by name",
-    "sessions": "each record as a session of its own, for the final model: the training record (the model's own "
-                "offset and start), and a separate validation record with its sensor offset relative to the "
-                "training record's and how its unknown start was handled",
-    "transport_delay_s": "the final model's transport delay between drive and sensor [s] (0: none; the dynamics "
-                         "effect's)",
-    "warnings": "what the reader should know (undersampled record, damaged bag files left out)",
-    "final_model": "the final model: GPIM, G_v, initial state and one entry per added effect",
-    "seconds": "wall time of the analysis [s]",
-    "source": "the bags (or CSV) and topic read, and the stretch of the training record used (train_window: from_s, "
-              "to_s, axis, first_sample_s, last_sample_s, samples)",
-}
-
-
+# --------------------------------------------------------------------------- checking a report read as JSON
 def _python_type(t) -> tuple:
-    """The runtime types a value of annotation ``t`` may have."""
+    """The JSON-side runtime types a value of annotation ``t`` may have."""
     origin = typing.get_origin(t)
     if origin is Union:
         return tuple(x for a in typing.get_args(t) for x in _python_type(a))
-    if origin is list or t is list:
+    if origin in (list, tuple) or t in (list, tuple):
         return (list,)
     if t is float:
         return (float, int)
     if t is type(None):
         return (type(None),)
-    if isinstance(t, type) and issubclass(t, dict):
+    if is_dataclass(t) or t is dict or typing.get_origin(t) is dict:
         return (dict,)
     return (t,)
 
 
-def check_report(report: dict, typed: type = IdentificationReport, where: str = "report") -> list[str]:
-    """Where ``report`` departs from the schema (missing or unknown keys, values of another type, nested
-    typed mappings and list items checked too); empty when it conforms."""
+def _keys(typed: type) -> dict[str, tuple[object, bool]]:
+    """key -> (annotation, optional) of ``typed`` as JSON has it (aliases included)."""
     hints = typing.get_type_hints(typed)
-    problems = []
-    optional = OPTIONAL_KEYS if typed is IdentificationReport else set()
-    for key in sorted(set(hints) - set(report) - optional):
-        problems.append(f"{where}: {key} missing")
-    for key in sorted(set(report) - set(hints)):
-        problems.append(f"{where}: {key} is not in the schema")
+    keys = {f.name: (hints[f.name], bool(f.metadata.get("optional"))) for f in fields(typed)}
+    for alias, (of, _) in getattr(typed, "ALIASES", {}).items():
+        keys[alias] = keys[of]
+    return keys
+
+
+def _item_type(t):
+    """The element type of a list/tuple annotation (None when it has none)."""
+    args = [a for a in typing.get_args(t) if a is not Ellipsis]
+    return args[0] if typing.get_origin(t) in (list, tuple) and args else None
+
+
+def check_report(report: dict, typed: type = IdentificationReport, where: str = "report") -> list[str]:
+    """Where ``report`` (JSON data) departs from the definition: missing or unknown keys, values of another type,
+    nested records and list items checked too; empty when it conforms."""
+    keys = _keys(typed)
+    problems = [f"{where}: {key} missing" for key in sorted(k for k, (_, opt) in keys.items()
+                                                             if not opt and k not in report)]
+    problems += [f"{where}: {key} is not in the schema" for key in sorted(set(report) - set(keys))]
     for key, value in report.items():
-        if key not in hints:
+        if key not in keys:
             continue
-        t = hints[key]
+        t = keys[key][0]
         if not isinstance(value, _python_type(t)):
-            problems.append(f"{where}.{key}: {type(value).__name__}, expected {getattr(t, '__name__', t)}")
+            problems.append(f"{where}.{key}: {type(value).__name__}, expected {_type_name(t)}")
             continue
-        if isinstance(t, type) and issubclass(t, dict) and hasattr(t, "__annotations__") and t is not dict:
+        if is_dataclass(t):
             problems += check_report(value, t, f"{where}.{key}")
-        args = typing.get_args(t)
-        if typing.get_origin(t) is list and args and hasattr(args[0], "__annotations__"):
-            for i, item in enumerate(value):
-                problems += check_report(item, args[0], f"{where}.{key}[{i}]")
+        item = _item_type(t)
+        if item is not None and is_dataclass(item):
+            for i, entry in enumerate(value):
+                problems += (check_report(entry, item, f"{where}.{key}[{i}]") if isinstance(entry, dict)
+                             else [f"{where}.{key}[{i}]: {type(entry).__name__}, expected {item.__name__}"])
     return problems
 
 
-FIELD_DESCRIPTIONS: dict[str, str] = {
-    "ErrorFigures.rms_um": "RMS of the error [um]", "ErrorFigures.peak_um": "largest |error| [um]",
-    "ErrorFigures.peak_pct": "peak_um as % of the range", "ErrorFigures.fit_pct": "NRMSE fit, 100 (1 - |e| / "
-    "|y - mean y|) [%]: 100 perfect, 0 no better than the mean (MATLAB compare's)",
-    "Figures.train": "on the training part (record rate)", "Figures.validate": "on the held-out data (record "
-    "rate)", "Figures.validate_analysis_rate": "on the held-out data at the analysis rate",
-    "Baseline.model": "model name", "Baseline.fit": "the GPIM grid chosen", "Baseline.G_v": "num, den, "
-    "poles_rad_s, source", "Baseline.operators": "number of play operators", "Final.model": "model name",
-    "Decision.statistic": "held-out RMS cut the effect gives, added last (exactly for an added one, by the "
-    "linear search otherwise)", "Decision.margin": "statistic - threshold: how far from the knife edge",
-    "Decision.explained_rms_um": "RMS the effect explains [um]", "Decision.evidence": "the decision in words",
-    "Indistinguishable.share": "the alternative's cut as a share of the added effect's",
-    "Indistinguishable.experiment": "the excitation that would tell the two apart, from each effect's own "
-                                    "telling_experiment",
-    "Indistinguishable.held_out_rms_um": "without either, with the effect, with the alternative [um]",
-    "ResidualStructure.held_out_noise_peak_um": "the held-out measurement's own deviation from its 2 ms local "
-    "cubic: the peak its noise alone puts there [um]",
-    "ResidualStructure.peak_ratio": "the 3rd largest 5 ms peak over what the noise gives",
-    "ResidualStructure.ratio_to_noise": "structured RMS over the sensor noise",
-    "Session.record": "training or validation", "Session.offset_um": "the session's sensor offset relative to the "
-    "training record's [um] (0 for the training record)", "Session.start": "how the session's unknown start was "
-    "handled, in words", "Session.start_rows": "rows (record rate) the start counts on: until the input wiped it out",
-    "Session.start_rows_rms_um": "the final model's held-out error RMS over those rows [um]",
-    "BaselineFits.initial_state": "held_out_rms_um per start tried, chosen, assumed (in words), fit_starts_at_s, "
-    "before_the_record / validation_record_start where estimated",
-}
-
-
+# --------------------------------------------------------------------------- the report page
 def _type_name(t) -> str:
-    args = typing.get_args(t)
-    if typing.get_origin(t) is list:
-        return f"list of {args[0].__name__}" if args and isinstance(args[0], type) else "list"
+    item = _item_type(t)
+    if typing.get_origin(t) in (list, tuple) or t in (list, tuple):
+        return f"list of {item.__name__}" if isinstance(item, type) else "list"
     if typing.get_origin(t) is Union:
-        return " or ".join("null" if a is type(None) else a.__name__ for a in args)
+        return " or ".join("null" if a is type(None) else a.__name__ for a in typing.get_args(t))
     return getattr(t, "__name__", str(t))
 
 
 def schema_tables(typed: type = IdentificationReport) -> list[tuple[str, list[tuple[str, str, str]]]]:
-    """(type name, [(key, type, description)]) for the report and every typed mapping in it, each once."""
+    """(type name, [(key, type, description)]) for the report and every record in it, each once (written
+    reports' optional fields and the aliases last, as the page has always listed them)."""
     out, seen, todo = [], set(), [typed]
     while todo:
         cls = todo.pop(0)
         if cls in seen:
             continue
         seen.add(cls)
+        hints = typing.get_type_hints(cls)
+        own = [f for f in fields(cls) if not f.metadata.get("optional")]
         rows = []
-        for key, t in typing.get_type_hints(cls).items():
-            owner = next((c.__name__ for c in cls.__mro__ if key in getattr(c, "__annotations__", {})), cls.__name__)
-            text = DESCRIPTIONS.get(key, "") if cls is IdentificationReport else FIELD_DESCRIPTIONS.get(
-                f"{owner}.{key}", FIELD_DESCRIPTIONS.get(f"{cls.__name__}.{key}", ""))
-            rows.append((key, _type_name(t), text))
-            args = typing.get_args(t)
-            for nested in ([t] + list(args)):
-                if isinstance(nested, type) and issubclass(nested, dict) and nested is not dict \
-                        and hasattr(nested, "__annotations__"):
+        for f in own:
+            rows.append((f.name, _type_name(hints[f.name]), f.metadata.get("doc", "")))
+            for alias, (of, _) in getattr(cls, "ALIASES", {}).items():
+                if of == f.name:
+                    rows.append((alias, _type_name(hints[f.name]), f"the same as {of} (earlier reports' name)"))
+        rows += [(f.name, _type_name(hints[f.name]).replace(" or null", "").replace("null or ", ""),
+                  f.metadata.get("doc", "")) for f in fields(cls) if f.metadata.get("optional")][::-1]
+        for f in fields(cls):
+            t = hints[f.name]
+            for nested in [t, _item_type(t)] + list(typing.get_args(t)):
+                if isinstance(nested, type) and is_dataclass(nested):
                     todo.append(nested)
         out.append((cls.__name__, rows))
     return out

@@ -60,13 +60,14 @@ from .effects import CATALOGUE, Effect
 from .fitting import FitCache, PaperFit, fit_model, fit_paper_gpim, refit_poles_with_effects, with_poles, uniform_thresholds
 from ..model.hysteresis import GPIM
 from .initial_state import ESTIMATE_ROUNDS, ESTIMATE_STATE_GAIN, WIPE_STATE_GAIN, estimate_state, session_start
-from .report import IdentificationReport
+from .report import (Baseline, BaselineFits, Capacity, ConfirmRound, Decision, Final, IdentificationReport,
+                     Indistinguishable, ResidualStructure, SearchRow, Session, to_json)
 from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, MAX_ANALYSED_S, SUPPORTED_RATE_HZ, Record, noise_floor_um,
                       noise_peak_um)
 from .search import (GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, Score, SubsetSearch, support,
                      unsupported_because)
 from .split import WIPE_MARGIN, SessionStart, Split, split_records
-from ..metrics import error_figures, rms
+from ..metrics import ErrorFigures, error_figures, rms
 from ..model.dynamics import describe_dynamics
 from .valve_model import REST, InitialState, ValveModel
 
@@ -112,7 +113,7 @@ def _ordinal(k: int) -> str:
 # --------------------------------------------------------------------------- result
 @dataclass
 class Analysis:
-    report: dict
+    report: IdentificationReport   # report.json's content: ``report.to_json()``
     baseline: ValveModel
     final: ValveModel
     split: Split
@@ -235,7 +236,7 @@ class Story:
     added: list                # effect names, in catalogue order
     drop_one: dict             # effect name -> the final model refitted without it
     verdicts: dict             # effect name -> its exact drop-one support figures
-    confirm_log: list          # the exact refits and drop-one checks, round by round
+    confirm_log: list[ConfirmRound]   # the exact refits and drop-one checks, round by round
     choice: "_EffectChoice"    # its search and refits (the report's diagnosis and alternatives use them)
 
 
@@ -604,18 +605,20 @@ class _Loop:
         return Remains(structure, by_rms or by_peak, seen)
 
     # ------------------------------------------------------------------ 5. figures at the record's own rate, report
-    def figures(self, model: ValveModel) -> dict:
+    def figures(self, model: ValveModel) -> dict[str, ErrorFigures]:
+        """``model``'s error figures as the report gives them (``Figures``' fields): on the training part, and
+        on the held-out data at the record's and the analysis rate."""
         split = self.split
         return {"train": error_figures(split.fit_full.position_um,
-                                       split.fit_full.position_um - split.fit_error(model, True), self.range_um).as_dict(),
+                                       split.fit_full.position_um - split.fit_error(model, True), self.range_um).rounded(),
                 "validate": error_figures(split.score_full.position_um[split.start_full:],
                                           split.score_full.position_um[split.start_full:] - self.error(model, full=True),
-                                          self.range_val).as_dict(),
+                                          self.range_val).rounded(),
                 "validate_analysis_rate": error_figures(split.score.position_um[split.start:],
                                                         split.score.position_um[split.start:] - self.error(model),
-                                                        self.range_val).as_dict()}
+                                                        self.range_val).rounded()}
 
-    def diagnosis(self, story: Story) -> list[dict]:
+    def diagnosis(self, story: Story) -> list[Decision]:
         """Each effect's decision with its statistic, threshold and margin: the added ones by their exact
         drop-one refits, the others added last to the final set in the linear search."""
         added, names, final_set, search = story.added, story.choice.names, frozenset(story.added), story.choice.search
@@ -628,12 +631,12 @@ class _Loop:
                 with_s, without_s = search.score(final_set | {n}), search.score(final_set)
                 cut, explained, _ = support(with_s, without_s, self.noise)
                 with_, without = with_s.rms, without_s.rms
-            diagnosis.append({"effect": n, "added": exact, "statistic": round(cut, 4), "threshold": GAIN_THRESHOLD,
-                              "margin": round(cut - GAIN_THRESHOLD, 4),
-                              "held_out_gain": round(cut, 4), "explained_rms_um": round(explained, 5),
-                              "evidence": _evidence(story.choice.by_name[n], cut, explained, without, with_, self.noise,
-                                                    exact=exact)})
-        diagnosis.sort(key=lambda d: (not d["added"], added.index(d["effect"]) if d["added"] else names.index(d["effect"])))
+            diagnosis.append(Decision(effect=n, added=exact, statistic=round(cut, 4), threshold=GAIN_THRESHOLD,
+                                      margin=round(cut - GAIN_THRESHOLD, 4), held_out_gain=round(cut, 4),
+                                      explained_rms_um=round(explained, 5),
+                                      evidence=_evidence(story.choice.by_name[n], cut, explained, without, with_,
+                                                         self.noise, exact=exact)))
+        diagnosis.sort(key=lambda d: (not d.added, added.index(d.effect) if d.added else names.index(d.effect)))
         return diagnosis
 
     def report(self, start: StartChoice, capacity: CapacityChoice, story: Story, remains: Remains
@@ -646,81 +649,80 @@ class _Loop:
         alternatives = _alternatives(story.added, choice.names, story.verdicts, choice.search, choice.refit_many,
                                      choice.by_name)
         for a in alternatives:
-            self.log(f"cannot tell apart: {a['effect']} and {a['alternative']}: {a['why']}")
+            self.log(f"cannot tell apart: {a.effect} and {a.alternative}: {a.why}")
         held_out_text = (f"held-out last {100 * HELD_OUT_FRACTION:.0f} % of the training record" if split.held_out
                          else "separate validation record")
         sessions, final_start = self.sessions_report(start, final)
-        report = {
-            "range_um": round(self.range_um, 4),
-            "baseline": {"model": baseline.name, "fit": capacity.label, **figured[id(baseline)],
-                         "G_v": describe_dynamics(baseline.dynamics, baseline.dynamics_note),
-                         "operators": baseline.gpim.n},
-            "effects_added": story.added,
-            "diagnosis": diagnosis,
-            "indistinguishable": alternatives,
-            "final": {"model": final.name, **figured[id(final)]},
-            "unexplained": bool(remains.unexplained),
-            "residual": remains.seen,
-            "residual_structure": {k: round(v, 6) for k, v in remains.structure.items()},
-            "baseline_fits": {
-                "capacity": [{"grid": c.label, "operators": c.operators, "held_out_rms_um": round(c.held_out_um, 6),
-                              "held_out_rms_about_trend_um": round(c.about_trend_um, 6)} for c in capacity.fits],
-                "chosen": capacity.label,
-                "chosen_on": capacity.chosen_on,
-                "initial_state": {"held_out_rms_um": {h: round(r, 6) for h, r in start.held_out_rms_um.items()},
-                                  "chosen": start.chosen, **start.assumed, **final_start},
-                "linear": {**figured[id(baseline)], "operators": baseline.gpim.n, "invertible": True},
-                "paper_nls": {**figured[id(paper.model)],
-                              "params": {k: getattr(paper.params, k) for k in ("a0", "a1", "alpha", "rho", "tau", "n",
-                                                                               "offset_um")},
-                              "fixed": "a0 = 1, a1 = 0: the 5-parameter form has two exact invariances (a0 with "
-                                       "alpha, rho, tau; a1 with the offset)",
-                              "condition_number": paper.condition_number, "evaluations": paper.evaluations,
-                              "failed": paper.failed},
-            },
-            "search": sorted(choice.table, key=lambda t: t["held_out_rms_um"]),
-            "confirm": story.confirm_log,
-            "rounds": story.confirm_log,  # earlier reports' name for the rounds of decisions
-            "validation": held_out_text,
-            "held_out_fraction": HELD_OUT_FRACTION if split.held_out else None,
-            "held_out_samples": len(split.score_full) - split.start_full,
-            "analysed": self.analysed,
-            "validate_range_um": round(self.range_val, 4),
-            "sample_rate_hz": round(self.full.rate_hz, 3),
-            "analysis_rate_hz": round(self.fit.rate_hz, 3),
-            "noise_floor_um": round(self.noise, 6),
-            "thresholds": {"held_out_gain": GAIN_THRESHOLD, "signature": GAIN_THRESHOLD,
-                           "min_effect_noise_ratio": MIN_EFFECT_NOISE_RATIO, "peak_tolerance": PEAK_TOLERANCE,
-                           "unexplained_noise_ratio": UNEXPLAINED_NOISE_RATIO, "unexplained_pct": MIN_STRUCTURE_PCT,
-                           "unexplained_peak_ratio": PEAK_NOISE_RATIO, "peak_block_s": PEAK_BLOCK_S,
-                           "peak_rank": PEAK_RANK, "capacity_tolerance": CAPACITY_TOLERANCE,
-                           "initial_state_tolerance": INITIAL_STATE_TOLERANCE, "wipe_gain": WIPE_GAIN,
-                           "wipe_state_gain": WIPE_STATE_GAIN, "wipe_margin": WIPE_MARGIN,
-                           "separation_share": SEPARATION_SHARE},
-            "sessions": sessions,
-            "transport_delay_s": round(final.delay_s, 7),
-            "warnings": self.warnings,
-            "final_model": final.describe(),
-            "seconds": round(time.monotonic() - self.started, 3),
-        }
-        b, f = report["baseline"]["validate"], report["final"]["validate"]
-        self.log(f"added: {', '.join(story.added) or 'nothing'}; held-out RMS {b['rms_um']:.4f} -> {f['rms_um']:.4f} um, "
-                 f"peak {b['peak_um']:.3f} -> {f['peak_um']:.3f} um at {self.full.rate_hz:.0f} Hz; unexplained: "
-                 f"{str(remains.unexplained).lower()} ({report['seconds']:.1f} s)")
+        report = IdentificationReport(
+            range_um=round(self.range_um, 4),
+            baseline=Baseline(model=baseline.name, fit=capacity.label, **figured[id(baseline)],
+                              G_v=describe_dynamics(baseline.dynamics, baseline.dynamics_note),
+                              operators=baseline.gpim.n),
+            effects_added=tuple(story.added),
+            diagnosis=tuple(diagnosis),
+            indistinguishable=tuple(alternatives),
+            final=Final(model=final.name, **figured[id(final)]),
+            unexplained=bool(remains.unexplained),
+            residual=remains.seen,
+            residual_structure=ResidualStructure(**{k: round(v, 6) for k, v in remains.structure.items()}),
+            baseline_fits=BaselineFits(
+                capacity=tuple(Capacity(grid=c.label, operators=c.operators, held_out_rms_um=round(c.held_out_um, 6),
+                                        held_out_rms_about_trend_um=round(c.about_trend_um, 6)) for c in capacity.fits),
+                chosen=capacity.label,
+                chosen_on=capacity.chosen_on,
+                initial_state={"held_out_rms_um": {h: round(r, 6) for h, r in start.held_out_rms_um.items()},
+                               "chosen": start.chosen, **start.assumed, **final_start},
+                linear={**to_json(figured[id(baseline)]), "operators": baseline.gpim.n, "invertible": True},
+                paper_nls={**to_json(figured[id(paper.model)]),
+                           "params": {k: getattr(paper.params, k) for k in ("a0", "a1", "alpha", "rho", "tau", "n",
+                                                                            "offset_um")},
+                           "fixed": "a0 = 1, a1 = 0: the 5-parameter form has two exact invariances (a0 with "
+                                    "alpha, rho, tau; a1 with the offset)",
+                           "condition_number": paper.condition_number, "evaluations": paper.evaluations,
+                           "failed": paper.failed},
+            ),
+            search=tuple(sorted(choice.table, key=lambda t: t.held_out_rms_um)),
+            confirm=tuple(story.confirm_log),
+            validation=held_out_text,
+            held_out_fraction=HELD_OUT_FRACTION if split.held_out else None,
+            held_out_samples=len(split.score_full) - split.start_full,
+            analysed=self.analysed,
+            validate_range_um=round(self.range_val, 4),
+            sample_rate_hz=round(self.full.rate_hz, 3),
+            analysis_rate_hz=round(self.fit.rate_hz, 3),
+            noise_floor_um=round(self.noise, 6),
+            thresholds={"held_out_gain": GAIN_THRESHOLD, "signature": GAIN_THRESHOLD,
+                        "min_effect_noise_ratio": MIN_EFFECT_NOISE_RATIO, "peak_tolerance": PEAK_TOLERANCE,
+                        "unexplained_noise_ratio": UNEXPLAINED_NOISE_RATIO, "unexplained_pct": MIN_STRUCTURE_PCT,
+                        "unexplained_peak_ratio": PEAK_NOISE_RATIO, "peak_block_s": PEAK_BLOCK_S,
+                        "peak_rank": PEAK_RANK, "capacity_tolerance": CAPACITY_TOLERANCE,
+                        "initial_state_tolerance": INITIAL_STATE_TOLERANCE, "wipe_gain": WIPE_GAIN,
+                        "wipe_state_gain": WIPE_STATE_GAIN, "wipe_margin": WIPE_MARGIN,
+                        "separation_share": SEPARATION_SHARE},   # signature: earlier reports' name of held_out_gain
+            sessions=tuple(sessions),
+            transport_delay_s=round(final.delay_s, 7),
+            warnings=tuple(self.warnings),
+            final_model=final.describe(),
+            seconds=round(time.monotonic() - self.started, 3),
+        )
+        b, f = report.baseline.validate, report.final.validate
+        self.log(f"added: {', '.join(story.added) or 'nothing'}; held-out RMS {b.rms_um:.4f} -> {f.rms_um:.4f} um, "
+                 f"peak {b.peak_um:.3f} -> {f.peak_um:.3f} um at {self.full.rate_hz:.0f} Hz; unexplained: "
+                 f"{str(remains.unexplained).lower()} ({report.seconds:.1f} s)")
         return report
 
-    def sessions_report(self, start: StartChoice, final: ValveModel) -> tuple[list[dict], dict]:
+    def sessions_report(self, start: StartChoice, final: ValveModel) -> tuple[list[Session], dict]:
         """Each record as a session of its own, for the final model (``Session`` in the report's schema), and how
         the final model started on a validation record (for the initial state's description)."""
         first = start.first.history.describe() if self.split.wiped_at_s is None else start.assumed["assumed"]
-        out = [{"record": "training", "offset_um": 0.0, "start": first, "start_rows": 0, "start_rows_rms_um": 0.0}]
+        out = [Session(record="training", offset_um=0.0, start=first, start_rows=0, start_rows_rms_um=0.0)]
         final_start = {}
         session = self.session(final)
         if session is not None:
             final_start["validation_record_start_final_model"] = session.history.describe()
-            out.append({"record": "validation", "offset_um": round(session.offset_um, 6),
-                        "start": "its own, estimated for the model: " + session.history.describe(),
-                        "start_rows": session.rows, "start_rows_rms_um": round(session.first_rows_rms_um, 6)})
+            out.append(Session(record="validation", offset_um=round(session.offset_um, 6),
+                               start="its own, estimated for the model: " + session.history.describe(),
+                               start_rows=session.rows, start_rows_rms_um=round(session.first_rows_rms_um, 6)))
             self.log(f"validation session: sensor offset {session.offset_um:+.4f} um against the training record's; "
                      f"start estimated on its first {session.rows} rows ({session.first_rows_rms_um:.4f} um RMS there)")
         return out, final_start
@@ -765,13 +767,13 @@ class _EffectChoice:
         self.fit, self.split, self.noise, self.cache = loop.fit, loop.split, loop.noise, loop.cache
         self.log, self.pool, self.each, self.each_form = loop.log, loop.pool, loop.each, loop.each_form
         self.held_out, self.session, self.polishes = loop.held_out, loop.session, loop.polishes
-        self.confirm_log: list[dict] = []
+        self.confirm_log: list[ConfirmRound] = []
         H_fit = baseline.context(self.fit).H
         self.effects: list[Effect] = [e for e in (cls.prepare(self.fit, H_fit) for cls in CATALOGUE) if e is not None]
         self.by_name: dict[str, Effect] = {e.name: e for e in self.effects}
         self.names: list[str] = [e.name for e in self.effects]
         self.search: Optional[SubsetSearch] = None
-        self.table: list[dict] = []
+        self.table: list[SearchRow] = []
         self.chosen_set: frozenset = frozenset()
         if search:
             self.search_subsets()
@@ -788,10 +790,10 @@ class _EffectChoice:
         for s in subsets:
             sc = search.score(s)
             checks = {e: support(sc, search.score(s - {e}), self.noise) for e in s}
-            table.append({"effects": [n for n in names if n in s], "held_out_rms_um": round(sc.rms, 6),
-                          "held_out_peak_um": round(sc.peak, 5),
-                          "supported": all(c[2] for c in checks.values())})
-        supported = [(t["held_out_rms_um"], len(t["effects"]), frozenset(t["effects"])) for t in table if t["supported"]]
+            table.append(SearchRow(effects=tuple(n for n in names if n in s), held_out_rms_um=round(sc.rms, 6),
+                                   held_out_peak_um=round(sc.peak, 5),
+                                   supported=all(c[2] for c in checks.values())))
+        supported = [(t.held_out_rms_um, len(t.effects), frozenset(t.effects)) for t in table if t.supported]
         self.table, self.chosen_set = table, min(supported)[2]
         self.log(f"search on {self.label}: {len(subsets)} subsets of {', '.join(names)}; best supported: "
                  f"{', '.join(n for n in names if n in self.chosen_set) or 'none'}")
@@ -977,8 +979,8 @@ class _EffectChoice:
             for n, (without_model, without) in zip(current, dropped):
                 drops[n], withouts[n] = without_model, without
                 verdicts[n] = support(score_model, without, self.noise) + (without.rms, score_model.rms)
-            self.confirm_log.append({"effects": list(current), "held_out_rms_um": round(score_model.rms, 6),
-                                     "drop_one": {n: round(v[0], 4) for n, v in verdicts.items()}})
+            self.confirm_log.append(ConfirmRound(effects=tuple(current), held_out_rms_um=round(score_model.rms, 6),
+                                                 drop_one={n: round(v[0], 4) for n, v in verdicts.items()}))
             failing = [n for n in current if not verdicts[n][2]]
             if not failing:
                 return model, drops, verdicts, current
@@ -1024,7 +1026,7 @@ class _EffectChoice:
         added one; the exact refits decide."""
         best = None
         for alt in _alternatives(current, self.names, verdicts, self.search, self.refit_many, self.by_name):
-            a, b, held = alt["effect"], alt["alternative"], alt["held_out_rms_um"]
+            a, b, held = alt.effect, alt.alternative, alt.held_out_rms_um
             swapped = [n for n in self.names if n in (set(current) - {a}) | {b}]
             if held["with_" + b] < held["with_" + a] and frozenset(swapped) not in tried \
                     and (best is None or held["with_" + b] < best[3]):
@@ -1089,7 +1091,7 @@ def _detrended(error: np.ndarray) -> np.ndarray:
 
 
 def _alternatives(added: list[str], names: list[str], verdicts: dict, search: "SubsetSearch",
-                  refit_many: Callable, by_name: dict[str, Effect]) -> list[dict]:
+                  refit_many: Callable, by_name: dict[str, Effect]) -> list[Indistinguishable]:
     """Effects the record cannot tell apart: for each added effect a, each effect b outside the final set that,
     put in a's place, explains at least SEPARATION_SHARE of what a explains (its held-out RMS cut from the
     final model without a), by the linear search and then by an exact refit.  The loop names the better of
@@ -1110,15 +1112,17 @@ def _alternatives(added: list[str], names: list[str], verdicts: dict, search: "S
                                                          for b in options])):
             cut_b = 1.0 - swapped.rms / max(without, 1e-30)
             if cut_b >= SEPARATION_SHARE * cut_a:
-                found.append({"effect": a, "alternative": b, "held_out_rms_um": {
-                    "without_either": round(without, 6), "with_" + a: round(with_, 6), "with_" + b: round(swapped.rms, 6)},
-                    "share": round(cut_b / cut_a, 4) if cut_a > 0 else None,
-                    "why": f"in {a}'s place {b} cuts the held-out RMS {without:.4f} -> {swapped.rms:.4f} um against "
-                           f"{with_:.4f} um with {a} ({100 * cut_b / max(cut_a, 1e-30):.0f} % of its cut, "
-                           f"threshold {100 * SEPARATION_SHARE:.0f} %): both signatures fit what this record shows; "
-                           f"{a} is named as the better",
-                    "experiment": f"to tell {a} from {b}, record {by_name[a].telling_experiment} (for {a}), and "
-                                  f"{by_name[b].telling_experiment} (for {b})"})
+                found.append(Indistinguishable(
+                    effect=a, alternative=b,
+                    held_out_rms_um={"without_either": round(without, 6), "with_" + a: round(with_, 6),
+                                     "with_" + b: round(swapped.rms, 6)},
+                    share=round(cut_b / cut_a, 4) if cut_a > 0 else None,
+                    why=f"in {a}'s place {b} cuts the held-out RMS {without:.4f} -> {swapped.rms:.4f} um against "
+                        f"{with_:.4f} um with {a} ({100 * cut_b / max(cut_a, 1e-30):.0f} % of its cut, "
+                        f"threshold {100 * SEPARATION_SHARE:.0f} %): both signatures fit what this record shows; "
+                        f"{a} is named as the better",
+                    experiment=f"to tell {a} from {b}, record {by_name[a].telling_experiment} (for {a}), and "
+                               f"{by_name[b].telling_experiment} (for {b})"))
     return found
 
 
