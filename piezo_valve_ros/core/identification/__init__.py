@@ -15,5 +15,6 @@ __all__, __getattr__ = lazy_exports(__name__, {
     "CATALOGUE": "effects",
     "compensation": "to_controller",
     "Compensation": "to_controller",
+    "IdentificationReport": "report",
     "check_report": "report",
 })
