@@ -16,7 +16,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64, Float64MultiArray
 
 from piezo_valve_ros.backends import SimBackend
-from piezo_valve_ros.core.sim.simulator import ValveSimConfig
+from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
 from piezo_valve_ros.runtime.loop_timing import LoopTiming
 from piezo_valve_ros.nodes.common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, claim_pacing,
                                           make_executor, samples_from_message, spin_loop)
@@ -97,6 +97,24 @@ def test_short_advances_step_sample_by_sample_with_the_batch_result():
     for n, v in [(1, 6.0), (5, 7.5), (13, 3.0), (2, 5.0)]:
         a.write_voltage(v), b.write_voltage(v)
         np.testing.assert_allclose(a.advance(n), b.advance(n), rtol=0, atol=1e-15)
+
+
+def test_the_batch_path_is_ready_when_the_backend_opens_and_its_warm_up_leaves_the_valve_untouched():
+    """A real-time reader that falls behind gets the samples it missed by the batch path; its first run imported
+    scipy.signal inside that very tick (0.5-0.8 s: the longest stall of the composed 10 kHz loop).  ``open``
+    runs it once on a copy of the valve: afterwards the import is done, and the valve gives what a valve that
+    never warmed up gives."""
+    import subprocess
+    import sys
+    code = ("import sys; from piezo_valve_ros.backends import SimBackend; b = SimBackend(); "
+            "before = 'scipy.signal' in sys.modules; b.open(); print(before, 'scipy.signal' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.stdout.split() == ["False", "True"], out.stderr
+    opened = SimBackend(ValveSimConfig(seed=7))
+    opened.open()
+    opened.write_voltage(6.5)
+    fresh = SimulatedValve(ValveSimConfig(seed=7))
+    np.testing.assert_array_equal(opened.advance(40)[:, 2], fresh.run(np.full(40, 6.5)))
 
 
 class FakeExecutor:

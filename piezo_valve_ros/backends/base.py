@@ -28,6 +28,7 @@ node's ``lockstep`` clock uses.
 """
 from __future__ import annotations
 
+import copy
 import time
 from abc import ABC, abstractmethod
 from dataclasses import replace
@@ -235,7 +236,11 @@ class SimBackend(ValveBackend):
         return cls(sim_config_from_parameters(values, safe_voltage_v))
 
     def open(self) -> None:
+        """Reset the valve, and run the batch path once on a scratch copy of it: a real-time reader that falls
+        behind takes it, and its first run imports scipy.signal (0.5-0.8 s, a stall inside the very tick
+        that catches up)."""
         self.valve.reset()
+        copy.deepcopy(self.valve).run(np.full(self.per_sample_below + 1, self._voltage))
         self._t0 = self._clock()
         self._done = 0
         self._phased = False
