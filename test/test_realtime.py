@@ -99,19 +99,21 @@ def test_short_advances_step_sample_by_sample_with_the_batch_result():
         np.testing.assert_allclose(a.advance(n), b.advance(n), rtol=0, atol=1e-15)
 
 
-def test_the_batch_path_is_ready_when_the_backend_opens_and_its_warm_up_leaves_the_valve_untouched():
+def test_the_batch_path_is_ready_before_a_realtime_loop_and_its_warm_up_leaves_the_valve_untouched():
     """A real-time reader that falls behind gets the samples it missed by the batch path; its first run imported
-    scipy.signal inside that very tick (0.5-0.8 s: the longest stall of the composed 10 kHz loop).  ``open``
-    runs it once on a copy of the valve: afterwards the import is done, and the valve gives what a valve that
-    never warmed up gives."""
+    scipy.signal inside that very tick (0.5-0.9 s: the longest stall of the composed 10 kHz loop).
+    ``prepare_realtime`` (the hardware node calls it on the real-time clock) runs it once on a copy of the valve:
+    afterwards the import is done, and the valve gives what a valve that never warmed up gives."""
     import subprocess
     import sys
     code = ("import sys; from piezo_valve_ros.backends import SimBackend; b = SimBackend(); "
-            "before = 'scipy.signal' in sys.modules; b.open(); print(before, 'scipy.signal' in sys.modules)")
+            "b.open(); before = 'scipy.signal' in sys.modules; b.prepare_realtime(); "
+            "print(before, 'scipy.signal' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.stdout.split() == ["False", "True"], out.stderr
     opened = SimBackend(ValveSimConfig(seed=7))
     opened.open()
+    opened.prepare_realtime()
     opened.write_voltage(6.5)
     fresh = SimulatedValve(ValveSimConfig(seed=7))
     np.testing.assert_array_equal(opened.advance(40)[:, 2], fresh.run(np.full(40, 6.5)))

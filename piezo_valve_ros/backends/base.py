@@ -131,6 +131,10 @@ class ValveBackend(ABC):
     def advance(self, n_samples: int) -> np.ndarray:  # pragma: no cover - only lockstep backends
         raise NotImplementedError(f"{type(self).__name__} cannot advance time on demand (no lockstep)")
 
+    def prepare_realtime(self) -> None:
+        """Called once after ``open``, before a real-time loop starts reading: do here whatever a first call of a
+        per-period path would otherwise do inside a tick (imports, first-use allocations).  Optional."""
+
 
 def _sensor_delay_samples(delay_s: float, dt: float) -> int:
     k = whole_periods(delay_s, dt)
@@ -236,11 +240,7 @@ class SimBackend(ValveBackend):
         return cls(sim_config_from_parameters(values, safe_voltage_v))
 
     def open(self) -> None:
-        """Reset the valve, and run the batch path once on a scratch copy of it: a real-time reader that falls
-        behind takes it, and its first run imports scipy.signal (0.5-0.8 s, a stall inside the very tick
-        that catches up)."""
         self.valve.reset()
-        copy.deepcopy(self.valve).run(np.full(self.per_sample_below + 1, self._voltage))
         self._t0 = self._clock()
         self._done = 0
         self._phased = False
@@ -290,6 +290,12 @@ class SimBackend(ValveBackend):
         if due <= 0:
             return np.zeros((0, 3))
         return self.advance(due)
+
+    def prepare_realtime(self) -> None:
+        """Run the batch path once on a scratch copy of the valve: a real-time reader that falls behind catches
+        up through it, and its first run imported scipy.signal (0.5-0.9 s, a stall inside the very tick that
+        catches up).  Lockstep never takes it at a cost to anyone, so its nodes keep the import lazy."""
+        copy.deepcopy(self.valve).run(np.full(self.per_sample_below + 1, self._voltage))
 
     def close(self) -> None:
         self.is_open = False

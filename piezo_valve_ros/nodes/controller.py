@@ -34,7 +34,8 @@ from ..core.control.strategies import (GUARD_WINDOW_S, has_feedback, SAFE_PERIOD
                                        PIDGains, ValveController, default_gain_set, gain_set, loop_settings)
 from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, LATEST_SENSOR_QOS, SAMPLES_QOS, STATE_QOS, Diagnostics, period_parameter,
                      ParameterSpec, samples_message, as_float, declare_all,
-                     parameter_values, realtime_settings, realtime_specs, refuse, run_node, samples_from_message)
+                     parameter_values, realtime_settings, realtime_specs, refuse, run_node, samples_from_message,
+                     Throttle)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 GAIN_SET_KEYS = ("strategy", "kp", "ki", "kd")   # what an active gain_set decides
@@ -121,6 +122,7 @@ CONTROLLER_STATE_COLUMNS = ("time_s", "reference_m", "measured_m", "error_m", "c
 class ValveControllerNode(Node):
     def __init__(self, **kwargs):
         super().__init__("valve_controller", **kwargs)
+        self._say_non_finite = Throttle(1.0)   # a per-measurement warning, at most this often
         declare_all(self, CONTROLLER_PARAMETERS)
         name = str(self.get_parameter("gain_set").value or "")
         if name:  # the set's values are what runs: the parameters say so
@@ -212,7 +214,8 @@ class ValveControllerNode(Node):
     def on_measurement(self, y: float) -> Optional[float]:
         """One control period: the command [V] for the measured position ``y`` [m] (None: none)."""
         if not math.isfinite(y):
-            self.get_logger().warning(f"ignored non-finite spool_position {y!r}", throttle_duration_sec=1.0)
+            if self._say_non_finite.due():
+                self.get_logger().warning(f"ignored non-finite spool_position {y!r}")
             return None
         self._last_position_m = y
         if not self.enabled or self.hardware_fault is not None:

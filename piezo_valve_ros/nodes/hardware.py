@@ -35,7 +35,7 @@ from ..runtime.loop_timing import LoopTiming
 from .common import (COMMAND_QOS, CONTROL_PERIOD, DIAGNOSTICS_PERIOD, MAX_CONTROL_PERIOD_S, SAMPLES_QOS, SENSOR_QOS,
                      STATE_QOS, Diagnostics, Pacing, ParameterSpec, as_float, declare_all, given_parameter_names,
                      parameter_values, period_parameter, realtime_settings, realtime_specs, refuse, run_node,
-                     samples_message, tighten_timer_slack)
+                     samples_message, tighten_timer_slack, Throttle)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 from ..core.validation import as_int, whole_periods
 
@@ -98,6 +98,9 @@ class ValveHardwareNode(Node):
 
     def __init__(self, backend: Optional[ValveBackend] = None, **kwargs):
         super().__init__("valve_hardware", **kwargs)
+        # the per-command warnings, each at most this often (their counts say how many there were)
+        self._say_rejected, self._say_clamped = Throttle(1.0), Throttle(1.0)
+        self._say_refused_in_fault, self._say_late = Throttle(2.0), Throttle(5.0)
         declare_all(self, HARDWARE_PARAMETERS)
         backend_name = str(self.get_parameter("backend").value)
         backend_type = type(backend) if backend is not None else backend_class(backend_name)
@@ -221,6 +224,7 @@ class ValveHardwareNode(Node):
             self._matched_since: Optional[float] = None
             self.create_timer(min(0.05, self.command_timeout_s / 10), self._lockstep_idle)
         else:
+            self.backend.prepare_realtime()
             if not tighten_timer_slack():
                 self.get_logger().warning("could not reduce the timer slack: expect period jitter of ~50 us")
             # fallback when nobody claims the pacing (an executor spun elsewhere); spin_loop claims it
@@ -265,14 +269,15 @@ class ValveHardwareNode(Node):
     def _validate(self, v: float) -> Optional[float]:
         if not math.isfinite(v):
             self.rejected += 1
-            self.get_logger().warning(f"rejected non-finite voltage command {v!r} ({self.rejected} so far)",
-                                      throttle_duration_sec=1.0)
+            if self._say_rejected.due():
+                self.get_logger().warning(f"rejected non-finite voltage command {v!r} ({self.rejected} so far)")
             return None
         if v < self.command_min_v or v > self.command_max_v:
             self.clamped += 1
             clamped = min(max(v, self.command_min_v), self.command_max_v)
-            self.get_logger().warning(f"clamped voltage command {v:.4g} V to {clamped:.4g} V "
-                                      f"({self.clamped} so far)", throttle_duration_sec=1.0)
+            if self._say_clamped.due():
+                self.get_logger().warning(f"clamped voltage command {v:.4g} V to {clamped:.4g} V "
+                                          f"({self.clamped} so far)")
             return clamped
         return v
 
@@ -301,18 +306,18 @@ class ValveHardwareNode(Node):
     def _accept_command(self, v: float) -> None:
         if self.fault is not None:
             self.refused_in_fault += 1
-            self.get_logger().warning(f"command refused: in fault ({self.fault.kind}; {self.refused_in_fault} "
-                                      f"refused so far): valve_command reset once the cause is gone",
-                                      throttle_duration_sec=2.0)
+            if self._say_refused_in_fault.due():
+                self.get_logger().warning(f"command refused: in fault ({self.fault.kind}; {self.refused_in_fault} "
+                                          f"refused so far): valve_command reset once the cause is gone")
             return
         v = self._validate(v)
         if v is None:
             return
         if self.loop_timing.commanded() is False and self.clock_mode == "realtime" and self.periods > 1:
             self.late_commands += 1
-            self.get_logger().warning(f"command arrived more than a period after its measurement "
-                                      f"({self.late_commands} so far): the loop runs with extra delay",
-                                      throttle_duration_sec=5.0)
+            if self._say_late.due():
+                self.get_logger().warning(f"command arrived more than a period after its measurement "
+                                          f"({self.late_commands} so far): the loop runs with extra delay")
         self._last_valid_command_wall = time.monotonic()
         self._command_since_publish = True
         self._armed = True
