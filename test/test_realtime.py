@@ -119,6 +119,18 @@ def test_the_batch_path_is_ready_before_a_realtime_loop_and_its_warm_up_leaves_t
     np.testing.assert_array_equal(opened.advance(40)[:, 2], fresh.run(np.full(40, 6.5)))
 
 
+def test_a_throttled_warning_is_decided_before_the_logger_is_called():
+    """The first time due, then at most once per period (rclpy's own throttle costs a source-file lookup per call)."""
+    from piezo_valve_ros.nodes.common import Throttle
+    now = [100.0]
+    say = Throttle(5.0, clock=lambda: now[0])
+    seen = []
+    for t in (100.0, 101.0, 104.9, 105.0, 105.1, 110.2):
+        now[0] = t
+        seen.append(say.due())
+    assert seen == [True, False, False, True, False, True]
+
+
 class FakeExecutor:
     """spin_once advances the fake clock by its timeout (nothing arrives) and counts the calls."""
 
