@@ -36,7 +36,7 @@ def to_json(value):
     if isinstance(value, _Node):
         return value.to_json()
     if is_dataclass(value) and not isinstance(value, type):   # a record of the core's (ErrorFigures)
-        return {f.name: to_json(getattr(value, f.name)) for f in fields(value)}
+        return _fields_json(value)
     if isinstance(value, (list, tuple)):
         return [to_json(v) for v in value]
     if isinstance(value, dict):
@@ -44,11 +44,16 @@ def to_json(value):
     return value
 
 
+def _fields_json(record) -> dict:
+    """A dataclass record's fields as JSON data, in field order (optional fields that are None left out)."""
+    return {f.name: to_json(getattr(record, f.name)) for f in fields(record)
+            if not (f.metadata.get("optional") and getattr(record, f.name) is None)}
+
+
 class _Node:
     def to_json(self) -> dict:
         """This record as JSON data (field order)."""
-        return {f.name: to_json(getattr(self, f.name)) for f in fields(self)
-                if not (f.metadata.get("optional") and getattr(self, f.name) is None)}
+        return _fields_json(self)
 
 
 @dataclass(frozen=True)
@@ -221,7 +226,7 @@ class IdentificationReport(_Node):
     def to_json(self) -> dict:
         """report.json's content (without the schema block unless set), the aliases included."""
         out = {}
-        for key, value in _Node.to_json(self).items():
+        for key, value in _fields_json(self).items():
             out[key] = value
             for alias, (of, after) in self.ALIASES.items():
                 if after == key:
