@@ -238,6 +238,62 @@ def test_nodes_die_with_a_rig_killed_by_sigkill(tmp_path):
             pass
 
 
+_STUCK_CHILD = """
+import ctypes, signal
+from piezo_valve_ros.runtime.processes import die_with_parent
+signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})   # a stop request it will not act on ...
+assert die_with_parent()
+print("child ready", flush=True)
+libc = ctypes.PyDLL(None)
+while True:
+    libc.sleep(60)   # ... and in C, holding the GIL: no thread of its own can run
+"""
+
+_PARENT = """
+import subprocess, sys, time
+from piezo_valve_ros.runtime.processes import ProcessGroup
+group = ProcessGroup()
+group.start("stuck", [sys.executable, "-c", sys.argv[1]], stdout=sys.stdout, stderr=sys.stderr)
+time.sleep(600)
+"""
+
+
+def test_a_child_stuck_in_c_holding_the_gil_is_ended_after_its_parents_sigkill(tmp_path):
+    """The backstop of the death signal works where the child's own Python cannot run: its SIGTERM handler and
+    any thread of its own wait for the GIL, so a separate watcher process dumps its stacks and kills it
+    PARENT_DEATH_GRACE_S after it was asked to stop."""
+    from piezo_valve_ros.runtime.processes import PARENT_DEATH_GRACE_S
+    log_path = tmp_path / "parent.log"
+    with open(log_path, "w") as log:
+        parent = subprocess.Popen([sys.executable, "-c", _PARENT, _STUCK_CHILD], stdout=log,
+                                  stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        wait_for_text(log_path, "child ready", timeout_s=30)
+        time.sleep(0.5)   # the watcher has started (it is spawned before "child ready")
+        parent.kill()
+        parent.wait(5)
+        killed_at = time.monotonic()
+        deadline = killed_at + PARENT_DEATH_GRACE_S + 10
+        while time.monotonic() < deadline:
+            try:
+                os.killpg(parent.pid, 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.1)
+        else:
+            raise AssertionError(f"the stuck child outlived its parent:\n{log_path.read_text()}")
+        gone_after = time.monotonic() - killed_at
+        assert gone_after >= PARENT_DEATH_GRACE_S - 0.5   # first asked to stop, which it could not do
+        text = log_path.read_text()
+        assert "its shutdown hung; ending it (stacks follow)" in text
+        assert "most recent call first" in text   # faulthandler's dump of the stuck thread
+    finally:
+        try:
+            os.killpg(parent.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
 def test_parameter_files_load_into_the_nodes(procs, tmp_path):
     root = os.path.join(os.path.dirname(__file__), "..")
     cmd = node_command("valve_controller", {}, "/pf") + [

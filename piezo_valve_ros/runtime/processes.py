@@ -54,23 +54,54 @@ def die_with_parent() -> bool:
     return True
 
 
-def _watch_parent(parent: int) -> None:
-    """Backstop for the death signal: a daemon thread notices the parent gone (reparented), asks for an
-    orderly stop (SIGTERM) and, if the process still lives PARENT_DEATH_GRACE_S later (its shutdown hung),
-    ends it.  A process whose parent was killed must not live on, holding a valve or a CPU."""
-    import threading
+# The watcher: a separate, minimal Python process (``-I -S``: no site, no user paths), so that it acts even
+# where the node is stuck in C code holding the GIL (a thread of the node could not).  It dies with the node
+# (PR_SET_PDEATHSIG SIGKILL), reads the node's parent from /proc, and where the parent is gone: SIGTERM (an
+# orderly stop), and PARENT_DEATH_GRACE_S later, if the node still lives, SIGUSR1 (faulthandler: every thread's
+# stack to stderr), then SIGKILL.  argv: node pid, parent pid, poll period [s], grace [s].
+_WATCHER = """
+import ctypes, os, signal, sys, time
+node, parent, poll, grace = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3]), float(sys.argv[4])
+ctypes.CDLL(None).prctl(1, int(signal.SIGKILL), 0, 0, 0)
+if os.getppid() != node:
+    sys.exit(0)
+def parent_of(pid):
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return int(f.read().rsplit(")", 1)[1].split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+while parent_of(node) == parent:
+    time.sleep(poll)
+os.kill(node, signal.SIGTERM)
+time.sleep(grace)
+print(f"parent {parent} gone and process {node} still alive {grace:g} s after SIGTERM: its shutdown hung; "
+      "ending it (stacks follow)", file=sys.stderr, flush=True)
+os.kill(node, signal.SIGUSR1)
+time.sleep(0.5)
+os.kill(node, signal.SIGKILL)
+"""
 
-    def watch():
-        while os.getppid() == parent:
-            time.sleep(PARENT_POLL_S)
-        os.kill(os.getpid(), signal.SIGTERM)
-        time.sleep(PARENT_DEATH_GRACE_S)
-        import faulthandler
-        print(f"parent {parent} gone and this process still alive {PARENT_DEATH_GRACE_S:g} s after SIGTERM: "
-              "its shutdown hung; ending it (stacks follow)", file=sys.stderr, flush=True)
-        faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
-        os._exit(1)
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+def _watch_parent(parent: int) -> None:
+    """Backstop for the death signal: a watcher process (``_WATCHER``) notices the parent gone, asks for an
+    orderly stop (SIGTERM) and, if the process still lives PARENT_DEATH_GRACE_S later (its shutdown hung),
+    dumps its threads' stacks and kills it.  A process whose parent was killed must not live on, holding a
+    valve or a CPU, not even one stuck in C code that holds the GIL."""
+    import atexit
+    import faulthandler
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
+    watcher = subprocess.Popen([sys.executable, "-I", "-S", "-c", _WATCHER, str(os.getpid()), str(parent),
+                                str(PARENT_POLL_S), str(PARENT_DEATH_GRACE_S)], stdin=subprocess.DEVNULL,
+                               close_fds=True)
+    atexit.register(_end_watcher, watcher)
+
+
+def _end_watcher(watcher: subprocess.Popen) -> None:
+    """At an orderly exit: the watcher ended and reaped (it would die with this process anyway, but as an
+    orphan that is left to init to reap, still in the launcher's process group until then)."""
+    watcher.kill()
+    watcher.wait()
 
 
 class ProcessGroup:
