@@ -1,5 +1,6 @@
 """End-to-end tests through the ROS graph: separate processes, lockstep, private DDS domain."""
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -205,6 +206,20 @@ def test_sigterm_to_a_lockstep_rig_stops_every_node_without_a_stack_trace(tmp_pa
     assert "FATAL" not in text and "Traceback" not in text and "Error occurred" not in text, text
     line = [x for x in text.splitlines() if "safe_voltage 5.0 V applied; lockstep:" in x]
     assert line and "periods/s" in line[0] and "commands in time" not in line[0]
+
+
+@pytest.mark.slow
+def test_a_lockstep_rig_runs_no_faster_than_its_max_speed(tmp_path):
+    """--lockstep-speed 2: the valve's time runs at most twice the wall clock's (load can slow it, never speed it
+    up), every period still answered; the option is refused off lockstep."""
+    text = run_rig_until_signal(tmp_path, ["--control-period-s", "0.001", "--lockstep-speed", "2"], signal.SIGINT,
+                                run_s=3.0)
+    line = next(x for x in text.splitlines() if "safe_voltage 5.0 V applied; lockstep:" in x)
+    periods, rate = re.search(r"lockstep: (\d+) periods .* = (\d+) periods/s", line).groups()
+    assert int(periods) > 1000 and int(rate) <= 2000 * 1.02, line
+    refused = subprocess.run([sys.executable, "-m", "piezo_valve_ros.cli.rig", "--demo", "none", "--clock", "realtime",
+                              "--lockstep-speed", "1"], env=ros_env(), capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2 and "--lockstep-speed" in refused.stderr and "lockstep" in refused.stderr, refused
 
 
 @pytest.mark.slow

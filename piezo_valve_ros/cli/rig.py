@@ -72,6 +72,9 @@ def _parser() -> argparse.ArgumentParser:
                          "permission, see README); the hardware then sleeps between ticks")
     ap.add_argument("--pin", action="store_true",
                     help="realtime: hardware on the first CPU, controller on the last (realtime.cpus)")
+    ap.add_argument("--lockstep-speed", type=float, metavar="X",
+                    help="lockstep: the valve's time runs at most X times as fast as the wall clock (default: as fast "
+                         "as the loop goes, which keeps two cores busy; 1 = the wall clock's pace)")
     ap.add_argument("--demo", choices=("steps", "none"), default="steps")
     ap.add_argument("--hold-s", type=float, default=0.1, help="hold before and after each step [s]")
     ap.add_argument("--sim-seed", type=int, default=0)
@@ -106,7 +109,7 @@ def given_options(argv) -> set[str]:
 OPTION_PARAMETERS = {"clock": {"clock"}, "control_period_s": {"control_period_s"}, "sim_seed": {"sim.seed"},
                      "busy_poll_s": {"realtime.busy_poll_s"}, "priority": {"realtime.priority", "realtime.busy_poll_s"},
                      "pin": {"realtime.cpus"}, "gain_set": {"gain_set", "strategy"}, "strategy": {"strategy", "gain_set"},
-                     "backend": {"backend"}}
+                     "backend": {"backend"}, "lockstep_speed": {"lockstep.max_speed"}}
 RIG_OWNED = {"lockstep.step_budget"}   # the demo's pacing: always the rig's
 GAIN_KEYS = {"gain_set", "strategy", "kp", "ki", "kd"}
 
@@ -127,6 +130,8 @@ def rig_parameters(args) -> tuple[dict, dict]:
     hw = {"backend": args.backend, "clock": args.clock, "control_period_s": args.control_period_s,
           "realtime.busy_poll_s": busy_poll if args.clock == "realtime" else 0.0,
           "lockstep.step_budget": 0 if (args.clock == "lockstep" and args.demo == "steps") else -1}
+    if args.lockstep_speed is not None:
+        hw["lockstep.max_speed"] = args.lockstep_speed
     if args.backend == "sim":
         hw["sim.seed"] = args.sim_seed
     ctl = {"control_period_s": args.control_period_s, "reference_ramp_s": 0.002}
@@ -199,6 +204,8 @@ def check_options(args) -> None:
         raise UsageError("the step demo needs --clock lockstep (use --demo none for a real-time rig)")
     if (args.priority or args.pin) and args.clock != "realtime":
         raise UsageError("--priority and --pin apply to --clock realtime")
+    if args.lockstep_speed is not None and (args.clock != "lockstep" or not args.lockstep_speed >= 0):
+        raise UsageError("--lockstep-speed takes a speed >= 0 and applies to --clock lockstep")
 
 
 def _print_step_demo(client: RigClient, args, label: str, samples_per_period: int) -> None:

@@ -7,6 +7,8 @@ Clock modes
             ``lockstep.step_budget`` (-1 = unlimited) lets a test or demo pause the loop after a
             number of periods: commands that arrive while paused are held (the latest wins) and
             applied when budget is granted; ``samples`` is flushed on pausing.
+            ``lockstep.max_speed`` (0 = as fast as commands come) keeps the valve's time from running
+            more than that many times as fast as the wall clock: an idle rig then costs little CPU.
 
 Faults (``faults``): a backend that raises, samples that are non-finite, implausible or frozen, or no samples at
 all latch a fault: the safe voltage is applied (retried every period while writes fail, and said so), commands
@@ -44,6 +46,7 @@ MAX_COMMAND_TIMEOUT_S = 10.0    # the watchdog may not be stretched beyond this
 MIN_TIMEOUT_PERIODS = 2         # ... nor shortened below this many control periods (it would fire between commands)
 FIRST_SAMPLE_SETTLE_S = 0.3   # lockstep: a commander matched this long before y_0 is sent (s)
 UNANSWERED_REPEAT_S = 1.0     # lockstep: an unanswered position is sent again after this long (s)
+PACE_SLACK_S = 0.1            # lockstep.max_speed: a loop this far behind its pace starts afresh (no sprint) [s]
 
 
 HARDWARE_PARAMETERS: tuple[ParameterSpec, ...] = (
@@ -62,6 +65,9 @@ HARDWARE_PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("command_max_v", COMMAND_MAX_V, "commands above are clamped [V]", read_only=True),
     ParameterSpec("lockstep.step_budget", -1, "lockstep only: periods to run before pausing (-1 = no pause); "
                   "refused on the real-time clock (a paused watchdog would hold the last command)"),
+    ParameterSpec("lockstep.max_speed", 0.0, "lockstep only: the valve's time runs at most this many times as fast "
+                  "as the wall clock (0 = as fast as commands come, which keeps two cores busy; 1 = never ahead of "
+                  "the wall clock)", read_only=True, low=0.0),
     ParameterSpec("realtime.busy_poll_s", 0.0, "realtime clock: poll for messages instead of sleeping this long "
                   "before each tick [s] (costs a core; >= control_period_s polls all the time)", read_only=True),
     *realtime_specs(),
@@ -145,6 +151,10 @@ class ValveHardwareNode(Node):
             raise ValueError("safe_voltage must lie within [command_min_v, command_max_v]")
         self.samples_batch = SPECS["samples_batch"].checked(p["samples_batch"])
         self.step_budget = self._step_budget(p["lockstep.step_budget"])
+        self.max_speed = SPECS["lockstep.max_speed"].checked(p["lockstep.max_speed"])
+        if self.max_speed and self.clock_mode != "lockstep":
+            raise ValueError("lockstep.max_speed applies only to clock lockstep (the real-time clock runs at the "
+                             "wall clock's pace)")
         stats_period = as_float("loop_stats_period_s", p["loop_stats_period_s"])
         if stats_period < 0:
             raise ValueError("loop_stats_period_s must be >= 0")
@@ -200,6 +210,7 @@ class ValveHardwareNode(Node):
         self._armed = False  # the watchdog runs from the first valid command on (until then: safe voltage)
         self._command_since_publish = False
         self._last_publish_wall = time.monotonic()
+        self._pace_due: Optional[float] = None   # lockstep.max_speed: the wall time the next period may start
         self.rejected = 0
         self.clamped = 0
         self.late_commands = 0
@@ -337,6 +348,8 @@ class ValveHardwareNode(Node):
     def _apply_lockstep(self, v: float) -> None:
         if not self._write(v):
             return
+        if self.max_speed:
+            self._keep_pace()
         self._advance_and_publish()
         if self.step_budget > 0:
             self.step_budget -= 1
@@ -344,6 +357,18 @@ class ValveHardwareNode(Node):
                 self._flush_samples()
 
     # ------------------------------------------------------------------ time
+    def _keep_pace(self) -> None:
+        """lockstep.max_speed: wait until the next period may start (at most a period of the valve's time over
+        max_speed: this runs in the command's callback).  A loop more than PACE_SLACK_S behind its pace (paused,
+        or slower than it) starts afresh from now instead of running flat out to catch up."""
+        step = self.control_period_s / self.max_speed
+        now = time.monotonic()
+        if self._pace_due is None or now - self._pace_due > PACE_SLACK_S:
+            self._pace_due = now
+        elif self._pace_due > now:
+            time.sleep(self._pace_due - now)
+        self._pace_due += step
+
     def _advance_and_publish(self) -> None:
         try:
             rows = self.backend.advance(self.samples_per_period)
