@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Optional, Protocol
 
 import numpy as np
@@ -404,13 +404,19 @@ def discretise_for(tf: ContinuousTF, record: Record, delay_s: float = 0.0) -> tu
     """(b, a) of G for this record: zero-order hold on raw samples (what a DAQ applies); on block means a
     first-order hold plus the source's half-sample delay, which reproduces the source's zero-order hold
     to 0.004 um RMS at 2 kHz block means of a 10 kHz record.  A transport delay ``delay_s`` [s] >= 0 follows
-    as whole samples and a linear interpolation between two for the fraction (``delay_taps``)."""
-    if record.block == 1:
-        b, a = discretise(tf, record.dt, "zoh")
-    else:
-        b, a = discretise(tf, record.dt, "foh", 0.5 * (record.source_dt or 0.0))
+    as whole samples and a linear interpolation between two for the fraction (``delay_taps``).  The arrays are
+    shared (read-only): an analysis asks for the same few G on a record thousands of times."""
+    return _discretised(tf, float(record.dt), record.block == 1, 0.5 * float(record.source_dt or 0.0),
+                        float(delay_s))
+
+
+@lru_cache(maxsize=4096)
+def _discretised(tf: ContinuousTF, dt: float, raw: bool, hold_delay_s: float, delay_s: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    b, a = discretise(tf, dt, "zoh") if raw else discretise(tf, dt, "foh", hold_delay_s)
     if delay_s > 0.0:
-        b = np.convolve(b, delay_taps(delay_s / record.dt))
+        b = np.convolve(b, delay_taps(delay_s / dt))
+    b.flags.writeable = a.flags.writeable = False
     return b, a
 
 

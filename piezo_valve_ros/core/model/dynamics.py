@@ -5,6 +5,7 @@ to spool position, unity DC gain), lives here as ``PAPER_VALVE_MODEL``.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Optional, Sequence
@@ -158,8 +159,13 @@ def second_order(omega_rad_s: float, zeta: float) -> ContinuousTF:
     return ContinuousTF((w * w,), (1.0, 2.0 * float(zeta) * w, w * w))
 
 
-def unity_dc_poles(sections: list[tuple[float, float]]) -> ContinuousTF:
+def unity_dc_poles(sections: Sequence[tuple[float, float]]) -> ContinuousTF:
     """Product of unity-DC-gain second-order sections given as (omega [rad/s], zeta)."""
+    return _unity_dc_poles(tuple((float(w), float(z)) for w, z in sections))
+
+
+@functools.lru_cache(maxsize=4096)   # fits ask for the same few G thousands of times (every model's context)
+def _unity_dc_poles(sections: tuple[tuple[float, float], ...]) -> ContinuousTF:
     num, den = np.array([1.0]), np.array([1.0])
     for w, z in sections:
         tf = second_order(w, z)
