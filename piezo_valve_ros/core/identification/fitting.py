@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import OrderedDict
+from concurrent.futures import Future
 from dataclasses import dataclass, replace
 from typing import Callable, Collection, Optional, Sequence
 
@@ -357,17 +358,42 @@ def fit_model(train: Record, start: ValveModel, effects: Sequence[Effect] = (), 
         return _fit(train, start, effects, poles=poles, rounds=rounds, cache=cache)[0]
     best = None
     for i in multi:  # (one effect with forms in practice: dynamics)
-        forms = effects[i].forms()
-        fits = each([lambda f=f: _fit(train, start, [f if j == i else e for j, e in enumerate(effects)], poles=poles,
-                                      rounds=rounds, cache=cache) for f in forms[:-1]])
-        # the last form combines others: it starts from the best of those it contains
-        seed = min((fit for f, fit in zip(forms[:-1], fits) if forms[-1].contains(f)), key=lambda f: f[1])[0]
-        seeded = replace(seed, effects=(), coefs=())
-        fits.append(_fit(train, seeded, [forms[-1] if j == i else e for j, e in enumerate(effects)], poles=poles,
-                         rounds=rounds, cache=cache))
+        fits = _fit_forms(effects[i].forms(), lambda f, s: _fit(
+            train, s, [f if j == i else e for j, e in enumerate(effects)], poles=poles, rounds=rounds, cache=cache),
+            start, each)
         candidate = min(fits, key=lambda f: f[1])
         best = candidate if best is None or candidate[1] < best[1] else best
     return best[0]
+
+
+def _fit_forms(forms: list[Effect], fit: Callable[[Effect, ValveModel], tuple[ValveModel, float]],
+               start: ValveModel, each: Callable[[list[Callable[[], object]]], list]) -> list[tuple[ValveModel, float]]:
+    """``fit(form, start)`` of every form, in the order of ``forms``.  The last form combines others: it starts
+    from the best of those it contains (``Effect.contains``), as soon as they are done: those go to ``each``
+    first, then one of the rest, then the last (which waits for what it contains, all handed out before it on a
+    first-come pool), then the rest, so the combined form runs beside the forms it does not need."""
+    *parts, last = forms
+    contained = [k for k, f in enumerate(parts) if last.contains(f)]
+    rest = [k for k in range(len(parts)) if k not in contained]
+    done = {k: Future() for k in contained}
+
+    def part(k: int):
+        if k not in done:
+            return fit(parts[k], start)
+        try:
+            done[k].set_result(fit(parts[k], start))
+        except BaseException as exc:
+            done[k].set_exception(exc)
+        return done[k].result()
+
+    def combined():
+        seed = min((done[k].result() for k in contained), key=lambda f: f[1])[0]
+        return fit(last, replace(seed, effects=(), coefs=()))
+
+    order = contained + rest[:1] + [len(parts)] + rest[1:]
+    results = each([(lambda k=k: part(k)) if k < len(parts) else combined for k in order])
+    by_index = dict(zip(order, results))
+    return [by_index[k] for k in range(len(forms))]
 
 
 def _fit(train: Record, start: ValveModel, effects: Sequence[Effect], *, poles: str, rounds: Optional[int],

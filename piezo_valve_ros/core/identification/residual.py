@@ -323,7 +323,8 @@ class _Loop:
 
     def each_form(self, jobs: list[Callable[[], object]]) -> list:
         """The forms of one refit (``fit_model``'s ``each``) on their own pool: a refit running on ``pool``
-        waits for them, so they cannot queue behind it there."""
+        waits for them, so they cannot queue behind it there.  A combined form waits only for forms handed to
+        the pool before it (first come, first served: they run or have run)."""
         return _on_pool(self.forms_pool, jobs)
 
     def session(self, model: ValveModel, on: Optional[Split] = None) -> Optional[SessionStart]:
