@@ -72,33 +72,47 @@ def _hillis_steele(A: np.ndarray, B: np.ndarray, axis: int) -> None:
         step *= 2
 
 
-def _compose_clamps_scan(lo: np.ndarray, hi: np.ndarray, block: int = 64) -> tuple[np.ndarray, np.ndarray]:
+SCAN_BLOCK = 32           # rows composed one after another in each block of the clamp scan ...
+SCAN_BLOCK_LONG = 64      # ... and in records of at least SCAN_LONG_ROWS rows (fewer levels of block totals)
+SCAN_LONG_ROWS = 16384
+
+
+def _compose_clamps_scan(lo: np.ndarray, hi: np.ndarray, block: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Inclusive prefix composition of clamps along axis 0.
 
     Element k is the clamp ``z -> min(max(z, lo[k]), hi[k])`` (lo <= hi).  Returns
-    (A, B) with ``f_k o ... o f_0 (z) = min(max(z, A[k]), B[k])``.  Two-level scheme:
-    scan inside blocks, scan the block totals recursively, then one combining pass,
-    so the work is a few passes over the data rather than log2(R).
+    (A, B) with ``f_k o ... o f_0 (z) = min(max(z, A[k]), B[k])``.  Two-level scheme: the rows of each block
+    composed one after another (a step is one operation on a row of every block at once), the block totals
+    scanned recursively, then one combining pass: a few passes over the data.  Clamps compose exactly (min
+    and max do not round), so any grouping gives the same bits.
     """
     count = lo.shape[0]
+    block = block or (SCAN_BLOCK_LONG if count >= SCAN_LONG_ROWS else SCAN_BLOCK)
     if count <= 4 * block:
         A, B = lo.copy(), hi.copy()
         _hillis_steele(A, B, 0)
         return A, B
     n_blocks = -(-count // block)
     pad = n_blocks * block - count
-    # identity clamp for padding: (-inf, +inf)
-    A = np.concatenate((lo, np.full((pad,) + lo.shape[1:], -np.inf))).reshape((n_blocks, block) + lo.shape[1:])
-    B = np.concatenate((hi, np.full((pad,) + hi.shape[1:], np.inf))).reshape((n_blocks, block) + hi.shape[1:])
-    _hillis_steele(A, B, 1)
-    tot_A, tot_B = _compose_clamps_scan(A[:, -1], B[:, -1], block)
-    prev_A = tot_A[:-1, None]
-    prev_B = tot_B[:-1, None]
-    inner_A, inner_B = A[1:], B[1:]
-    A[1:] = np.minimum(np.maximum(prev_A, inner_A), inner_B)
-    B[1:] = np.minimum(np.maximum(prev_B, inner_A), inner_B)
-    shape = (n_blocks * block,) + lo.shape[1:]
-    return A.reshape(shape)[:count], B.reshape(shape)[:count]
+    rest = lo.shape[1:]
+    # laid out (block, n_blocks, ...): each step of the in-block composition is one contiguous slab;
+    # the padding is the identity clamp (-inf, +inf)
+    A = np.concatenate((lo, np.full((pad,) + rest, -np.inf))).reshape((n_blocks, block) + rest).swapaxes(0, 1).copy()
+    B = np.concatenate((hi, np.full((pad,) + rest, np.inf))).reshape((n_blocks, block) + rest).swapaxes(0, 1).copy()
+    for k in range(1, block):
+        lo_k, hi_k = A[k], B[k]
+        after_lo = np.maximum(A[k - 1], lo_k)
+        after_hi = np.maximum(B[k - 1], lo_k)
+        np.minimum(after_lo, hi_k, out=A[k])
+        np.minimum(after_hi, hi_k, out=B[k])
+    tot_A, tot_B = _compose_clamps_scan(A[-1], B[-1], block)
+    prev_A, prev_B = tot_A[None, :-1], tot_B[None, :-1]
+    inner_A, inner_B = A[:, 1:], B[:, 1:]
+    new_A = np.minimum(np.maximum(prev_A, inner_A), inner_B)
+    B[:, 1:] = np.minimum(np.maximum(prev_B, inner_A), inner_B)
+    A[:, 1:] = new_A
+    shape = (n_blocks * block,) + rest
+    return A.swapaxes(0, 1).reshape(shape)[:count], B.swapaxes(0, 1).reshape(shape)[:count]
 
 
 def _reversal_indices(drive: np.ndarray) -> np.ndarray:
