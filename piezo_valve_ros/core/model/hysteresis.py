@@ -115,6 +115,18 @@ def _compose_clamps_scan(lo: np.ndarray, hi: np.ndarray, block: int = 0) -> tupl
     return A.swapaxes(0, 1).reshape(shape)[:count], B.swapaxes(0, 1).reshape(shape)[:count]
 
 
+def _union(*indices: np.ndarray) -> np.ndarray:
+    """Sorted distinct values of integer index arrays (``np.union1d`` by sort and compare: numpy's hashed unique
+    costs several times as much on the long turn lists of a closed-loop record)."""
+    merged = np.sort(np.concatenate(indices), kind="stable")
+    if merged.size < 2:
+        return merged
+    keep = np.empty(merged.size, bool)
+    keep[0] = True
+    np.not_equal(merged[1:], merged[:-1], out=keep[1:])
+    return merged[keep]
+
+
 def _reversal_indices(drive: np.ndarray) -> np.ndarray:
     """Indices that end a monotone stretch of ``drive`` (always includes 0 and N-1)."""
     n = drive.shape[0]
@@ -158,7 +170,7 @@ def _turns_per_operator(drive: np.ndarray, r: np.ndarray, scale: np.ndarray, sig
         turns.append(np.flatnonzero(change) + start)
         carried = filled[-1]
     turns.append(np.array([n - 1]))
-    return np.unique(np.concatenate(turns))
+    return _union(*turns)
 
 
 def _last_crossed_indices(lower_drive: np.ndarray, upper_drive: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -169,7 +181,7 @@ def _last_crossed_indices(lower_drive: np.ndarray, upper_drive: np.ndarray, r: n
     rate, crossing envelopes)."""
     crossed = np.searchsorted(2.0 * r, lower_drive - upper_drive, side="left")   # operators with 2 r_j < L - U
     last = np.flatnonzero(crossed[1:] < crossed[:-1])
-    return np.union1d(last, last + 1)   # the last crossed sample and the first after it
+    return _union(last, last + 1)   # the last crossed sample and the first after it
 
 
 def play_batch(
@@ -204,14 +216,14 @@ def play_batch(
     same = lower_drive is upper_drive or np.array_equal(lower_drive, upper_drive)
     scale = None if threshold_scale is None else np.asarray(threshold_scale, dtype=float)
     if scale is not None:
-        turns = np.union1d(_turns_per_operator(lower_drive, r, scale, -1.0),
+        turns = _union(_turns_per_operator(lower_drive, r, scale, -1.0),
                            _turns_per_operator(upper_drive, r, scale, 1.0))
     elif same:
         turns = _reversal_indices(lower_drive)
     else:
-        turns = np.union1d(_reversal_indices(lower_drive), _reversal_indices(upper_drive))
+        turns = _union(_reversal_indices(lower_drive), _reversal_indices(upper_drive))
     if not same:
-        turns = np.union1d(turns, _last_crossed_indices(lower_drive, upper_drive, r))
+        turns = _union(turns, _last_crossed_indices(lower_drive, upper_drive, r))
     lo_t, hi_t = _clamp_bounds(lower_drive[turns], upper_drive[turns], r, same, None if scale is None else scale[turns])
     hi_t = np.maximum(hi_t, lo_t)
     A, B = _compose_clamps_scan(lo_t, hi_t)
@@ -248,8 +260,8 @@ def play_bounds(lower_drive: np.ndarray, upper_drive: np.ndarray, thresholds: np
     upper_drive = np.asarray(upper_drive, dtype=float)
     r = np.asarray(thresholds, dtype=float)
     same = lower_drive is upper_drive or np.array_equal(lower_drive, upper_drive)
-    turns = _reversal_indices(lower_drive) if same else np.union1d(
-        np.union1d(_reversal_indices(lower_drive), _reversal_indices(upper_drive)),
+    turns = _reversal_indices(lower_drive) if same else _union(
+        _reversal_indices(lower_drive), _reversal_indices(upper_drive),
         _last_crossed_indices(lower_drive, upper_drive, r))
     lo_t, hi_t = _clamp_bounds(lower_drive[turns], upper_drive[turns], r, same)
     A, B = _compose_clamps_scan(lo_t, np.maximum(hi_t, lo_t))
