@@ -350,10 +350,14 @@ class Context:
         operator's last contact: (N,) or (N, k)."""
         at = self._contact_sides[0]
         c = np.asarray(change, float)
-        if c.ndim == 1:
-            return (c[at] * weighted_side).sum(axis=1)
-        return np.column_stack([(np.ascontiguousarray(c[:, k])[at] * weighted_side).sum(axis=1)
-                                for k in range(c.shape[1])])
+        columns = c[:, None] if c.ndim == 1 else c
+        out = np.empty((at.shape[0], columns.shape[1]))
+        gathered = np.empty(at.shape)   # one (N, n) buffer for every column (each a large allocation otherwise)
+        for k in range(columns.shape[1]):
+            np.take(np.ascontiguousarray(columns[:, k]), at, out=gathered, mode="clip")   # indices lie in 0..N-1
+            np.multiply(gathered, weighted_side, out=gathered)
+            out[:, k] = gathered.sum(axis=1)
+        return out[:, 0] if c.ndim == 1 else out
 
     def bound_sensitivity(self, lower_change: Optional[np.ndarray], upper_change: Optional[np.ndarray]) -> np.ndarray:
         """dH [um] for a small change of the operators' lower / upper bounds (each (N,) or (N, k) in V, or None),
