@@ -40,6 +40,22 @@ def test_scan_handles_many_reversals():
     np.testing.assert_allclose(out[-1000:], naive_play(x, r, np.zeros(4))[-1000:], atol=1e-12)
 
 
+@pytest.mark.parametrize("count", [1, 100, 129, 1000, 16383, 16384, 70001])
+def test_the_clamp_scan_is_the_composition_clamp_after_clamp_to_the_bit(count):
+    """Every prefix of the scan is the clamps composed one after another (min and max do not round, so any
+    grouping gives the same bits), across the block sizes and levels of the scan."""
+    from piezo_valve_ros.core.model.hysteresis import _compose_clamps_scan
+    rng = np.random.default_rng(count)
+    lo = rng.normal(size=(count, 3))
+    hi = lo + rng.uniform(0, 1, size=(count, 3)) * (rng.uniform(size=(count, 3)) > 0.2)   # some lo == hi
+    A, B = _compose_clamps_scan(lo, hi)
+    a, b = np.full(3, -np.inf), np.full(3, np.inf)
+    for k in range(count):
+        a, b = np.minimum(np.maximum(a, lo[k]), hi[k]), np.minimum(np.maximum(b, lo[k]), hi[k])
+        if k in (0, count // 2, count - 1) or k % 997 == 0:
+            assert np.array_equal(A[k], a) and np.array_equal(B[k], b), k
+
+
 def test_streaming_equals_batch_with_state_carried():
     m = PAPER_GPIM.model()
     v = random_walk(20_000, 1)
