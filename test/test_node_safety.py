@@ -164,6 +164,18 @@ def test_lockstep_step_budget_still_pauses_a_lockstep_rig(hardware):
     assert set_one(hw, "lockstep.step_budget", 10).successful and hw.step_budget == 10
 
 
+def test_a_lockstep_pace_slower_than_the_watchdog_never_trips_it(hardware):
+    """lockstep.max_speed 0.004 at 1 ms: a period every 0.25 s, longer than command_timeout_s 0.1: the wait is the
+    hardware's own, so a commander that answers every position at once never trips the watchdog; the pace holds."""
+    hw = hardware(clock="lockstep", control_period_s=0.001, command_timeout_s=0.1, lockstep__max_speed=0.004)
+    t0 = time.monotonic()
+    for _ in range(4):
+        hw._on_command(Float64(data=6.0))   # as the subscription delivers it, answered at once
+        hw._lockstep_idle()                 # the watchdog's timer, right after the position went out
+    assert not hw._timed_out and hw.periods == 5   # y_0 and one period per command
+    assert time.monotonic() - t0 >= 3 * 0.25 - 0.02   # periods 2..4 each waited for the pace
+
+
 # ---------------------------------------------------------------------------- controller
 def test_an_active_gain_set_decides_strategy_and_gains_and_says_so(controller):
     ctl = controller(gain_set="pid_hc_5")

@@ -367,6 +367,9 @@ class ValveHardwareNode(Node):
             self._pace_due = now
         elif self._pace_due > now:
             time.sleep(self._pace_due - now)
+            # the watchdog measures the commander's silence, and it cannot answer before this period's position
+            # goes out: the wait is ours (a pace slower than command_timeout_s would otherwise trip it)
+            self._last_valid_command_wall = time.monotonic()
         self._pace_due += step
 
     def _advance_and_publish(self) -> None:
