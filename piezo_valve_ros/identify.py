@@ -32,7 +32,7 @@ from .core.identification.to_controller import (Compensation, base_parameters, b
 
 __all__ = ["identify_bags", "read_record", "Compensation", "compensation", "baseline_compensation", "base_parameters",
            "controller_parameters", "controller_parameters_yaml", "command_range_note", "parameters_yaml", "read_parameters_file",
-           "ParametersFileError", "report_json", "write_atomically", "write_outputs", "monitor_record", "health_json", "summary_json"]
+           "ParametersFileError", "report_json", "write_atomically", "check_output_paths", "write_outputs", "monitor_record", "health_json", "summary_json"]
 
 CONTROLLER_NODE = "valve_controller"   # the node whose section a parameters file carries
 
@@ -227,17 +227,31 @@ def write_atomically(path: str | os.PathLike, text: str) -> None:
         raise
 
 
+def check_output_paths(paths) -> None:
+    """OSError naming the first of ``paths`` that cannot be written as a file (a directory, or under a directory
+    that is not writable or cannot be made), without making or writing anything: a tool checks its outputs
+    before a long piece of work, not after it."""
+    for path in paths:
+        p = Path(path)
+        if p.is_dir():
+            raise OSError(f"{path} is a directory")
+        existing = p.parent if str(p.parent) else Path(".")
+        while not existing.exists() and existing != existing.parent:
+            existing = existing.parent
+        if not existing.is_dir():
+            raise OSError(f"cannot create the directory of {path}: {existing} is not a directory")
+        if not os.access(existing, os.W_OK):
+            raise OSError(f"cannot write {path}: {existing} is not writable")
+
+
 def write_outputs(outputs: dict[str, str]) -> list[str]:
     """Write several files all or nothing: every path is checked to be writable first (a directory, a
     missing parent that cannot be made, ...) so a bad path fails before anything is replaced; then each is
     replaced atomically.  Returns the paths written."""
+    check_output_paths(outputs)
     for path in outputs:
         p = Path(path)
-        if p.is_dir():
-            raise OSError(f"{path} is a directory")
         parent = p.parent if str(p.parent) else Path(".")
-        if parent.exists() and not os.access(parent, os.W_OK):
-            raise OSError(f"cannot write {path}: its directory is not writable")
         if not parent.exists():
             try:
                 parent.mkdir(parents=True, exist_ok=True)

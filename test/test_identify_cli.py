@@ -82,14 +82,28 @@ def test_report_parameters_and_plots_from_10khz_bags(identified_10khz):
 
 @pytest.mark.slow
 def test_outputs_are_written_together_or_not_at_all(bags_10khz, tmp_path):
+    """An output that cannot be written is named before the analysis starts (no "records:" line: no minute lost),
+    and nothing is replaced; the same checks run again at the end, where a path may have changed meanwhile."""
     report = tmp_path / "report.json"
     report.write_text("old report\n")
     target_dir = tmp_path / "a_directory"
     target_dir.mkdir()
-    out = run_cli(bags_10khz / "train", "--report", report, "--params-out", target_dir, "--quiet")
+    out = run_cli(bags_10khz / "train", "--report", report, "--params-out", target_dir)
     _one_error_line(out, str(target_dir), "is a directory")
+    assert "records:" not in out.stdout, out.stdout
     assert report.read_text() == "old report\n"
     assert list(tmp_path.glob(".*")) == []  # no temporary file left behind
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    for args, says in ((["--report", a_file / "report.json"], "is not a directory"),
+                       (["--plots", a_file], "not a directory")):
+        out = run_cli(bags_10khz / "train", *args)
+        _one_error_line(out, str(a_file), says)
+        assert "records:" not in out.stdout, out.stdout
+    from piezo_valve_ros.identify import write_outputs
+    with pytest.raises(OSError, match="is a directory"):   # the check at the end: a path that became a directory
+        write_outputs({str(report): "new\n", str(target_dir): "x"})
+    assert report.read_text() == "old report\n"
 
 
 def test_foreign_rig_sqlite3_plus_minus_150_v_1khz_held_out(tmp_path):

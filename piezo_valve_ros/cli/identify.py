@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from dataclasses import replace
 
 from ..core.identification.records import HELD_OUT_FRACTION
@@ -22,7 +23,7 @@ from ..core.identification.report import IdentificationReport
 from ..core.monitoring.health import WINDOW_S, HealthLimits
 from .tool import add_window_arguments, run_tool, window_from
 from ..identify import (command_range_note, compensation, controller_parameters_yaml, health_json,
-                       identify_bags, monitor_record, report_json, write_outputs)
+                       check_output_paths, identify_bags, monitor_record, report_json, write_outputs)
 
 __all__ = ["main"]
 
@@ -71,6 +72,7 @@ def main(argv=None) -> int:
             ap.error("; ".join(limits.problems()))
 
         def judge() -> list[str]:
+            check_output_paths([args.report] if args.report else [])
             verdicts = monitor_record(args.train_bag, args.monitor, args.topic, limits, log=log)
             counts = {lv: sum(h.level.name == lv for h in verdicts) for lv in ("OK", "WARN", "ERROR", "STALE")}
             worst = max(verdicts, key=lambda h: (h.level.name in ("WARN", "ERROR"), h.ratio), default=None)
@@ -83,9 +85,12 @@ def main(argv=None) -> int:
         return run_tool("valve_identify", judge)
 
     def work() -> list[str]:
+        check_output_paths([p for p in (args.params_out, args.report) if p])   # before the work, not after it
         if args.plots:
             from ..io import plots  # fail before the work, with the reason
             plots.require()
+            if Path(args.plots).exists() and not Path(args.plots).is_dir():
+                raise OSError(f"--plots {args.plots}: not a directory")
         analysis, name = identify_bags(args.train_bag, args.validate, args.topic, log, window)
         report = analysis.report
         outputs, notes = {}, []
