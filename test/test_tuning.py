@@ -215,6 +215,11 @@ def test_valve_tune_fails_with_one_line_and_writes_nothing(tmp_path, capsys):
     assert "min_crossover_hz must be a finite number >= 0, got nan" in capsys.readouterr().err
     with pytest.raises(SystemExit):            # not a number: argparse's usage error
         valve_tune([str(src), "--min-crossover-hz", "fast"])
+    # an output that cannot be written is named before the search (no progress line), in one line
+    capsys.readouterr()
+    assert valve_tune([str(src), "--strategy", "pid_hc", "--params-out", str(tmp_path)]) == 2
+    captured = capsys.readouterr()
+    assert "is a directory" in captured.err and captured.err.count("\n") == 1 and "screened" not in captured.out
     broken = _model_file(tmp_path / "broken.yaml", **{"creep.gains": [0.95], "creep.time_constants_s": [1.0]})
     assert valve_tune([str(broken), "--params-out", str(out)]) == 2
     assert "creep" in capsys.readouterr().err

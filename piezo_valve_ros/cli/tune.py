@@ -26,7 +26,8 @@ from ..core.control.forward import ModelValve
 from ..core.tuning.tuner import (MAX_NOISE_GAIN, MIN_CROSSOVER_HZ, MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG, OVERSHOOT_LIMIT_PCT,
                           TUNABLE_STRATEGIES, TuningLimits, loop_margins, step_score, tune)
 from ..core.sim.signals import PAPER_STEPS_UM
-from ..identify import ParametersFileError, parameters_yaml, read_parameters_file, write_outputs
+from ..identify import (ParametersFileError, check_output_paths, parameters_yaml, read_parameters_file,
+                        write_outputs)
 from .tool import run_tool
 
 __all__ = ["main"]
@@ -72,6 +73,7 @@ def main(argv=None) -> int:
             raise ParametersFileError(f"{args.params_file}: {exc}") from None
         limits = TuningLimits(args.max_overshoot_pct, args.min_gain_margin_db, args.min_phase_margin_deg,
                               args.max_noise_gain, args.min_crossover_hz)
+        check_output_paths([args.params_out] if args.params_out else [])   # before the search, not after it
         result = tune(args.strategy, model, dt, limits, config, log=log)
         lines = [f"tuned {result.summary()}", "  on the model:"] + _steps_text(result.score)
         if args.compare:
