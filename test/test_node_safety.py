@@ -93,6 +93,8 @@ def controller(ros_context):
     ({"lockstep__step_budget": -2, "clock": "lockstep"}, "must be -1"),
     ({"lockstep__max_speed": 2.0}, "lockstep.max_speed applies only to clock lockstep"),
     ({"lockstep__max_speed": -1.0, "clock": "lockstep"}, "lockstep.max_speed must be >= 0, got -1.0"),
+    ({"lockstep__max_speed": float("nan"), "clock": "lockstep"}, "lockstep.max_speed must be finite"),
+    ({"lockstep__max_speed": "fast", "clock": "lockstep"}, "lockstep.max_speed"),
     ({"safe_voltage": 11.0}, "safe_voltage must lie within"),
     ({"command_min_v": 5.0, "command_max_v": 5.0, "safe_voltage": 5.0}, "must be below"),
     ({"sim__sensor_delay_s": 0.00015}, "whole number of sample periods"),

@@ -220,6 +220,9 @@ def test_a_lockstep_rig_runs_no_faster_than_its_max_speed(tmp_path):
     refused = subprocess.run([sys.executable, "-m", "piezo_valve_ros.cli.rig", "--demo", "none", "--clock", "realtime",
                               "--lockstep-speed", "1"], env=ros_env(), capture_output=True, text=True, timeout=60)
     assert refused.returncode == 2 and "--lockstep-speed" in refused.stderr and "lockstep" in refused.stderr, refused
+    from piezo_valve_ros.cli.rig import main as valve_rig
+    for speed in ("nan", "inf", "-1"):   # refused before anything starts
+        assert valve_rig(["--demo", "none", "--lockstep-speed", speed]) == 2, speed
 
 
 @pytest.mark.slow

@@ -13,6 +13,7 @@ SIGKILL, each after a grace period.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from typing import Optional
@@ -204,8 +205,8 @@ def check_options(args) -> None:
         raise UsageError("the step demo needs --clock lockstep (use --demo none for a real-time rig)")
     if (args.priority or args.pin) and args.clock != "realtime":
         raise UsageError("--priority and --pin apply to --clock realtime")
-    if args.lockstep_speed is not None and (args.clock != "lockstep" or not args.lockstep_speed >= 0):
-        raise UsageError("--lockstep-speed takes a speed >= 0 and applies to --clock lockstep")
+    if args.lockstep_speed is not None and (args.clock != "lockstep" or not 0 <= args.lockstep_speed < math.inf):
+        raise UsageError("--lockstep-speed takes a finite speed >= 0 and applies to --clock lockstep")
 
 
 def _print_step_demo(client: RigClient, args, label: str, samples_per_period: int) -> None:
