@@ -289,6 +289,24 @@ def test_the_held_out_figures_come_from_the_held_out_part():
         split.held_out_error(a.final, full=True) ** 2))), abs=5e-7)   # (the report gives 6 decimals)
 
 
+def test_an_effect_checked_exactly_and_refused_is_reported_by_that_check_once():
+    """Creep with a level-dependent kernel: the linear search credits saturation on top of creep enough for an
+    exact refit, which refuses it.  The log says so in one line with the refit's figures, and the report's
+    decision on saturation is that refit's cut (not the first-order figure the search gave)."""
+    import re
+    lines = []
+    train, validate = records("creep, level-dependent log kernel")
+    a = analyse(train, validate, log=lines.append)
+    assert a.report.effects_added == ("creep",)
+    checks = [x for x in lines if x.startswith("exact check")]
+    assert len(checks) == 1 and checks[0].endswith("nothing added"), checks
+    without, with_ = map(float, re.search(r"saturation ([0-9.]+) -> ([0-9.]+) um, not supported", checks[0]).groups())
+    decision = next(d for d in a.report.diagnosis if d.effect == "saturation")
+    assert not decision.added and "refitted exactly on top of the final model" in decision.evidence
+    assert decision.statistic == pytest.approx(1.0 - with_ / without, abs=2e-3)
+    assert not any("saturation" in x and "added" in x and "nothing added" not in x for x in lines)
+
+
 def test_confirmation_drops_an_effect_its_exact_drop_one_refit_does_not_support():
     """The confirmation step on exact refits given by hand: creep + drift at 0.50 um held-out, without drift
     0.51 um (a 2 % cut: drift is not supported), without creep 1.0 um.  Drift is dropped (and said why), creep

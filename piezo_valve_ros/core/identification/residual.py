@@ -624,19 +624,23 @@ class _Loop:
         drop-one refits, the others added last to the final set in the linear search."""
         added, names, final_set, search = story.added, story.choice.names, frozenset(story.added), story.choice.search
         diagnosis = []
+        checked = story.choice.exact_checks.get(final_set, {})
         for n in names:
             exact = n in story.verdicts and n in added
             if exact:
                 cut, explained, _, without, with_ = story.verdicts[n]
-            else:
-                with_s, without_s = search.score(final_set | {n}), search.score(final_set)
+                how = "exact refit without it"
+            else:   # the exact check on top of the final set where there was one: the figure the decision used
+                with_s, without_s = checked.get(n) or (search.score(final_set | {n}), search.score(final_set))
                 cut, explained, _ = support(with_s, without_s, self.noise)
                 with_, without = with_s.rms, without_s.rms
+                how = ("refitted exactly on top of the final model" if n in checked
+                       else "added last to the final model (one linear solve from the baseline)")
             diagnosis.append(Decision(effect=n, added=exact, statistic=round(cut, 4), threshold=GAIN_THRESHOLD,
                                       margin=round(cut - GAIN_THRESHOLD, 4), held_out_gain=round(cut, 4),
                                       explained_rms_um=round(explained, 5),
                                       evidence=_evidence(story.choice.by_name[n], cut, explained, without, with_,
-                                                         self.noise, exact=exact)))
+                                                         self.noise, how)))
         diagnosis.sort(key=lambda d: (not d.added, added.index(d.effect) if d.added else names.index(d.effect)))
         return diagnosis
 
@@ -779,6 +783,8 @@ class _EffectChoice:
         if search:
             self.search_subsets()
         self.refits: dict[frozenset, tuple[ValveModel, Score]] = {frozenset(): (baseline, self.held_out(baseline))}
+        # effect -> (held-out score with it, without it) of the exact checks on top of a confirmed set, per set
+        self.exact_checks: dict[frozenset, dict[str, tuple[Score, Score]]] = {}
 
     # ------------------------------------------------------------------ 2. every subset, one linear solve each
     def search_subsets(self) -> None:
@@ -1010,11 +1016,18 @@ class _EffectChoice:
         options = [n for n in self.exact_options(current) if frozenset(current + [n]) not in tried]
         refits = self.refit_many([(current + [n], final) for n in options])
         base_score = min(self.held_out(final), self.held_out(polishing.result()), key=lambda s: s.rms)
+        self.exact_checks.setdefault(frozenset(current), {}).update(
+            {n: (score, base_score) for n, (_, score) in zip(options, refits)})
         best = None
         for n, (_, score) in zip(options, refits):
             if support(score, base_score, self.noise)[2] and (best is None or score.rms < best[1].rms):
                 best = (n, score)
         if best is None:
+            if options:   # one line for what the exact checks found, not silence after seconds of refits
+                self.log("exact check on top of " + (", ".join(current) or "the baseline") + ": " + "; ".join(
+                    f"{n} {base_score.rms:.4f} -> {score.rms:.4f} um, not supported "
+                    f"({unsupported_because(score, base_score, self.noise)})"
+                    for n, (_, score) in zip(options, refits)) + "; nothing added")
             return None
         self.log(f"exact check: {best[0]} cuts the held-out RMS {base_score.rms:.4f} -> {best[1].rms:.4f} um "
                  f"(the first-order search underrated it); added")
@@ -1128,8 +1141,7 @@ def _alternatives(added: list[str], names: list[str], verdicts: dict, search: "S
 
 
 def _evidence(effect: Effect, cut: float, explained: float, without: float, with_: float, noise: float,
-              exact: bool) -> str:
-    how = "exact refit without it" if exact else "added last to the final model (one linear solve from the baseline)"
+              how: str) -> str:
     return (f"{effect.signature}; held-out RMS {without:.4f} -> {with_:.4f} um with it ({how}): "
             f"{100 * cut:+.1f} % cut (threshold {100 * GAIN_THRESHOLD:.0f} %), explaining {explained:.4f} um RMS "
             f"(threshold {MIN_EFFECT_NOISE_RATIO:g}x the sensor noise {noise:.4f} um)")
