@@ -369,9 +369,10 @@ def fit_model(train: Record, start: ValveModel, effects: Sequence[Effect] = (), 
 def _fit_forms(forms: list[Effect], fit: Callable[[Effect, ValveModel], tuple[ValveModel, float]],
                start: ValveModel, each: Callable[[list[Callable[[], object]]], list]) -> list[tuple[ValveModel, float]]:
     """``fit(form, start)`` of every form, in the order of ``forms``.  The last form combines others: it starts
-    from the best of those it contains (``Effect.contains``), as soon as they are done: those go to ``each``
-    first, then one of the rest, then the last (which waits for what it contains, all handed out before it on a
-    first-come pool), then the rest, so the combined form runs beside the forms it does not need."""
+    from the best of those it contains (``Effect.contains``), as soon as they are done.  Handed to ``each`` (a
+    first-come pool) in this order: two of those it contains, the first of the rest (``forms`` lists the
+    costliest first: on two threads it runs while the contained ones finish, not after them), the other
+    contained ones, the last (which waits only for jobs handed out before it) and the rest."""
     *parts, last = forms
     contained = [k for k, f in enumerate(parts) if last.contains(f)]
     rest = [k for k in range(len(parts)) if k not in contained]
@@ -390,7 +391,7 @@ def _fit_forms(forms: list[Effect], fit: Callable[[Effect, ValveModel], tuple[Va
         seed = min((done[k].result() for k in contained), key=lambda f: f[1])[0]
         return fit(last, replace(seed, effects=(), coefs=()))
 
-    order = contained + rest[:1] + [len(parts)] + rest[1:]
+    order = contained[:2] + rest[:1] + contained[2:] + [len(parts)] + rest[1:]
     results = each([(lambda k=k: part(k)) if k < len(parts) else combined for k in order])
     by_index = dict(zip(order, results))
     return [by_index[k] for k in range(len(forms))]
