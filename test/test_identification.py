@@ -307,6 +307,32 @@ def test_an_effect_checked_exactly_and_refused_is_reported_by_that_check_once():
     assert not any("saturation" in x and "added" in x and "nothing added" not in x for x in lines)
 
 
+def test_no_exact_refit_is_run_where_no_effect_could_be_supported():
+    """An effect must explain MIN_EFFECT_NOISE_RATIO x the sensor noise and explains at most the RMS it starts
+    from: below that nothing can be added (``room_for_an_effect`` never says no where ``support`` could say yes).
+    The nominal valve's baseline is at its noise: the exact checks on top are skipped with one line saying so
+    (they were six refits, one of them six dynamics forms), and nothing is added."""
+    import re
+    from piezo_valve_ros.core.identification.search import Score, room_for_an_effect, support
+    noise = 0.05
+    for without_rms in (0.01, 0.049, 0.0499, 0.05, 0.051, 0.2):
+        without = Score(without_rms, 1.0)
+        for with_rms in (0.0, 1e-6, 0.5 * without_rms, without_rms):
+            if support(Score(with_rms, 0.5), without, noise)[2]:
+                assert room_for_an_effect(without, noise), (without_rms, with_rms)
+    assert support(Score(0.0, 0.5), Score(0.05, 1.0), noise)[2] and room_for_an_effect(Score(0.05, 1.0), noise)
+    lines = []
+    train, validate = records("nominal")
+    report = analyse(train, validate, log=lines.append).report
+    assert report.effects_added == ()
+    skipped = [x for x in lines if x.startswith("exact check on top of the baseline: none, ")]
+    assert len(skipped) == 1, lines
+    rms, floor = map(float, re.search(r"held-out RMS ([0-9.]+) um is below 1x the sensor noise ([0-9.]+) um",
+                                      skipped[0]).groups())
+    assert rms < floor and floor == pytest.approx(report.noise_floor_um, abs=1e-4)
+    assert not any("not supported" in x for x in lines if x.startswith("exact check"))
+
+
 def test_confirmation_drops_an_effect_its_exact_drop_one_refit_does_not_support():
     """The confirmation step on exact refits given by hand: creep + drift at 0.50 um held-out, without drift
     0.51 um (a 2 % cut: drift is not supported), without creep 1.0 um.  Drift is dropped (and said why), creep

@@ -64,8 +64,8 @@ from .report import (Baseline, BaselineFits, Capacity, ConfirmRound, Decision, F
                      Indistinguishable, ResidualStructure, SearchRow, Session, to_json)
 from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, MAX_ANALYSED_S, SUPPORTED_RATE_HZ, Record, noise_floor_um,
                       noise_peak_um)
-from .search import (GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, Score, SubsetSearch, support,
-                     unsupported_because)
+from .search import (GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, Score, SubsetSearch, no_room_because,
+                     room_for_an_effect, support, unsupported_because)
 from .split import WIPE_MARGIN, SessionStart, Split, split_records
 from ..metrics import ErrorFigures, error_figures, rms
 from ..model.dynamics import describe_dynamics
@@ -868,6 +868,10 @@ class _EffectChoice:
         current: list[str] = []
         score = self.held_out(self.baseline)
         while len(current) < len(self.names):
+            if not room_for_an_effect(score, self.noise):
+                self.log(f"exact selection: nothing more on top of {', '.join(current) or 'the baseline'}: "
+                         f"{no_room_because(score, self.noise)}")
+                break
             options = [n for n in self.names if n not in current]
             so_far = self.refit_many([(current, None)])[0][0] if current else None
             fits = self.refit_many([([m for m in self.names if m in current or m == n], so_far) for n in options])
@@ -1009,6 +1013,10 @@ class _EffectChoice:
         linear estimate shows some gain are refitted exactly on top of the confirmed set; the set with the best
         one that is supported (None: none is)."""
         if len(current) == len(self.names):
+            return None
+        if not room_for_an_effect(self.held_out(final), self.noise):   # (the polished model's is lower still)
+            self.log(f"exact check on top of {', '.join(current) or 'the baseline'}: none, "
+                     f"{no_room_because(self.held_out(final), self.noise)}")
             return None
         # against the set as it ends if nothing is added: with G_v's poles fitted again through it (an effect
         # added here must do more than the poles' refit at the end would do anyway)

@@ -127,6 +127,19 @@ def unsupported_because(with_: Score, without: Score, noise_um: float) -> str:
     return "; ".join(why)
 
 
+def room_for_an_effect(without: Score, noise_um: float) -> bool:
+    """Whether an effect added to a model that leaves ``without`` could be supported at all: it must explain
+    MIN_EFFECT_NOISE_RATIO times the sensor noise (:func:`support`), and it explains at most ``without``'s RMS.
+    False: every exact refit on top would be refused, whatever it gives."""
+    return without.rms >= MIN_EFFECT_NOISE_RATIO * noise_um
+
+
+def no_room_because(without: Score, noise_um: float) -> str:
+    """Why :func:`room_for_an_effect` is False (one phrase)."""
+    return (f"its held-out RMS {without.rms:.4f} um is below {MIN_EFFECT_NOISE_RATIO:g}x the sensor noise "
+            f"{noise_um:.4f} um: no effect added to it could explain that much")
+
+
 def support(with_: Score, without: Score, noise_um: float) -> tuple[float, float, bool]:
     """(held-out RMS cut, explained RMS [um], supported?) of an effect added last: it must cut the held-out
     RMS by GAIN_THRESHOLD, explain MIN_EFFECT_NOISE_RATIO times the sensor noise and not raise the peak by
