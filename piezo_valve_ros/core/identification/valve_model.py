@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property, lru_cache
-from typing import Optional, Protocol
+from typing import Callable, Optional, Protocol
 
 import numpy as np
 
@@ -44,6 +44,7 @@ class ModelTerm(Protocol):
 
 
 INITIAL_STATES = ("rest", "cycled", "remanent", "given")   # kinds of the operators' state before a record
+GATHER_BLOCK = 2048   # rows per block of the contact sensitivities' gather (a block's (rows, n) arrays stay cached)
 
 
 @dataclass(frozen=True)
@@ -345,18 +346,25 @@ class Context:
             return np.maximum(index, 0), (side > 0).astype(float), -(side < 0).astype(float)
         return self._structural("contact_sides", compute)
 
-    def _gathered(self, change: np.ndarray, weighted_side: np.ndarray) -> np.ndarray:
-        """Sum over operators of weighted_side (N, n) times each column of change (N,) or (N, k) at the
-        operator's last contact: (N,) or (N, k)."""
+    def _gathered(self, change: np.ndarray, weighted_side: Callable[[slice], np.ndarray]) -> np.ndarray:
+        """Sum over operators of ``weighted_side(rows)`` ((rows, n): the operators' weights on the bound each
+        touched last) times each column of change (N,) or (N, k) at the operator's last contact: (N,) or (N, k).
+        Block by block of GATHER_BLOCK rows (what a block gathers and weighs stays in the cache; the (N, n)
+        products are never formed), each row summed as one contiguous row (the same bits as a whole-array sum)."""
         at = self._contact_sides[0]
         c = np.asarray(change, float)
-        columns = c[:, None] if c.ndim == 1 else c
-        out = np.empty((at.shape[0], columns.shape[1]))
-        gathered = np.empty(at.shape)   # one (N, n) buffer for every column (each a large allocation otherwise)
-        for k in range(columns.shape[1]):
-            np.take(np.ascontiguousarray(columns[:, k]), at, out=gathered, mode="clip")   # indices lie in 0..N-1
-            np.multiply(gathered, weighted_side, out=gathered)
-            out[:, k] = gathered.sum(axis=1)
+        columns = np.ascontiguousarray((c[:, None] if c.ndim == 1 else c).T)   # (k, N): each column contiguous
+        n_rows = at.shape[0]
+        out = np.empty((n_rows, columns.shape[0]))
+        gathered = np.empty((min(GATHER_BLOCK, n_rows), at.shape[1]))
+        for start in range(0, n_rows, GATHER_BLOCK):
+            rows = slice(start, min(start + GATHER_BLOCK, n_rows))
+            g = gathered[:rows.stop - rows.start]
+            at_rows, side = at[rows], weighted_side(rows)
+            for k in range(columns.shape[0]):
+                np.take(columns[k], at_rows, out=g, mode="clip")   # indices lie in 0..N-1
+                np.multiply(g, side, out=g)
+                out[rows, k] = g.sum(axis=1)
         return out[:, 0] if c.ndim == 1 else out
 
     def bound_sensitivity(self, lower_change: Optional[np.ndarray], upper_change: Optional[np.ndarray]) -> np.ndarray:
@@ -365,16 +373,17 @@ class Context:
         Returns (N,) or (N, k), a column per column of the changes."""
         _, upper, lower = self._contact_sides
         w = self.model.gpim.weights
-        moved = [self._gathered(lower_change, -lower * w)] if lower_change is not None else []   # -lower: 1 or 0
-        if upper_change is not None:
-            moved.append(self._gathered(upper_change, upper * w))
+        moved = [self._gathered(lower_change, lambda rows: -lower[rows] * w)] if lower_change is not None else []
+        if upper_change is not None:                                    # -lower: 1 or 0
+            moved.append(self._gathered(upper_change, lambda rows: upper[rows] * w))
         return sum(moved[1:], moved[0]) if moved else np.zeros(len(self.record))
 
     def widening_sensitivity(self, change: np.ndarray) -> np.ndarray:
         """dH [um] for the thresholds widened by ``change`` (N,) or (N, k) [V] (lower bounds down, upper bounds
         up by it): ``bound_sensitivity(-change, change)`` in one gather per column."""
         _, upper, lower = self._contact_sides
-        return self._gathered(change, (upper + lower) * self.model.gpim.weights)
+        w = self.model.gpim.weights
+        return self._gathered(change, lambda rows: (upper[rows] + lower[rows]) * w)
 
     # ------------------------------------------------------------------ the linear dynamics
     @cached_property
