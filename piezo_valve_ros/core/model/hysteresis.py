@@ -190,7 +190,7 @@ def play_batch(
     thresholds: np.ndarray,
     initial_state: np.ndarray,
     weights: Optional[np.ndarray] = None,
-    chunk: int = 1 << 16,
+    chunk: int = 1 << 12,
     threshold_scale: Optional[np.ndarray] = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Evaluate a bank of (generalized) play operators over a whole record.
@@ -201,7 +201,8 @@ def play_batch(
     stretch's start to the present bounds, so only the reversal points of either drive are scanned:
     this covers asymmetric envelopes and thresholds that widen with time (rate dependence: pass
     ``lower - w`` and ``upper + w``, and ``threshold_scale`` (N,) to scale the thresholds sample by sample,
-    which adds each operator's own reversal points).  ``thresholds`` shape (n,).
+    which adds each operator's own reversal points).  ``thresholds`` shape (n,).  ``chunk`` rows are clipped
+    at a time (their (chunk, n) bounds stay in the cache; the result does not depend on it).
     Returns ``(out, final_state)``: with ``weights`` given, ``out`` is the weighted sum
     (N,); otherwise the operator states (N, n).
     """
