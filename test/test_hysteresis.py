@@ -216,6 +216,35 @@ def test_last_contact_gives_the_exact_sensitivities():
     assert np.max(np.abs(exact - fd)) < 1e-6 * max(1.0, np.max(np.abs(fd)))
 
 
+def test_last_contact_is_the_same_whatever_its_block_size():
+    """last_contact works block by block, carrying each operator's last contact across blocks: blocks of 1, 7 and
+    1000 rows and one block give the same sides and samples, with equal drives (threshold 0: both bounds at
+    once, the side follows the input's direction), with a descending envelope of its own and with a rate term;
+    an operator never touched keeps side 0 and sample -1."""
+    from piezo_valve_ros.core.model import hysteresis
+    from piezo_valve_ros.core.model.hysteresis import last_contact, play_batch
+    rng = np.random.default_rng(8)
+    v = np.cumsum(rng.standard_normal(3000)) * 0.3
+    r = np.append(np.linspace(0, 3, 9), 1e6)   # the last operator is never touched
+    z0 = np.zeros(r.size)
+    rho = np.abs(np.gradient(v))
+    for lower, upper in ((v, v), (v, 1.05 * v + 0.1), (v - 0.2 * rho, v + 0.2 * rho)):
+        states, _ = play_batch(lower, upper, r, z0)
+        results = []
+        for block in (1, 7, 1000, 10 ** 6):
+            hysteresis.CONTACT_BLOCK, saved = block, hysteresis.CONTACT_BLOCK
+            try:
+                results.append(last_contact(states, lower, upper, r))
+            finally:
+                hysteresis.CONTACT_BLOCK = saved
+        for side, idx in results[:-1]:
+            assert np.array_equal(side, results[-1][0]) and np.array_equal(idx, results[-1][1])
+        side, idx = results[-1]
+        assert (side[:, -1] == 0).all() and (idx[:, -1] == -1).all()
+        assert (side[:, 0] != 0).all()   # threshold 0: in contact from the first move on
+        assert set(np.unique(side)) <= {-1, 0, 1} and (np.diff(idx, axis=0) >= 0).all()
+
+
 @pytest.mark.parametrize("method, delay", [("zoh", 0.0), ("foh", 0.0), ("foh", 5e-5)])
 def test_closed_form_discretisation_matches_scipy(method, delay):
     from scipy import signal

@@ -235,6 +235,20 @@ class ValveModel:
         return out
 
 
+def _transposed_less_first(states: np.ndarray) -> np.ndarray:
+    """``(states - states[0]).T`` as a contiguous (n, N) array, written block by block of GATHER_BLOCK rows (a
+    block's difference is transposed while it is in the cache; a whole-array transposing copy strides over
+    all of it)."""
+    n_rows = states.shape[0]
+    out = np.empty((states.shape[1], n_rows))
+    block = np.empty((min(GATHER_BLOCK, n_rows), states.shape[1]))
+    for start in range(0, n_rows, GATHER_BLOCK):
+        stop = min(start + GATHER_BLOCK, n_rows)
+        diff = np.subtract(states[start:stop], states[0], out=block[:stop - start])
+        out[:, start:stop] = diff.T
+    return out
+
+
 @dataclass
 class Context:
     """One evaluation of a model on one record: drives, operator states, hysteresis output, filters.
@@ -303,7 +317,7 @@ class Context:
     def state_rows(self) -> np.ndarray:
         """(n, N) the operator states less their first row, one contiguous row per operator: the GPIM's columns
         before G as the fits filter them (the same for every G, so kept with the structure)."""
-        return self._structural("state_rows", lambda: np.ascontiguousarray((self.states - self.states[0]).T))
+        return self._structural("state_rows", lambda: _transposed_less_first(self.states))
 
     @cached_property
     def H(self) -> np.ndarray:

@@ -75,6 +75,7 @@ def _hillis_steele(A: np.ndarray, B: np.ndarray, axis: int) -> None:
 SCAN_BLOCK = 32           # rows composed one after another in each block of the clamp scan ...
 SCAN_BLOCK_LONG = 64      # ... and in records of at least SCAN_LONG_ROWS rows (fewer levels of block totals)
 SCAN_LONG_ROWS = 16384
+CONTACT_BLOCK = 4096   # rows per block of last_contact (a block's (rows, n) comparisons stay in the cache)
 
 
 def _compose_clamps_scan(lo: np.ndarray, hi: np.ndarray, block: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -289,24 +290,39 @@ def last_contact(states: np.ndarray, lower_drive: np.ndarray, upper_drive: np.nd
     """
     lower_drive = np.asarray(lower_drive, float)
     upper_drive = np.asarray(upper_drive, float)
+    r = np.asarray(thresholds, float)
+    scale = None if threshold_scale is None else np.asarray(threshold_scale, float)
     same = lower_drive is upper_drive or np.array_equal(lower_drive, upper_drive)
-    lo, hi = _clamp_bounds(lower_drive, upper_drive, np.asarray(thresholds, float), same,
-                           None if threshold_scale is None else np.asarray(threshold_scale, float))
-    on_lo = states == lo
-    on_hi = states == hi
-    side = on_hi.astype(np.int8) - on_lo.astype(np.int8)
-    both = on_lo & on_hi
-    if both.any():
-        drive = lower_drive + upper_drive
-        d = np.sign(np.diff(drive, prepend=drive[0]))
-        last = np.maximum.accumulate(np.where(d != 0, np.arange(d.size), 0))
-        descending = np.where(d[last] < 0, 1, -1).astype(np.int8)
-        side = np.where(both, descending[:, None], side)
     n = states.shape[0]
-    index = np.where(on_lo | on_hi, np.arange(n, dtype=np.int32)[:, None], np.int32(-1))
-    np.maximum.accumulate(index, axis=0, out=index)
-    side_last = np.take_along_axis(side, np.maximum(index, 0), axis=0)
-    side_last[index < 0] = 0
+    descending = None   # where both bounds coincide: +1 if the input last moved down, else -1 (per sample)
+    side_last = np.empty(states.shape, np.int8)
+    index = np.empty(states.shape, np.int32)
+    carried_index = np.full(states.shape[1], -1, np.int32)   # the last contact before the block, and its side
+    carried_side = np.zeros(states.shape[1], np.int8)
+    for start in range(0, n, CONTACT_BLOCK):   # block by block: the (rows, n) temporaries stay in the cache
+        rows = slice(start, min(start + CONTACT_BLOCK, n))
+        lo, hi = _clamp_bounds(lower_drive[rows], upper_drive[rows], r, same, None if scale is None else scale[rows])
+        z = states[rows]
+        on_lo = z == lo
+        on_hi = z == hi
+        side = on_hi.astype(np.int8) - on_lo.astype(np.int8)
+        both = on_lo & on_hi
+        if both.any():
+            if descending is None:
+                drive = lower_drive + upper_drive
+                d = np.sign(np.diff(drive, prepend=drive[0]))
+                last = np.maximum.accumulate(np.where(d != 0, np.arange(d.size), 0))
+                descending = np.where(d[last] < 0, 1, -1).astype(np.int8)
+            side = np.where(both, descending[rows][:, None], side)
+        local = np.where(on_lo | on_hi, np.arange(rows.stop - rows.start, dtype=np.int32)[:, None], np.int32(-1))
+        np.maximum.accumulate(local, axis=0, out=local)
+        block_side = np.take_along_axis(side, np.maximum(local, 0), axis=0)
+        before = local < 0   # no contact yet in this block: the one carried in
+        np.copyto(block_side, np.broadcast_to(carried_side, block_side.shape), where=before)
+        block_index = local + np.int32(rows.start)
+        np.copyto(block_index, np.broadcast_to(carried_index, block_index.shape), where=before)
+        side_last[rows], index[rows] = block_side, block_index
+        carried_side, carried_index = block_side[-1].copy(), block_index[-1].copy()
     return side_last, index
 
 
