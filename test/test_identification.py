@@ -32,12 +32,19 @@ def records(name: str):
     return Record.from_rows(valve.rows(TRAIN_V, 1)), Record.from_rows(valve.rows(VALID_V, 2))
 
 
-def analysis_of(name: str, held_out: bool = False):
-    """The battery valve ``name`` analysed (on its validation record, or on a held-out tail), once per test run."""
+def analysed(name: str, held_out: bool = False):
+    """(analysis, its log lines) of the battery valve ``name`` (on its validation record, or on a held-out tail),
+    once per test run."""
     def compute():
         train, validate = records(name)
-        return analyse(train, None if held_out else validate)
-    return computed_once(f"test_identification.analysis_of({name!r}, held_out={held_out})", compute)
+        lines: list[str] = []
+        return analyse(train, None if held_out else validate, log=lines.append), lines
+    return computed_once(f"test_identification.analysed({name!r}, held_out={held_out})", compute)
+
+
+def analysis_of(name: str, held_out: bool = False):
+    """The battery valve ``name`` analysed (see ``analysed``)."""
+    return analysed(name, held_out)[0]
 
 
 def assert_every_name_is_supported(report):
@@ -294,9 +301,7 @@ def test_an_effect_checked_exactly_and_refused_is_reported_by_that_check_once():
     exact refit, which refuses it.  The log says so in one line with the refit's figures, and the report's
     decision on saturation is that refit's cut (not the first-order figure the search gave)."""
     import re
-    lines = []
-    train, validate = records("creep, level-dependent log kernel")
-    a = analyse(train, validate, log=lines.append)
+    a, lines = analysed("creep, level-dependent log kernel")
     assert a.report.effects_added == ("creep",)
     checks = [x for x in lines if x.startswith("exact check")]
     assert len(checks) == 1 and checks[0].endswith("nothing added"), checks
@@ -321,9 +326,8 @@ def test_no_exact_refit_is_run_where_no_effect_could_be_supported():
             if support(Score(with_rms, 0.5), without, noise)[2]:
                 assert room_for_an_effect(without, noise), (without_rms, with_rms)
     assert support(Score(0.0, 0.5), Score(0.05, 1.0), noise)[2] and room_for_an_effect(Score(0.05, 1.0), noise)
-    lines = []
-    train, validate = records("nominal")
-    report = analyse(train, validate, log=lines.append).report
+    analysis, lines = analysed("nominal")
+    report = analysis.report
     assert report.effects_added == ()
     skipped = [x for x in lines if x.startswith("exact check on top of the baseline: none, ")]
     assert len(skipped) == 1, lines
