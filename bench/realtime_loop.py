@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from contextlib import contextmanager
 import os
 import subprocess
 import sys
@@ -207,6 +208,15 @@ def ping_pong(seconds: float, executor_kind: str = "events") -> dict:
 BUSY_LOOP = "import signal\nsignal.signal(signal.SIGINT, signal.SIG_DFL)\nwhile True:\n    pass\n"
 
 
+@contextmanager
+def busy_loops_beside(count: int):
+    """``count`` pure-Python busy loops in processes of their own while the block runs (a loaded computer)."""
+    with ProcessGroup() as load:
+        for _ in range(count):
+            load.start("load", [sys.executable, "-c", BUSY_LOOP], env=env())
+        yield
+
+
 def back_to_normal_scheduling() -> None:
     """Undo what a case's hardware node (in this process) asked for: any CPU, the normal scheduler."""
     from piezo_valve_ros.runtime.realtime import available_cpus, pin
@@ -372,10 +382,7 @@ def conditions(seconds: float, repeats: int) -> list[dict]:
             for interval in (5e-3, 5e-5)] + [(True, pinned, 5e-5, 50) for pinned in (False, True)]
     out = []
     for loaded in (False, True):
-        with ProcessGroup() as load:
-            if loaded:
-                for _ in cpus:
-                    load.start("load", [sys.executable, "-c", BUSY_LOOP], env=env())
+        with busy_loops_beside(len(cpus) if loaded else 0):
             for _, pinned, interval, priority in [c for c in plan if c[0] == loaded]:
                 for _ in range(repeats):
                     try:
@@ -410,10 +417,7 @@ def edge(seconds: float, repeats: int) -> list[dict]:
     options = [("poll, normal", 0, False), ("FIFO 50, pinned", 50, True), ("FIFO 50, floating", 50, False)]
     out = []
     for loaded in (False, True):
-        with ProcessGroup() as load:
-            if loaded:
-                for _ in cpus:
-                    load.start("load", [sys.executable, "-c", BUSY_LOOP], env=env())
+        with busy_loops_beside(len(cpus) if loaded else 0):
             for case, period, composed in (("composed 10 kHz", 1e-4, True), ("5 kHz across processes", 2e-4, False)):
                 for label, priority, pinned in options:
                     if loaded and not priority:
