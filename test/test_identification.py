@@ -384,6 +384,10 @@ def test_effect_support_needs_gain_size_and_no_worse_peak():
     assert not search.support(s(0.85, 1.0), s(1.0, 1.0), 0.05)[2]            # 15 % cut
     assert not search.support(s(0.05, 0.2), s(0.07, 0.2), 0.05)[2]           # explains less than the noise
     assert not search.support(s(0.5, PEAK_TOLERANCE * 1.01), s(1.0, 1.0), 0.05)[2]  # peak worse
+    # the reason in words: a cut that rounds to nothing reads 0.0 %, never -0.0 %
+    why = search.unsupported_because(s(0.0503001, 1.0), s(0.0503, 1.0), 0.0514)
+    assert why.startswith("held-out RMS cut 0.0 % < 20 %") and "-0.0" not in why
+    assert search.percent(-0.3314) == "-33.1" and search.percent(0.0004, sign=True) == "+0.0"
 
 
 @pytest.mark.parametrize("bad, message", [

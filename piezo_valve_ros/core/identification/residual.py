@@ -65,7 +65,7 @@ from .report import (Baseline, BaselineFits, Capacity, ConfirmRound, Decision, F
 from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, MAX_ANALYSED_S, SUPPORTED_RATE_HZ, Record, noise_floor_um,
                       noise_peak_um)
 from .search import (GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, Score, SubsetSearch, no_room_because,
-                     room_for_an_effect, support, unsupported_because)
+                     percent, room_for_an_effect, support, unsupported_because)
 from .split import WIPE_MARGIN, SessionStart, Split, split_records
 from ..metrics import ErrorFigures, error_figures, rms
 from ..model.dynamics import describe_dynamics
@@ -1151,5 +1151,5 @@ def _alternatives(added: list[str], names: list[str], verdicts: dict, search: "S
 def _evidence(effect: Effect, cut: float, explained: float, without: float, with_: float, noise: float,
               how: str) -> str:
     return (f"{effect.signature}; held-out RMS {without:.4f} -> {with_:.4f} um with it ({how}): "
-            f"{100 * cut:+.1f} % cut (threshold {100 * GAIN_THRESHOLD:.0f} %), explaining {explained:.4f} um RMS "
+            f"{percent(cut, sign=True)} % cut (threshold {100 * GAIN_THRESHOLD:.0f} %), explaining {explained:.4f} um RMS "
             f"(threshold {MIN_EFFECT_NOISE_RATIO:g}x the sensor noise {noise:.4f} um)")

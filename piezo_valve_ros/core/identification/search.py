@@ -119,12 +119,19 @@ def unsupported_because(with_: Score, without: Score, noise_um: float) -> str:
     cut, explained, _ = support(with_, without, noise_um)
     why = []
     if cut < GAIN_THRESHOLD:
-        why.append(f"held-out RMS cut {100 * cut:.1f} % < {100 * GAIN_THRESHOLD:.0f} %")
+        why.append(f"held-out RMS cut {percent(cut)} % < {100 * GAIN_THRESHOLD:.0f} %")
     if explained < MIN_EFFECT_NOISE_RATIO * noise_um:
         why.append(f"explains {explained:.4f} um < {MIN_EFFECT_NOISE_RATIO:g}x the sensor noise {noise_um:.4f} um")
     if with_.peak > PEAK_TOLERANCE * without.peak:
         why.append(f"raises the held-out peak {without.peak:.3f} -> {with_.peak:.3f} um (> {PEAK_TOLERANCE:g}x)")
     return "; ".join(why)
+
+
+def percent(share: float, sign: bool = False) -> str:
+    """``share`` in per cent to one decimal, a cut that rounds to zero as 0.0 (never -0.0); ``sign``: always
+    with its sign."""
+    value = round(100.0 * share, 1) + 0.0   # + 0.0 turns -0.0 into 0.0
+    return f"{value:+.1f}" if sign else f"{value:.1f}"
 
 
 def room_for_an_effect(without: Score, noise_um: float) -> bool:
