@@ -68,6 +68,10 @@ MUTANTS = (
      "        if ratio < self.limits.warn_ratio:",
      "        if ratio < 3 * self.limits.warn_ratio:",
      "monitor: warns at three times its threshold"),
+    ("piezo_valve_ros/core/identification/search.py",
+     "    return without.rms >= MIN_EFFECT_NOISE_RATIO * noise_um",
+     "    return without.rms >= 2 * MIN_EFFECT_NOISE_RATIO * noise_um",
+     "identification: no exact check on top of a model within twice the sensor noise"),
 )
 
 
