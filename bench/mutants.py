@@ -9,6 +9,7 @@ package (PYTHONPATH), executables included; the working tree is never touched.
 """
 import argparse
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -75,6 +76,12 @@ MUTANTS = (
 )
 
 
+def _listed(numbers: list[int]) -> str:
+    """1, 2 and 3."""
+    words = [str(n) for n in numbers]
+    return words[0] if len(words) == 1 else ", ".join(words[:-1]) + " and " + words[-1]
+
+
 def copy_of_head(dest: str) -> None:
     """The committed tree into ``dest``."""
     archive = subprocess.run(["git", "-C", ROOT, "archive", "HEAD"], capture_output=True, check=True).stdout
@@ -110,6 +117,11 @@ def main() -> int:
                                                           "are kept from the file as it is")
     ap.add_argument("--workers", type=int, default=3)
     args = ap.parse_args()
+    later = set(args.only or ())   # mutants run on a later commit than the rest of the page: these and the page's own
+    if args.only and args.markdown and os.path.exists(args.markdown):
+        said = re.search(r"Mutant(?:\(s\)|s)? ([\d, and]+) (?:re-)?r[au]ns? on (?:a )?later commits?",
+                         open(args.markdown).readline())
+        later |= {int(x) for x in re.findall(r"\d+", said.group(1))} if said else set()
     rows = []
     for k, (path, old, new, what) in enumerate(MUTANTS, 1):
         if args.only and k not in args.only:
@@ -133,8 +145,8 @@ def main() -> int:
              f"one-line bug in the safety and judgement paths, applied to a copy of the committed tree; the quick "
              f"suite (`-m \"not slow\"`, stopping at the first failure) is run on it"
              + (", and the slow tests where the quick suite missed it" if args.full else "") + "."
-             + (f" Mutant(s) {', '.join(map(str, args.only))} re-run on a later commit than the others."
-                if args.only else ""), "",
+             + ((f" Mutant {_listed(sorted(later))} ran on a later commit than the others." if len(later) == 1 else
+                 f" Mutants {_listed(sorted(later))} ran on later commits than the others.") if later else ""), "",
              "| # | mutant | file | quick suite | first failing test | s |" + (" slow tests |" if args.full else ""),
              "|---|---|---|---|---|---|" + ("---|" if args.full else "")]
     for k, what, path, caught, first, seconds, full in rows:
