@@ -736,7 +736,7 @@ def test_a_models_bound_sensitivities_match_finite_differences_column_by_column(
     assert np.abs(widened).max() > 0.0 and np.abs(upper_only).max() > 0.0
     # gathered block by block: the blocks' size changes no bit (4000 rows in blocks of 2048, 333, one row)
     from piezo_valve_ros.core.identification import valve_model
-    side = ((ctx._contact_sides[1] + ctx._contact_sides[2]) * g.weights)
+    side = ((ctx.contacts[0] > 0).astype(float) - (ctx.contacts[0] < 0).astype(float)) * g.weights
     whole = np.column_stack([(changes[:, k][np.maximum(ctx.contacts[1], 0)] * side).sum(axis=1) for k in range(3)])
     assert np.array_equal(widened, whole)
     for block in (333, 1):

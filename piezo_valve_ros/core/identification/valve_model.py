@@ -351,30 +351,22 @@ class Context:
             return last_contact(self.states, lower, upper, self.model.gpim.thresholds)
         return self._structural("contacts", compute)
 
-    @property
-    def _contact_sides(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(sample of each operator's last contact, +1 where it was the upper bound, -1 where the lower, 0
-        before any), each (N, n): ``contacts`` in the form the sensitivities gather with."""
-        def compute():
-            side, index = self.contacts
-            return np.maximum(index, 0), (side > 0).astype(float), -(side < 0).astype(float)
-        return self._structural("contact_sides", compute)
-
     def _gathered(self, change: np.ndarray, weighted_side: Callable[[slice], np.ndarray]) -> np.ndarray:
         """Sum over operators of ``weighted_side(rows)`` ((rows, n): the operators' weights on the bound each
         touched last) times each column of change (N,) or (N, k) at the operator's last contact: (N,) or (N, k).
         Block by block of GATHER_BLOCK rows (what a block gathers and weighs stays in the cache; the (N, n)
-        products are never formed), each row summed as one contiguous row (the same bits as a whole-array sum)."""
-        at = self._contact_sides[0]
+        products are never formed), each row summed as one contiguous row (the same bits as a whole-array sum).
+        Only ``contacts`` is kept ((N, n) int8 and int32); the samples and sides are taken per block."""
+        index = self.contacts[1]
         c = np.asarray(change, float)
         columns = np.ascontiguousarray((c[:, None] if c.ndim == 1 else c).T)   # (k, N): each column contiguous
-        n_rows = at.shape[0]
+        n_rows = index.shape[0]
         out = np.empty((n_rows, columns.shape[0]))
-        gathered = np.empty((min(GATHER_BLOCK, n_rows), at.shape[1]))
+        gathered = np.empty((min(GATHER_BLOCK, n_rows), index.shape[1]))
         for start in range(0, n_rows, GATHER_BLOCK):
             rows = slice(start, min(start + GATHER_BLOCK, n_rows))
             g = gathered[:rows.stop - rows.start]
-            at_rows, side = at[rows], weighted_side(rows)
+            at_rows, side = np.maximum(index[rows], 0), weighted_side(rows)   # before any contact: sample 0, side 0
             for k in range(columns.shape[0]):
                 np.take(columns[k], at_rows, out=g, mode="clip")   # indices lie in 0..N-1
                 np.multiply(g, side, out=g)
@@ -385,19 +377,19 @@ class Context:
         """dH [um] for a small change of the operators' lower / upper bounds (each (N,) or (N, k) in V, or None),
         exactly to first order: each operator moves by the change of the bound it touched last, at that time.
         Returns (N,) or (N, k), a column per column of the changes."""
-        _, upper, lower = self._contact_sides
+        side = self.contacts[0]
         w = self.model.gpim.weights
-        moved = [self._gathered(lower_change, lambda rows: -lower[rows] * w)] if lower_change is not None else []
-        if upper_change is not None:                                    # -lower: 1 or 0
-            moved.append(self._gathered(upper_change, lambda rows: upper[rows] * w))
+        moved = [self._gathered(lower_change, lambda rows: (side[rows] < 0) * w)] if lower_change is not None else []
+        if upper_change is not None:
+            moved.append(self._gathered(upper_change, lambda rows: (side[rows] > 0) * w))
         return sum(moved[1:], moved[0]) if moved else np.zeros(len(self.record))
 
     def widening_sensitivity(self, change: np.ndarray) -> np.ndarray:
         """dH [um] for the thresholds widened by ``change`` (N,) or (N, k) [V] (lower bounds down, upper bounds
         up by it): ``bound_sensitivity(-change, change)`` in one gather per column."""
-        _, upper, lower = self._contact_sides
+        side = self.contacts[0]
         w = self.model.gpim.weights
-        return self._gathered(change, lambda rows: (upper[rows] + lower[rows]) * w)
+        return self._gathered(change, lambda rows: side[rows] * w)   # +1 upper, -1 lower, 0 no contact yet
 
     # ------------------------------------------------------------------ the linear dynamics
     @cached_property
