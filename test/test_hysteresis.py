@@ -232,11 +232,11 @@ def test_last_contact_is_the_same_whatever_its_block_size():
         states, _ = play_batch(lower, upper, r, z0)
         results = []
         for block in (1, 7, 1000, 10 ** 6):
-            hysteresis.CONTACT_BLOCK, saved = block, hysteresis.CONTACT_BLOCK
+            hysteresis.ROW_BLOCK, saved = block, hysteresis.ROW_BLOCK
             try:
                 results.append(last_contact(states, lower, upper, r))
             finally:
-                hysteresis.CONTACT_BLOCK = saved
+                hysteresis.ROW_BLOCK = saved
         for side, idx in results[:-1]:
             assert np.array_equal(side, results[-1][0]) and np.array_equal(idx, results[-1][1])
         side, idx = results[-1]

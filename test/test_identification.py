@@ -734,18 +734,18 @@ def test_a_models_bound_sensitivities_match_finite_differences_column_by_column(
         fd = (H(lower, upper + eps * c) - H(lower, upper - eps * c)) / (2 * eps)
         assert np.max(np.abs(upper_only[:, k] - fd)) < 1e-6 * max(1.0, np.max(np.abs(fd)))
     assert np.abs(widened).max() > 0.0 and np.abs(upper_only).max() > 0.0
-    # gathered block by block: the blocks' size changes no bit (4000 rows in blocks of 2048, 333, one row)
-    from piezo_valve_ros.core.identification import valve_model
+    # gathered block by block: the blocks' size changes no bit (4000 rows in one block of 4096, blocks of 333, one row)
+    from piezo_valve_ros.core.model import hysteresis
     side = ((ctx.contacts[0] > 0).astype(float) - (ctx.contacts[0] < 0).astype(float)) * g.weights
     whole = np.column_stack([(changes[:, k][np.maximum(ctx.contacts[1], 0)] * side).sum(axis=1) for k in range(3)])
     assert np.array_equal(widened, whole)
     for block in (333, 1):
-        valve_model.GATHER_BLOCK, saved = block, valve_model.GATHER_BLOCK
+        hysteresis.ROW_BLOCK, saved = block, hysteresis.ROW_BLOCK
         try:
             assert np.array_equal(ctx.widening_sensitivity(changes), widened)
             assert np.array_equal(ctx.bound_sensitivity(None, changes), upper_only)
         finally:
-            valve_model.GATHER_BLOCK = saved
+            hysteresis.ROW_BLOCK = saved
 
 
 @pytest.mark.slow

@@ -869,7 +869,7 @@ class _EffectChoice:
         score = self.held_out(self.baseline)
         while len(current) < len(self.names):
             if not room_for_an_effect(score, self.noise):
-                self.log(f"exact selection: nothing more on top of {', '.join(current) or 'the baseline'}: "
+                self.log(f"exact selection: nothing more on top of {_set_named(current)}: "
                          f"{no_room_because(score, self.noise)}")
                 break
             options = [n for n in self.names if n not in current]
@@ -877,13 +877,13 @@ class _EffectChoice:
             fits = self.refit_many([([m for m in self.names if m in current or m == n], so_far) for n in options])
             supported = [(s.rms, n) for n, (_, s) in zip(options, fits) if support(s, score, self.noise)[2]]
             if not supported:
-                self.log(f"exact selection: nothing more on top of {', '.join(current) or 'the baseline'}: "
+                self.log(f"exact selection: nothing more on top of {_set_named(current)}: "
                          + "; ".join(f"{n} ({unsupported_because(s, score, self.noise)})"
                                      for n, (_, s) in zip(options, fits)))
                 break
             best_rms, best = min(supported)
             self.log(f"exact selection: {best} cuts the held-out RMS {score.rms:.4f} -> {best_rms:.4f} um on top of "
-                     f"{', '.join(current) or 'the baseline'} (the first-order search is not trusted here)")
+                     f"{_set_named(current)} (the first-order search is not trusted here)")
             current = [m for m in self.names if m in current or m == best]
             score = self.delay_on_held_out(current)
         return current
@@ -1014,16 +1014,16 @@ class _EffectChoice:
         one that is supported (None: none is)."""
         if len(current) == len(self.names):
             return None
-        if not room_for_an_effect(self.held_out(final), self.noise):   # (the polished model's is lower still)
-            self.log(f"exact check on top of {', '.join(current) or 'the baseline'}: none, "
-                     f"{no_room_because(self.held_out(final), self.noise)}")
+        final_score = self.held_out(final)
+        if not room_for_an_effect(final_score, self.noise):   # (the polished model's is lower still)
+            self.log(f"exact check on top of {_set_named(current)}: none, {no_room_because(final_score, self.noise)}")
             return None
         # against the set as it ends if nothing is added: with G_v's poles fitted again through it (an effect
         # added here must do more than the poles' refit at the end would do anyway)
         polishing = self.pool.submit(self.polished, final)   # beside the refits (it waits for nothing)
         options = [n for n in self.exact_options(current) if frozenset(current + [n]) not in tried]
         refits = self.refit_many([(current + [n], final) for n in options])
-        base_score = min(self.held_out(final), self.held_out(polishing.result()), key=lambda s: s.rms)
+        base_score = min(final_score, self.held_out(polishing.result()), key=lambda s: s.rms)
         self.exact_checks.setdefault(frozenset(current), {}).update(
             {n: (score, base_score) for n, (_, score) in zip(options, refits)})
         best = None
@@ -1032,7 +1032,7 @@ class _EffectChoice:
                 best = (n, score)
         if best is None:
             if options:   # one line for what the exact checks found, not silence after seconds of refits
-                self.log("exact check on top of " + (", ".join(current) or "the baseline") + ": " + "; ".join(
+                self.log(f"exact check on top of {_set_named(current)}: " + "; ".join(
                     f"{n} {base_score.rms:.4f} -> {score.rms:.4f} um, not supported "
                     f"({unsupported_because(score, base_score, self.noise)})"
                     for n, (_, score) in zip(options, refits)) + "; nothing added")
@@ -1102,6 +1102,11 @@ class _EffectChoice:
             final, drop_one, current = self.baseline, {}, []
         return Story(self.baseline, final, [n for n in self.names if n in current], drop_one, verdicts,
                      self.confirm_log, self)
+
+
+def _set_named(effects: list[str]) -> str:
+    """A set of effects in a log line: their names, or "the baseline" for none."""
+    return ", ".join(effects) or "the baseline"
 
 
 def _detrended(error: np.ndarray) -> np.ndarray:

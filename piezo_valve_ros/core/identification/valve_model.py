@@ -20,6 +20,7 @@ import numpy as np
 
 from ..model.dynamics import (PAPER_SECTION, ContinuousTF, describe_dynamics, discretise, scipy_signal,
                               steady_state, unity_dc_poles)
+from ..model import hysteresis
 from ..model.hysteresis import GPIM, last_contact, play_batch
 from ..model.rate_dependence import rate_terms
 from .records import Record
@@ -44,7 +45,6 @@ class ModelTerm(Protocol):
 
 
 INITIAL_STATES = ("rest", "cycled", "remanent", "given")   # kinds of the operators' state before a record
-GATHER_BLOCK = 2048   # rows per block of the contact sensitivities' gather (a block's (rows, n) arrays stay cached)
 
 
 @dataclass(frozen=True)
@@ -236,14 +236,15 @@ class ValveModel:
 
 
 def _transposed_less_first(states: np.ndarray) -> np.ndarray:
-    """``(states - states[0]).T`` as a contiguous (n, N) array, written block by block of GATHER_BLOCK rows (a
+    """``(states - states[0]).T`` as a contiguous (n, N) array, written ``hysteresis.ROW_BLOCK`` rows at a time (a
     block's difference is transposed while it is in the cache; a whole-array transposing copy strides over
     all of it)."""
     n_rows = states.shape[0]
     out = np.empty((states.shape[1], n_rows))
-    block = np.empty((min(GATHER_BLOCK, n_rows), states.shape[1]))
-    for start in range(0, n_rows, GATHER_BLOCK):
-        stop = min(start + GATHER_BLOCK, n_rows)
+    step = hysteresis.ROW_BLOCK
+    block = np.empty((min(step, n_rows), states.shape[1]))
+    for start in range(0, n_rows, step):
+        stop = min(start + step, n_rows)
         diff = np.subtract(states[start:stop], states[0], out=block[:stop - start])
         out[:, start:stop] = diff.T
     return out
@@ -354,7 +355,7 @@ class Context:
     def _gathered(self, change: np.ndarray, weighted_side: Callable[[slice], np.ndarray]) -> np.ndarray:
         """Sum over operators of ``weighted_side(rows)`` ((rows, n): the operators' weights on the bound each
         touched last) times each column of change (N,) or (N, k) at the operator's last contact: (N,) or (N, k).
-        Block by block of GATHER_BLOCK rows (what a block gathers and weighs stays in the cache; the (N, n)
+        Block by block of ``hysteresis.ROW_BLOCK`` rows (what a block gathers and weighs stays in the cache; the (N, n)
         products are never formed), each row summed as one contiguous row (the same bits as a whole-array sum).
         Only ``contacts`` is kept ((N, n) int8 and int32); the samples and sides are taken per block."""
         index = self.contacts[1]
@@ -362,9 +363,10 @@ class Context:
         columns = np.ascontiguousarray((c[:, None] if c.ndim == 1 else c).T)   # (k, N): each column contiguous
         n_rows = index.shape[0]
         out = np.empty((n_rows, columns.shape[0]))
-        gathered = np.empty((min(GATHER_BLOCK, n_rows), index.shape[1]))
-        for start in range(0, n_rows, GATHER_BLOCK):
-            rows = slice(start, min(start + GATHER_BLOCK, n_rows))
+        step = hysteresis.ROW_BLOCK
+        gathered = np.empty((min(step, n_rows), index.shape[1]))
+        for start in range(0, n_rows, step):
+            rows = slice(start, min(start + step, n_rows))
             g = gathered[:rows.stop - rows.start]
             at_rows, side = np.maximum(index[rows], 0), weighted_side(rows)   # before any contact: sample 0, side 0
             for k in range(columns.shape[0]):

@@ -75,7 +75,8 @@ def _hillis_steele(A: np.ndarray, B: np.ndarray, axis: int) -> None:
 SCAN_BLOCK = 32           # rows composed one after another in each block of the clamp scan ...
 SCAN_BLOCK_LONG = 64      # ... and in records of at least SCAN_LONG_ROWS rows (fewer levels of block totals)
 SCAN_LONG_ROWS = 16384
-CONTACT_BLOCK = 4096   # rows per block of last_contact (a block's (rows, n) comparisons stay in the cache)
+ROW_BLOCK = 4096   # rows per block of the batch paths over (N, n) arrays (play_batch's clip, last_contact, the fits'
+                   # contact gathers): a block's (rows, n) arrays stay in the cache, none of (N, n) is a temporary
 
 
 def _compose_clamps_scan(lo: np.ndarray, hi: np.ndarray, block: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -191,7 +192,7 @@ def play_batch(
     thresholds: np.ndarray,
     initial_state: np.ndarray,
     weights: Optional[np.ndarray] = None,
-    chunk: int = 1 << 12,
+    chunk: int = ROW_BLOCK,
     threshold_scale: Optional[np.ndarray] = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Evaluate a bank of (generalized) play operators over a whole record.
@@ -299,8 +300,8 @@ def last_contact(states: np.ndarray, lower_drive: np.ndarray, upper_drive: np.nd
     index = np.empty(states.shape, np.int32)
     carried_index = np.full(states.shape[1], -1, np.int32)   # the last contact before the block, and its side
     carried_side = np.zeros(states.shape[1], np.int8)
-    for start in range(0, n, CONTACT_BLOCK):   # block by block: the (rows, n) temporaries stay in the cache
-        rows = slice(start, min(start + CONTACT_BLOCK, n))
+    for start in range(0, n, ROW_BLOCK):
+        rows = slice(start, min(start + ROW_BLOCK, n))
         lo, hi = _clamp_bounds(lower_drive[rows], upper_drive[rows], r, same, None if scale is None else scale[rows])
         z = states[rows]
         on_lo = z == lo
