@@ -702,6 +702,43 @@ def test_asymmetry_steps_keep_the_descending_envelope_rising_on_a_record_of_part
     assert abs(effect.betas(effect.step(model, (0.0, 0.0, 0.03)).gpim)[2] - 0.03) < 1e-12   # a mild one is kept
 
 
+
+@pytest.mark.parametrize("shift_v", [-0.3, -0.05, 0.25])
+def test_a_descending_shift_alone_is_a_symmetric_loop_on_moved_thresholds(shift_v):
+    """An asymmetry of shift only (no slope or curvature change) is no asymmetry: the loop is, to rounding, a
+    symmetric GPIM's on the thresholds ``symmetric_thresholds`` gives (each moved by half the shift, those moved to
+    zero or below merged into the zero-threshold one, zero kept) plus an offset, on a random walk over 0..10 V;
+    the residual loop's ``revisit_placement`` rests on it."""
+    from piezo_valve_ros.core.identification.effects.asymmetry import Asymmetry
+    from piezo_valve_ros.core.model.hysteresis import GPIM, play_batch
+    rng = np.random.default_rng(7)
+    v = np.clip(5.0 + np.cumsum(rng.normal(0.0, 0.2, 6000)), 0.0, 10.0)
+    thresholds = np.arange(10) * 0.45
+    weights = 3.0 * np.exp(-0.5 * thresholds)
+    effect = Asymmetry(centre_v=5.0, half_span_v=5.0)
+    shifted = effect.with_betas(GPIM(thresholds, weights), shift_v, 0.0, 0.0)
+    H = play_batch(shifted.ascending_envelope(v), shifted.descending_envelope(v), thresholds,
+                   shifted.virgin_state(v[0]), weights)[0]
+    placed = effect.symmetric_thresholds(shifted)
+    assert placed[0] == 0.0 and np.all(np.diff(placed) > 0)
+    moved = thresholds[1:] + 0.5 * shift_v
+    assert np.allclose(placed[-moved[moved > 0].size:], moved[moved > 0])
+    states = play_batch(v, v, placed, GPIM(placed, np.ones(placed.size)).virgin_state(v[0]))[0]
+    design = np.column_stack((states, np.ones(v.size)))
+    coefs = np.linalg.lstsq(design, H, rcond=None)[0]
+    assert np.max(np.abs(design @ coefs - H)) < 1e-9 * np.ptp(H)
+    assert effect.shift_share(shifted) == 1.0   # all of its departure is the shift: the loop tries the placement
+    # ... which a slope change is not: the branches then differ, and no placement gives the loop
+    sloped = effect.with_betas(GPIM(thresholds, weights), shift_v, 0.1, 0.0)
+    H_sloped = play_batch(sloped.ascending_envelope(v), sloped.descending_envelope(v), thresholds,
+                          sloped.virgin_state(v[0]), weights)[0]
+    placed = effect.symmetric_thresholds(sloped)
+    states = play_batch(v, v, placed, GPIM(placed, np.ones(placed.size)).virgin_state(v[0]))[0]
+    design = np.column_stack((states, np.ones(v.size)))
+    misfit = design @ np.linalg.lstsq(design, H_sloped, rcond=None)[0] - H_sloped
+    assert np.max(np.abs(misfit)) > 1e-3 * np.ptp(H_sloped)
+    assert effect.shift_share(sloped) == pytest.approx(abs(shift_v) / (abs(shift_v) + 0.5))   # slope 0.1 over +-5 V
+
 def test_a_models_bound_sensitivities_match_finite_differences_column_by_column():
     """The Gauss-Newton sensitivities of a fitted model on a record (``Context.bound_sensitivity`` for the
     descending envelope, ``widening_sensitivity`` for rate-dependent thresholds), several changes at once, equal

@@ -32,7 +32,9 @@ How it decides (every figure on data the fit has not seen: a validation record, 
    a symmetric baseline best leaves part of an asymmetric valve's envelopes to creep): on the smaller one the
    story less each effect is refitted, and where the best leaves a held-out RMS within ``CAPACITY_TOLERANCE`` of
    the story's, step 3 runs again from it (``revisit_capacity``).  A story that names a part of the first
-   one's effects and explains as much replaces it.
+   one's effects and explains as much replaces it.  Likewise where it names asymmetry: a descending envelope's
+   shift alone is a symmetric loop on moved thresholds, so the story less asymmetry is refitted on the chosen
+   grid moved so (``revisit_placement``).
 4. **Unexplained.**  The final held-out residual's structured part (its RMS above the noise measured
    on the residual itself, at the analysis rate) is compared with the sensor noise at the record's rate:
    above ``UNEXPLAINED_NOISE_RATIO`` times it, structure remains that no catalogue effect explains.  So
@@ -81,6 +83,8 @@ MID_CAPACITY = 27                           # the size G_v's poles are first fit
 CAPACITY_TOLERANCE = 0.02                   # a smaller GPIM within 2 % of the best held-out RMS is preferred
 CAPACITY_REVISIT = 0.05                     # a smaller size within this share of the chosen one's score is a
                                             # knife edge: the effects are chosen again on it (_Loop.revisit_capacity)
+PLACEMENT_SHIFT_SHARE = 0.5                 # an asymmetry whose shift is at least this share of its envelope's departure
+                                            # may be the thresholds' placement: it is tried (_Loop.revisit_placement)
 TREND_DOMINANCE = 0.5                       # when the best size's held-out error about its quadratic trend is
                                             # below this share of its RMS, a trend (a drift) swamps what the
                                             # sizes differ in, and they are compared about their trends
@@ -566,6 +570,53 @@ class _Loop:
                  f"{effects}: {capacity.label} kept")
         return capacity, story
 
+    def revisit_placement(self, start: StartChoice, capacity: CapacityChoice, story: Story
+                          ) -> tuple[CapacityChoice, Story]:
+        """Where ``story`` names asymmetry whose descending envelope departs from the ascending one by a shift more
+        than by a slope or a curvature (``Asymmetry.shift_share`` at least PLACEMENT_SHIFT_SHARE), the shift may stand
+        in for the thresholds' placement: the shift alone is the same loop as a symmetric GPIM on thresholds moved by
+        half of it (``Asymmetry.symmetric_thresholds``), which no grid of the capacity choice has (a coarse grid chosen
+        on a baseline whose error a slow effect dominates can sit half a spacing off the valve's).  On the grid so
+        placed the story less asymmetry is refitted exactly; where it leaves a held-out RMS within
+        CAPACITY_TOLERANCE of the story's, the effects are confirmed, checked and swapped from it (``story``), and
+        that second story replaces the first when it names a part of the first's effects and explains as much
+        (the record then shows no branch difference beyond a placement: asymmetry is not named)."""
+        term = story.final.term("asymmetry")
+        if term is None or term[0].shift_share(story.final.gpim) < PLACEMENT_SHIFT_SHARE:
+            return capacity, story   # (a slope or a curvature that departs further than the shift: the branches differ)
+        asymmetry = term[0]
+        moved_v = 0.5 * story.final.gpim.a0 * asymmetry.betas(story.final.gpim)[0]
+        placed = asymmetry.symmetric_thresholds(story.final.gpim)   # (the chosen grid's: effects keep the thresholds)
+        label = f"{capacity.label}, thresholds moved {moved_v:+.3g} V"
+        # the check on the chosen baseline's G_v (one linear solve moves it to the new thresholds); the baseline
+        # proper, its poles fitted again, only where the effects are chosen again there
+        moved = fit_model(self.fit, self.start_model(placed, capacity.baseline), poles="fixed", cache=self.cache)
+        without = [n for n in story.added if n != "asymmetry"]
+        (_, without_score), = _EffectChoice(self, moved, label, search=False).refit_many([(without, None)])
+        before, effects = self.held_out(story.final).rms, ", ".join(story.added)
+        looked = (f"placement: asymmetry's descending shift {2 * moved_v:+.4g} V is the same loop as the thresholds of "
+                  f"{capacity.label} moved {moved_v:+.4g} V; there, {', '.join(without) or 'the baseline'} leaves "
+                  f"{without_score.rms:.4f} um held-out RMS against {before:.4f} um with {effects}: ")
+        if without_score.rms > (1 + CAPACITY_TOLERANCE) * before:
+            self.log(looked + "the branches differ (asymmetry kept)")
+            return capacity, story
+        self.log(looked + f"the effects chosen again on the moved thresholds from {', '.join(without) or 'none'}")
+        fit = replace(self.capacity_fit(placed, start.first), label=label)
+        baseline = fit_model(self.fit, fit.model, poles="baseline", cache=self.cache)
+        second = _EffectChoice(self, baseline, label).story(without)
+        after, names = self.held_out(second.final).rms, ", ".join(second.added) or "nothing"
+        if set(second.added) < set(story.added) and after <= (1 + CAPACITY_TOLERANCE) * before:
+            self.log(f"placement: {names} on {label} explains as much as {effects} on {capacity.label} (held-out RMS "
+                     f"{after:.4f} against {before:.4f} um): the thresholds moved, asymmetry not named")
+            chosen_on = (f"{capacity.chosen_on}; with the effects found, asymmetry's descending shift alone "
+                         f"({2 * moved_v:+.4g} V) was the thresholds' placement: {label} ({names}, {after:.4f} um) "
+                         f"explains as much as {capacity.label} ({effects}, {before:.4f} um)")
+            return replace(capacity, fits=capacity.fits + (fit,), label=label, chosen_on=chosen_on,
+                           baseline=baseline), second
+        self.log(f"placement: {names} on {label}, held-out RMS {after:.4f} um against {before:.4f} um with {effects}: "
+                 f"{capacity.label} kept")
+        return capacity, story
+
     def capacity_fit(self, thresholds: np.ndarray, first: ValveModel) -> CapacityFit:
         """A GPIM on ``thresholds`` fitted from the chosen start's model ``first`` (G_v fixed), with its held-out
         figures."""
@@ -755,6 +806,7 @@ class _Loop:
         self.check_held_out_range()
         capacity = self.choose_capacity(start)
         story = _EffectChoice(self, capacity.baseline, capacity.label).story()
+        capacity, story = self.revisit_placement(start, capacity, story)
         capacity, story = self.revisit_capacity(capacity, story)
         remains = self.what_remains(story)
         report = self.report(start, capacity, story, remains)

@@ -4,8 +4,9 @@ Structure: every operator's descending envelope gets its own shift, slope and cu
 centre of the input range, ``gamma_desc(v) = v + beta0 + beta1 (v - v_c) + beta2 (v - v_c)^2 / h``
 (``gamma_asc(v) = v``, h the half span): the generalized PI model with different envelope functions (Al
 Janaideh, Rakheja, Su), fitted by Gauss-Newton on the exact sensitivity of the operators to their upper
-bound.  (A shift that widens the loop is also a shift of the thresholds, which the baseline has; one that
-narrows it is not: thresholds cannot go below zero.)
+bound.  The shift alone is no asymmetry: it is the same loop as a symmetric GPIM on thresholds moved by half of it
+(``symmetric_thresholds``), which the residual loop tries before it names the effect (``residual``'s
+``revisit_placement``).
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ __all__ = ["Asymmetry", "MAX_SLOPE_CHANGE", "MAX_SHIFT_SHARE"]
 MAX_SLOPE_CHANGE = 0.5  # |beta1|, |beta2| <= 0.5: the descending envelope stays monotone over the range
 MAX_SHIFT_SHARE = 0.2   # |beta0| <= 0.2 of the half span
 MIN_SLOPE_SHARE = 0.2   # the descending envelope's slope stays >= 0.2 of the ascending one's, from 0 V to the range's end
+PLACED_THRESHOLD_FLOOR_V = 1e-6   # a threshold moved to this or below is the zero-threshold operator
 
 
 @dataclass(frozen=True)
@@ -49,6 +51,28 @@ class Asymmetry(Effect):
         beta1 = float(gpim.b0) / a0 - 1.0 + 2.0 * beta2 * c / h
         beta0 = (float(gpim.b0) * c + float(gpim.b1) + float(gpim.b2) * c * c - (a0 * c + gpim.a1)) / a0
         return beta0, beta1, beta2
+
+    def symmetric_thresholds(self, gpim: GPIM) -> np.ndarray:
+        """Thresholds [V] of the symmetric GPIM that is ``gpim``'s loop with its descending envelope's shift beta0
+        alone (no slope or curvature change): an operator's bounds ``v - r`` and ``v + beta0 + r`` are a play of
+        threshold ``r + beta0 / 2`` on the input shifted by beta0 / 2, which only shifts its output (the GPIM's
+        offset takes it).  A shift is therefore no asymmetry but the thresholds' placement.  An operator moved to
+        zero or below is the zero-threshold one (its bounds cross: the input plus a constant); zero is always kept
+        (a widening moves the first operator off it).  Sorted, distinct, (n',)."""
+        moved = np.asarray(gpim.thresholds, float) + 0.5 * gpim.a0 * self.betas(gpim)[0]   # beta0 is in input V
+        return np.concatenate(([0.0], np.unique(moved[moved > PLACED_THRESHOLD_FLOOR_V])))
+
+    def shift_share(self, gpim: GPIM) -> float:
+        """The shift's share of the descending envelope's departure from the ascending one over the range:
+        ``|beta0| / (|beta0| + max |beta1 (v - v_c) + beta2 (v - v_c)^2 / h|)`` for v over the centre +- the half span
+        (0 for a symmetric GPIM).  Where it is the larger part, the branches may not differ at all
+        (``symmetric_thresholds``)."""
+        beta0, beta1, beta2 = self.betas(gpim)
+        d = np.array([-1.0, 1.0]) * self.half_span_v
+        if beta2 != 0.0 and abs(beta1 * self.half_span_v / (2.0 * beta2)) < self.half_span_v:
+            d = np.append(d, -beta1 * self.half_span_v / (2.0 * beta2))   # the parabola's vertex inside the range
+        shape = float(np.max(np.abs(beta1 * d + beta2 * d * d / self.half_span_v)))
+        return abs(beta0) / (abs(beta0) + shape) if beta0 else 0.0
 
     def with_betas(self, gpim: GPIM, beta0: float, beta1: float, beta2: float) -> GPIM:
         c, h, a0 = self.centre_v, self.half_span_v, gpim.a0
