@@ -108,6 +108,7 @@ EXACT_ALL_ROWS = 20000                      # ... every effect, on a fit record 
 DELAY_STEPS = (-2, -1, 1, 2, 3)             # a dead time chosen on held-out data: the fitted one and these many
                                             # analysis samples from it
 SEARCH_TRUST = 0.2                          # ... or where the exact refit of its set does worse than its figure by more
+                                            # than this share, or delivers less than 1 - this of the cut it promised
 
 
 def _ordinal(k: int) -> str:
@@ -900,7 +901,8 @@ class _EffectChoice:
     def search_untrusted(self, current: list[str]) -> bool:
         """Whether the first-order search cannot be trusted to choose or rank effects here: a short record (exact
         refits cost little) or one where the exact refit of ``current`` does worse than the search's figure for it
-        by more than SEARCH_TRUST (the search saw a set that is not there: at low sample rates a delay of a sample or
+        by more than SEARCH_TRUST, or delivers less than 1 - SEARCH_TRUST of the cut the search promised for it (the
+        search saw a set that is not there: at low sample rates a delay of a sample or
         two is far from its first-order proxy; on a separate session each model has its own start).  A search that
         underrates a set (a large nonlinear structure) chose it rightly: the exact checks that follow add to it."""
         if len(self.fit) <= EXACT_ALL_ROWS:
@@ -908,10 +910,12 @@ class _EffectChoice:
         (_, exact), = self.refit_many([(current, None)])
         searched = self.search.score(frozenset(current)).rms
         # ... by its figure, or by the cut it promised from the baseline (the search's own baseline figure may
-        # differ from the exact one: a set it credits with half the error gone that the exact refit does not cut)
-        promised = searched / max(self.search.score(frozenset()).rms, 1e-30)
-        delivered = exact.rms / max(self.refits[frozenset()][1].rms, 1e-30)   # the baseline's score, scored once
-        return exact.rms > (1 + SEARCH_TRUST) * searched or delivered > (1 + SEARCH_TRUST) * promised
+        # differ from the exact one: a set it credits with half the error gone that the exact refit does not cut):
+        # the exact refit delivers less than 1 - SEARCH_TRUST of the share of the error the search said it takes
+        # (a share, not what is left: 25 % left where the search said 18 % is 92 % of the cut it promised)
+        promised = 1.0 - searched / max(self.search.score(frozenset()).rms, 1e-30)
+        delivered = 1.0 - exact.rms / max(self.refits[frozenset()][1].rms, 1e-30)   # the baseline's score, scored once
+        return exact.rms > (1 + SEARCH_TRUST) * searched or delivered < (1 - SEARCH_TRUST) * promised
 
     def forward_selection(self) -> list[str]:
         """Effects chosen by exact refits alone: from the baseline, the effect whose exact refit on top of the set
