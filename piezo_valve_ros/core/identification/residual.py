@@ -1019,20 +1019,17 @@ class _EffectChoice:
                  f"confirmed as {', '.join(confirmed[3]) or 'nothing'}; kept")
         return forward
 
-    def exact_options(self, current: list[str], final: ValveModel) -> list[str]:
-        """Effects outside ``current`` to refit exactly on top of it (``final``: its model): those the linear search
-        credits with at least EXACT_CHECK_GAIN, or every one where the search cannot be trusted to rank them: on a
-        separate validation session where it found nothing (it scores every set from the baseline's start there,
-        which may have taken a slow effect's share: each model's own start may not), on a short record (a few refits
-        cost little), where its first-order figure for ``current`` misses the exact refit's by more than
+    def exact_options(self, current: list[str]) -> list[str]:
+        """Effects outside ``current`` to refit exactly on top of it: those the linear search credits with at least
+        EXACT_CHECK_GAIN, or every one where the search cannot be trusted to rank them: on a separate validation
+        session where it found nothing (it scores every set from the baseline's start there, which may have taken
+        a slow effect's share: each model's own start may not), on a short record (a few refits cost little) or
+        where its first-order figure for ``current`` misses the exact refit's by more than
         SEARCH_TRUST (at low sample rates a delay of a sample or two is far from its first-order proxy; a separate
-        session's start moves with each model), or where ``final`` leaves structure the story would report as
-        unexplained (``structure_remains``: something is missing, and the search's first-order ranking of what
-        may be is what the exact refits are there to overrule: a slow pole beside an asymmetry, which the search
-        credits with nothing (-1 %), cuts 34 % refitted)."""
+        session's start moves with each model)."""
         linear_base = self.search.score(frozenset(current))
         outside = [n for n in self.names if n not in current]
-        if (not self.split.held_out and not current) or self.search_untrusted(current) or self.structure_remains(final):
+        if (not self.split.held_out and not current) or self.search_untrusted(current):
             return outside
         return [n for n in outside
                 if 1.0 - self.search.score(frozenset(current) | {n}).rms / max(linear_base.rms, 1e-30) >= EXACT_CHECK_GAIN]
@@ -1078,8 +1075,10 @@ class _EffectChoice:
 
     def exact_addition(self, current: list[str], final: ValveModel, tried: set[frozenset]) -> Optional[list[str]]:
         """The search judged nonlinear structures to first order, which can underrate a large one: effects whose
-        linear estimate shows some gain are refitted exactly on top of the confirmed set; the set with the best
-        one that is supported (None: none is)."""
+        linear estimate shows some gain (``exact_options``) are refitted exactly on top of the confirmed set, and,
+        where none of them is supported but the set's model as it would end (its poles refitted where that helps)
+        leaves structure that would be reported unexplained (``structure_remains``), every other effect too; the set with the best one that is supported (None: none
+        is)."""
         if len(current) == len(self.names):
             return None
         final_score = self.held_out(final)
@@ -1089,15 +1088,21 @@ class _EffectChoice:
         # against the set as it ends if nothing is added: with G_v's poles fitted again through it (an effect
         # added here must do more than the poles' refit at the end would do anyway)
         polishing = self.pool.submit(self.polished, final)   # beside the refits (it waits for nothing)
-        options = [n for n in self.exact_options(current, final) if frozenset(current + [n]) not in tried]
+        options = [n for n in self.exact_options(current) if frozenset(current + [n]) not in tried]
         refits = self.refit_many([(current + [n], final) for n in options])
-        base_score = min(final_score, self.held_out(polishing.result()), key=lambda s: s.rms)
+        polished = polishing.result()
+        base_score = min(final_score, self.held_out(polished), key=lambda s: s.rms)
+        best = self._best_supported(options, refits, base_score)
+        if best is None and self.structure_remains(polished if self.held_out(polished).rms <= final_score.rms else final):
+            # something is missing and none of the effects the search credited explains it: its first-order
+            # ranking of the rest is what the exact refits are there to overrule (a slow pole beside an asymmetry,
+            # which the search credits with nothing (-1 %), cuts a third of the held-out RMS refitted)
+            rest = [n for n in self.names if n not in current and n not in options
+                    and frozenset(current + [n]) not in tried]
+            options, refits = options + rest, refits + self.refit_many([(current + [n], final) for n in rest])
+            best = self._best_supported(options, refits, base_score)
         self.exact_checks.setdefault(frozenset(current), {}).update(
             {n: (score, base_score) for n, (_, score) in zip(options, refits)})
-        best = None
-        for n, (_, score) in zip(options, refits):
-            if support(score, base_score, self.noise)[2] and (best is None or score.rms < best[1].rms):
-                best = (n, score)
         if best is None:
             if options:   # one line for what the exact checks found, not silence after seconds of refits
                 self.log(f"exact check on top of {_set_named(current)}: " + "; ".join(
@@ -1108,6 +1113,16 @@ class _EffectChoice:
         self.log(f"exact check: {best[0]} cuts the held-out RMS {base_score.rms:.4f} -> {best[1].rms:.4f} um "
                  f"(the first-order search underrated it); added")
         return current + [best[0]]
+
+    def _best_supported(self, options: list[str], refits: list[tuple[ValveModel, Score]], base: Score
+                        ) -> Optional[tuple[str, Score]]:
+        """(effect, held-out score) of the option whose refit on top is supported against ``base`` and leaves the
+        lowest held-out RMS; None where none is."""
+        best = None
+        for n, (_, score) in zip(options, refits):
+            if support(score, base, self.noise)[2] and (best is None or score.rms < best[1].rms):
+                best = (n, score)
+        return best
 
     def better_swap(self, current: list[str], verdicts: dict, tried: set[frozenset]) -> Optional[list[str]]:
         """An effect the record cannot tell apart from an added one (see :func:`_alternatives`) that, put in its
