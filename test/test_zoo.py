@@ -153,8 +153,9 @@ def test_an_effect_standing_in_for_the_grid_at_a_knife_edge_is_dropped():
 def test_an_effect_the_search_credits_with_nothing_is_refitted_where_structure_remains():
     """The asymmetric valve with a slow pole, its seed-3 record: on top of asymmetry the first-order search credits
     the pole with nothing (-1 %), so it was never refitted, and the story ended with structure above twice the noise
-    left (asymmetry named, unexplained).  Where the model leaves structure that would be reported unexplained, every
-    effect is refitted exactly on top: the pole cuts a third of the held-out RMS and is named."""
+    left (asymmetry named, unexplained).  Where none of the effects the search credits is supported on top and the
+    model leaves structure that would be reported unexplained, every other effect is refitted exactly on top: the
+    pole cuts a third of the held-out RMS and is named."""
     case = CASES["asymmetric envelopes and a slow pole"]
     train, validate = case.records(3, 1.0)
     lines: list[str] = []
