@@ -74,8 +74,8 @@ MUTANTS = (
      "    return without.rms >= 2 * MIN_EFFECT_NOISE_RATIO * noise_um",
      "identification: no exact check on top of a model within twice the sensor noise"),
     ("piezo_valve_ros/core/identification/effects/asymmetry.py",
-     "        moved = np.asarray(gpim.thresholds, float) + 0.5 * gpim.a0 * self.betas(gpim)[0]",
-     "        moved = np.asarray(gpim.thresholds, float) + gpim.a0 * self.betas(gpim)[0]",
+     "        return 0.5 * gpim.a0 * self.betas(gpim)[0]",
+     "        return gpim.a0 * self.betas(gpim)[0]",
      "identification: an asymmetry's shift taken as the thresholds' move whole, not halved"),
 )
 

@@ -83,8 +83,9 @@ MID_CAPACITY = 27                           # the size G_v's poles are first fit
 CAPACITY_TOLERANCE = 0.02                   # a smaller GPIM within 2 % of the best held-out RMS is preferred
 CAPACITY_REVISIT = 0.05                     # a smaller size within this share of the chosen one's score is a
                                             # knife edge: the effects are chosen again on it (_Loop.revisit_capacity)
-PLACEMENT_SHIFT_SHARE = 0.5                 # an asymmetry whose shift is at least this share of its envelope's departure
-                                            # may be the thresholds' placement: it is tried (_Loop.revisit_placement)
+PLACEMENT_SHIFT_SHARE = 0.5                 # an asymmetry whose shift is at least this share of its envelope's
+                                            # departure may be the thresholds' placement: it is tried
+                                            # (_Loop.revisit_placement)
 TREND_DOMINANCE = 0.5                       # when the best size's held-out error about its quadratic trend is
                                             # below this share of its RMS, a trend (a drift) swamps what the
                                             # sizes differ in, and they are compared about their trends
@@ -157,6 +158,12 @@ def _structure(e_score: np.ndarray, dt: float, noise_um: float, range_um: float)
             "line_hz": float(freqs[k]) if k else 0.0, "line_share": share,
             "ratio_to_noise": structured / max(noise_um, 1e-12),
             "pct_of_range": 100.0 * structured / range_um if range_um > 0 else 0.0}
+
+
+def _unexplained_by_rms(structure: dict) -> bool:
+    """Whether a held-out residual's ``_structure`` holds structure no effect explains, by its RMS: above
+    UNEXPLAINED_NOISE_RATIO times the sensor noise and above MIN_STRUCTURE_PCT of the range."""
+    return structure["ratio_to_noise"] > UNEXPLAINED_NOISE_RATIO and structure["pct_of_range"] > MIN_STRUCTURE_PCT
 
 
 def _peak_structure(e_full: np.ndarray, dt: float, noise_um: float, range_um: float) -> dict:
@@ -586,7 +593,7 @@ class _Loop:
         if term is None or term[0].shift_share(story.final.gpim) < PLACEMENT_SHIFT_SHARE:
             return capacity, story   # (a slope or a curvature that departs further than the shift: the branches differ)
         asymmetry = term[0]
-        moved_v = 0.5 * story.final.gpim.a0 * asymmetry.betas(story.final.gpim)[0]
+        moved_v = asymmetry.threshold_move(story.final.gpim)
         placed = asymmetry.symmetric_thresholds(story.final.gpim)   # (the chosen grid's: effects keep the thresholds)
         label = f"{capacity.label}, thresholds moved {moved_v:+.3g} V"
         # the check on the chosen baseline's G_v (one linear solve moves it to the new thresholds); the baseline
@@ -641,7 +648,7 @@ class _Loop:
         structure["held_out_noise_peak_um"] = noise_peak_um(measured, split.score_full.dt)
         structure["held_out_noise_peak_pct"] = (100.0 * structure["held_out_noise_peak_um"] / self.range_val
                                                 if self.range_val > 0 else 0.0)
-        by_rms = structure["ratio_to_noise"] > UNEXPLAINED_NOISE_RATIO and structure["pct_of_range"] > MIN_STRUCTURE_PCT
+        by_rms = _unexplained_by_rms(structure)
         by_peak = peaks["peak_ratio"] > PEAK_NOISE_RATIO and peaks["peak_pct_of_range"] > MIN_STRUCTURE_PCT
         seen = (
             f"held-out residual RMS {structure['rms_um']:.4f} um at {split.score.rate_hz:.0f} Hz, of which "
@@ -903,8 +910,8 @@ class _EffectChoice:
         """Whether the first-order search cannot be trusted to choose or rank effects here: a short record (exact
         refits cost little) or one where the exact refit of ``current`` does worse than the search's figure for it
         by more than SEARCH_TRUST, or delivers less than 1 - SEARCH_TRUST of the cut the search promised for it (the
-        search saw a set that is not there: at low sample rates a delay of a sample or
-        two is far from its first-order proxy; on a separate session each model has its own start).  A search that
+        search saw a set that is not there: at low sample rates a delay of a sample or two is far from its
+        first-order proxy; on a separate session each model has its own start).  A search that
         underrates a set (a large nonlinear structure) chose it rightly: the exact checks that follow add to it."""
         if len(self.fit) <= EXACT_ALL_ROWS:
             return True
@@ -1038,9 +1045,7 @@ class _EffectChoice:
         """Whether ``model``'s held-out residual holds structure above UNEXPLAINED_NOISE_RATIO times the sensor noise
         (and above MIN_STRUCTURE_PCT of the range): what the story's end reports as unexplained (``what_remains``,
         which also counts peaks)."""
-        structure = _structure(self.error(model), self.split.score.dt, self.noise, self.range_val)
-        return (structure["ratio_to_noise"] > UNEXPLAINED_NOISE_RATIO
-                and structure["pct_of_range"] > MIN_STRUCTURE_PCT)
+        return _unexplained_by_rms(_structure(self.error(model), self.split.score.dt, self.noise, self.range_val))
 
     def confirm(self, current: list[str]) -> tuple[ValveModel, dict, dict, list[str]]:
         """Backward elimination with exact refits: (final model, drop-one models, verdicts, effects kept)."""
@@ -1077,8 +1082,8 @@ class _EffectChoice:
         """The search judged nonlinear structures to first order, which can underrate a large one: effects whose
         linear estimate shows some gain (``exact_options``) are refitted exactly on top of the confirmed set, and,
         where none of them is supported but the set's model as it would end (its poles refitted where that helps)
-        leaves structure that would be reported unexplained (``structure_remains``), every other effect too; the set with the best one that is supported (None: none
-        is)."""
+        leaves structure that would be reported unexplained (``structure_remains``), every other effect too; the
+        set with the best one that is supported (None: none is)."""
         if len(current) == len(self.names):
             return None
         final_score = self.held_out(final)
@@ -1091,9 +1096,10 @@ class _EffectChoice:
         options = [n for n in self.exact_options(current) if frozenset(current + [n]) not in tried]
         refits = self.refit_many([(current + [n], final) for n in options])
         polished = polishing.result()
-        base_score = min(final_score, self.held_out(polished), key=lambda s: s.rms)
+        polished_score = self.held_out(polished)
+        base_score = min(final_score, polished_score, key=lambda s: s.rms)
         best = self._best_supported(options, refits, base_score)
-        if best is None and self.structure_remains(polished if self.held_out(polished).rms <= final_score.rms else final):
+        if best is None and self.structure_remains(polished if polished_score.rms <= final_score.rms else final):
             # something is missing and none of the effects the search credited explains it: its first-order
             # ranking of the rest is what the exact refits are there to overrule (a slow pole beside an asymmetry,
             # which the search credits with nothing (-1 %), cuts a third of the held-out RMS refitted)

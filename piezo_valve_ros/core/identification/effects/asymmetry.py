@@ -59,8 +59,13 @@ class Asymmetry(Effect):
         offset takes it).  A shift is therefore no asymmetry but the thresholds' placement.  An operator moved to
         zero or below is the zero-threshold one (its bounds cross: the input plus a constant); zero is always kept
         (a widening moves the first operator off it).  Sorted, distinct, (n',)."""
-        moved = np.asarray(gpim.thresholds, float) + 0.5 * gpim.a0 * self.betas(gpim)[0]   # beta0 is in input V
+        moved = np.asarray(gpim.thresholds, float) + self.threshold_move(gpim)
         return np.concatenate(([0.0], np.unique(moved[moved > PLACED_THRESHOLD_FLOOR_V])))
+
+    def threshold_move(self, gpim: GPIM) -> float:
+        """How far [V, the thresholds' units] ``symmetric_thresholds`` moves each threshold: half the descending
+        envelope's shift (beta0 is in input V, the thresholds in the envelope's: a0 beta0)."""
+        return 0.5 * gpim.a0 * self.betas(gpim)[0]
 
     def shift_share(self, gpim: GPIM) -> float:
         """The shift's share of the descending envelope's departure from the ascending one over the range:
