@@ -218,8 +218,10 @@ def busy_loops_beside(count: int):
 
 
 def back_to_normal_scheduling() -> None:
-    """Undo what a case's hardware node (in this process) asked for: any CPU, the normal scheduler."""
-    from piezo_valve_ros.runtime.realtime import available_cpus, pin
+    """Undo what a case's hardware node (in this process) asked for: any CPU, the normal scheduler, no wake-up
+    latency request."""
+    from piezo_valve_ros.runtime.realtime import available_cpus, pin, release_cpu_wakeup_latency
+    release_cpu_wakeup_latency()
     for tid in os.listdir("/proc/self/task"):
         try:
             os.sched_setscheduler(int(tid), os.SCHED_OTHER, os.sched_param(0))
@@ -230,9 +232,11 @@ def back_to_normal_scheduling() -> None:
 
 def rig_loop(clock: str, period_s: float, seconds: float, composed: bool = False, tick: str = "loop",
              busy_poll_s: float = 0.0, switch_interval_s: float | None = None, priority: int = 0,
-             hardware_cpus: list[int] | None = None, controller_cpus: list[int] | None = None) -> dict:
-    """Sections 3-6: the hardware node here, the controller in another process (or here, composed);
-    ``priority`` and ``*_cpus`` are the nodes' realtime.priority / realtime.cpus."""
+             hardware_cpus: list[int] | None = None, controller_cpus: list[int] | None = None,
+             cpu_wakeup_latency_us: int = -1) -> dict:
+    """Sections 3-7: the hardware node here, the controller in another process (or here, composed);
+    ``priority``, ``*_cpus`` and ``cpu_wakeup_latency_us`` are the nodes' realtime.priority / realtime.cpus /
+    realtime.cpu_wakeup_latency_us (its request withdrawn at the end: ``back_to_normal_scheduling``)."""
     from piezo_valve_ros.nodes.composed import build
     from piezo_valve_ros.nodes.hardware import ValveHardwareNode
     hw_params = {"clock": clock, "control_period_s": period_s, "command_timeout_s": 0.5,
@@ -241,6 +245,7 @@ def rig_loop(clock: str, period_s: float, seconds: float, composed: bool = False
     if switch_interval_s is not None:
         hw_params["realtime.switch_interval_s"] = ctl_params["realtime.switch_interval_s"] = switch_interval_s
     hw_params["realtime.priority"] = ctl_params["realtime.priority"] = priority
+    hw_params["realtime.cpu_wakeup_latency_us"] = ctl_params["realtime.cpu_wakeup_latency_us"] = cpu_wakeup_latency_us
     if hardware_cpus:
         hw_params["realtime.cpus"] = hardware_cpus
     if controller_cpus:
@@ -409,18 +414,22 @@ EDGE_TARGETS = {"composed 10 kHz": 0.995, "5 kHz across processes": 0.99}   # sh
 def edge(seconds: float, repeats: int) -> list[dict]:
     """Section 7: composed 10 kHz and 5 kHz across processes, quiet and loaded (one busy loop per CPU), polling
     on the normal scheduler, or at realtime.priority 50 sleeping between ticks, pinned (composed: one CPU;
-    across: the hardware on the first, the controller on the last) or floating."""
+    across: the hardware on the first, the controller on the last) or floating; quiet, also with the idle CPUs
+    kept awake (realtime.cpu_wakeup_latency_us 0, "awake")."""
     cpus = sorted(os.sched_getaffinity(0))
     print(f"\n7. the edge on {len(cpus)} CPUs (targets: composed 10 kHz {100 * EDGE_TARGETS['composed 10 kHz']:.1f} % "
           f"in time, 5 kHz across processes {100 * EDGE_TARGETS['5 kHz across processes']:.0f} %), quiet / loaded "
           "(one busy loop per CPU beside):")
-    options = [("poll, normal", 0, False), ("FIFO 50, pinned", 50, True), ("FIFO 50, floating", 50, False)]
+    # (label, priority, pinned, realtime.cpu_wakeup_latency_us): 0 keeps idle CPUs polling (quiet only: the busy
+    # loops of a loaded computer keep them awake already)
+    options = [("poll, normal", 0, False, -1), ("FIFO 50, pinned", 50, True, -1), ("FIFO 50, floating", 50, False, -1),
+               ("poll, normal, awake", 0, False, 0), ("FIFO 50, pinned, awake", 50, True, 0)]
     out = []
     for loaded in (False, True):
         with busy_loops_beside(len(cpus) if loaded else 0):
             for case, period, composed in (("composed 10 kHz", 1e-4, True), ("5 kHz across processes", 2e-4, False)):
-                for label, priority, pinned in options:
-                    if loaded and not priority:
+                for label, priority, pinned, wakeup_us in options:
+                    if loaded and (not priority or wakeup_us >= 0):
                         continue   # the normal scheduler gives a loop a slice now and then (section 6)
                     shares = []
                     for _ in range(repeats):
@@ -428,8 +437,9 @@ def edge(seconds: float, repeats: int) -> list[dict]:
                             s = rig_loop("realtime", period, seconds, composed=composed,
                                          busy_poll_s=0.0 if priority else period, priority=priority,
                                          hardware_cpus=[cpus[0]] if pinned else None,
-                                         controller_cpus=([cpus[0]] if composed else [cpus[-1]]) if pinned else None)
-                        except ValueError as exc:  # e.g. no permission for SCHED_FIFO here
+                                         controller_cpus=([cpus[0]] if composed else [cpus[-1]]) if pinned else None,
+                                         cpu_wakeup_latency_us=wakeup_us)
+                        except ValueError as exc:  # e.g. no permission for SCHED_FIFO or the PM QoS file here
                             print(f"   {case} {label}: not run: {exc}")
                             break
                         finally:
@@ -438,7 +448,7 @@ def edge(seconds: float, repeats: int) -> list[dict]:
                         out.append({"case": case, "loaded": loaded, "options": label, **s})
                     if shares:
                         met = sum(x >= EDGE_TARGETS[case] for x in shares)
-                        print(f"   {case:22s} {'loaded' if loaded else 'quiet ':6s} {label:17s}: in time "
+                        print(f"   {case:22s} {'loaded' if loaded else 'quiet ':6s} {label:23s}: in time "
                               + " / ".join(f"{100 * x:6.2f}" for x in shares)
                               + f" %  ({met} of {len(shares)} runs at the target)", flush=True)
     return out

@@ -109,6 +109,9 @@ def controller(ros_context):
     ({"realtime__priority": "high"}, "realtime.priority must be an integer"),
     ({"realtime__cpus": ["a"]}, "realtime.cpus must be an integer"),
     ({"realtime__cpus": [4096]}, "no CPU 4096 on this machine"),
+    ({"realtime__cpu_wakeup_latency_us": -2}, "realtime.cpu_wakeup_latency_us must lie in 0.."),
+    ({"realtime__cpu_wakeup_latency_us": 2.5}, "realtime.cpu_wakeup_latency_us must be an integer"),
+    ({"realtime__cpu_wakeup_latency_us": "low"}, "realtime.cpu_wakeup_latency_us must be an integer"),
     ({"realtime__priority": 10, "realtime__busy_poll_s": 0.001}, "starves every other thread"),
     ({"diagnostics_period_s": -1}, "diagnostics_period_s must lie in"),
     ({"diagnostics_period_s": float("nan")}, "diagnostics_period_s out of range"),   # rclpy's range check
@@ -416,6 +419,55 @@ def test_hardware_applies_its_real_time_priority_and_cpus(tmp_path):
             assert os.sched_getscheduler(tid) == os.SCHED_FIFO
             assert os.sched_getparam(tid).sched_priority == 10
             assert os.sched_getaffinity(tid) == {cpu}
+    finally:
+        proc.terminate()
+        proc.wait(20)
+
+
+def test_a_cpu_wakeup_latency_request_is_held_while_the_process_runs(tmp_path):
+    """realtime.cpu_wakeup_latency_us: the request is written to the kernel's PM QoS file as a 32-bit number and
+    its file is held open (the request lasts as long); a file that cannot be opened refuses with what to do."""
+    import struct
+    from piezo_valve_ros.runtime import realtime
+    device = tmp_path / "cpu_dma_latency"
+    device.write_bytes(b"")
+    realtime.release_cpu_wakeup_latency()
+    try:
+        realtime.hold_cpu_wakeup_latency(0, str(device))
+        (fd,) = realtime._held_requests
+        assert os.readlink(f"/proc/self/fd/{fd}") == str(device)
+        assert struct.unpack("=i", device.read_bytes()) == (0,)
+    finally:
+        realtime.release_cpu_wakeup_latency()
+    assert realtime._held_requests == [] and not any(
+        os.readlink(f"/proc/self/fd/{f}") == str(device) for f in os.listdir("/proc/self/fd")
+        if os.path.islink(f"/proc/self/fd/{f}"))
+    with pytest.raises(realtime.RealtimeError, match="cannot open .*missing.*udev rule.*or use -1"):
+        realtime.hold_cpu_wakeup_latency(0, str(tmp_path / "missing"))
+    settings = realtime.RealtimeSettings.from_values(5e-5, 0, [], 0)
+    assert settings.cpu_wakeup_latency_us == 0 and "idle CPUs polling" in settings.describe()
+    assert "idle" not in realtime.RealtimeSettings.from_values(5e-5, 0, []).describe()
+
+
+def test_hardware_holds_the_cpus_awake_when_asked(tmp_path):
+    """realtime.cpu_wakeup_latency_us 0 on the real-time clock: the running process holds the kernel's request
+    open (/proc/<pid>/fd), and says so in its start-up line; or, where the OS does not allow it, the node
+    refuses to start with the reason."""
+    exe = os.path.join(os.path.dirname(sys.executable), "valve_hardware")
+    log = tmp_path / "hw.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen([exe, "--ros-args", "-p", "realtime.cpu_wakeup_latency_us:=0"],
+                                env=ros_env(), stdout=out, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 30
+        while "valve_hardware up" not in log.read_text() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if proc.poll() is not None:   # no write access to the PM QoS file here: refused with the reason
+            assert proc.returncode == 2 and "cannot open /dev/cpu_dma_latency" in log.read_text(), log.read_text()
+            return
+        assert "idle CPUs polling" in log.read_text(), log.read_text()
+        held = [os.readlink(f"/proc/{proc.pid}/fd/{fd}") for fd in os.listdir(f"/proc/{proc.pid}/fd")]
+        assert "/dev/cpu_dma_latency" in held, held
     finally:
         proc.terminate()
         proc.wait(20)

@@ -262,8 +262,12 @@ def test_valve_rig_asks_for_priority_and_cpus_only_on_the_real_time_clock():
     assert hw["realtime.cpus"] == [cpus[0]] and ctl["realtime.cpus"] == [cpus[-1]]
     hw, ctl = rig_parameters(parse_args(["--demo", "none", "--clock", "realtime", "--composed", "--pin"]))
     assert hw["realtime.cpus"] == ctl["realtime.cpus"] == [cpus[-1]]
-    proc = tool("valve_rig", "--priority", "50")  # lockstep
-    assert proc.returncode == 2 and "apply to --clock realtime" in proc.stderr
+    assert "realtime.cpu_wakeup_latency_us" not in hw and "realtime.cpu_wakeup_latency_us" not in ctl
+    hw, ctl = rig_parameters(parse_args(["--demo", "none", "--clock", "realtime", "--cpu-wakeup-latency-us", "0"]))
+    assert hw["realtime.cpu_wakeup_latency_us"] == ctl["realtime.cpu_wakeup_latency_us"] == 0
+    for option in (["--priority", "50"], ["--cpu-wakeup-latency-us", "0"]):
+        proc = tool("valve_rig", *option)  # lockstep
+        assert proc.returncode == 2 and "apply to --clock realtime" in proc.stderr
 
 
 # ---------------------------------------------------------------------------- an out-of-tree backend

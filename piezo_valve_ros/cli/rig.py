@@ -73,6 +73,9 @@ def _parser() -> argparse.ArgumentParser:
                          "permission, see README); the hardware then sleeps between ticks")
     ap.add_argument("--pin", action="store_true",
                     help="realtime: hardware on the first CPU, controller on the last (realtime.cpus)")
+    ap.add_argument("--cpu-wakeup-latency-us", type=int, metavar="US",
+                    help="realtime: idle CPUs wake within US microseconds while the rig runs, 0 = they poll instead "
+                         "of sleeping (realtime.cpu_wakeup_latency_us; needs write access to /dev/cpu_dma_latency)")
     ap.add_argument("--lockstep-speed", type=float, metavar="X",
                     help="lockstep: the valve's time runs at most X times as fast as the wall clock (default: as fast "
                          "as the loop goes, which keeps two cores busy; 1 = the wall clock's pace)")
@@ -109,7 +112,8 @@ def given_options(argv) -> set[str]:
 # the nodes' parameters each option sets (an option given on the command line wins over the parameters file)
 OPTION_PARAMETERS = {"clock": {"clock"}, "control_period_s": {"control_period_s"}, "sim_seed": {"sim.seed"},
                      "busy_poll_s": {"realtime.busy_poll_s"}, "priority": {"realtime.priority", "realtime.busy_poll_s"},
-                     "pin": {"realtime.cpus"}, "gain_set": {"gain_set", "strategy"}, "strategy": {"strategy", "gain_set"},
+                     "pin": {"realtime.cpus"}, "cpu_wakeup_latency_us": {"realtime.cpu_wakeup_latency_us"},
+                     "gain_set": {"gain_set", "strategy"}, "strategy": {"strategy", "gain_set"},
                      "backend": {"backend"}, "lockstep_speed": {"lockstep.max_speed"}}
 RIG_OWNED = {"lockstep.step_budget"}   # the demo's pacing: always the rig's
 GAIN_KEYS = {"gain_set", "strategy", "kp", "ki", "kd"}
@@ -138,6 +142,8 @@ def rig_parameters(args) -> tuple[dict, dict]:
     ctl = {"control_period_s": args.control_period_s, "reference_ramp_s": 0.002}
     if args.clock == "realtime":
         hw["realtime.priority"] = ctl["realtime.priority"] = args.priority
+        if args.cpu_wakeup_latency_us is not None:
+            hw["realtime.cpu_wakeup_latency_us"] = ctl["realtime.cpu_wakeup_latency_us"] = args.cpu_wakeup_latency_us
         if args.pin:
             from ..runtime.realtime import available_cpus
             cpus = sorted(available_cpus())
@@ -203,8 +209,8 @@ def check_options(args) -> None:
         raise UsageError("--identify drives the rig itself; use it with --demo none")
     if args.demo == "steps" and args.clock != "lockstep":
         raise UsageError("the step demo needs --clock lockstep (use --demo none for a real-time rig)")
-    if (args.priority or args.pin) and args.clock != "realtime":
-        raise UsageError("--priority and --pin apply to --clock realtime")
+    if (args.priority or args.pin or args.cpu_wakeup_latency_us is not None) and args.clock != "realtime":
+        raise UsageError("--priority, --pin and --cpu-wakeup-latency-us apply to --clock realtime")
     if args.lockstep_speed is not None and (args.clock != "lockstep" or not 0 <= args.lockstep_speed < math.inf):
         raise UsageError("--lockstep-speed takes a finite speed >= 0 and applies to --clock lockstep")
 

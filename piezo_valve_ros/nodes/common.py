@@ -69,7 +69,8 @@ CONTROL_PERIOD = ParameterSpec(
 
 def realtime_specs() -> tuple[ParameterSpec, ...]:
     """The read-only ``realtime.*`` scheduling parameters of a real-time node (see :mod:`..realtime`)."""
-    from ..runtime.realtime import DEFAULT_SWITCH_INTERVAL_S, PRIORITY_RANGE, SWITCH_INTERVAL_RANGE_S
+    from ..runtime.realtime import (CPU_LATENCY_DEVICE, DEFAULT_SWITCH_INTERVAL_S, LEAVE_IDLE_STATES, PRIORITY_RANGE,
+                                    SWITCH_INTERVAL_RANGE_S)
     lo, hi = SWITCH_INTERVAL_RANGE_S
     return (
         ParameterSpec("realtime.switch_interval_s", DEFAULT_SWITCH_INTERVAL_S,
@@ -79,6 +80,10 @@ def realtime_specs() -> tuple[ParameterSpec, ...]:
                       f"scheduler; {PRIORITY_RANGE[0]}..{PRIORITY_RANGE[1]}); refused at start-up when the OS does not "
                       "allow it", read_only=True),
         ParameterSpec("realtime.cpus", [], "CPUs the process may run on (e.g. [1]; empty = any)", read_only=True),
+        ParameterSpec("realtime.cpu_wakeup_latency_us", LEAVE_IDLE_STATES,
+                      f"the longest an idle CPU may take to wake [us], requested for every CPU while the process runs "
+                      f"({CPU_LATENCY_DEVICE}); 0 keeps idle CPUs polling (as cyclictest does); {LEAVE_IDLE_STATES} = no "
+                      "request; refused at start-up when the OS does not allow it", read_only=True),
     )
 
 
@@ -139,7 +144,7 @@ def realtime_settings(p: dict):
     """Validated :class:`..realtime.RealtimeSettings` from a node's parameter values (ValueError)."""
     from ..runtime.realtime import RealtimeSettings
     return RealtimeSettings.from_values(p["realtime.switch_interval_s"], p["realtime.priority"],
-                                        p["realtime.cpus"])
+                                        p["realtime.cpus"], p["realtime.cpu_wakeup_latency_us"])
 
 
 def parameter_values(node: Node) -> dict[str, Any]:
