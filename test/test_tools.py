@@ -257,6 +257,13 @@ def test_valve_rig_asks_for_priority_and_cpus_only_on_the_real_time_clock():
     cpus = sorted(available_cpus())
     hw, ctl = rig_parameters(parse_args(["--demo", "none", "--clock", "realtime", "--control-period-s", "0.0005"]))
     assert hw["realtime.busy_poll_s"] == 0.0005 and hw["realtime.priority"] == 0 and "realtime.cpus" not in hw
+    # at 1 ms and longer the hardware sleeps between ticks: as many commands in time, no core spent polling
+    for period in ("0.001", "0.002"):
+        hw, _ = rig_parameters(parse_args(["--demo", "none", "--clock", "realtime", "--control-period-s", period]))
+        assert hw["realtime.busy_poll_s"] == 0.0
+    hw, _ = rig_parameters(parse_args(["--demo", "none", "--clock", "realtime", "--control-period-s", "0.001",
+                                       "--busy-poll-s", "0.001"]))
+    assert hw["realtime.busy_poll_s"] == 0.001
     hw, ctl = rig_parameters(parse_args(["--demo", "none", "--clock", "realtime", "--priority", "50", "--pin"]))
     assert hw["realtime.busy_poll_s"] == 0.0 and hw["realtime.priority"] == ctl["realtime.priority"] == 50
     assert hw["realtime.cpus"] == [cpus[0]] and ctl["realtime.cpus"] == [cpus[-1]]

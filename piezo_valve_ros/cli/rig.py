@@ -23,6 +23,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from ..core.errors import PiezoValveError
+from ..core.validation import same_period
 from ..runtime.dds import use_fast_acknowledgements
 from ..core.metrics import step_metrics
 from ..core.sim.signals import PAPER_STEPS_UM
@@ -67,7 +68,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--composed", action="store_true", help="hardware and controller in this process")
     ap.add_argument("--busy-poll-s", type=float,
                     help="realtime: the hardware polls instead of sleeping this long before each tick [s] "
-                         "(default: all the time, which costs a core; 0 = sleep)")
+                         "(default: all the time at periods under 1 ms, which costs a core; sleep at 1 ms and longer "
+                         "and with --priority; 0 = sleep)")
     ap.add_argument("--priority", type=int, default=0, metavar="N",
                     help="realtime: run hardware and controller at SCHED_FIFO priority N (1..98; needs the "
                          "permission, see README); the hardware then sleeps between ticks")
@@ -128,10 +130,22 @@ def merged_parameters(rig: dict, from_file: dict, given: set[str]) -> dict:
             **{k: v for k, v in rig.items() if k in keys}}
 
 
+POLL_BELOW_PERIOD_S = 1e-3   # the rig's hardware polls between ticks at control periods shorter than this [s]
+
+
+def default_busy_poll(control_period_s: float, priority: int) -> float:
+    """The rig's realtime.busy_poll_s where neither the command line nor the parameters file sets it [s]: poll the
+    whole period below POLL_BELOW_PERIOD_S, sleep at longer periods (bench/realtime_loop.py, section 3: at 1 kHz
+    and slower a sleeping hardware keeps as many commands in time at about a quarter of the CPU, where polling
+    costs a core) and at a real-time priority (a polling thread at that priority starves its CPU)."""
+    if priority or control_period_s > POLL_BELOW_PERIOD_S or same_period(control_period_s, POLL_BELOW_PERIOD_S):
+        return 0.0
+    return control_period_s
+
+
 def rig_parameters(args) -> tuple[dict, dict]:
     """The hardware's and the controller's parameters for these command-line options."""
-    default_poll = 0.0 if args.priority else args.control_period_s  # a real-time priority thread must not poll
-    busy_poll = default_poll if args.busy_poll_s is None else args.busy_poll_s
+    busy_poll = default_busy_poll(args.control_period_s, args.priority) if args.busy_poll_s is None else args.busy_poll_s
     hw = {"backend": args.backend, "clock": args.clock, "control_period_s": args.control_period_s,
           "realtime.busy_poll_s": busy_poll if args.clock == "realtime" else 0.0,
           "lockstep.step_budget": 0 if (args.clock == "lockstep" and args.demo == "steps") else -1}
@@ -198,7 +212,7 @@ def apply_parameters_file(args, given: set[str], hw: dict, ctl: dict, ident: dic
     ctl["control_period_s"] = ident["control_period_s"] = args.control_period_s
     if args.clock == "realtime" and not {"busy_poll_s", "priority"} & given \
             and "realtime.busy_poll_s" not in sections["valve_hardware"]:
-        hw["realtime.busy_poll_s"] = 0.0 if hw.get("realtime.priority") else args.control_period_s
+        hw["realtime.busy_poll_s"] = default_busy_poll(args.control_period_s, hw.get("realtime.priority", 0))
     hw["lockstep.step_budget"] = 0 if (args.clock == "lockstep" and args.demo == "steps") else -1
     return hw, ctl, ident
 
