@@ -155,7 +155,8 @@ def test_hardware_applies_a_valid_timeout_and_refuses_step_budget_on_the_real_ti
 
 
 @pytest.mark.parametrize("name, value", [("safe_voltage", 8.0), ("command_max_v", 20.0), ("control_period_s", 2e-3),
-                                         ("clock", "lockstep"), ("backend", "other"), ("sim.noise", False)])
+                                         ("clock", "lockstep"), ("backend", "other"), ("sim.noise", False),
+                                         ("realtime.cpu_wakeup_latency_us", 0)])
 def test_hardware_start_up_settings_are_read_only(hardware, name, value):
     hw = hardware(clock="realtime")
     before = hw.get_parameter(name).value
