@@ -27,7 +27,7 @@ setup(
         ("share/" + package_name + "/config", glob("config/*.yaml")),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=["setuptools", "numpy", "scipy", "rosbags>=0.11,<0.12", "threadpoolctl", "PyYAML"],
+    install_requires=["setuptools", "numpy", "scipy", "rosbags>=0.11,<0.12", "threadpoolctl", "numba", "PyYAML"],
     extras_require={"plots": ["matplotlib"], "test": ["pytest"]},
     zip_safe=False,   # Fast DDS reads fast_ack_profile.xml as a file
     # install_scripts is in setup.cfg (the ROS convention); develop's script_dir only where setuptools has it

@@ -12,6 +12,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from .iir import first_order_bank
+
 __all__ = ["scipy_signal", "steady_state", "ContinuousTF", "DiscreteFilter", "PAPER_VALVE_MODEL", "PAPER_SECTION", "first_order_lag", "lag_bank", "discretise",
            "second_order", "unity_dc_poles", "sections", "describe_dynamics"]
 
@@ -140,17 +142,13 @@ def first_order_lag(time_constant_s: float, dt: float) -> "DiscreteFilter":
 def lag_bank(x: np.ndarray, time_constants_s: Sequence[float], dt: float,
              initial: Optional[float] = None) -> np.ndarray:
     """First-order lags 1/(tau s + 1) of ``x`` (ZOH-exact, started at rest at ``initial``, default x[0]);
-    shape (N, k), each column contiguous (a transposed view: the filters write whole rows)."""
-    out = np.empty((len(time_constants_s), x.size))
+    shape (N, k), one column per time constant (``iir.first_order_bank``: all k advanced at each sample)."""
     x = np.asarray(x, float)
-    lfilter = scipy_signal().lfilter
     start = float(x[0]) if initial is None else float(initial)
-    for i, tau in enumerate(time_constants_s):
-        # first_order_lag's ZOH filter written out (b = [0, 1 - a], a = [1, -a], a = exp(-dt/tau); at rest
-        # at ``start`` its one state is ``start``): this runs thousands of times per analysis
-        pole = math.exp(-dt / float(tau))
-        out[i] = lfilter([0.0, 1.0 - pole], [1.0, -pole], x, zi=[start])[0]
-    return out.T
+    # first_order_lag's ZOH filter written out (b = [0, 1 - a], a = [1, -a], a = exp(-dt/tau); at rest at
+    # ``start`` its one state is ``start``): this runs thousands of times per analysis
+    poles = np.array([math.exp(-dt / float(tau)) for tau in time_constants_s])   # libm's exp, as the ZOH lag's
+    return first_order_bank(x, poles, 1.0 - poles, start)
 
 
 def second_order(omega_rad_s: float, zeta: float) -> ContinuousTF:

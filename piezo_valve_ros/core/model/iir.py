@@ -1,0 +1,69 @@
+"""Banks of IIR filters run together: one filter on many rows, or first-order lags of one signal with many time
+constants.
+
+An identification filters the same records thousands of times (the design's rows through G, creep's lags of the
+model output).  ``scipy.signal.lfilter`` runs one row at a time, and each output waits for the one before it
+(about 4.5 ns per sample on this project's machine, whatever the order).  The kernels here advance every row of a
+bank at each sample, so the rows' recursions overlap: the same arithmetic as lfilter's transposed direct form II,
+operation by operation (the same bits: ``test_iir``), several times faster on a bank
+(bench/core_speed.py).  They are compiled by numba on first use (cached on disk), so importing this module
+costs nothing until a bank is filtered.  Nothing here imports ROS.
+"""
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+__all__ = ["filter_rows", "first_order_bank", "KERNEL_TAPS"]
+
+KERNEL_TAPS = (2, 3, 4)   # filter lengths (taps of the longer of b and a) the kernels run; others go to lfilter
+
+
+@functools.cache
+def _kernels():
+    """The numba kernels, compiled (or loaded from numba's cache) on first use."""
+    from . import _iir_kernels
+    return _iir_kernels
+
+
+def _padded(b, a) -> tuple[np.ndarray, np.ndarray]:
+    """b and a as float arrays of one length, zero padded (as lfilter pads them)."""
+    b, a = np.atleast_1d(np.asarray(b, float)), np.atleast_1d(np.asarray(a, float))
+    taps = max(b.size, a.size)
+    return np.concatenate((b, np.zeros(taps - b.size))), np.concatenate((a, np.zeros(taps - a.size)))
+
+
+def filter_rows(b, a, rows: np.ndarray, zi: np.ndarray) -> np.ndarray:
+    """``scipy.signal.lfilter(b, a, rows, axis=1, zi=zi)[0]``, bit for bit: the filter b(z)/a(z) on each row of
+    ``rows`` (k, N), each from its own transposed-direct-form-II state ``zi`` (k, taps - 1); returns (k, N).
+    FIR filters (a of one tap: lfilter convolves them), a[0] != 1 and lengths the kernels do not run
+    (``KERNEL_TAPS``) go to lfilter itself."""
+    given = (b, a)
+    b, a = _padded(b, a)
+    rows = np.asarray(rows, float)
+    if rows.ndim != 2:
+        raise ValueError(f"rows must be (k, N), got shape {rows.shape}")
+    taps = b.size
+    zi = np.asarray(zi, float).reshape(rows.shape[0], taps - 1) if taps > 1 else np.zeros((rows.shape[0], 0))
+    if np.size(given[1]) == 1 or a[0] != 1.0 or taps not in KERNEL_TAPS:
+        from scipy import signal
+        return (signal.lfilter(*given, rows, axis=1, zi=zi)[0] if taps > 1
+                else signal.lfilter(*given, rows, axis=1))
+    out = np.empty(rows.shape)
+    state = np.array(zi.T)   # (taps - 1, k): each tap's states contiguous across the rows
+    _kernels().RUN_ROWS[taps](b, a, np.ascontiguousarray(rows), state, out)
+    return out
+
+
+def first_order_bank(x: np.ndarray, poles: np.ndarray, gains: np.ndarray, start: float) -> np.ndarray:
+    """The filters ``gain_i z^-1 / (1 - pole_i z^-1)`` on ``x`` (N,), each started from the state ``start``:
+    ``lfilter([0, gain_i], [1, -pole_i], x, zi=[start])[0]`` for every i, bit for bit; returns (N, k), one column per
+    filter, each column contiguous (a transposed view)."""
+    x = np.ascontiguousarray(x, dtype=float)
+    poles, gains = np.asarray(poles, float).reshape(-1), np.asarray(gains, float).reshape(-1)
+    if poles.shape != gains.shape:
+        raise ValueError(f"poles {poles.shape} and gains {gains.shape} differ in shape")
+    out = np.empty((poles.size, x.size))
+    _kernels().first_order_bank(x, np.zeros(poles.size), gains, -poles, np.full(poles.size, float(start)), out)
+    return out.T

@@ -1,0 +1,76 @@
+"""The filter banks of core/model/iir.py give scipy.signal.lfilter's bits, for every filter length and bank size,
+and the model's filtering paths (lag_bank, G at rest) run on them."""
+import math
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from piezo_valve_ros.core.model import iir
+from piezo_valve_ros.core.model.dynamics import lag_bank, steady_state
+from piezo_valve_ros.core.identification.valve_model import filter_at_rest, filter_rows_at_rest
+
+FILTERS = {
+    "first order": ([0.0, 0.3], [1.0, -0.7]),
+    "second order (G at 2 kHz)": ([0.05, 0.12, 0.02], [1.0, -1.1, 0.29]),
+    "third order": ([0.01, 0.03, 0.03, 0.01], [1.0, -2.2, 1.6, -0.38]),
+    "b longer than a (a delay)": ([0.0, 0.0, 0.5, 0.5], [1.0, -0.2]),
+    "FIR only": ([0.25, 0.5, 0.25], [1.0]),
+    "five taps (lfilter's own path)": ([0.1, 0.2, 0.3, 0.2, 0.1], [1.0, -0.5, 0.1, 0.0, 0.01]),
+    "a[0] != 1 (lfilter's own path)": ([0.2, 0.1], [2.0, -0.6]),
+    "gain only": ([1.5], [1.0]),
+}
+
+
+@pytest.mark.parametrize("name", FILTERS)
+@pytest.mark.parametrize("k", [1, 3, 17])
+def test_filter_rows_gives_lfilters_bits(name, k):
+    b, a = FILTERS[name]
+    rng = np.random.default_rng(k)
+    rows = rng.standard_normal((k, 2001)).cumsum(axis=1)
+    taps = max(len(b), len(a))
+    zi = rng.standard_normal((k, taps - 1))
+    expected = signal.lfilter(b, a, rows, axis=1, zi=zi)[0] if taps > 1 else signal.lfilter(b, a, rows, axis=1)
+    got = iir.filter_rows(b, a, rows, zi)
+    assert got.shape == rows.shape
+    assert np.array_equal(got, expected)
+
+
+def test_filter_rows_takes_strided_rows_and_an_empty_record():
+    b, a = FILTERS["second order (G at 2 kHz)"]
+    wide = np.random.default_rng(0).standard_normal((6, 400))
+    rows = wide[::2, ::2]   # neither contiguous nor aligned
+    zi = np.ones((3, 2))
+    assert np.array_equal(iir.filter_rows(b, a, rows, zi), signal.lfilter(b, a, rows, axis=1, zi=zi)[0])
+    assert iir.filter_rows(b, a, np.zeros((2, 0)), np.zeros((2, 2))).shape == (2, 0)
+    with pytest.raises(ValueError, match=r"\(k, N\)"):
+        iir.filter_rows(b, a, np.zeros(5), np.zeros(2))
+
+
+def test_first_order_bank_gives_lfilters_bits():
+    x = np.random.default_rng(3).standard_normal(5000).cumsum()
+    poles = np.exp(-1e-3 / np.array([0.005, 0.05, 0.5, 5.0]))
+    got = iir.first_order_bank(x, poles, 1.0 - poles, start=2.5)
+    expected = np.column_stack([signal.lfilter([0.0, 1.0 - p], [1.0, -p], x, zi=[2.5])[0] for p in poles])
+    assert got.shape == (x.size, poles.size)
+    assert np.array_equal(got, expected)
+    with pytest.raises(ValueError, match="differ in shape"):
+        iir.first_order_bank(x, poles, poles[:2], 0.0)
+
+
+def test_the_models_filters_run_on_the_banks():
+    """lag_bank and G at rest (one row, many rows, columns) are lfilter's figures on a record."""
+    dt = 5e-4
+    x = np.sin(np.linspace(0, 40, 3000)) * 10 + np.random.default_rng(4).standard_normal(3000)
+    taus = (0.05, 0.5, 5.0)
+    poles = [math.exp(-dt / t) for t in taus]   # first_order_lag's ZOH pole
+    expected = np.column_stack([signal.lfilter([0.0, 1 - p], [1.0, -p], x, zi=[1.0])[0] for p in poles])
+    assert np.array_equal(lag_bank(x, taus, dt, initial=1.0), expected)
+    b, a = FILTERS["second order (G at 2 kHz)"]
+    zi = steady_state(b, a)
+    assert np.array_equal(filter_at_rest(b, a, x), signal.lfilter(b, a, x, zi=zi * x[0])[0])
+    assert np.array_equal(filter_at_rest(b, a, x, rest=3.0), signal.lfilter(b, a, x, zi=zi * 3.0)[0])
+    cols = np.column_stack((x, 2 * x, -x))
+    assert np.array_equal(filter_at_rest(b, a, cols, rest=[1.0, 2.0, 3.0])[:, 1],
+                          signal.lfilter(b, a, 2 * x, zi=zi * 2.0)[0])
+    assert np.array_equal(filter_rows_at_rest(b, a, cols.T)[2], signal.lfilter(b, a, -x, zi=zi * -x[0])[0])
