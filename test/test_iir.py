@@ -16,7 +16,10 @@ FILTERS = {
     "third order": ([0.01, 0.03, 0.03, 0.01], [1.0, -2.2, 1.6, -0.38]),
     "b longer than a (a delay)": ([0.0, 0.0, 0.5, 0.5], [1.0, -0.2]),
     "FIR only": ([0.25, 0.5, 0.25], [1.0]),
-    "five taps (lfilter's own path)": ([0.1, 0.2, 0.3, 0.2, 0.1], [1.0, -0.5, 0.1, 0.0, 0.01]),
+    "five taps": ([0.1, 0.2, 0.3, 0.2, 0.1], [1.0, -0.5, 0.1, 0.0, 0.01]),
+    "two pole pairs and a fractional delay": ([0.0, 0.0, 0.02, 0.05, 0.03, 0.01], [1.0, -2.4, 2.2, -0.9, 0.14]),
+    "eight taps": ([0.05] * 8, [1.0, -0.9, 0.3, -0.1, 0.05, -0.02, 0.01, -0.005]),
+    "nine taps (lfilter's own path)": ([0.05] * 9, [1.0, -0.5]),
     "a[0] != 1 (lfilter's own path)": ([0.2, 0.1], [2.0, -0.6]),
     "gain only": ([1.5], [1.0]),
 }
@@ -74,3 +77,16 @@ def test_the_models_filters_run_on_the_banks():
     assert np.array_equal(filter_at_rest(b, a, cols, rest=[1.0, 2.0, 3.0])[:, 1],
                           signal.lfilter(b, a, 2 * x, zi=zi * 2.0)[0])
     assert np.array_equal(filter_rows_at_rest(b, a, cols.T)[2], signal.lfilter(b, a, -x, zi=zi * -x[0])[0])
+
+
+def test_the_kernels_module_is_the_generators_and_covers_the_kernel_lengths():
+    """_iir_kernels.py is written by scripts/iir_kernels.py (not edited by hand), with a kernel for every length
+    iir.KERNEL_TAPS promises."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    script = Path(__file__).resolve().parent.parent / "scripts" / "iir_kernels.py"
+    done = subprocess.run([sys.executable, str(script), "--check"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    from piezo_valve_ros.core.model import _iir_kernels
+    assert set(_iir_kernels.RUN_ROWS) == set(iir.KERNEL_TAPS)

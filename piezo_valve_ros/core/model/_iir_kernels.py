@@ -1,109 +1,512 @@
-"""numba kernels of ``iir`` (imported on first use): lfilter's transposed direct form II, operation by operation,
+"""numba kernels of ``iir`` (imported on first use).  Written by scripts/iir_kernels.py: do not edit by hand.
+
+Each is lfilter's transposed direct form II, operation by operation,
 
     y[n] = z0 + b0 x[n];  z_j = z_(j+1) + x[n] b_(j+1) - y[n] a_(j+1);  z_last = x[n] b_last - y[n] a_last,
 
-four filters advanced together at each sample, their states and coefficients in registers (each output waits for
-the one before it; four independent recursions overlap), then the rows left over one at a time.  One kernel per
-filter length.  No fast-math: the operations and their order are lfilter's, so are the bits."""
+on several rows at each sample (each output waits for the one before it; the rows' independent recursions
+overlap), their states and the coefficients locals, then the rows left over one at a time.  No fast-math: the
+operations and their order are lfilter's, so are the bits."""
 from __future__ import annotations
 
 import numba
 
-# Rows advanced together: four recursions hide each one's latency, and their states and the coefficients still
-# fit the registers (eight filters spill and are no faster).
-UNROLL = 4
-
 
 @numba.njit(nogil=True, cache=True)
 def rows_2(b, a, x, z, out):
-    """First order on each row of x (k, N); z (1, k) states in and out; out (k, N)."""
+    """Filters of 2 taps on each row of x (k, N); z (1, k) states in and out; out (k, N)."""
     k, n_samples = x.shape
     b0, b1, a1 = b[0], b[1], a[1]
     g = 0
-    while g + UNROLL <= k:
-        p0, p1, p2, p3 = z[0, g], z[0, g + 1], z[0, g + 2], z[0, g + 3]
-        x0, x1, x2, x3 = x[g], x[g + 1], x[g + 2], x[g + 3]
-        o0, o1, o2, o3 = out[g], out[g + 1], out[g + 2], out[g + 3]
+    while g + 4 <= k:
+        s0_0 = z[0, g + 0]
+        s1_0 = z[0, g + 1]
+        s2_0 = z[0, g + 2]
+        s3_0 = z[0, g + 3]
+        x0, o0 = x[g + 0], out[g + 0]
+        x1, o1 = x[g + 1], out[g + 1]
+        x2, o2 = x[g + 2], out[g + 2]
+        x3, o3 = x[g + 3], out[g + 3]
         for n in range(n_samples):
-            u = x0[n]; y = p0 + b0 * u; p0 = u * b1 - y * a1; o0[n] = y   # noqa: E702
-            u = x1[n]; y = p1 + b0 * u; p1 = u * b1 - y * a1; o1[n] = y   # noqa: E702
-            u = x2[n]; y = p2 + b0 * u; p2 = u * b1 - y * a1; o2[n] = y   # noqa: E702
-            u = x3[n]; y = p3 + b0 * u; p3 = u * b1 - y * a1; o3[n] = y   # noqa: E702
-        z[0, g], z[0, g + 1], z[0, g + 2], z[0, g + 3] = p0, p1, p2, p3
-        g += UNROLL
+            u = x0[n]
+            y = s0_0 + b0 * u
+            s0_0 = u * b1 - y * a1
+            o0[n] = y
+            u = x1[n]
+            y = s1_0 + b0 * u
+            s1_0 = u * b1 - y * a1
+            o1[n] = y
+            u = x2[n]
+            y = s2_0 + b0 * u
+            s2_0 = u * b1 - y * a1
+            o2[n] = y
+            u = x3[n]
+            y = s3_0 + b0 * u
+            s3_0 = u * b1 - y * a1
+            o3[n] = y
+        z[0, g + 0] = s0_0
+        z[0, g + 1] = s1_0
+        z[0, g + 2] = s2_0
+        z[0, g + 3] = s3_0
+        g += 4
     while g < k:
-        p0 = z[0, g]
+        s0_0 = z[0, g + 0]
         x0, o0 = x[g], out[g]
         for n in range(n_samples):
-            u = x0[n]; y = p0 + b0 * u; p0 = u * b1 - y * a1; o0[n] = y   # noqa: E702
-        z[0, g] = p0
+            u = x0[n]
+            y = s0_0 + b0 * u
+            s0_0 = u * b1 - y * a1
+            o0[n] = y
+        z[0, g + 0] = s0_0
         g += 1
 
 
 @numba.njit(nogil=True, cache=True)
 def rows_3(b, a, x, z, out):
-    """Second order on each row of x (k, N); z (2, k) states in and out; out (k, N)."""
+    """Filters of 3 taps on each row of x (k, N); z (2, k) states in and out; out (k, N)."""
     k, n_samples = x.shape
     b0, b1, b2, a1, a2 = b[0], b[1], b[2], a[1], a[2]
     g = 0
-    while g + UNROLL <= k:
-        p0, p1, p2, p3 = z[0, g], z[0, g + 1], z[0, g + 2], z[0, g + 3]
-        q0, q1, q2, q3 = z[1, g], z[1, g + 1], z[1, g + 2], z[1, g + 3]
-        x0, x1, x2, x3 = x[g], x[g + 1], x[g + 2], x[g + 3]
-        o0, o1, o2, o3 = out[g], out[g + 1], out[g + 2], out[g + 3]
+    while g + 4 <= k:
+        s0_0 = z[0, g + 0]
+        s0_1 = z[1, g + 0]
+        s1_0 = z[0, g + 1]
+        s1_1 = z[1, g + 1]
+        s2_0 = z[0, g + 2]
+        s2_1 = z[1, g + 2]
+        s3_0 = z[0, g + 3]
+        s3_1 = z[1, g + 3]
+        x0, o0 = x[g + 0], out[g + 0]
+        x1, o1 = x[g + 1], out[g + 1]
+        x2, o2 = x[g + 2], out[g + 2]
+        x3, o3 = x[g + 3], out[g + 3]
         for n in range(n_samples):
-            u = x0[n]; y = p0 + b0 * u; p0 = q0 + u * b1 - y * a1; q0 = u * b2 - y * a2; o0[n] = y   # noqa: E702
-            u = x1[n]; y = p1 + b0 * u; p1 = q1 + u * b1 - y * a1; q1 = u * b2 - y * a2; o1[n] = y   # noqa: E702
-            u = x2[n]; y = p2 + b0 * u; p2 = q2 + u * b1 - y * a1; q2 = u * b2 - y * a2; o2[n] = y   # noqa: E702
-            u = x3[n]; y = p3 + b0 * u; p3 = q3 + u * b1 - y * a1; q3 = u * b2 - y * a2; o3[n] = y   # noqa: E702
-        z[0, g], z[0, g + 1], z[0, g + 2], z[0, g + 3] = p0, p1, p2, p3
-        z[1, g], z[1, g + 1], z[1, g + 2], z[1, g + 3] = q0, q1, q2, q3
-        g += UNROLL
+            u = x0[n]
+            y = s0_0 + b0 * u
+            s0_0 = s0_1 + u * b1 - y * a1
+            s0_1 = u * b2 - y * a2
+            o0[n] = y
+            u = x1[n]
+            y = s1_0 + b0 * u
+            s1_0 = s1_1 + u * b1 - y * a1
+            s1_1 = u * b2 - y * a2
+            o1[n] = y
+            u = x2[n]
+            y = s2_0 + b0 * u
+            s2_0 = s2_1 + u * b1 - y * a1
+            s2_1 = u * b2 - y * a2
+            o2[n] = y
+            u = x3[n]
+            y = s3_0 + b0 * u
+            s3_0 = s3_1 + u * b1 - y * a1
+            s3_1 = u * b2 - y * a2
+            o3[n] = y
+        z[0, g + 0] = s0_0
+        z[1, g + 0] = s0_1
+        z[0, g + 1] = s1_0
+        z[1, g + 1] = s1_1
+        z[0, g + 2] = s2_0
+        z[1, g + 2] = s2_1
+        z[0, g + 3] = s3_0
+        z[1, g + 3] = s3_1
+        g += 4
     while g < k:
-        p0, q0 = z[0, g], z[1, g]
+        s0_0 = z[0, g + 0]
+        s0_1 = z[1, g + 0]
         x0, o0 = x[g], out[g]
         for n in range(n_samples):
-            u = x0[n]; y = p0 + b0 * u; p0 = q0 + u * b1 - y * a1; q0 = u * b2 - y * a2; o0[n] = y   # noqa: E702
-        z[0, g], z[1, g] = p0, q0
+            u = x0[n]
+            y = s0_0 + b0 * u
+            s0_0 = s0_1 + u * b1 - y * a1
+            s0_1 = u * b2 - y * a2
+            o0[n] = y
+        z[0, g + 0] = s0_0
+        z[1, g + 0] = s0_1
         g += 1
 
 
 @numba.njit(nogil=True, cache=True)
 def rows_4(b, a, x, z, out):
-    """Third order on each row of x (k, N); z (3, k) states in and out; out (k, N)."""
+    """Filters of 4 taps on each row of x (k, N); z (3, k) states in and out; out (k, N)."""
     k, n_samples = x.shape
     b0, b1, b2, b3, a1, a2, a3 = b[0], b[1], b[2], b[3], a[1], a[2], a[3]
     g = 0
-    while g + UNROLL <= k:
-        p0, p1, p2, p3 = z[0, g], z[0, g + 1], z[0, g + 2], z[0, g + 3]
-        q0, q1, q2, q3 = z[1, g], z[1, g + 1], z[1, g + 2], z[1, g + 3]
-        r0, r1, r2, r3 = z[2, g], z[2, g + 1], z[2, g + 2], z[2, g + 3]
-        x0, x1, x2, x3 = x[g], x[g + 1], x[g + 2], x[g + 3]
-        o0, o1, o2, o3 = out[g], out[g + 1], out[g + 2], out[g + 3]
+    while g + 4 <= k:
+        s0_0 = z[0, g + 0]
+        s0_1 = z[1, g + 0]
+        s0_2 = z[2, g + 0]
+        s1_0 = z[0, g + 1]
+        s1_1 = z[1, g + 1]
+        s1_2 = z[2, g + 1]
+        s2_0 = z[0, g + 2]
+        s2_1 = z[1, g + 2]
+        s2_2 = z[2, g + 2]
+        s3_0 = z[0, g + 3]
+        s3_1 = z[1, g + 3]
+        s3_2 = z[2, g + 3]
+        x0, o0 = x[g + 0], out[g + 0]
+        x1, o1 = x[g + 1], out[g + 1]
+        x2, o2 = x[g + 2], out[g + 2]
+        x3, o3 = x[g + 3], out[g + 3]
         for n in range(n_samples):
-            u = x0[n]; y = p0 + b0 * u; p0 = q0 + u * b1 - y * a1; q0 = r0 + u * b2 - y * a2   # noqa: E702
-            r0 = u * b3 - y * a3; o0[n] = y   # noqa: E702
-            u = x1[n]; y = p1 + b0 * u; p1 = q1 + u * b1 - y * a1; q1 = r1 + u * b2 - y * a2   # noqa: E702
-            r1 = u * b3 - y * a3; o1[n] = y   # noqa: E702
-            u = x2[n]; y = p2 + b0 * u; p2 = q2 + u * b1 - y * a1; q2 = r2 + u * b2 - y * a2   # noqa: E702
-            r2 = u * b3 - y * a3; o2[n] = y   # noqa: E702
-            u = x3[n]; y = p3 + b0 * u; p3 = q3 + u * b1 - y * a1; q3 = r3 + u * b2 - y * a2   # noqa: E702
-            r3 = u * b3 - y * a3; o3[n] = y   # noqa: E702
-        z[0, g], z[0, g + 1], z[0, g + 2], z[0, g + 3] = p0, p1, p2, p3
-        z[1, g], z[1, g + 1], z[1, g + 2], z[1, g + 3] = q0, q1, q2, q3
-        z[2, g], z[2, g + 1], z[2, g + 2], z[2, g + 3] = r0, r1, r2, r3
-        g += UNROLL
+            u = x0[n]
+            y = s0_0 + b0 * u
+            s0_0 = s0_1 + u * b1 - y * a1
+            s0_1 = s0_2 + u * b2 - y * a2
+            s0_2 = u * b3 - y * a3
+            o0[n] = y
+            u = x1[n]
+            y = s1_0 + b0 * u
+            s1_0 = s1_1 + u * b1 - y * a1
+            s1_1 = s1_2 + u * b2 - y * a2
+            s1_2 = u * b3 - y * a3
+            o1[n] = y
+            u = x2[n]
+            y = s2_0 + b0 * u
+            s2_0 = s2_1 + u * b1 - y * a1
+            s2_1 = s2_2 + u * b2 - y * a2
+            s2_2 = u * b3 - y * a3
+            o2[n] = y
+            u = x3[n]
+            y = s3_0 + b0 * u
+            s3_0 = s3_1 + u * b1 - y * a1
+            s3_1 = s3_2 + u * b2 - y * a2
+            s3_2 = u * b3 - y * a3
+            o3[n] = y
+        z[0, g + 0] = s0_0
+        z[1, g + 0] = s0_1
+        z[2, g + 0] = s0_2
+        z[0, g + 1] = s1_0
+        z[1, g + 1] = s1_1
+        z[2, g + 1] = s1_2
+        z[0, g + 2] = s2_0
+        z[1, g + 2] = s2_1
+        z[2, g + 2] = s2_2
+        z[0, g + 3] = s3_0
+        z[1, g + 3] = s3_1
+        z[2, g + 3] = s3_2
+        g += 4
     while g < k:
-        p0, q0, r0 = z[0, g], z[1, g], z[2, g]
+        s0_0 = z[0, g + 0]
+        s0_1 = z[1, g + 0]
+        s0_2 = z[2, g + 0]
         x0, o0 = x[g], out[g]
         for n in range(n_samples):
-            u = x0[n]; y = p0 + b0 * u; p0 = q0 + u * b1 - y * a1; q0 = r0 + u * b2 - y * a2   # noqa: E702
-            r0 = u * b3 - y * a3; o0[n] = y   # noqa: E702
-        z[0, g], z[1, g], z[2, g] = p0, q0, r0
+            u = x0[n]
+            y = s0_0 + b0 * u
+            s0_0 = s0_1 + u * b1 - y * a1
+            s0_1 = s0_2 + u * b2 - y * a2
+            s0_2 = u * b3 - y * a3
+            o0[n] = y
+        z[0, g + 0] = s0_0
+        z[1, g + 0] = s0_1
+        z[2, g + 0] = s0_2
         g += 1
 
 
-RUN_ROWS = {2: rows_2, 3: rows_3, 4: rows_4}
+@numba.njit(nogil=True, cache=True)
+def rows_5(b, a, x, z, out):
+    """Filters of 5 taps on each row of x (k, N); z (4, k) states in and out; out (k, N)."""
+    k, n_samples = x.shape
+    b0, b1, b2, b3, b4, a1, a2, a3, a4 = b[0], b[1], b[2], b[3], b[4], a[1], a[2], a[3], a[4]
+    g = 0
+    while g + 2 <= k:
+        s0_0 = z[0, g + 0]
+        s0_1 = z[1, g + 0]
+        s0_2 = z[2, g + 0]
+        s0_3 = z[3, g + 0]
+        s1_0 = z[0, g + 1]
+        s1_1 = z[1, g + 1]
+        s1_2 = z[2, g + 1]
+        s1_3 = z[3, g + 1]
+        x0, o0 = x[g + 0], out[g + 0]
+        x1, o1 = x[g + 1], out[g + 1]
+        for n in range(n_samples):
+            u = x0[n]
+            y = s0_0 + b0 * u
+            s0_0 = s0_1 + u * b1 - y * a1
+            s0_1 = s0_2 + u * b2 - y * a2
+            s0_2 = s0_3 + u * b3 - y * a3
+            s0_3 = u * b4 - y * a4
+            o0[n] = y
+            u = x1[n]
+            y = s1_0 + b0 * u
+            s1_0 = s1_1 + u * b1 - y * a1
+            s1_1 = s1_2 + u * b2 - y * a2
+            s1_2 = s1_3 + u * b3 - y * a3
+            s1_3 = u * b4 - y * a4
+            o1[n] = y
+        z[0, g + 0] = s0_0
+        z[1, g + 0] = s0_1
+        z[2, g + 0] = s0_2
+        z[3, g + 0] = s0_3
+        z[0, g + 1] = s1_0
+        z[1, g + 1] = s1_1
+        z[2, g + 1] = s1_2
+        z[3, g + 1] = s1_3
+        g += 2
+    while g < k:
+        s0_0 = z[0, g + 0]
+        s0_1 = z[1, g + 0]
+        s0_2 = z[2, g + 0]
+        s0_3 = z[3, g + 0]
+        x0, o0 = x[g], out[g]
+        for n in range(n_samples):
+            u = x0[n]
+            y = s0_0 + b0 * u
+            s0_0 = s0_1 + u * b1 - y * a1
+            s0_1 = s0_2 + u * b2 - y * a2
+            s0_2 = s0_3 + u * b3 - y * a3
+            s0_3 = u * b4 - y * a4
+            o0[n] = y
+        z[0, g + 0] = s0_0
+        z[1, g + 0] = s0_1
+        z[2, g + 0] = s0_2
+        z[3, g + 0] = s0_3
+        g += 1
+
+
+@numba.njit(nogil=True, cache=True)
+def rows_6(b, a, x, z, out):
+    """Filters of 6 taps on each row of x (k, N); z (5, k) states in and out; out (k, N)."""
+    k, n_samples = x.shape
+    b0, b1, b2, b3, b4, b5, a1, a2, a3, a4, a5 = b[0], b[1], b[2], b[3], b[4], b[5], a[1], a[2], a[3], a[4], a[5]
+    g = 0
+    while g + 2 <= k:
+        s0_0 = z[0, g + 0]
+        s0_1 = z[1, g + 0]
+        s0_2 = z[2, g + 0]
+        s0_3 = z[3, g + 0]
+        s0_4 = z[4, g + 0]
+        s1_0 = z[0, g + 1]
+        s1_1 = z[1, g + 1]
+        s1_2 = z[2, g + 1]
+        s1_3 = z[3, g + 1]
+        s1_4 = z[4, g + 1]
+        x0, o0 = x[g + 0], out[g + 0]
+        x1, o1 = x[g + 1], out[g + 1]
+        for n in range(n_samples):
+            u = x0[n]
+            y = s0_0 + b0 * u
+            s0_0 = s0_1 + u * b1 - y * a1
+            s0_1 = s0_2 + u * b2 - y * a2
+            s0_2 = s0_3 + u * b3 - y * a3
+            s0_3 = s0_4 + u * b4 - y * a4
+            s0_4 = u * b5 - y * a5
+            o0[n] = y
+            u = x1[n]
+            y = s1_0 + b0 * u
+            s1_0 = s1_1 + u * b1 - y * a1
+            s1_1 = s1_2 + u * b2 - y * a2
+            s1_2 = s1_3 + u * b3 - y * a3
+            s1_3 = s1_4 + u * b4 - y * a4
+            s1_4 = u * b5 - y * a5
+            o1[n] = y
+        z[0, g + 0] = s0_0
+        z[1, g + 0] = s0_1
+        z[2, g + 0] = s0_2
+        z[3, g + 0] = s0_3
+        z[4, g + 0] = s0_4
+        z[0, g + 1] = s1_0
+        z[1, g + 1] = s1_1
+        z[2, g + 1] = s1_2
+        z[3, g + 1] = s1_3
+        z[4, g + 1] = s1_4
+        g += 2
+    while g < k:
+        s0_0 = z[0, g + 0]
+        s0_1 = z[1, g + 0]
+        s0_2 = z[2, g + 0]
+        s0_3 = z[3, g + 0]
+        s0_4 = z[4, g + 0]
+        x0, o0 = x[g], out[g]
+        for n in range(n_samples):
+            u = x0[n]
+            y = s0_0 + b0 * u
+            s0_0 = s0_1 + u * b1 - y * a1
+            s0_1 = s0_2 + u * b2 - y * a2
+            s0_2 = s0_3 + u * b3 - y * a3
+            s0_3 = s0_4 + u * b4 - y * a4
+            s0_4 = u * b5 - y * a5
+            o0[n] = y
+        z[0, g + 0] = s0_0
+        z[1, g + 0] = s0_1
+        z[2, g + 0] = s0_2
+        z[3, g + 0] = s0_3
+        z[4, g + 0] = s0_4
+        g += 1
+
+
+@numba.njit(nogil=True, cache=True)
+def rows_7(b, a, x, z, out):
+    """Filters of 7 taps on each row of x (k, N); z (6, k) states in and out; out (k, N)."""
+    k, n_samples = x.shape
+    b0, b1, b2, b3, b4, b5, b6, a1, a2, a3, a4, a5, a6 = b[0], b[1], b[2], b[3], b[4], b[5], b[6], a[1], a[2], a[3], a[4], a[5], a[6]
+    g = 0
+    while g + 2 <= k:
+        s0_0 = z[0, g + 0]
+        s0_1 = z[1, g + 0]
+        s0_2 = z[2, g + 0]
+        s0_3 = z[3, g + 0]
+        s0_4 = z[4, g + 0]
+        s0_5 = z[5, g + 0]
+        s1_0 = z[0, g + 1]
+        s1_1 = z[1, g + 1]
+        s1_2 = z[2, g + 1]
+        s1_3 = z[3, g + 1]
+        s1_4 = z[4, g + 1]
+        s1_5 = z[5, g + 1]
+        x0, o0 = x[g + 0], out[g + 0]
+        x1, o1 = x[g + 1], out[g + 1]
+        for n in range(n_samples):
+            u = x0[n]
+            y = s0_0 + b0 * u
+            s0_0 = s0_1 + u * b1 - y * a1
+            s0_1 = s0_2 + u * b2 - y * a2
+            s0_2 = s0_3 + u * b3 - y * a3
+            s0_3 = s0_4 + u * b4 - y * a4
+            s0_4 = s0_5 + u * b5 - y * a5
+            s0_5 = u * b6 - y * a6
+            o0[n] = y
+            u = x1[n]
+            y = s1_0 + b0 * u
+            s1_0 = s1_1 + u * b1 - y * a1
+            s1_1 = s1_2 + u * b2 - y * a2
+            s1_2 = s1_3 + u * b3 - y * a3
+            s1_3 = s1_4 + u * b4 - y * a4
+            s1_4 = s1_5 + u * b5 - y * a5
+            s1_5 = u * b6 - y * a6
+            o1[n] = y
+        z[0, g + 0] = s0_0
+        z[1, g + 0] = s0_1
+        z[2, g + 0] = s0_2
+        z[3, g + 0] = s0_3
+        z[4, g + 0] = s0_4
+        z[5, g + 0] = s0_5
+        z[0, g + 1] = s1_0
+        z[1, g + 1] = s1_1
+        z[2, g + 1] = s1_2
+        z[3, g + 1] = s1_3
+        z[4, g + 1] = s1_4
+        z[5, g + 1] = s1_5
+        g += 2
+    while g < k:
+        s0_0 = z[0, g + 0]
+        s0_1 = z[1, g + 0]
+        s0_2 = z[2, g + 0]
+        s0_3 = z[3, g + 0]
+        s0_4 = z[4, g + 0]
+        s0_5 = z[5, g + 0]
+        x0, o0 = x[g], out[g]
+        for n in range(n_samples):
+            u = x0[n]
+            y = s0_0 + b0 * u
+            s0_0 = s0_1 + u * b1 - y * a1
+            s0_1 = s0_2 + u * b2 - y * a2
+            s0_2 = s0_3 + u * b3 - y * a3
+            s0_3 = s0_4 + u * b4 - y * a4
+            s0_4 = s0_5 + u * b5 - y * a5
+            s0_5 = u * b6 - y * a6
+            o0[n] = y
+        z[0, g + 0] = s0_0
+        z[1, g + 0] = s0_1
+        z[2, g + 0] = s0_2
+        z[3, g + 0] = s0_3
+        z[4, g + 0] = s0_4
+        z[5, g + 0] = s0_5
+        g += 1
+
+
+@numba.njit(nogil=True, cache=True)
+def rows_8(b, a, x, z, out):
+    """Filters of 8 taps on each row of x (k, N); z (7, k) states in and out; out (k, N)."""
+    k, n_samples = x.shape
+    b0, b1, b2, b3, b4, b5, b6, b7, a1, a2, a3, a4, a5, a6, a7 = b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7], a[1], a[2], a[3], a[4], a[5], a[6], a[7]
+    g = 0
+    while g + 2 <= k:
+        s0_0 = z[0, g + 0]
+        s0_1 = z[1, g + 0]
+        s0_2 = z[2, g + 0]
+        s0_3 = z[3, g + 0]
+        s0_4 = z[4, g + 0]
+        s0_5 = z[5, g + 0]
+        s0_6 = z[6, g + 0]
+        s1_0 = z[0, g + 1]
+        s1_1 = z[1, g + 1]
+        s1_2 = z[2, g + 1]
+        s1_3 = z[3, g + 1]
+        s1_4 = z[4, g + 1]
+        s1_5 = z[5, g + 1]
+        s1_6 = z[6, g + 1]
+        x0, o0 = x[g + 0], out[g + 0]
+        x1, o1 = x[g + 1], out[g + 1]
+        for n in range(n_samples):
+            u = x0[n]
+            y = s0_0 + b0 * u
+            s0_0 = s0_1 + u * b1 - y * a1
+            s0_1 = s0_2 + u * b2 - y * a2
+            s0_2 = s0_3 + u * b3 - y * a3
+            s0_3 = s0_4 + u * b4 - y * a4
+            s0_4 = s0_5 + u * b5 - y * a5
+            s0_5 = s0_6 + u * b6 - y * a6
+            s0_6 = u * b7 - y * a7
+            o0[n] = y
+            u = x1[n]
+            y = s1_0 + b0 * u
+            s1_0 = s1_1 + u * b1 - y * a1
+            s1_1 = s1_2 + u * b2 - y * a2
+            s1_2 = s1_3 + u * b3 - y * a3
+            s1_3 = s1_4 + u * b4 - y * a4
+            s1_4 = s1_5 + u * b5 - y * a5
+            s1_5 = s1_6 + u * b6 - y * a6
+            s1_6 = u * b7 - y * a7
+            o1[n] = y
+        z[0, g + 0] = s0_0
+        z[1, g + 0] = s0_1
+        z[2, g + 0] = s0_2
+        z[3, g + 0] = s0_3
+        z[4, g + 0] = s0_4
+        z[5, g + 0] = s0_5
+        z[6, g + 0] = s0_6
+        z[0, g + 1] = s1_0
+        z[1, g + 1] = s1_1
+        z[2, g + 1] = s1_2
+        z[3, g + 1] = s1_3
+        z[4, g + 1] = s1_4
+        z[5, g + 1] = s1_5
+        z[6, g + 1] = s1_6
+        g += 2
+    while g < k:
+        s0_0 = z[0, g + 0]
+        s0_1 = z[1, g + 0]
+        s0_2 = z[2, g + 0]
+        s0_3 = z[3, g + 0]
+        s0_4 = z[4, g + 0]
+        s0_5 = z[5, g + 0]
+        s0_6 = z[6, g + 0]
+        x0, o0 = x[g], out[g]
+        for n in range(n_samples):
+            u = x0[n]
+            y = s0_0 + b0 * u
+            s0_0 = s0_1 + u * b1 - y * a1
+            s0_1 = s0_2 + u * b2 - y * a2
+            s0_2 = s0_3 + u * b3 - y * a3
+            s0_3 = s0_4 + u * b4 - y * a4
+            s0_4 = s0_5 + u * b5 - y * a5
+            s0_5 = s0_6 + u * b6 - y * a6
+            s0_6 = u * b7 - y * a7
+            o0[n] = y
+        z[0, g + 0] = s0_0
+        z[1, g + 0] = s0_1
+        z[2, g + 0] = s0_2
+        z[3, g + 0] = s0_3
+        z[4, g + 0] = s0_4
+        z[5, g + 0] = s0_5
+        z[6, g + 0] = s0_6
+        g += 1
+
+
+RUN_ROWS = {2: rows_2, 3: rows_3, 4: rows_4, 5: rows_5, 6: rows_6, 7: rows_7, 8: rows_8}
 
 
 @numba.njit(nogil=True, cache=True)
@@ -112,25 +515,36 @@ def first_order_bank(x, b0, b1, a1, z, out):
     x (N,); z (k,) states in and out; out (k, N)."""
     k = b0.size
     g = 0
-    while g + UNROLL <= k:
-        c0, c1, c2, c3 = b0[g], b0[g + 1], b0[g + 2], b0[g + 3]
-        d0, d1, d2, d3 = b1[g], b1[g + 1], b1[g + 2], b1[g + 3]
-        e0, e1, e2, e3 = a1[g], a1[g + 1], a1[g + 2], a1[g + 3]
-        p0, p1, p2, p3 = z[g], z[g + 1], z[g + 2], z[g + 3]
-        o0, o1, o2, o3 = out[g], out[g + 1], out[g + 2], out[g + 3]
+    while g + 4 <= k:
+        c0, d0, e0, p0, o0 = b0[g + 0], b1[g + 0], a1[g + 0], z[g + 0], out[g + 0]
+        c1, d1, e1, p1, o1 = b0[g + 1], b1[g + 1], a1[g + 1], z[g + 1], out[g + 1]
+        c2, d2, e2, p2, o2 = b0[g + 2], b1[g + 2], a1[g + 2], z[g + 2], out[g + 2]
+        c3, d3, e3, p3, o3 = b0[g + 3], b1[g + 3], a1[g + 3], z[g + 3], out[g + 3]
         for n in range(x.size):
             u = x[n]
-            y = p0 + c0 * u; p0 = u * d0 - y * e0; o0[n] = y   # noqa: E702
-            y = p1 + c1 * u; p1 = u * d1 - y * e1; o1[n] = y   # noqa: E702
-            y = p2 + c2 * u; p2 = u * d2 - y * e2; o2[n] = y   # noqa: E702
-            y = p3 + c3 * u; p3 = u * d3 - y * e3; o3[n] = y   # noqa: E702
-        z[g], z[g + 1], z[g + 2], z[g + 3] = p0, p1, p2, p3
-        g += UNROLL
+            y = p0 + c0 * u
+            p0 = u * d0 - y * e0
+            o0[n] = y
+            y = p1 + c1 * u
+            p1 = u * d1 - y * e1
+            o1[n] = y
+            y = p2 + c2 * u
+            p2 = u * d2 - y * e2
+            o2[n] = y
+            y = p3 + c3 * u
+            p3 = u * d3 - y * e3
+            o3[n] = y
+        z[g + 0] = p0
+        z[g + 1] = p1
+        z[g + 2] = p2
+        z[g + 3] = p3
+        g += 4
     while g < k:
-        c0, d0, e0, p0 = b0[g], b1[g], a1[g], z[g]
-        o0 = out[g]
+        c0, d0, e0, p0, o0 = b0[g], b1[g], a1[g], z[g], out[g]
         for n in range(x.size):
             u = x[n]
-            y = p0 + c0 * u; p0 = u * d0 - y * e0; o0[n] = y   # noqa: E702
+            y = p0 + c0 * u
+            p0 = u * d0 - y * e0
+            o0[n] = y
         z[g] = p0
         g += 1

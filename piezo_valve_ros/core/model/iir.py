@@ -17,7 +17,7 @@ import numpy as np
 
 __all__ = ["filter_rows", "first_order_bank", "KERNEL_TAPS"]
 
-KERNEL_TAPS = (2, 3, 4)   # filter lengths (taps of the longer of b and a) the kernels run; others go to lfilter
+KERNEL_TAPS = tuple(range(2, 9))   # filter lengths (taps of the longer of b and a) with a kernel; others: lfilter
 
 
 @functools.cache

@@ -1,0 +1,127 @@
+"""Write piezo_valve_ros/core/model/_iir_kernels.py: the numba kernels of ``core/model/iir.py``, one per filter
+length, written out so that every state and coefficient is a local (numba keeps them in registers; an array of
+states in a loop over taps costs a memory round trip in every recursion).  ``--check``: exit 1 when the file
+differs (the tests run that).
+
+    python scripts/iir_kernels.py [--check]
+"""
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from generated_page import main_for  # noqa: E402
+
+OUT = Path(__file__).resolve().parent.parent / "piezo_valve_ros" / "core" / "model" / "_iir_kernels.py"
+TAPS = range(2, 9)     # filter lengths (the longer of b and a) with a kernel
+
+
+def unroll(taps: int) -> int:
+    """Rows advanced together: enough independent recursions to hide each one's latency, few enough that their
+    states and the coefficients stay in registers."""
+    return 4 if taps <= 4 else 2
+
+
+def _names(prefix: str, count: int) -> str:
+    return ", ".join(f"{prefix}{i}" for i in range(count))
+
+
+def _step(row: str, taps: int, x: str) -> list[str]:
+    """One sample of one row: lfilter's transposed direct form II, its operations in its order."""
+    s = [f"s{row}_{j}" for j in range(taps - 1)]
+    lines = [f"u = {x}", f"y = {s[0]} + b0 * u"]
+    for j in range(taps - 2):
+        lines.append(f"{s[j]} = {s[j + 1]} + u * b{j + 1} - y * a{j + 1}")
+    lines.append(f"{s[taps - 2]} = u * b{taps - 1} - y * a{taps - 1}")
+    lines.append(f"o{row}[n] = y")
+    return lines
+
+
+def _rows_kernel(taps: int) -> str:
+    width = unroll(taps)
+    states = taps - 1
+    coefs = ", ".join([f"b{j}" for j in range(taps)] + [f"a{j}" for j in range(1, taps)])
+    values = ", ".join([f"b[{j}]" for j in range(taps)] + [f"a[{j}]" for j in range(1, taps)])
+
+    def load(rows: range, first: str) -> list[str]:
+        return [f"s{r}_{j} = z[{j}, {first} + {r}]" for r in rows for j in range(states)]
+
+    def store(rows: range, first: str) -> list[str]:
+        return [f"z[{j}, {first} + {r}] = s{r}_{j}" for r in rows for j in range(states)]
+
+    body = ["@numba.njit(nogil=True, cache=True)",
+            f"def rows_{taps}(b, a, x, z, out):",
+            f'    """Filters of {taps} taps on each row of x (k, N); z ({states}, k) states in and out; out (k, N)."""',
+            "    k, n_samples = x.shape",
+            f"    {coefs} = {values}",
+            "    g = 0",
+            f"    while g + {width} <= k:"]
+    body += [f"        {line}" for line in load(range(width), "g")]
+    body += [f"        x{r}, o{r} = x[g + {r}], out[g + {r}]" for r in range(width)]
+    body += ["        for n in range(n_samples):"]
+    for r in range(width):
+        body += [f"            {line}" for line in _step(str(r), taps, f"x{r}[n]")]
+    body += [f"        {line}" for line in store(range(width), "g")]
+    body += [f"        g += {width}",
+             "    while g < k:"]
+    body += [f"        {line}" for line in load(range(1), "g")]
+    body += ["        x0, o0 = x[g], out[g]",
+             "        for n in range(n_samples):"]
+    body += [f"            {line}" for line in _step("0", taps, "x0[n]")]
+    body += [f"        {line}" for line in store(range(1), "g")]
+    body += ["        g += 1"]
+    return "\n".join(body) + "\n"
+
+
+def _bank_kernel() -> str:
+    width = 4
+    body = ["@numba.njit(nogil=True, cache=True)",
+            "def first_order_bank(x, b0, b1, a1, z, out):",
+            '    """First-order filters (b0_i + b1_i z^-1) / (1 + a1_i z^-1), one per element of b0, b1, a1 (k,), on one '
+            'input\n    x (N,); z (k,) states in and out; out (k, N)."""',
+            "    k = b0.size",
+            "    g = 0",
+            f"    while g + {width} <= k:"]
+    for r in range(width):
+        body.append(f"        c{r}, d{r}, e{r}, p{r}, o{r} = b0[g + {r}], b1[g + {r}], a1[g + {r}], z[g + {r}], out[g + {r}]")
+    body += ["        for n in range(x.size):", "            u = x[n]"]
+    for r in range(width):
+        body.append(f"            y = p{r} + c{r} * u")
+        body.append(f"            p{r} = u * d{r} - y * e{r}")
+        body.append(f"            o{r}[n] = y")
+    body += [f"        z[g + {r}] = p{r}" for r in range(width)]
+    body += [f"        g += {width}",
+             "    while g < k:",
+             "        c0, d0, e0, p0, o0 = b0[g], b1[g], a1[g], z[g], out[g]",
+             "        for n in range(x.size):",
+             "            u = x[n]",
+             "            y = p0 + c0 * u",
+             "            p0 = u * d0 - y * e0",
+             "            o0[n] = y",
+             "        z[g] = p0",
+             "        g += 1"]
+    return "\n".join(body) + "\n"
+
+
+def page() -> str:
+    head = '''"""numba kernels of ``iir`` (imported on first use).  Written by scripts/iir_kernels.py: do not edit by hand.
+
+Each is lfilter's transposed direct form II, operation by operation,
+
+    y[n] = z0 + b0 x[n];  z_j = z_(j+1) + x[n] b_(j+1) - y[n] a_(j+1);  z_last = x[n] b_last - y[n] a_last,
+
+on several rows at each sample (each output waits for the one before it; the rows' independent recursions
+overlap), their states and the coefficients locals, then the rows left over one at a time.  No fast-math: the
+operations and their order are lfilter's, so are the bits."""
+from __future__ import annotations
+
+import numba
+
+
+'''
+    kernels = [_rows_kernel(t) for t in TAPS]
+    table = "RUN_ROWS = {" + ", ".join(f"{t}: rows_{t}" for t in TAPS) + "}\n"
+    return head + "\n\n".join(kernels) + "\n\n" + table + "\n\n" + _bank_kernel()
+
+
+if __name__ == "__main__":
+    sys.exit(main_for(OUT, page, "iir_kernels.py", __doc__.splitlines()[0]))
