@@ -425,3 +425,27 @@ def test_play_bounds_give_every_start_s_states_as_one_clamp():
             z0 = rng.uniform(lower[0] - g.thresholds, upper[0] + g.thresholds)
             states, _ = play_batch(lower, upper, g.thresholds, z0)
             assert np.array_equal(np.clip(z0, L, U), states)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_play_batch_gives_the_same_bits_by_composed_clamps_and_by_the_compiled_recursion(seed, monkeypatch):
+    """Long records run the recursion compiled (``KERNEL_MIN_WORK``), short ones the composed clamps: the same states
+    and weighted sums bit for bit, with symmetric and crossing asymmetric drives, flat stretches and scaled
+    thresholds, in blocks of any size."""
+    from piezo_valve_ros.core.model import hysteresis
+    rng = np.random.default_rng(seed)
+    N, n = int(rng.integers(50, 3000)), int(rng.integers(1, 30))
+    v = np.cumsum(rng.standard_normal(N)) * 0.1
+    if seed % 3 == 0:
+        v = np.round(v, 1)
+    r = np.sort(rng.uniform(0, 1, n))
+    r[0] = 0.0
+    upper = v if seed % 2 == 0 else v * 0.9 + rng.uniform(-0.5, 0.5) + 0.02 * rng.standard_normal(N)
+    scale = None if seed % 4 else 1 + 0.3 * np.abs(np.sin(np.arange(N) / 50))
+    z0, w = rng.uniform(-1, 1, n), rng.uniform(0, 1, n)
+    for weights in (None, w):
+        monkeypatch.setattr(hysteresis, "KERNEL_MIN_WORK", 10 ** 12)
+        composed, composed_final = hysteresis.play_batch(v, upper, r, z0, weights, chunk=700, threshold_scale=scale)
+        monkeypatch.setattr(hysteresis, "KERNEL_MIN_WORK", 0)
+        compiled, compiled_final = hysteresis.play_batch(v, upper, r, z0, weights, chunk=700, threshold_scale=scale)
+        assert np.array_equal(composed, compiled) and np.array_equal(composed_final, compiled_final)

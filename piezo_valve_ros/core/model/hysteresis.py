@@ -10,11 +10,14 @@ The play operator with threshold ``r`` is a clamp of its own state::
 (for the paper's symmetric envelope ``gamma_asc = gamma_desc = a0*v + a1``).
 Clamps compose into clamps, and within a monotone stretch of input the state is
 the closed form ``clip(z_at_last_reversal, L_k, U_k)``.  The batch evaluation
-uses both facts: a log-depth scan over the reversal points only, then one
-vectorised clip over all samples.  The streaming ``step`` is the plain recursion.
+of a short record uses both facts: a log-depth scan over the reversal points only, then
+one vectorised clip over all samples; a long one runs the plain recursion compiled
+(numba, ``_play_kernel``: the same bits, min and max do not round).  The streaming
+``step`` is the plain recursion.
 """
 from __future__ import annotations
 
+import functools
 import math
 import operator
 from dataclasses import dataclass
@@ -204,7 +207,8 @@ def play_batch(
     this covers asymmetric envelopes and thresholds that widen with time (rate dependence: pass
     ``lower - w`` and ``upper + w``, and ``threshold_scale`` (N,) to scale the thresholds sample by sample,
     which adds each operator's own reversal points).  ``thresholds`` shape (n,).  ``chunk`` rows are clipped
-    at a time (their (chunk, n) bounds stay in the cache; the result does not depend on it).
+    at a time (their (chunk, n) bounds stay in the cache; the result does not depend on it).  From
+    ``KERNEL_MIN_WORK`` operator-samples on, the recursion itself runs compiled, to the same bits.
     Returns ``(out, final_state)``: with ``weights`` given, ``out`` is the weighted sum
     (N,); otherwise the operator states (N, n).
     """
@@ -218,6 +222,8 @@ def play_batch(
         return empty, z0.copy()
     same = lower_drive is upper_drive or np.array_equal(lower_drive, upper_drive)
     scale = None if threshold_scale is None else np.asarray(threshold_scale, dtype=float)
+    if n_samples * r.size >= KERNEL_MIN_WORK:
+        return _play_by_kernel(lower_drive, upper_drive, r, z0, weights, chunk, scale, same)
     if scale is not None:
         turns = _union(_turns_per_operator(lower_drive, r, scale, -1.0),
                            _turns_per_operator(upper_drive, r, scale, 1.0))
@@ -251,6 +257,39 @@ def play_batch(
         else:
             out[start:stop] = z
     return out, state_at_turns[-1].copy()
+
+
+KERNEL_MIN_WORK = 20000   # operator-samples from which play_batch runs the recursion compiled (_play_kernel): below,
+                          # the composed clamps in numpy cost less than the kernel's first load in a process
+
+
+@functools.cache
+def _play_kernel():
+    from . import _play_kernel as kernel
+    return kernel.play_rows
+
+
+def _play_by_kernel(lower_drive, upper_drive, r, z0, weights, chunk, scale, symmetric):
+    """``play_batch`` by the compiled recursion, ``chunk`` rows at a time (the weighted sum of each block as the
+    composed-clamp path forms it)."""
+    n_samples = lower_drive.shape[0]
+    run = _play_kernel()
+    z = np.array(z0, dtype=float)
+    no_scale = np.zeros(0)
+    lower_drive, upper_drive = np.ascontiguousarray(lower_drive), np.ascontiguousarray(upper_drive)
+    if weights is None:
+        out = np.empty((n_samples, r.size))
+        run(lower_drive, upper_drive, r, no_scale if scale is None else np.ascontiguousarray(scale), symmetric, z, out)
+        return out, z
+    out = np.empty(n_samples)
+    block = np.empty((min(chunk, n_samples), r.size))
+    for start in range(0, n_samples, chunk):
+        stop = min(start + chunk, n_samples)
+        rows = block[:stop - start]
+        run(lower_drive[start:stop], upper_drive[start:stop], r,
+            no_scale if scale is None else np.ascontiguousarray(scale[start:stop]), symmetric, z, rows)
+        out[start:stop] = rows @ weights
+    return out, z
 
 
 def play_bounds(lower_drive: np.ndarray, upper_drive: np.ndarray, thresholds: np.ndarray
