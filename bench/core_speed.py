@@ -1,4 +1,5 @@
-"""Per-sample controller cost (each strategy, inverse included), inverse GPIM step cost and batch GPIM speed.
+"""Per-sample controller cost (each strategy, inverse included), inverse GPIM step cost, batch GPIM speed and the
+identification's filter banks.
 
 Prints figures; compare as ratios within one run (the machine is shared).
     python bench/core_speed.py [--load] [--markdown docs/results/core_speed.md]
@@ -14,6 +15,7 @@ import numpy as np
 
 from piezo_valve_ros.core.control.compensation import CompensationModel
 from piezo_valve_ros.core.control.terms.backlash import BacklashModel
+from piezo_valve_ros.core.model import hysteresis, iir
 from piezo_valve_ros.core.model.hysteresis import GPIM, PAPER_GPIM
 from piezo_valve_ros.core.model.rate_dependence import hysteresis_inverse, hysteresis_stream
 from piezo_valve_ros.core.sim.signals import training_voltage
@@ -100,6 +102,8 @@ def gpim_batch():
     v = training_voltage(1e-4, 60.0, synchronise=False)  # 600,000 samples
     m = PAPER_GPIM.model()
     sec_batch = best_of(lambda: m.run(v))
+    with composed_clamps():
+        sec_composed = best_of(lambda: m.run(v))
     def naive():
         r, p, z = m.thresholds, m.weights, m.virgin_state(v[0])
         out = np.empty(v.size)
@@ -111,11 +115,43 @@ def gpim_batch():
     y_fast, _ = m.run(v)
     assert np.max(np.abs(y_fast - (naive() + m.offset_um))) < 1e-9
     print(f"batch GPIM, 600,000 samples, n=15: {sec_batch:.3f} s (target < 0.2 s); "
-          f"per-sample loop {sec_naive:.2f} s; speed-up x{sec_naive / sec_batch:.0f}")
+          f"per-sample loop {sec_naive:.2f} s; speed-up x{sec_naive / sec_batch:.0f}; "
+          f"composed clamps in numpy {sec_composed:.3f} s")
     rng = np.random.default_rng(0)
     noisy = v + rng.normal(0, 0.01, v.size)
     sec_noisy = best_of(lambda: m.run(noisy), 1)
     print(f"batch GPIM on a noisy command (every sample a reversal): {sec_noisy:.3f} s")
+
+
+@contextlib.contextmanager
+def composed_clamps():
+    """play_batch without its compiled recursion (the numpy path short records take)."""
+    saved = hysteresis.KERNEL_MIN_WORK
+    hysteresis.KERNEL_MIN_WORK = 10 ** 18
+    try:
+        yield
+    finally:
+        hysteresis.KERNEL_MIN_WORK = saved
+
+
+def filter_banks(n=125_000):
+    """What the identification filters most (a 62.5 s record at its 2 kHz analysis rate): G (second order) on the
+    design's rows, and creep's first-order lags of one signal; ``iir``'s kernels against scipy's lfilter."""
+    from scipy import signal
+    rng = np.random.default_rng(0)
+    b, a = np.array([0.0, 0.0955, 0.0591]), np.array([1.0, -1.080, 0.2346])
+    print(f"filter banks over {n} samples, ns per sample and filter (best of 3):")
+    for k in (1, 4, 30, 90):
+        rows = rng.standard_normal((k, n)).cumsum(axis=1)
+        zi = np.zeros((k, 2))
+        ours = best_of(lambda: iir.filter_rows(b, a, rows, zi)) / rows.size * 1e9
+        theirs = best_of(lambda: signal.lfilter(b, a, rows, axis=1, zi=zi)) / rows.size * 1e9
+        print(f"  G on {k:3d} rows     iir {ours:5.2f}   lfilter {theirs:5.2f}   x{theirs / ours:.1f}")
+    x = rng.standard_normal(n).cumsum()
+    poles = np.exp(-5e-4 / np.array([0.05, 0.15, 0.5, 1.5, 5.0, 15.0]))
+    ours = best_of(lambda: iir.first_order_bank(x, poles, 1.0 - poles, x[0])) / (n * poles.size) * 1e9
+    theirs = best_of(lambda: [signal.lfilter([0.0, 1.0 - p], [1.0, -p], x, zi=[x[0]]) for p in poles]) / (n * poles.size) * 1e9
+    print(f"  6 creep lags      iir {ours:5.2f}   lfilter {theirs:5.2f}   x{theirs / ours:.1f}")
 
 
 def main() -> None:
@@ -130,6 +166,7 @@ def main() -> None:
             controller_cost()
             inverse_cost()
             gpim_batch()
+            filter_banks()
     if args.markdown:
         print.write_markdown(args.markdown, "bench/core_speed.py",
                              " (this shared 2-core machine; compare ratios within one run)")
