@@ -39,8 +39,8 @@ def _step(row: str, taps: int, x: str) -> list[str]:
 def _rows_kernel(taps: int) -> str:
     width = unroll(taps)
     states = taps - 1
-    coefs = ", ".join([f"b{j}" for j in range(taps)] + [f"a{j}" for j in range(1, taps)])
-    values = ", ".join([f"b[{j}]" for j in range(taps)] + [f"a[{j}]" for j in range(1, taps)])
+    b_names, b_values = ", ".join(f"b{j}" for j in range(taps)), ", ".join(f"b[{j}]" for j in range(taps))
+    a_names, a_values = ", ".join(f"a{j}" for j in range(1, taps)), ", ".join(f"a[{j}]" for j in range(1, taps))
 
     def load(rows: range, first: str) -> list[str]:
         return [f"s{r}_{j} = z[{j}, {first} + {r}]" for r in rows for j in range(states)]
@@ -52,7 +52,8 @@ def _rows_kernel(taps: int) -> str:
             f"def rows_{taps}(b, a, x, z, out):",
             f'    """Filters of {taps} taps on each row of x (k, N); z ({states}, k) states in and out; out (k, N)."""',
             "    k, n_samples = x.shape",
-            f"    {coefs} = {values}",
+            f"    {b_names} = {b_values}",
+            f"    {a_names} = {a_values}",
             "    g = 0",
             f"    while g + {width} <= k:"]
     body += [f"        {line}" for line in load(range(width), "g")]
@@ -76,13 +77,14 @@ def _bank_kernel() -> str:
     width = 4
     body = ["@numba.njit(nogil=True, cache=True)",
             "def first_order_bank(x, b0, b1, a1, z, out):",
-            '    """First-order filters (b0_i + b1_i z^-1) / (1 + a1_i z^-1), one per element of b0, b1, a1 (k,), on one '
-            'input\n    x (N,); z (k,) states in and out; out (k, N)."""',
+            '    """First-order filters (b0_i + b1_i z^-1) / (1 + a1_i z^-1), one per element of b0, b1, a1 (k), on '
+            'one\n    input x (N,); z (k,) states in and out; out (k, N)."""',
             "    k = b0.size",
             "    g = 0",
             f"    while g + {width} <= k:"]
     for r in range(width):
-        body.append(f"        c{r}, d{r}, e{r}, p{r}, o{r} = b0[g + {r}], b1[g + {r}], a1[g + {r}], z[g + {r}], out[g + {r}]")
+        body.append(f"        c{r}, d{r}, e{r} = b0[g + {r}], b1[g + {r}], a1[g + {r}]")
+        body.append(f"        p{r}, o{r} = z[g + {r}], out[g + {r}]")
     body += ["        for n in range(x.size):", "            u = x[n]"]
     for r in range(width):
         body.append(f"            y = p{r} + c{r} * u")
@@ -103,7 +105,8 @@ def _bank_kernel() -> str:
 
 
 def page() -> str:
-    head = '''"""numba kernels of ``iir`` (imported on first use).  Written by scripts/iir_kernels.py: do not edit by hand.
+    head = '''"""numba kernels of ``iir`` (imported on first use).  Written by scripts/iir_kernels.py: do not edit by
+hand.
 
 Each is lfilter's transposed direct form II, operation by operation,
 

@@ -1,4 +1,5 @@
-"""The valve's models: the GPIM and its inverse, G_v, the drive, the output map, rate dependence."""
+"""The valve's models: the GPIM and its inverse, G_v, the drive, the output map, rate dependence, and the filter
+banks the identification runs them through."""
 from __future__ import annotations
 
 from .. import lazy_exports
@@ -12,4 +13,6 @@ __all__, __getattr__ = lazy_exports(__name__, {
     "NotInvertibleError": "hysteresis",
     "ContinuousTF": "dynamics",
     "PAPER_VALVE_MODEL": "dynamics",
+    "filter_rows": "iir",
+    "first_order_bank": "iir",
 })

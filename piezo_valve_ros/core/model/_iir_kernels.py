@@ -1,4 +1,5 @@
-"""numba kernels of ``iir`` (imported on first use).  Written by scripts/iir_kernels.py: do not edit by hand.
+"""numba kernels of ``iir`` (imported on first use).  Written by scripts/iir_kernels.py: do not edit by
+hand.
 
 Each is lfilter's transposed direct form II, operation by operation,
 
@@ -16,7 +17,8 @@ import numba
 def rows_2(b, a, x, z, out):
     """Filters of 2 taps on each row of x (k, N); z (1, k) states in and out; out (k, N)."""
     k, n_samples = x.shape
-    b0, b1, a1 = b[0], b[1], a[1]
+    b0, b1 = b[0], b[1]
+    a1 = a[1]
     g = 0
     while g + 4 <= k:
         s0_0 = z[0, g + 0]
@@ -65,7 +67,8 @@ def rows_2(b, a, x, z, out):
 def rows_3(b, a, x, z, out):
     """Filters of 3 taps on each row of x (k, N); z (2, k) states in and out; out (k, N)."""
     k, n_samples = x.shape
-    b0, b1, b2, a1, a2 = b[0], b[1], b[2], a[1], a[2]
+    b0, b1, b2 = b[0], b[1], b[2]
+    a1, a2 = a[1], a[2]
     g = 0
     while g + 4 <= k:
         s0_0 = z[0, g + 0]
@@ -129,7 +132,8 @@ def rows_3(b, a, x, z, out):
 def rows_4(b, a, x, z, out):
     """Filters of 4 taps on each row of x (k, N); z (3, k) states in and out; out (k, N)."""
     k, n_samples = x.shape
-    b0, b1, b2, b3, a1, a2, a3 = b[0], b[1], b[2], b[3], a[1], a[2], a[3]
+    b0, b1, b2, b3 = b[0], b[1], b[2], b[3]
+    a1, a2, a3 = a[1], a[2], a[3]
     g = 0
     while g + 4 <= k:
         s0_0 = z[0, g + 0]
@@ -208,7 +212,8 @@ def rows_4(b, a, x, z, out):
 def rows_5(b, a, x, z, out):
     """Filters of 5 taps on each row of x (k, N); z (4, k) states in and out; out (k, N)."""
     k, n_samples = x.shape
-    b0, b1, b2, b3, b4, a1, a2, a3, a4 = b[0], b[1], b[2], b[3], b[4], a[1], a[2], a[3], a[4]
+    b0, b1, b2, b3, b4 = b[0], b[1], b[2], b[3], b[4]
+    a1, a2, a3, a4 = a[1], a[2], a[3], a[4]
     g = 0
     while g + 2 <= k:
         s0_0 = z[0, g + 0]
@@ -270,7 +275,8 @@ def rows_5(b, a, x, z, out):
 def rows_6(b, a, x, z, out):
     """Filters of 6 taps on each row of x (k, N); z (5, k) states in and out; out (k, N)."""
     k, n_samples = x.shape
-    b0, b1, b2, b3, b4, b5, a1, a2, a3, a4, a5 = b[0], b[1], b[2], b[3], b[4], b[5], a[1], a[2], a[3], a[4], a[5]
+    b0, b1, b2, b3, b4, b5 = b[0], b[1], b[2], b[3], b[4], b[5]
+    a1, a2, a3, a4, a5 = a[1], a[2], a[3], a[4], a[5]
     g = 0
     while g + 2 <= k:
         s0_0 = z[0, g + 0]
@@ -341,7 +347,8 @@ def rows_6(b, a, x, z, out):
 def rows_7(b, a, x, z, out):
     """Filters of 7 taps on each row of x (k, N); z (6, k) states in and out; out (k, N)."""
     k, n_samples = x.shape
-    b0, b1, b2, b3, b4, b5, b6, a1, a2, a3, a4, a5, a6 = b[0], b[1], b[2], b[3], b[4], b[5], b[6], a[1], a[2], a[3], a[4], a[5], a[6]
+    b0, b1, b2, b3, b4, b5, b6 = b[0], b[1], b[2], b[3], b[4], b[5], b[6]
+    a1, a2, a3, a4, a5, a6 = a[1], a[2], a[3], a[4], a[5], a[6]
     g = 0
     while g + 2 <= k:
         s0_0 = z[0, g + 0]
@@ -421,7 +428,8 @@ def rows_7(b, a, x, z, out):
 def rows_8(b, a, x, z, out):
     """Filters of 8 taps on each row of x (k, N); z (7, k) states in and out; out (k, N)."""
     k, n_samples = x.shape
-    b0, b1, b2, b3, b4, b5, b6, b7, a1, a2, a3, a4, a5, a6, a7 = b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7], a[1], a[2], a[3], a[4], a[5], a[6], a[7]
+    b0, b1, b2, b3, b4, b5, b6, b7 = b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]
+    a1, a2, a3, a4, a5, a6, a7 = a[1], a[2], a[3], a[4], a[5], a[6], a[7]
     g = 0
     while g + 2 <= k:
         s0_0 = z[0, g + 0]
@@ -511,15 +519,19 @@ RUN_ROWS = {2: rows_2, 3: rows_3, 4: rows_4, 5: rows_5, 6: rows_6, 7: rows_7, 8:
 
 @numba.njit(nogil=True, cache=True)
 def first_order_bank(x, b0, b1, a1, z, out):
-    """First-order filters (b0_i + b1_i z^-1) / (1 + a1_i z^-1), one per element of b0, b1, a1 (k,), on one input
-    x (N,); z (k,) states in and out; out (k, N)."""
+    """First-order filters (b0_i + b1_i z^-1) / (1 + a1_i z^-1), one per element of b0, b1, a1 (k), on one
+    input x (N,); z (k,) states in and out; out (k, N)."""
     k = b0.size
     g = 0
     while g + 4 <= k:
-        c0, d0, e0, p0, o0 = b0[g + 0], b1[g + 0], a1[g + 0], z[g + 0], out[g + 0]
-        c1, d1, e1, p1, o1 = b0[g + 1], b1[g + 1], a1[g + 1], z[g + 1], out[g + 1]
-        c2, d2, e2, p2, o2 = b0[g + 2], b1[g + 2], a1[g + 2], z[g + 2], out[g + 2]
-        c3, d3, e3, p3, o3 = b0[g + 3], b1[g + 3], a1[g + 3], z[g + 3], out[g + 3]
+        c0, d0, e0 = b0[g + 0], b1[g + 0], a1[g + 0]
+        p0, o0 = z[g + 0], out[g + 0]
+        c1, d1, e1 = b0[g + 1], b1[g + 1], a1[g + 1]
+        p1, o1 = z[g + 1], out[g + 1]
+        c2, d2, e2 = b0[g + 2], b1[g + 2], a1[g + 2]
+        p2, o2 = z[g + 2], out[g + 2]
+        c3, d3, e3 = b0[g + 3], b1[g + 3], a1[g + 3]
+        p3, o3 = z[g + 3], out[g + 3]
         for n in range(x.size):
             u = x[n]
             y = p0 + c0 * u

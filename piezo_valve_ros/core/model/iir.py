@@ -2,12 +2,11 @@
 constants.
 
 An identification filters the same records thousands of times (the design's rows through G, creep's lags of the
-model output).  ``scipy.signal.lfilter`` runs one row at a time, and each output waits for the one before it
-(about 4.5 ns per sample on this project's machine, whatever the order).  The kernels here advance every row of a
-bank at each sample, so the rows' recursions overlap: the same arithmetic as lfilter's transposed direct form II,
-operation by operation (the same bits: ``test_iir``), several times faster on a bank
-(bench/core_speed.py).  They are compiled by numba on first use (cached on disk), so importing this module
-costs nothing until a bank is filtered.  Nothing here imports ROS.
+model output).  ``scipy.signal.lfilter`` runs one row at a time, and each output waits for the one before it.  The
+kernels here advance several rows of a bank at each sample, so their recursions overlap: the same arithmetic as
+lfilter's transposed direct form II, operation by operation (the same bits: ``test_iir``), several times faster
+on a bank (bench/core_speed.py measures both).  They are compiled by numba on first use (cached on disk), so
+importing this module costs nothing until a bank is filtered.  Nothing here imports ROS.
 """
 from __future__ import annotations
 
