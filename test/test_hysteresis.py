@@ -431,7 +431,7 @@ def test_play_bounds_give_every_start_s_states_as_one_clamp():
 def test_play_batch_gives_the_same_bits_by_composed_clamps_and_by_the_compiled_recursion(seed, monkeypatch):
     """Long records run the recursion compiled (``KERNEL_MIN_WORK``), short ones the composed clamps: the same states
     and weighted sums bit for bit, with symmetric and crossing asymmetric drives, flat stretches and scaled
-    thresholds, in blocks of any size."""
+    thresholds, in blocks of any size; and so do the last contacts."""
     from piezo_valve_ros.core.model import hysteresis
     rng = np.random.default_rng(seed)
     N, n = int(rng.integers(50, 3000)), int(rng.integers(1, 30))
@@ -449,3 +449,13 @@ def test_play_batch_gives_the_same_bits_by_composed_clamps_and_by_the_compiled_r
         monkeypatch.setattr(hysteresis, "KERNEL_MIN_WORK", 0)
         compiled, compiled_final = hysteresis.play_batch(v, upper, r, z0, weights, chunk=700, threshold_scale=scale)
         assert np.array_equal(composed, compiled) and np.array_equal(composed_final, compiled_final)
+    # the contacts' scan, compiled and in numpy
+    states = hysteresis.play_batch(v, upper, r, z0, threshold_scale=scale)[0]
+    found = {}
+    for work in (10 ** 12, 0):
+        monkeypatch.setattr(hysteresis, "KERNEL_MIN_WORK", work)
+        found[work] = hysteresis.last_contact(states, v, upper, r, scale)
+    side_np, index_np = found[10 ** 12]
+    side_nb, index_nb = found[0]
+    assert side_np.dtype == side_nb.dtype and index_np.dtype == index_nb.dtype
+    assert np.array_equal(side_np, side_nb) and np.array_equal(index_np, index_nb)

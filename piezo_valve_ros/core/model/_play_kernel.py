@@ -1,12 +1,13 @@
-"""numba kernel of ``hysteresis.play_batch`` (imported on first use): the play operators' recursion itself,
+"""numba kernels of ``hysteresis`` (imported on first use): ``play_batch``'s recursion itself,
 
     z_j = min(max(z_j, L - r_j s), U_j)   with   U_j = max(U + r_j s, L - r_j s)   (L - r_j s + 2 r_j s when symmetric),
 
 sample by sample, with the bounds formed by the same operations as the composed-clamp path's (so the same bits: min
-and max do not round)."""
+and max do not round); and ``last_contact``'s scan."""
 from __future__ import annotations
 
 import numba
+import numpy as np
 
 
 @numba.njit(nogil=True, cache=True)
@@ -30,3 +31,34 @@ def play_rows(lower, upper, r, scale, symmetric, z, out):
                 v = hi
             z[j] = v
             out[t, j] = v
+
+
+@numba.njit(nogil=True, cache=True)
+def last_contacts(states, lower, upper, r, scale, symmetric, drive, side_out, index_out):
+    """``hysteresis.last_contact`` sample by sample: states (N, n); the bounds formed as ``_clamp_bounds`` forms them
+    (no max of the two: a state on either counts); drive (N,) = lower + upper, whose last move sets the side where
+    both bounds coincide; side_out (N, n) int8 and index_out (N, n) int32 written."""
+    n_samples, n = states.shape
+    scaled = scale.size > 0
+    side = np.zeros(n, np.int8)
+    index = np.full(n, -1, np.int32)
+    last_move = 0.0
+    for t in range(n_samples):
+        if t > 0:
+            move = drive[t] - drive[t - 1]
+            if move != 0:
+                last_move = move
+        both_side = 1 if last_move < 0 else -1
+        low, up = lower[t], upper[t]
+        for j in range(n):
+            rs = r[j] * scale[t] if scaled else r[j]
+            lo = low - rs
+            hi = lo + 2.0 * rs if symmetric else up + rs
+            z = states[t, j]
+            on_lo = z == lo
+            on_hi = z == hi
+            if on_lo or on_hi:
+                index[j] = t
+                side[j] = both_side if (on_lo and on_hi) else (1 if on_hi else -1)
+            side_out[t, j] = side[j]
+            index_out[t, j] = index[j]

@@ -259,21 +259,22 @@ def play_batch(
     return out, state_at_turns[-1].copy()
 
 
-KERNEL_MIN_WORK = 20000   # operator-samples from which play_batch runs the recursion compiled (_play_kernel): below,
-                          # the composed clamps in numpy cost less than the kernel's first load in a process
+KERNEL_MIN_WORK = 20000   # operator-samples from which play_batch and last_contact run compiled (_play_kernel):
+                          # below, numpy's vectorised forms cost less than the kernels' first load in a process
 
 
 @functools.cache
-def _play_kernel():
-    from . import _play_kernel as kernel
-    return kernel.play_rows
+def _kernels():
+    """The compiled recursions (``_play_kernel``), loaded on first use."""
+    from . import _play_kernel
+    return _play_kernel
 
 
 def _play_by_kernel(lower_drive, upper_drive, r, z0, weights, chunk, scale, symmetric):
     """``play_batch`` by the compiled recursion, ``chunk`` rows at a time (the weighted sum of each block as the
     composed-clamp path forms it)."""
     n_samples = lower_drive.shape[0]
-    run = _play_kernel()
+    run = _kernels().play_rows
     z = np.array(z0, dtype=float)
     no_scale = np.zeros(0)
     lower_drive, upper_drive = np.ascontiguousarray(lower_drive), np.ascontiguousarray(upper_drive)
@@ -334,6 +335,13 @@ def last_contact(states: np.ndarray, lower_drive: np.ndarray, upper_drive: np.nd
     scale = None if threshold_scale is None else np.asarray(threshold_scale, float)
     same = lower_drive is upper_drive or np.array_equal(lower_drive, upper_drive)
     n = states.shape[0]
+    if states.size >= KERNEL_MIN_WORK:   # the scan compiled (the same sides and indices)
+        side_last, index = np.empty(states.shape, np.int8), np.empty(states.shape, np.int32)
+        _kernels().last_contacts(np.ascontiguousarray(states), np.ascontiguousarray(lower_drive),
+                                 np.ascontiguousarray(upper_drive), r,
+                                 np.zeros(0) if scale is None else np.ascontiguousarray(scale), same,
+                                 lower_drive + upper_drive, side_last, index)
+        return side_last, index
     descending = None   # where both bounds coincide: +1 if the input last moved down, else -1 (per sample)
     side_last = np.empty(states.shape, np.int8)
     index = np.empty(states.shape, np.int32)
