@@ -90,3 +90,36 @@ def test_the_kernels_module_is_the_generators_and_covers_the_kernel_lengths():
     assert done.returncode == 0, done.stderr
     from piezo_valve_ros.core.model import _iir_kernels
     assert set(_iir_kernels.RUN_ROWS) == set(iir.KERNEL_TAPS)
+
+
+def test_kernels_load_where_numba_can_write_no_cache_folder(monkeypatch):
+    """numba refuses a cached kernel where neither the package's folder nor the user's cache folder can be written;
+    the kernels are then cached in a temporary folder for the process, with a warning naming it."""
+    import importlib
+    import numba
+    from piezo_valve_ros.core.model import compiled
+    real = importlib.import_module
+    refused = []
+
+    def import_module(name, *args):
+        if name.endswith("_iir_kernels") and not refused:
+            refused.append(name)
+            raise RuntimeError(f"cannot cache function 'rows_2': {compiled.NO_CACHE_FOLDER} for file '/opt/x.py'")
+        return real(name, *args)
+    monkeypatch.setattr(compiled.importlib, "import_module", import_module)
+    monkeypatch.setattr(numba.config, "CACHE_DIR", numba.config.CACHE_DIR)   # restored after the test
+    with pytest.warns(RuntimeWarning, match="NUMBA_CACHE_DIR"):
+        module = compiled.load("piezo_valve_ros.core.model._iir_kernels")
+    assert refused == ["piezo_valve_ros.core.model._iir_kernels"] and "piezo_valve_numba_" in numba.config.CACHE_DIR
+    b, a = FILTERS["second order (G at 2 kHz)"]
+    rows, zi = np.arange(12.0).reshape(2, 6), np.zeros((2, 2))
+    out = np.empty(rows.shape)
+    module.RUN_ROWS[3](np.asarray(b), np.asarray(a), rows, zi.T.copy(), out)
+    assert np.array_equal(out, signal.lfilter(b, a, rows, axis=1, zi=zi)[0])
+    def broken(name, *args):
+        if name.endswith("_iir_kernels"):
+            raise RuntimeError("something else")
+        return real(name, *args)
+    monkeypatch.setattr(compiled.importlib, "import_module", broken)
+    with pytest.raises(RuntimeError, match="something else"):   # any other failure is not taken for the cache's
+        compiled.load("piezo_valve_ros.core.model._iir_kernels")

@@ -14,6 +14,8 @@ import functools
 
 import numpy as np
 
+from . import compiled
+
 __all__ = ["filter_rows", "first_order_bank", "KERNEL_TAPS"]
 
 KERNEL_TAPS = tuple(range(2, 9))   # filter lengths (taps of the longer of b and a) with a kernel; others: lfilter
@@ -22,8 +24,7 @@ KERNEL_TAPS = tuple(range(2, 9))   # filter lengths (taps of the longer of b and
 @functools.cache
 def _kernels():
     """The numba kernels, compiled (or loaded from numba's cache) on first use."""
-    from . import _iir_kernels
-    return _iir_kernels
+    return compiled.load(__package__ + "._iir_kernels")
 
 
 def _padded(b, a) -> tuple[np.ndarray, np.ndarray]:
