@@ -142,7 +142,7 @@ def first_order_lag(time_constant_s: float, dt: float) -> "DiscreteFilter":
 def lag_bank(x: np.ndarray, time_constants_s: Sequence[float], dt: float,
              initial: Optional[float] = None) -> np.ndarray:
     """First-order lags 1/(tau s + 1) of ``x`` (ZOH-exact, started at rest at ``initial``, default x[0]);
-    shape (N, k), one column per time constant (``iir.first_order_bank``: all k advanced at each sample)."""
+    shape (N, k), one column per time constant (``iir.first_order_bank``: several lags advanced together)."""
     x = np.asarray(x, float)
     start = float(x[0]) if initial is None else float(initial)
     # first_order_lag's ZOH filter written out (b = [0, 1 - a], a = [1, -a], a = exp(-dt/tau); at rest at
