@@ -447,14 +447,15 @@ def test_play_batch_gives_the_same_bits_by_composed_clamps_and_by_the_compiled_r
         monkeypatch.setattr(hysteresis, "KERNEL_MIN_WORK", 10 ** 12)
         composed, composed_final = hysteresis.play_batch(v, upper, r, z0, weights, chunk=700, threshold_scale=scale)
         monkeypatch.setattr(hysteresis, "KERNEL_MIN_WORK", 0)
-        compiled, compiled_final = hysteresis.play_batch(v, upper, r, z0, weights, chunk=700, threshold_scale=scale)
+        compiled, compiled_final = hysteresis.play_batch(v, upper, r, z0, weights, chunk=700, threshold_scale=scale,
+                                                         compiled=True)
         assert np.array_equal(composed, compiled) and np.array_equal(composed_final, compiled_final)
     # the contacts' scan, compiled and in numpy
     states = hysteresis.play_batch(v, upper, r, z0, threshold_scale=scale)[0]
     found = {}
     for work in (10 ** 12, 0):
         monkeypatch.setattr(hysteresis, "KERNEL_MIN_WORK", work)
-        found[work] = hysteresis.last_contact(states, v, upper, r, scale)
+        found[work] = hysteresis.last_contact(states, v, upper, r, scale, compiled=True)
     side_np, index_np = found[10 ** 12]
     side_nb, index_nb = found[0]
     assert side_np.dtype == side_nb.dtype and index_np.dtype == index_nb.dtype

@@ -516,3 +516,31 @@ def test_each_switchable_stage_is_declared_once_and_the_backend_follows_it():
         assert switch.is_on(flipped) != switch.is_on(base)
         assert all(other.is_on(flipped) == other.is_on(base) for other in STAGE_SWITCHES if other is not switch)
         assert switch.set(base, not switch.is_on(base)) == flipped
+
+
+def test_the_control_and_simulator_paths_never_load_numba():
+    """Loading numba takes a fraction of a second: inside a control period, or a simulated DAQ's catch-up after a
+    stall, that is a stall of its own. A 135-operator controller (its output range is a 401 x 135 batch) and a
+    simulated valve's batch path over 5,000 samples run without it; the identification asks for it."""
+    import subprocess
+    import sys
+    code = """
+import sys
+from dataclasses import replace
+import numpy as np
+from piezo_valve_ros.core.model.hysteresis import GPIM, PAPER_GPIM
+from piezo_valve_ros.core.control.compensation import CompensationModel
+from piezo_valve_ros.core.control.strategies import ControllerConfig, ValveController
+from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
+m = PAPER_GPIM.model()
+r = np.linspace(0.0, m.thresholds[-1], 135)
+big = GPIM(r, np.interp(r, m.thresholds, m.weights) * m.n / 135, m.a0, m.a1, m.offset_um)
+controller = ValveController(ControllerConfig(strategy="pid_hc", dt=1e-3), replace(CompensationModel(), gpim=big))
+for k in range(200):
+    controller.step(5.0 + 0.01 * k, 0.0)
+SimulatedValve(ValveSimConfig()).run(np.linspace(2.0, 8.0, 5000))
+print("numba" in sys.modules)
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "False"

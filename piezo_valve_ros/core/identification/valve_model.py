@@ -312,7 +312,7 @@ class Context:
         """Operator states (N, n)."""
         def compute():
             lower, upper = self.drives
-            return play_batch(lower, upper, self.model.gpim.thresholds, self.initial_state)[0]
+            return play_batch(lower, upper, self.model.gpim.thresholds, self.initial_state, compiled=True)[0]
         return self._structural("states", compute)
 
     @property
@@ -328,7 +328,7 @@ class Context:
         if "states" in self._cache:
             return self.states @ g.weights + g.offset_um
         lower, upper = self.drives
-        h, _ = play_batch(lower, upper, g.thresholds, self.initial_state, g.weights)
+        h, _ = play_batch(lower, upper, g.thresholds, self.initial_state, g.weights, compiled=True)
         return h + g.offset_um
 
     @property
@@ -350,7 +350,7 @@ class Context:
         """(side, index) of every operator's last contact, see :func:`hysteresis.last_contact`."""
         def compute():
             lower, upper = self.drives
-            return last_contact(self.states, lower, upper, self.model.gpim.thresholds)
+            return last_contact(self.states, lower, upper, self.model.gpim.thresholds, compiled=True)
         return self._structural("contacts", compute)
 
     def _gathered(self, change: np.ndarray, weighted_side: Callable[[slice], np.ndarray]) -> np.ndarray:

@@ -10,10 +10,10 @@ The play operator with threshold ``r`` is a clamp of its own state::
 (for the paper's symmetric envelope ``gamma_asc = gamma_desc = a0*v + a1``).
 Clamps compose into clamps, and within a monotone stretch of input the state is
 the closed form ``clip(z_at_last_reversal, L_k, U_k)``.  The batch evaluation
-of a short record uses both facts: a log-depth scan over the reversal points only, then
-one vectorised clip over all samples; a long one runs the plain recursion compiled
-(numba, ``_play_kernel``: the same bits, min and max do not round).  The streaming
-``step`` is the plain recursion.
+uses both facts: a log-depth scan over the reversal points only, then one vectorised
+clip over all samples; asked to (the identification's long records), it runs the plain
+recursion compiled instead (numba, ``_play_kernel``: the same bits, min and max do not
+round).  The streaming ``step`` is the plain recursion.
 """
 from __future__ import annotations
 
@@ -198,6 +198,7 @@ def play_batch(
     weights: Optional[np.ndarray] = None,
     chunk: int = ROW_BLOCK,
     threshold_scale: Optional[np.ndarray] = None,
+    compiled: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Evaluate a bank of (generalized) play operators over a whole record.
 
@@ -208,8 +209,10 @@ def play_batch(
     this covers asymmetric envelopes and thresholds that widen with time (rate dependence: pass
     ``lower - w`` and ``upper + w``, and ``threshold_scale`` (N,) to scale the thresholds sample by sample,
     which adds each operator's own reversal points).  ``thresholds`` shape (n,).  ``chunk`` rows are clipped
-    at a time (their (chunk, n) bounds stay in the cache; the result does not depend on it).  From
-    ``KERNEL_MIN_WORK`` operator-samples on, the recursion itself runs compiled, to the same bits.
+    at a time (their (chunk, n) bounds stay in the cache; the result does not depend on it).  With ``compiled``,
+    records of ``KERNEL_MIN_WORK`` operator-samples and more run the recursion itself compiled (numba), to the
+    same bits: the identification asks for it; the control and simulator paths the nodes run do not (loading
+    numba takes a fraction of a second, a stall inside a control period).
     Returns ``(out, final_state)``: with ``weights`` given, ``out`` is the weighted sum
     (N,); otherwise the operator states (N, n).
     """
@@ -223,7 +226,7 @@ def play_batch(
         return empty, z0.copy()
     same = lower_drive is upper_drive or np.array_equal(lower_drive, upper_drive)
     scale = None if threshold_scale is None else np.asarray(threshold_scale, dtype=float)
-    if n_samples * r.size >= KERNEL_MIN_WORK:
+    if compiled and n_samples * r.size >= KERNEL_MIN_WORK:
         return _play_by_kernel(lower_drive, upper_drive, r, z0, weights, chunk, scale, same)
     if scale is not None:
         turns = _union(_turns_per_operator(lower_drive, r, scale, -1.0),
@@ -260,8 +263,8 @@ def play_batch(
     return out, state_at_turns[-1].copy()
 
 
-KERNEL_MIN_WORK = 20000   # operator-samples from which play_batch and last_contact run compiled (_play_kernel):
-                          # below, numpy's vectorised forms cost less than the kernels' first load in a process
+KERNEL_MIN_WORK = 20000   # operator-samples from which play_batch and last_contact, asked to, run compiled
+                          # (_play_kernel): below, numpy's vectorised forms cost less than the kernels' first load
 
 
 @functools.cache
@@ -318,7 +321,8 @@ def play_bounds(lower_drive: np.ndarray, upper_drive: np.ndarray, thresholds: np
 
 
 def last_contact(states: np.ndarray, lower_drive: np.ndarray, upper_drive: np.ndarray,
-                 thresholds: np.ndarray, threshold_scale: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+                 thresholds: np.ndarray, threshold_scale: Optional[np.ndarray] = None,
+                 compiled: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Which clamp each operator touched last, and when: the exact first-order sensitivity of a play bank.
 
     ``states`` (N, n) as :func:`play_batch` returned them for the same drives, thresholds and scale.  An
@@ -335,7 +339,7 @@ def last_contact(states: np.ndarray, lower_drive: np.ndarray, upper_drive: np.nd
     scale = None if threshold_scale is None else np.asarray(threshold_scale, float)
     same = lower_drive is upper_drive or np.array_equal(lower_drive, upper_drive)
     n = states.shape[0]
-    if states.size >= KERNEL_MIN_WORK:   # the scan compiled (the same sides and indices)
+    if compiled and states.size >= KERNEL_MIN_WORK:   # the scan compiled (the same sides and indices; see play_batch)
         side_last, index = np.empty(states.shape, np.int8), np.empty(states.shape, np.int32)
         _kernels().last_contacts(np.ascontiguousarray(states), np.ascontiguousarray(lower_drive),
                                  np.ascontiguousarray(upper_drive), r,
@@ -374,17 +378,17 @@ def last_contact(states: np.ndarray, lower_drive: np.ndarray, upper_drive: np.nd
     return side_last, index
 
 
-def output_play(x: np.ndarray, width: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def output_play(x: np.ndarray, width: float, compiled: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One play operator of half-width ``width`` >= 0 on a signal ``x`` (N,) (backlash: the output follows ``x``
     only where ``x`` is ``width`` away from it, and holds between), starting at ``x[0]``.
     Returns ``(y, index, side)``, each (N,): the output, the sample of the last contact (0 before any) and its
     side (+1 = the upper bound ``x + width``, -1 = the lower ``x - width``, 0 = none yet), so that
     ``y = x[index] + side * width`` exactly: linear in ``x`` and ``width`` for given contacts.  Units: those of
-    ``x``."""
+    ``x``.  ``compiled``: as :func:`play_batch`'s."""
     x = np.asarray(x, dtype=float)
     width = max(float(width), 0.0)
-    states = play_batch(x, x, np.array([width]), x[:1].copy())[0]
-    side, index = last_contact(states, x, x, np.array([width]))
+    states = play_batch(x, x, np.array([width]), x[:1].copy(), compiled=compiled)[0]
+    side, index = last_contact(states, x, x, np.array([width]), compiled=compiled)
     index, side = index[:, 0], side[:, 0]
     return states[:, 0], np.maximum(index, 0), side.astype(float)
 

@@ -43,10 +43,10 @@ class Backlash(Effect):
         return cls(max(float(np.ptp(H)), 1e-9))
 
     def output(self, x, coefs) -> np.ndarray:
-        return output_play(x, self.width_um(coefs))[0]
+        return output_play(x, self.width_um(coefs), compiled=True)[0]
 
     def output_linear(self, x, coefs) -> tuple[np.ndarray, np.ndarray]:
-        _, index, side = output_play(x, self.width_um(coefs))
+        _, index, side = output_play(x, self.width_um(coefs), compiled=True)
         return index, side[:, None]
 
     def frees_poles(self, coefs) -> bool:
@@ -58,7 +58,7 @@ class Backlash(Effect):
         """The holds of plays of ``SEARCH_WIDTHS`` shares of the training output's span: ``play(x, r_k) - x`` (the
         first-order column at r = 0, the direction of motion, has no hold in it, which is most of what a clearance
         leaves)."""
-        return np.column_stack([output_play(x, share * self.span_um)[0] - x for share in SEARCH_WIDTHS])
+        return np.column_stack([output_play(x, share * self.span_um, compiled=True)[0] - x for share in SEARCH_WIDTHS])
 
     @staticmethod
     def width_um(coefs) -> float:
