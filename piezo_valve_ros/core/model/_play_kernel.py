@@ -10,6 +10,15 @@ import numba
 import numpy as np
 
 
+@numba.njit(inline="always", cache=True)
+def _bounds(low, up, rj, st, symmetric):
+    """One operator's (lower, upper) clamp bounds at one sample as ``hysteresis._clamp_bounds`` forms them: drives
+    low, up; threshold rj times the sample's scale st (1.0 where unscaled: the same product)."""
+    rs = rj * st
+    lo = low - rs
+    return lo, (lo + 2.0 * rs if symmetric else up + rs)
+
+
 @numba.njit(nogil=True, cache=True)
 def play_rows(lower, upper, r, scale, symmetric, z, out):
     """Operators of thresholds r (n,) on drives lower, upper (rows,), thresholds times scale (rows,) where scale
@@ -17,11 +26,9 @@ def play_rows(lower, upper, r, scale, symmetric, z, out):
     n = r.size
     scaled = scale.size > 0
     for t in range(lower.size):
-        low, up = lower[t], upper[t]
+        low, up, st = lower[t], upper[t], scale[t] if scaled else 1.0
         for j in range(n):
-            rs = r[j] * scale[t] if scaled else r[j]
-            lo = low - rs
-            hi = lo + 2.0 * rs if symmetric else up + rs
+            lo, hi = _bounds(low, up, r[j], st, symmetric)
             if hi < lo:
                 hi = lo
             v = z[j]
@@ -49,11 +56,9 @@ def last_contacts(states, lower, upper, r, scale, symmetric, drive, side_out, in
             if move != 0:
                 last_move = move
         both_side = 1 if last_move < 0 else -1
-        low, up = lower[t], upper[t]
+        low, up, st = lower[t], upper[t], scale[t] if scaled else 1.0
         for j in range(n):
-            rs = r[j] * scale[t] if scaled else r[j]
-            lo = low - rs
-            hi = lo + 2.0 * rs if symmetric else up + rs
+            lo, hi = _bounds(low, up, r[j], st, symmetric)
             z = states[t, j]
             on_lo = z == lo
             on_hi = z == hi

@@ -12,7 +12,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .iir import first_order_bank
+from .iir import first_order_bank, padded
 
 __all__ = ["scipy_signal", "steady_state", "ContinuousTF", "DiscreteFilter", "PAPER_VALVE_MODEL", "PAPER_SECTION", "first_order_lag", "lag_bank", "discretise",
            "second_order", "unity_dc_poles", "sections", "describe_dynamics"]
@@ -29,11 +29,9 @@ def steady_state(b, a) -> np.ndarray:
     """Transposed-direct-form-II state of the filter b(z)/a(z) that has seen a unit input forever
     (scipy.signal.lfilter_zi written out: b and a normalised by a[0] and padded to one length, then
     (I - A') z = b[1:] - a[1:] b[0], A the companion matrix of a)."""
-    b, a = np.atleast_1d(np.asarray(b, float)), np.atleast_1d(np.asarray(a, float))
-    order = max(a.size, b.size)
-    b = np.concatenate((b, np.zeros(order - b.size))) / a[0]
-    a = np.concatenate((a, np.zeros(order - a.size))) / a[0]
-    n = order - 1
+    b, a = padded(b, a)
+    b, a = b / a[0], a / a[0]
+    n = b.size - 1
     companion = np.zeros((n, n))
     companion[0, :] = -a[1:]
     companion[1:, :-1] += np.eye(n - 1)
@@ -204,11 +202,9 @@ class DiscreteFilter:
     """
 
     def __init__(self, b: Sequence[float], a: Sequence[float]):
-        b = np.asarray(b, float)
-        a = np.asarray(a, float)
-        order = max(b.size, a.size)
-        b = np.concatenate((b, np.zeros(order - b.size))) / a[0]
-        a = np.concatenate((a, np.zeros(order - a.size))) / a[0]
+        b, a = padded(b, a)
+        b, a = b / a[0], a / a[0]
+        order = b.size
         self.b = b
         self.a = a
         self._b = [float(x) for x in b]

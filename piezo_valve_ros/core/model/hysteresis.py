@@ -26,7 +26,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..errors import PiezoValveError
-from . import compiled
+from .compiled import load as load_kernels
 from .drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 __all__ = ["play_bounds", 
@@ -270,7 +270,7 @@ KERNEL_MIN_WORK = 20000   # operator-samples from which play_batch and last_cont
 @functools.cache
 def _kernels():
     """The compiled recursions (``_play_kernel``), loaded on first use."""
-    return compiled.load(__package__ + "._play_kernel")
+    return load_kernels(__package__ + "._play_kernel")
 
 
 def _play_by_kernel(lower_drive, upper_drive, r, z0, weights, chunk, scale, symmetric):

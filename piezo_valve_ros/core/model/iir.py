@@ -14,9 +14,9 @@ import functools
 
 import numpy as np
 
-from . import compiled
+from .compiled import load as load_kernels
 
-__all__ = ["filter_rows", "first_order_bank", "KERNEL_TAPS"]
+__all__ = ["filter_rows", "first_order_bank", "padded", "KERNEL_TAPS"]
 
 KERNEL_TAPS = tuple(range(2, 9))   # filter lengths (taps of the longer of b and a) with a kernel; others: lfilter
 
@@ -24,11 +24,11 @@ KERNEL_TAPS = tuple(range(2, 9))   # filter lengths (taps of the longer of b and
 @functools.cache
 def _kernels():
     """The numba kernels, compiled (or loaded from numba's cache) on first use."""
-    return compiled.load(__package__ + "._iir_kernels")
+    return load_kernels(__package__ + "._iir_kernels")
 
 
-def _padded(b, a) -> tuple[np.ndarray, np.ndarray]:
-    """b and a as float arrays of one length, zero padded (as lfilter pads them)."""
+def padded(b, a) -> tuple[np.ndarray, np.ndarray]:
+    """b and a (coefficients of z^-k) as float arrays of one length, zero padded (as lfilter pads them)."""
     b, a = np.atleast_1d(np.asarray(b, float)), np.atleast_1d(np.asarray(a, float))
     taps = max(b.size, a.size)
     return np.concatenate((b, np.zeros(taps - b.size))), np.concatenate((a, np.zeros(taps - a.size)))
@@ -40,7 +40,7 @@ def filter_rows(b, a, rows: np.ndarray, zi: np.ndarray) -> np.ndarray:
     FIR filters (a of one tap: lfilter convolves them), a[0] != 1 and lengths the kernels do not run
     (``KERNEL_TAPS``) go to lfilter itself."""
     given = (b, a)
-    b, a = _padded(b, a)
+    b, a = padded(b, a)
     rows = np.asarray(rows, float)
     if rows.ndim != 2:
         raise ValueError(f"rows must be (k, N), got shape {rows.shape}")
