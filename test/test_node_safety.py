@@ -397,6 +397,19 @@ def test_help_into_a_reader_that_stops_early_ends_without_a_traceback(executable
     assert proc.wait(60) == 0 and "Traceback" not in err and "BrokenPipe" not in err, err
 
 
+def _stop_or_kill(proc: subprocess.Popen, log, grace_s: float = 20.0) -> None:
+    """SIGTERM must end a node within ``grace_s``; if it does not, it is killed (a real-time process left spinning
+    on a CPU would starve the rest of the suite) and the test fails with its log."""
+    proc.terminate()
+    try:
+        proc.wait(grace_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(5)
+        raise AssertionError(f"{proc.args[0]} still ran {grace_s:g} s after SIGTERM (killed):\n"
+                             + log.read_text()[-3000:]) from None
+
+
 def test_hardware_applies_its_real_time_priority_and_cpus(tmp_path):
     """realtime.priority / realtime.cpus reach every thread of the process (DDS's included), or the node
     refuses to start with the OS's reason and what to do."""
@@ -421,8 +434,7 @@ def test_hardware_applies_its_real_time_priority_and_cpus(tmp_path):
             assert os.sched_getparam(tid).sched_priority == 10
             assert os.sched_getaffinity(tid) == {cpu}
     finally:
-        proc.terminate()
-        proc.wait(20)
+        _stop_or_kill(proc, log)
 
 
 def test_a_cpu_wakeup_latency_request_is_held_while_the_process_runs(tmp_path):
@@ -470,8 +482,7 @@ def test_hardware_holds_the_cpus_awake_when_asked(tmp_path):
         held = [os.readlink(f"/proc/{proc.pid}/fd/{fd}") for fd in os.listdir(f"/proc/{proc.pid}/fd")]
         assert "/dev/cpu_dma_latency" in held, held
     finally:
-        proc.terminate()
-        proc.wait(20)
+        _stop_or_kill(proc, log)
 
 
 def test_controller_takes_an_asymmetric_model_only_when_it_can_invert_it(controller):
