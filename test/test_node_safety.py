@@ -365,6 +365,19 @@ def test_control_comes_back_when_the_node_that_took_over_falls_silent(controller
         assert ctl.controller.last_command_v == pytest.approx(5.0 if hardware_timed_out else 7.6)
 
 
+def test_a_controller_follows_voltage_command_only_while_disabled(controller):
+    """Enabled, the commands on voltage_command are the controller's own: it takes none back (one message less
+    every period); disabled, it follows another node's (to resume from the applied voltage and to notice when
+    they stop), and enabled again it stops."""
+    ctl = controller(gain_set="")
+    ns = ctl.get_namespace()
+    assert ctl.count_subscribers(f"{ns}/voltage_command") == 0
+    assert set_one(ctl, "enabled", False).successful
+    assert ctl.count_subscribers(f"{ns}/voltage_command") == 1 and ctl.count_subscribers(f"{ns}/samples") == 1
+    assert set_one(ctl, "enabled", True).successful
+    assert ctl.count_subscribers(f"{ns}/voltage_command") == 0 and ctl.count_subscribers(f"{ns}/samples") == 0
+
+
 def test_a_controller_disabled_by_hand_stays_disabled_without_a_commander(controller):
     ctl = controller(gain_set="", handback_timeout_s=0.05)
     executor = make_executor()

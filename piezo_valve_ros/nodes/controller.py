@@ -143,9 +143,8 @@ class ValveControllerNode(Node):
         self._said_no_listener = False
         self._applied_v: Optional[float] = None       # while disabled: the voltage last applied, as far as we know
         self._foreign_command_at: Optional[float] = None  # while disabled: monotonic time of the last foreign command
-        self._samples_sub = None
+        self._samples_sub = self._command_watch = None   # while disabled: what others command, the hardware applies
         self.command_pub = self.create_publisher(Float64, "voltage_command", COMMAND_QOS)
-        self.create_subscription(Float64, "voltage_command", self._on_command_seen, COMMAND_QOS)
         # depth 1: after a stall the controller answers the newest position, never a queue of stale ones
         self._position_sub = self.create_subscription(Float64, "spool_position", self._on_position, LATEST_SENSOR_QOS)
         self.create_subscription(Float64, "position_reference", self._on_reference, 10)
@@ -287,7 +286,7 @@ class ValveControllerNode(Node):
         self.hardware_fault = fault
 
     def _on_position(self, msg: Float64) -> None:
-        if self.command_pub.get_subscription_count() <= 1:  # our own _on_command_seen is one of them
+        if self.command_pub.get_subscription_count() <= (self._command_watch is not None):   # ours aside
             # the command would go nowhere (e.g. the hardware's subscription is not matched yet): stepping
             # would wind the controller up against a valve that never got the command
             if not self._said_no_listener:
@@ -328,11 +327,16 @@ class ValveControllerNode(Node):
                 self._applied_v = v
 
     def _watch_applied_voltage(self, on: bool) -> None:
+        """While disabled, follow ``voltage_command`` (another node's) and ``samples``; while enabled, neither (the
+        commands would be our own, one more message to take every period)."""
         if on and self._samples_sub is None:
             self._samples_sub = self.create_subscription(Float64MultiArray, "samples", self._on_samples, SAMPLES_QOS)
+            self._command_watch = self.create_subscription(Float64, "voltage_command", self._on_command_seen,
+                                                           COMMAND_QOS)
         elif not on and self._samples_sub is not None:
             self.destroy_subscription(self._samples_sub)
-            self._samples_sub = None
+            self.destroy_subscription(self._command_watch)
+            self._samples_sub = self._command_watch = None
 
     def _check_handback(self) -> None:
         """Disabled, and the node that took over stopped commanding: take control back."""
