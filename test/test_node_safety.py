@@ -6,6 +6,7 @@ here is refused over ROS too.
 """
 import contextlib
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -411,16 +412,68 @@ def test_help_into_a_reader_that_stops_early_ends_without_a_traceback(executable
 
 
 def _stop_or_kill(proc: subprocess.Popen, log, grace_s: float = 20.0) -> None:
-    """SIGTERM must end a node within ``grace_s``; if it does not, it is killed (a real-time process left spinning
-    on a CPU would starve the rest of the suite) and the test fails with its log."""
+    """SIGTERM must end a node within ``grace_s``; if it does not, it dumps its threads' stacks (SIGUSR1) and is
+    killed (a real-time process left spinning on a CPU would starve the rest of the suite), and the test fails
+    with its log and those stacks."""
     proc.terminate()
     try:
         proc.wait(grace_s)
     except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(2.0)
         proc.kill()
         proc.wait(5)
-        raise AssertionError(f"{proc.args[0]} still ran {grace_s:g} s after SIGTERM (killed):\n"
-                             + log.read_text()[-3000:]) from None
+        raise AssertionError(f"{proc.args[0]} still ran {grace_s:g} s after SIGTERM (stacks, then killed):\n"
+                             + log.read_text()[-8000:]) from None
+
+
+def test_a_node_dumps_its_threads_stacks_on_sigusr1_and_runs_on(tmp_path):
+    """SIGUSR1 to any node: every thread's Python stack to its stderr (faulthandler), and it runs on; a node that
+    hangs can say where before it is killed."""
+    exe = os.path.join(os.path.dirname(sys.executable), "valve_controller")
+    log = tmp_path / "ctl.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen([exe, "--ros-args", "-r", f"__ns:={namespace()}"], env=ros_env(), stdout=out,
+                                stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 30
+        while "valve_controller up" not in log.read_text() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGUSR1)
+        deadline = time.monotonic() + 10
+        while "spin_loop" not in log.read_text() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        text = log.read_text()
+        assert "Current thread" in text and "spin_loop" in text, text   # the main thread, in the spin loop
+        assert proc.poll() is None
+    finally:
+        _stop_or_kill(proc, log)
+    assert proc.returncode == 0
+
+
+def test_a_node_leaves_its_real_time_priority_before_it_tears_down():
+    """The shutdown runs on the normal scheduler: ``leave_realtime`` puts every SCHED_FIFO thread of the process
+    back on SCHED_OTHER (threads at one FIFO priority on one CPU run until they block, so a teardown that waits
+    by spinning would starve itself there).  In a child process; skipped where SCHED_FIFO is not allowed."""
+    script = (
+        "import os, threading, time\n"
+        "from piezo_valve_ros.runtime import realtime\n"
+        "stop = threading.Event(); t = threading.Thread(target=stop.wait); t.start()\n"
+        "try:\n"
+        "    realtime.apply(realtime.RealtimeSettings(priority=10))\n"
+        "except realtime.RealtimeError:\n"
+        "    print('refused'); stop.set(); raise SystemExit(0)\n"
+        "tids = [int(x) for x in os.listdir('/proc/self/task')]\n"
+        "before = {os.sched_getscheduler(tid) for tid in tids}\n"
+        "realtime.leave_realtime()\n"
+        "after = {os.sched_getscheduler(tid) for tid in tids}\n"
+        "stop.set(); t.join()\n"
+        "print(len(tids), before == {os.SCHED_FIFO}, after == {os.SCHED_OTHER})\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    if out.stdout.strip() == "refused":
+        pytest.skip("SCHED_FIFO is not allowed here")
+    assert out.stdout.split() == ["2", "True", "True"], out.stdout
 
 
 def test_hardware_applies_its_real_time_priority_and_cpus(tmp_path):

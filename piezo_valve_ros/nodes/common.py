@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import array
+import faulthandler
 import gc
 import math
 import os
@@ -23,6 +24,7 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from ..core.defaults import CONTROL_PERIOD_S
 from ..io.samples import SAMPLES_LABEL, decode_samples
 from ..core.validation import ParameterSpec, as_float
+from ..runtime.realtime import leave_realtime
 
 MAX_CONTROL_PERIOD_S = 0.1      # slower than 10 Hz is no control loop for this valve
 
@@ -343,6 +345,7 @@ def init_ros(args=None) -> None:
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, _STOP_REQUESTED.set)
+        faulthandler.register(signal.SIGUSR1, all_threads=True)   # SIGUSR1: every thread's stack to stderr
 
 
 def stop_requested() -> bool:
@@ -396,6 +399,7 @@ def spin(nodes, on_exit: Optional[Callable[[], None]] = None, executor=None) -> 
         # a callback ran into the context a signal had just shut down: that is the shutdown itself
     finally:
         _ignore_signals_while_cleaning_up()
+        leave_realtime()   # the teardown is not time-critical, and at SCHED_FIFO on one CPU it can starve itself
         if on_exit is not None:
             on_exit()
         close(nodes, executor)

@@ -133,6 +133,21 @@ def apply(settings: RealtimeSettings) -> None:
         hold_cpu_wakeup_latency(settings.cpu_wakeup_latency_us)
 
 
+def leave_realtime() -> None:
+    """Every thread of this process that runs on SCHED_FIFO back on the normal scheduler: for a node's shutdown,
+    which is not time-critical.  Threads at one FIFO priority on one CPU run until they block, so one that waits
+    for another by spinning starves it for good (the process then holds the CPU at the kernel's real-time share,
+    95 %, and never ends); the normal scheduler shares the CPU among them.  Lowering a priority needs no privilege."""
+    if not hasattr(os, "sched_setscheduler"):
+        return
+    for tid in _threads():
+        try:
+            if os.sched_getscheduler(tid) == os.SCHED_FIFO:
+                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+        except OSError:
+            pass  # the thread ended meanwhile
+
+
 def hold_cpu_wakeup_latency(latency_us: int, device: str = CPU_LATENCY_DEVICE) -> None:
     """Ask the kernel to keep every CPU's wake-up latency at most ``latency_us`` [us] for the rest of this
     process's life (Linux PM QoS: the request holds while its file stays open; the kernel takes the smallest of
