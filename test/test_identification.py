@@ -481,6 +481,33 @@ def test_a_real_record_that_starts_remanent_is_judged_after_its_input_wiped_the_
     assert held_out["rms_um"] <= 0.053 and held_out["peak_pct"] <= 0.55, held_out
 
 
+@pytest.mark.parametrize("envelopes", [{}, {"b0": 0.9, "b1": 0.6}], ids=["symmetric", "asymmetric"])
+def test_the_start_grid_ranks_every_candidate_start_as_one_prediction_each_would(envelopes):
+    """``grid_misfits`` scores all the grid's candidate starts at once (one play bank, one filter bank): for
+    both families of ``estimate_state`` (rested at e, back from an excursion to e), on a model with asymmetric
+    envelopes, thresholds that widen with the rate and a transport delay, each misfit is the one its own
+    prediction gives (to rounding), so the grid picks the same starts to refine."""
+    from piezo_valve_ros.core.identification.initial_state import grid_misfits
+    from piezo_valve_ros.core.identification.valve_model import InitialState, ValveModel
+    from piezo_valve_ros.core.metrics import rms
+    m = PAPER_GPIM.model()
+    gpim = replace(m, **envelopes) if envelopes else m
+    model = ValveModel(gpim, rate_widening_v=(0.02, 0.01, 0.0, 0.0, 0.0, 0.0), delay_s=0.0007)
+    t = np.arange(400) * 5e-4
+    v = 5.0 + 3.0 * np.sin(2 * np.pi * 2.0 * t) + 0.5 * np.sin(2 * np.pi * 9.0 * t)
+    truth = replace(model, history=InitialState("remanent", (1.5,))).predict(Record(t, v, np.zeros_like(t)))
+    rows = Record(t, v, truth + 0.01 * np.random.default_rng(3).standard_normal(t.size))
+    grid = np.linspace(-2.0, 12.0, 29)
+    for make in (lambda e: InitialState("remanent", (e,)), lambda e: InitialState("remanent", (v[0], e))):
+        starts = [make(float(e)) for e in grid]
+        one_by_one = np.array([rms(rows.position_um - replace(model, history=s).predict(rows)) for s in starts])
+        together = grid_misfits(model, starts, rows)
+        np.testing.assert_allclose(together, one_by_one, rtol=1e-12, atol=1e-12)
+        assert list(np.argsort(together, kind="stable")[:3]) == list(np.argsort(one_by_one, kind="stable")[:3])
+    assert np.argmin(grid_misfits(model, [InitialState("remanent", (float(e),)) for e in grid], rows)) == \
+        np.argmin(np.abs(grid - 1.5))
+
+
 @pytest.mark.parametrize("end_s", [7.0, 7.5])
 def test_a_shorter_cut_of_the_real_record_is_judged_the_same(end_s):
     """The whole record's 1 kHz means cut at 7.0 or 7.5 s: the sine wipes the remanent start out late in the
@@ -564,6 +591,21 @@ def test_a_simulated_valve_with_an_unrecorded_pre_history_adds_nothing(pre_histo
         assert start["chosen"] in ("estimated", "wiped")
         turning = float(start["before_the_record"]["estimate"].split(" to ")[1].split(" V")[0])
         assert 9.0 <= turning <= 11.0, start["before_the_record"]
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="the held-out last 30 % drives 1.56 V beyond the fit part's range (the loop "
+                   "warns so); creep's lags change the model's extrapolation there and cut the held-out RMS "
+                   "0.109 -> 0.076 um, and creep is named on a valve without it")
+def test_a_closed_loop_record_of_a_nominal_valve_judged_on_its_own_tail_adds_nothing():
+    """The battery's closed loop under PID HC 2 (bench/residual_battery.py), judged on the last 30 % of its
+    own record: nothing may be named on a valve that has no effect beyond the GPIM and G_v."""
+    from valve_battery import closed_loop_rows
+    config = replace(ValveSimConfig(dt=1e-3).ideal(), dynamics_enabled=True, sensor=SensorParams())
+    report = analyse(Record.from_rows(closed_loop_rows(config, "pid_hc", PIDGains(0.4823, 213.8982, 0.0), 1))
+                     ).report.to_json()
+    assert any("beyond the fit part's" in w for w in report["warnings"]), report["warnings"]
+    assert report["effects_added"] == [], report["effects_added"]
 
 
 @pytest.mark.slow

@@ -10,7 +10,7 @@ import numpy as np
 from scipy import optimize
 
 from ..metrics import rms
-from ..model.hysteresis import play_bounds
+from ..model.hysteresis import play_batch, play_bounds
 from .records import Record, analysis_record
 from .split import SessionStart, first_rows
 from .valve_model import REST, InitialState, ValveModel, filter_rows_at_rest
@@ -46,7 +46,8 @@ def estimate_state(model: ValveModel, rows: Record, whole: Record, with_effects:
     options = {"rest": REST, "cycled": InitialState("cycled")}
     bare = model if with_effects else replace(model, effects=(), coefs=())
     # the misfit is sharp in the voltage (where the valve rested sets the first samples through G): a fine
-    # grid on the first ESTIMATE_SHORT_S, then each family's best few refined on all the rows
+    # grid on the first ESTIMATE_SHORT_S, ranked by the GPIM and G alone (``grid_misfits``: every candidate at
+    # once), then each family's best few refined on all the rows with the model as asked
     short = rows.slice(0, min(len(rows), max(int(ESTIMATE_SHORT_S / rows.dt), 20)))
 
     def misfit(state: InitialState, on: Record = rows) -> float:
@@ -56,7 +57,8 @@ def estimate_state(model: ValveModel, rows: Record, whole: Record, with_effects:
     step = (grid[1] - grid[0]) if len(grid) > 1 else half
     for family, make in (("rested at", lambda e: InitialState("remanent", (e,))),
                          ("back from", lambda e: InitialState("remanent", (v0, e)))):
-        quick = sorted(grid, key=lambda e: misfit(make(e), short))[:ESTIMATE_REFINED]
+        quick = [grid[i] for i in np.argsort(grid_misfits(model, [make(e) for e in grid], short),
+                                             kind="stable")[:ESTIMATE_REFINED]]
         for e in quick:
             found = optimize.minimize_scalar(lambda x: misfit(make(x)), bounds=(e - step, e + step), method="bounded",
                                              options={"xatol": 1e-3 * half})
@@ -70,6 +72,34 @@ def estimate_state(model: ValveModel, rows: Record, whole: Record, with_effects:
     best = excursion if scores[excursion] < (1 - EXCURSION_GAIN) * scores[simple] else simple
     return options[best], {"estimate": options[best].describe(), "rms_before_wipe_um": round(scores[best], 6),
                            "rms_before_wipe_from_rest_um": round(scores["rest"], 6), "samples_before_wipe": len(rows)}
+
+
+GRID_BANK_VALUES = 4_000_000   # operator states (starts x operators x rows) grid_misfits holds at once (32 MB)
+
+
+def grid_misfits(model: ValveModel, starts: list[InitialState], rows: Record) -> np.ndarray:
+    """RMS misfits [um] (len(starts),) on ``rows`` of ``model``'s GPIM and G alone (no effects) from each of
+    ``starts``, many at once: the operators of each bunch of starts side by side in one play bank
+    (``GRID_BANK_VALUES``), their outputs through G as one bank of rows.  What ``estimate_state``'s grid ranks its
+    candidate starts by: to rounding, what ``replace(model, effects=(), history=start).predict(rows)`` gives."""
+    g = model.gpim
+    ctx = replace(model, effects=(), coefs=(), history=REST).context(rows)
+    lower, upper = ctx.drives
+    n_rows = len(rows)
+    bunch = max(1, GRID_BANK_VALUES // max(g.n * n_rows, 1))
+    out = np.empty(len(starts))
+    for first in range(0, len(starts), bunch):
+        some = starts[first:first + bunch]
+        k = len(some)
+        initial = np.concatenate([start.states(g, rows.voltage_v) for start in some])
+        states, _ = play_batch(lower, upper, np.tile(g.thresholds, k), initial, compiled=True)
+        H = (states.reshape(n_rows, k, g.n) @ g.weights + g.offset_um).T                  # (k, N)
+        rest = np.array([H[j, 0] if start.rested_at_v is None
+                         else float(g.weights @ g.state_after((start.rested_at_v,)) + g.offset_um)
+                         for j, start in enumerate(some)])
+        error = rows.position_um[None, :] - filter_rows_at_rest(*ctx.filter, H, rest)
+        out[first:first + k] = np.sqrt(np.mean(error * error, axis=1))
+    return out
 
 
 SESSION_GRID = 41             # voltages tried for the simple story a separate session starts from (then refined)

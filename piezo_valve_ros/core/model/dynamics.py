@@ -28,14 +28,23 @@ def scipy_signal():
 def steady_state(b, a) -> np.ndarray:
     """Transposed-direct-form-II state of the filter b(z)/a(z) that has seen a unit input forever
     (scipy.signal.lfilter_zi written out: b and a normalised by a[0] and padded to one length, then
-    (I - A') z = b[1:] - a[1:] b[0], A the companion matrix of a)."""
+    (I - A') z = b[1:] - a[1:] b[0], A the companion matrix of a).  Read-only: kept for the next call with the
+    same coefficients (an analysis starts the same few filters at rest tens of thousands of times)."""
     b, a = padded(b, a)
+    return _steady_state(b.tobytes(), a.tobytes())
+
+
+@functools.lru_cache(maxsize=1024)
+def _steady_state(b_bytes: bytes, a_bytes: bytes) -> np.ndarray:
+    b, a = np.frombuffer(b_bytes), np.frombuffer(a_bytes)
     b, a = b / a[0], a / a[0]
     n = b.size - 1
     companion = np.zeros((n, n))
     companion[0, :] = -a[1:]
     companion[1:, :-1] += np.eye(n - 1)
-    return np.linalg.solve(np.eye(n) - companion.T, b[1:] - a[1:] * b[0])
+    zi = np.linalg.solve(np.eye(n) - companion.T, b[1:] - a[1:] * b[0])
+    zi.flags.writeable = False
+    return zi
 
 
 @dataclass(frozen=True)
