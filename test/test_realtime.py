@@ -247,8 +247,9 @@ def test_composed_realtime_loop_tracks_a_reference_by_direct_link(ros_context):
         ref_pub.publish(Float64(data=30e-6))
         # the step counts from the period the controller has it (on a loaded machine the message may take many ticks)
         t0 = time.monotonic()
-        while ctl.publish_state()[0, 1] != 30e-6 and time.monotonic() - t0 < 30.0:
+        while abs(ctl.publish_state()[0, 1] - 30e-6) > 1e-12 and time.monotonic() - t0 < 30.0:
             run_periods(10)
+        assert abs(ctl.publish_state()[0, 1] - 30e-6) <= 1e-12   # the controller has the step
         run_periods(10000)
         # a loaded machine may stall the process (the valve runs on the last command meanwhile): then more
         # periods until the spool sits on the reference, which load can delay but not prevent
