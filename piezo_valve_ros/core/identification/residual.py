@@ -94,6 +94,8 @@ INITIAL_STATE_TOLERANCE = 0.02              # "cycled" replaces "rest" only if i
 WIPE_GAIN = 0.1                             # fitting only after the wipe must cut the held-out RMS by >= 10 %
 HELD_OUT_RANGE_MARGIN = 0.05                # held-out data driven beyond the fit part's voltage range by more
                                             # than this share of it: warned (the fit cannot know that range)
+KNOWN_MIN_SHARE = 0.1                       # ... and where they leave it after this share of their rows, an effect
+                                            # must not do worse on the rows before (search.support)
 RESOLUTION_SHARE = 1e-6                     # a record's noise is taken as at least this share of its range
 UNEXPLAINED_NOISE_RATIO = 2.0               # structured residual RMS above this many noise RMS: unexplained
 PEAK_NOISE_RATIO = 2.5                      # held-out peaks above this many times the noise's: unexplained
@@ -277,6 +279,7 @@ class _Loop:
         self.started = time.monotonic()
         self.log, self.pool, self.forms_pool = log, pool, forms_pool
         self.warnings: list[str] = []
+        self.known_rows: Optional[int] = None   # held-out rows before the input first leaves the fit part's range
         self.analysed: dict = {}   # what of each record the loop analysed (the report's "analysed")
         train_full = self.representative_part(train_full, "train", "training record")
         if validate_full is not None:
@@ -358,8 +361,9 @@ class _Loop:
         return on.held_out_error(model, full, self.session(model, on))
 
     def held_out(self, model: ValveModel) -> Score:
-        """``model``'s held-out score (``error``): the one figure every decision compares."""
-        return Score.of(self.error(model))
+        """``model``'s held-out score (``error``): the one figure every decision compares (with the RMS before the
+        held-out input first leaves the fit part's range, where it does: ``check_held_out_range``)."""
+        return Score.of(self.error(model), self.known_rows)
 
     def start_model(self, thresholds: np.ndarray, like: Optional[ValveModel] = None,
                     history: InitialState = REST) -> ValveModel:
@@ -794,19 +798,27 @@ class _Loop:
     def check_held_out_range(self) -> None:
         """Warn when the held-out data drive the valve beyond the fit part's voltage range: the operators that
         only the held-out part moves (and whatever the valve does there) are not identified by the fit, and the
-        held-out error there is extrapolation, which no effect explains."""
+        held-out error there is extrapolation, which no effect explains.  Where they leave it after their first
+        KNOWN_MIN_SHARE, the rows before are where every decision also asks an effect to do no worse
+        (``known_rows``, ``search.support``)."""
         fit_v, held_v = self.split.fit.voltage_v, self.split.score.voltage_v[self.split.start:]
         lo, hi = float(np.min(fit_v)), float(np.max(fit_v))
         margin = HELD_OUT_RANGE_MARGIN * (hi - lo)
         below, above = float(np.min(held_v)), float(np.max(held_v))
         beyond = max(lo - below, above - hi)
         if beyond > margin:
+            first_out = int(np.argmax((held_v < lo - margin) | (held_v > hi + margin)))
+            if first_out >= KNOWN_MIN_SHARE * held_v.size:
+                self.known_rows = first_out
             where = "the validation record" if not self.split.held_out else "the held-out part"
             self.warnings.append(f"{where} drives the valve to {below:.4g} .. {above:.4g} V, {beyond:.3g} V beyond the fit "
                                  f"part's {lo:.4g} .. {hi:.4g} V ({100 * beyond / (hi - lo):.0f} % of its range): the fit "
                                  f"cannot know the valve there, and the held-out error from there is extrapolation, "
                                  f"which no effect explains (a training record should span every voltage the valve "
-                                 f"will see)")
+                                 f"will see)" + (f"; an effect must also do no worse on its first "
+                                                 f"{self.known_rows * self.split.score.dt:.3g} s, before it first "
+                                                 f"leaves that range"
+                                                 if self.known_rows is not None else ""))
             self.log("warning: " + self.warnings[-1])
 
     def run(self) -> Analysis:

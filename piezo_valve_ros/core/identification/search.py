@@ -104,14 +104,17 @@ class SubsetSearch:
 
 @dataclass(frozen=True)
 class Score:
-    """Held-out error [um] at the analysis rate."""
+    """Held-out error [um] at the analysis rate; ``known_rms``: its RMS over the held-out rows before the input first
+    leaves the fit part's voltage range (None where it never leaves it, or leaves it too soon to tell)."""
 
     rms: float
     peak: float
+    known_rms: Optional[float] = None
 
     @classmethod
-    def of(cls, error: np.ndarray) -> "Score":
-        return cls(rms(error), float(np.max(np.abs(error))) if error.size else 0.0)
+    def of(cls, error: np.ndarray, known_rows: Optional[int] = None) -> "Score":
+        return cls(rms(error), float(np.max(np.abs(error))) if error.size else 0.0,
+                   None if known_rows is None else rms(error[:known_rows]))
 
 
 def unsupported_because(with_: Score, without: Score, noise_um: float) -> str:
@@ -124,7 +127,16 @@ def unsupported_because(with_: Score, without: Score, noise_um: float) -> str:
         why.append(f"explains {explained:.4f} um < {MIN_EFFECT_NOISE_RATIO:g}x the sensor noise {noise_um:.4f} um")
     if with_.peak > PEAK_TOLERANCE * without.peak:
         why.append(f"raises the held-out peak {without.peak:.3f} -> {with_.peak:.3f} um (> {PEAK_TOLERANCE:g}x)")
+    if _worse_where_known(with_, without):
+        why.append(f"raises the held-out RMS {without.known_rms:.4f} -> {with_.known_rms:.4f} um where the input stays "
+                   f"within the fit part's range (its cut comes from the extrapolation beyond it)")
     return "; ".join(why)
+
+
+def _worse_where_known(with_: Score, without: Score) -> bool:
+    """Where the held-out data leave the fit part's voltage range, whether ``with_`` does worse than ``without``
+    on the held-out rows before they first leave it (where the fit knows the valve)."""
+    return with_.known_rms is not None and without.known_rms is not None and with_.known_rms > without.known_rms
 
 
 def percent(share: float, sign: bool = False) -> str:
@@ -150,8 +162,10 @@ def no_room_because(without: Score, noise_um: float) -> str:
 def support(with_: Score, without: Score, noise_um: float) -> tuple[float, float, bool]:
     """(held-out RMS cut, explained RMS [um], supported?) of an effect added last: it must cut the held-out
     RMS by GAIN_THRESHOLD, explain MIN_EFFECT_NOISE_RATIO times the sensor noise and not raise the peak by
-    more than PEAK_TOLERANCE."""
+    more than PEAK_TOLERANCE; where the held-out data leave the fit part's voltage range (``Score.known_rms``),
+    it must not raise the RMS before they first do: a cut made only where the model extrapolates is the
+    extrapolation's, not the effect's."""
     cut = 1.0 - with_.rms / without.rms if without.rms > 0 else 0.0
     explained = math.sqrt(max(without.rms ** 2 - with_.rms ** 2, 0.0))
     return cut, explained, (cut >= GAIN_THRESHOLD and explained >= MIN_EFFECT_NOISE_RATIO * noise_um
-                            and with_.peak <= PEAK_TOLERANCE * without.peak)
+                            and with_.peak <= PEAK_TOLERANCE * without.peak and not _worse_where_known(with_, without))
