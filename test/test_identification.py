@@ -613,6 +613,10 @@ def test_a_closed_loop_record_of_a_nominal_valve_judged_on_its_own_tail_adds_not
         report["warnings"]
     assert report["effects_added"] == [], report["effects_added"]
     assert any("creep (raises the held-out RMS" in line and "within the fit part's range" in line for line in lines)
+    # the report's decision on creep is that exact refit and why it was refused (not the first-order search's figure)
+    creep = next(d for d in report["diagnosis"] if d["effect"] == "creep")
+    assert not creep["added"] and creep["statistic"] > GAIN_THRESHOLD, creep
+    assert "refitted exactly on top of the final model; not supported: raises the held-out RMS" in creep["evidence"]
 
 
 @pytest.mark.slow

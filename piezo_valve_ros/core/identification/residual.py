@@ -684,21 +684,27 @@ class _Loop:
 
     def diagnosis(self, story: Story) -> list[Decision]:
         """Each effect's decision with its statistic, threshold and margin: the added ones by their exact
-        drop-one refits, the others added last to the final set in the linear search."""
+        drop-one refits, the others by their exact refit on top of the final set where one was made (an exact
+        check, or forward selection's), else added last to the final set in the linear search."""
         added, names, final_set, search = story.added, story.choice.names, frozenset(story.added), story.choice.search
         diagnosis = []
-        checked = story.choice.exact_checks.get(final_set, {})
+        checked, refits = story.choice.exact_checks.get(final_set, {}), story.choice.refits
         for n in names:
             exact = n in story.verdicts and n in added
             if exact:
                 cut, explained, _, without, with_ = story.verdicts[n]
                 how = "exact refit without it"
-            else:   # the exact check on top of the final set where there was one: the figure the decision used
-                with_s, without_s = checked.get(n) or (search.score(final_set | {n}), search.score(final_set))
-                cut, explained, _ = support(with_s, without_s, self.noise)
+            else:   # the exact refit on top of the final set where there was one: the figure the decision used
+                refitted = checked.get(n) or (
+                    (refits[final_set | {n}][1], refits[final_set][1]) if final_set | {n} in refits
+                    and final_set in refits else None)
+                with_s, without_s = refitted or (search.score(final_set | {n}), search.score(final_set))
+                cut, explained, supported = support(with_s, without_s, self.noise)
                 with_, without = with_s.rms, without_s.rms
-                how = ("refitted exactly on top of the final model" if n in checked
+                how = ("refitted exactly on top of the final model" if refitted
                        else "added last to the final model (one linear solve from the baseline)")
+                if refitted and not supported and cut >= GAIN_THRESHOLD:   # refused for another reason than its cut
+                    how += f"; not supported: {unsupported_because(with_s, without_s, self.noise)}"
             diagnosis.append(Decision(effect=n, added=exact, statistic=round(cut, 4), threshold=GAIN_THRESHOLD,
                                       margin=round(cut - GAIN_THRESHOLD, 4), held_out_gain=round(cut, 4),
                                       explained_rms_um=round(explained, 5),
