@@ -81,7 +81,7 @@ class Decision(_Node):
     effect: str = _item("")
     added: bool = _item("")
     statistic: float = _item("held-out RMS cut the effect gives, added last (exactly for an added one and for one "
-                             "checked exactly on top of the final set, by the linear search otherwise)")
+                             "refitted exactly on top of the final set, by the linear search otherwise)")
     threshold: float = _item("")
     margin: float = _item("statistic - threshold: how far from the knife edge")
     held_out_gain: float = _item("")
