@@ -78,7 +78,8 @@ def realtime_specs() -> tuple[ParameterSpec, ...]:
         ParameterSpec("realtime.switch_interval_s", DEFAULT_SWITCH_INTERVAL_S,
                       "CPython's GIL switch interval in this process [s] (the interpreter's default 5 ms lets another "
                       "thread, e.g. DDS's, hold it for several control periods)", read_only=True, low=lo, high=hi),
-        ParameterSpec("realtime.priority", 0, "SCHED_FIFO priority of the process's threads (0 = the normal "
+        ParameterSpec("realtime.priority", 0, "SCHED_FIFO priority of the node's loop thread, the process's other "
+                      "threads (DDS's) one below (0 = the normal "
                       f"scheduler; {PRIORITY_RANGE[0]}..{PRIORITY_RANGE[1]}); refused at start-up when the OS does not "
                       "allow it", read_only=True),
         ParameterSpec("realtime.cpus", [], "CPUs the process may run on (e.g. [1]; empty = any)", read_only=True),

@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 import struct
 import sys
+import threading
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -38,7 +39,11 @@ class RealtimeSettings:
     """What a real-time process asks for.
 
     switch_interval_s: CPython's GIL switch interval [s] (``sys.setswitchinterval``).
-    priority: SCHED_FIFO priority of every thread of the process (1..98); 0 leaves the normal scheduler.
+    priority: SCHED_FIFO priority (1..98) of the thread that applies the settings (a node's loop); every other
+        thread of the process (DDS's, the BLAS libraries') one below (1 at the least); 0 leaves the normal
+        scheduler.  At one priority a thread runs until it blocks: Fast DDS's asynchronous writer thread, spinning,
+        starved a node's loop on its pinned CPU for good (SIGTERM, even SIGUSR1, never handled); one below, the
+        loop preempts it, while it still preempts everything on the normal scheduler.
     cpus: CPU numbers every thread of the process may run on; empty = all.
     cpu_wakeup_latency_us: the longest an idle CPU may take to wake [us], requested from the kernel (PM QoS,
         ``CPU_LATENCY_DEVICE``) for every CPU while the process runs; 0 keeps idle CPUs polling instead of
@@ -111,17 +116,19 @@ def _threads() -> list[int]:
 
 def apply(settings: RealtimeSettings) -> None:
     """Apply ``settings`` to every thread of this process (threads started later inherit them from their
-    creator).  :class:`RealtimeError` when the OS refuses, with what to do about it."""
+    creator); the priority as ``RealtimeSettings.priority`` says (this thread's, the others one below).
+    :class:`RealtimeError` when the OS refuses, with what to do about it."""
     sys.setswitchinterval(settings.switch_interval_s)
     if settings.cpus:
         pin(settings.cpus)
     if settings.priority:
         if not hasattr(os, "sched_setscheduler"):
             raise RealtimeError("realtime.priority needs Linux (os.sched_setscheduler)")
-        param = os.sched_param(settings.priority)
-        for tid in _threads():
+        own = threading.get_native_id()
+        loop, others = os.sched_param(settings.priority), os.sched_param(max(settings.priority - 1, 1))
+        for tid in sorted(_threads(), key=lambda t: t != own):   # this thread first: it then preempts the others
             try:
-                os.sched_setscheduler(tid, os.SCHED_FIFO, param)
+                os.sched_setscheduler(tid, os.SCHED_FIFO, loop if tid == own else others)
             except ProcessLookupError:
                 pass  # the thread ended meanwhile
             except PermissionError as exc:
