@@ -419,12 +419,27 @@ def _stop_or_kill(proc: subprocess.Popen, log, grace_s: float = 20.0) -> None:
     try:
         proc.wait(grace_s)
     except subprocess.TimeoutExpired:
+        threads = _thread_table(proc.pid)   # a starved process handles no signal: which thread holds the CPU
         proc.send_signal(signal.SIGUSR1)
         time.sleep(2.0)
         proc.kill()
         proc.wait(5)
-        raise AssertionError(f"{proc.args[0]} still ran {grace_s:g} s after SIGTERM (stacks, then killed):\n"
+        raise AssertionError(f"{proc.args[0]} still ran {grace_s:g} s after SIGTERM (stacks, then killed); its "
+                             f"threads (tid, name, state, CPU ticks, FIFO priority):\n{threads}\n"
                              + log.read_text()[-8000:]) from None
+
+
+def _thread_table(pid: int) -> str:
+    rows = []
+    for tid in sorted(os.listdir(f"/proc/{pid}/task")):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/stat") as f:
+                head, _, tail = f.read().rpartition(")")
+            fields = tail.split()   # from field 3 (state) on: utime, stime are fields 14, 15; rt_priority 40
+            rows.append(f"{tid} {head.partition('(')[2]} {fields[0]} {int(fields[11]) + int(fields[12])} {fields[37]}")
+        except (OSError, IndexError, ValueError):
+            pass
+    return "\n".join(rows)
 
 
 def test_a_node_dumps_its_threads_stacks_on_sigusr1_and_runs_on(tmp_path):
