@@ -509,12 +509,18 @@ def test_hardware_applies_its_real_time_priority_and_cpus(tmp_path):
             assert proc.returncode == 2 and "the OS refused SCHED_FIFO" in log.read_text(), log.read_text()
             return
         assert f"SCHED_FIFO 10, CPUs {cpu}" in log.read_text()
-        tids = [int(t) for t in os.listdir(f"/proc/{proc.pid}/task")]
-        assert len(tids) > 3  # DDS's threads as well as the loop
-        for tid in tids:
-            assert os.sched_getscheduler(tid) == os.SCHED_FIFO
-            assert os.sched_getparam(tid).sched_priority == (10 if tid == proc.pid else 9)   # the loop: the main thread
-            assert os.sched_getaffinity(tid) == {cpu}
+
+        def ranks():
+            tids = [int(t) for t in os.listdir(f"/proc/{proc.pid}/task")]
+            return {tid: (os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority, os.sched_getaffinity(tid))
+                    for tid in tids}
+        # as its loop starts, the node ranks the threads started since (the executor's) with DDS's
+        want = {tid: (os.SCHED_FIFO, 10 if tid == proc.pid else 9, {cpu}) for tid in ranks()}   # the loop: main
+        deadline = time.monotonic() + 10
+        while ranks() != want and time.monotonic() < deadline:
+            time.sleep(0.05)
+            want = {tid: (os.SCHED_FIFO, 10 if tid == proc.pid else 9, {cpu}) for tid in ranks()}
+        assert len(want) > 3 and ranks() == want, _thread_table(proc.pid)  # DDS's threads as well as the loop
     finally:
         _stop_or_kill(proc, log)
 

@@ -24,7 +24,7 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from ..core.defaults import CONTROL_PERIOD_S
 from ..io.samples import SAMPLES_LABEL, decode_samples
 from ..core.validation import ParameterSpec, as_float
-from ..runtime.realtime import leave_realtime
+from ..runtime.realtime import leave_realtime, rank_threads
 
 MAX_CONTROL_PERIOD_S = 0.1      # slower than 10 Hz is no control loop for this valve
 
@@ -240,6 +240,9 @@ def claim_pacing(nodes) -> Optional[Pacing]:
     return pacings[0] if pacings else None
 
 
+RANK_THREADS_S = 1.0   # how often a real-time loop puts threads started since below its own priority
+
+
 def spin_loop(executor, keep_going: Callable[[], bool], pacing: Optional[Pacing] = None,
               clock: Callable[[], float] = time.perf_counter) -> None:
     """Run callbacks (and the ``pacing`` tick on its period) while ``keep_going()``.
@@ -254,11 +257,17 @@ def spin_loop(executor, keep_going: Callable[[], bool], pacing: Optional[Pacing]
     paced loop starts, everything allocated so far is moved out of the garbage collector's sight
     (``gc.freeze``): a full collection over all that the imported libraries allocated would stop the
     loop for many periods.
-    EventsExecutor's blocking ``spin()`` ignores signals, hence the ``spin_once`` loop.
+    EventsExecutor's blocking ``spin()`` ignores signals, hence the ``spin_once`` loop.  In a process given a
+    real-time priority, threads started since (lazily, by the executor or DDS) are put below the loop's priority
+    every RANK_THREADS_S (``realtime.rank_threads``).
     """
+    next_rank = clock() + RANK_THREADS_S
     if pacing is None:
         while keep_going():
             executor.spin_once(timeout_sec=0.1)
+            if clock() >= next_rank:
+                rank_threads()
+                next_rank = clock() + RANK_THREADS_S
         return
     gc.collect()
     gc.freeze()
@@ -266,6 +275,9 @@ def spin_loop(executor, keep_going: Callable[[], bool], pacing: Optional[Pacing]
     next_tick = clock() + period
     while keep_going():
         now = clock()
+        if now >= next_rank:   # threads started since (lazily, by the executor or DDS) below the loop's priority
+            rank_threads()
+            next_rank = now + RANK_THREADS_S
         if now < next_tick:
             if next_tick - now > busy_poll:
                 executor.spin_once(timeout_sec=min(next_tick - now - busy_poll, 0.1))
@@ -388,6 +400,7 @@ def spin(nodes, on_exit: Optional[Callable[[], None]] = None, executor=None) -> 
     executor = executor or make_executor()
     for node in nodes:
         executor.add_node(node)
+    rank_threads()   # the executor's own threads below the loop's priority, as DDS's
     code = 0
     try:
         spin_loop(executor, lambda: rclpy.ok() and not _STOP_REQUESTED.requested, claim_pacing(nodes))

@@ -124,11 +124,13 @@ def apply(settings: RealtimeSettings) -> None:
     if settings.priority:
         if not hasattr(os, "sched_setscheduler"):
             raise RealtimeError("realtime.priority needs Linux (os.sched_setscheduler)")
+        global _applied_priority
         own = threading.get_native_id()
         loop, others = os.sched_param(settings.priority), os.sched_param(max(settings.priority - 1, 1))
         for tid in sorted(_threads(), key=lambda t: t != own):   # this thread first: it then preempts the others
             try:
                 os.sched_setscheduler(tid, os.SCHED_FIFO, loop if tid == own else others)
+                _applied_priority = settings.priority
             except ProcessLookupError:
                 pass  # the thread ended meanwhile
             except PermissionError as exc:
@@ -140,13 +142,33 @@ def apply(settings: RealtimeSettings) -> None:
         hold_cpu_wakeup_latency(settings.cpu_wakeup_latency_us)
 
 
+_applied_priority = 0   # the SCHED_FIFO priority ``apply`` gave this process's loop thread (0: none)
+
+
+def rank_threads() -> None:
+    """After ``apply`` gave a priority: the threads started since by the loop's thread (an executor's timer thread,
+    say), which inherited the loop's priority, one below it as every other thread.  From the loop's thread."""
+    if not _applied_priority:
+        return
+    own, others = threading.get_native_id(), os.sched_param(max(_applied_priority - 1, 1))
+    for tid in _threads():
+        try:
+            if tid != own and os.sched_getscheduler(tid) == os.SCHED_FIFO \
+                    and os.sched_getparam(tid).sched_priority != others.sched_priority:
+                os.sched_setscheduler(tid, os.SCHED_FIFO, others)
+        except OSError:
+            pass  # the thread ended meanwhile
+
+
 def leave_realtime() -> None:
     """Every thread of this process that runs on SCHED_FIFO back on the normal scheduler: for a node's shutdown,
     which is not time-critical.  Threads at one FIFO priority on one CPU run until they block, so one that waits
     for another by spinning starves it for good (the process then holds the CPU at the kernel's real-time share,
     95 %, and never ends); the normal scheduler shares the CPU among them.  Lowering a priority needs no privilege."""
+    global _applied_priority
     if not hasattr(os, "sched_setscheduler"):
         return
+    _applied_priority = 0
     for tid in _threads():
         try:
             if os.sched_getscheduler(tid) == os.SCHED_FIFO:
