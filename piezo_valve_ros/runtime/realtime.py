@@ -125,12 +125,11 @@ def apply(settings: RealtimeSettings) -> None:
         if not hasattr(os, "sched_setscheduler"):
             raise RealtimeError("realtime.priority needs Linux (os.sched_setscheduler)")
         global _applied_priority
-        own = threading.get_native_id()
-        loop, others = os.sched_param(settings.priority), os.sched_param(max(settings.priority - 1, 1))
-        for tid in sorted(_threads(), key=lambda t: t != own):   # this thread first: it then preempts the others
+        own, tids = threading.get_native_id(), _threads()
+        loop, others = os.sched_param(settings.priority), _below(settings.priority)
+        for tid in sorted(tids, key=lambda t: t != own):   # this thread first: it then preempts the others
             try:
                 os.sched_setscheduler(tid, os.SCHED_FIFO, loop if tid == own else others)
-                _applied_priority = settings.priority
             except ProcessLookupError:
                 pass  # the thread ended meanwhile
             except PermissionError as exc:
@@ -138,23 +137,34 @@ def apply(settings: RealtimeSettings) -> None:
                     f"realtime.priority {settings.priority}: the OS refused SCHED_FIFO ({exc.strerror}); allow "
                     "it (e.g. '@realtime - rtprio 98' in /etc/security/limits.conf and the user in group "
                     "realtime, or CAP_SYS_NICE), or use realtime.priority 0") from None
+        _applied_priority = settings.priority
+        _ranked.update(tids)
     if settings.cpu_wakeup_latency_us != LEAVE_IDLE_STATES:
         hold_cpu_wakeup_latency(settings.cpu_wakeup_latency_us)
 
 
-_applied_priority = 0   # the SCHED_FIFO priority ``apply`` gave this process's loop thread (0: none)
+_applied_priority = 0     # the SCHED_FIFO priority ``apply`` gave this process's loop thread (0: none)
+_ranked: set[int] = set()  # threads whose priority ``apply`` or ``rank_threads`` has set
+
+
+def _below(priority: int) -> os.sched_param:
+    """The priority of a real-time process's threads other than its loop's: one below (1 at the least)."""
+    return os.sched_param(max(priority - 1, 1))
 
 
 def rank_threads() -> None:
     """After ``apply`` gave a priority: the threads started since by the loop's thread (an executor's timer thread,
-    say), which inherited the loop's priority, one below it as every other thread.  From the loop's thread."""
+    say), which inherited the loop's priority, one below it as every other thread.  From the loop's thread; a
+    thread already ranked is not looked at again (on a real-time loop's path: one directory read when none is new)."""
     if not _applied_priority:
         return
-    own, others = threading.get_native_id(), os.sched_param(max(_applied_priority - 1, 1))
+    own, others = threading.get_native_id(), _below(_applied_priority)
     for tid in _threads():
+        if tid in _ranked:
+            continue
+        _ranked.add(tid)
         try:
-            if tid != own and os.sched_getscheduler(tid) == os.SCHED_FIFO \
-                    and os.sched_getparam(tid).sched_priority != others.sched_priority:
+            if tid != own and os.sched_getscheduler(tid) == os.SCHED_FIFO:
                 os.sched_setscheduler(tid, os.SCHED_FIFO, others)
         except OSError:
             pass  # the thread ended meanwhile
@@ -169,6 +179,7 @@ def leave_realtime() -> None:
     if not hasattr(os, "sched_setscheduler"):
         return
     _applied_priority = 0
+    _ranked.clear()
     for tid in _threads():
         try:
             if os.sched_getscheduler(tid) == os.SCHED_FIFO:
