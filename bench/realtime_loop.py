@@ -150,7 +150,7 @@ def per_period_costs(n: int = 5000) -> dict:
     listener = rclpy.create_node("bench_listener")  # the controller steps only when its command has a reader
     listener.create_subscription(Float64, "voltage_command", lambda m: None, COMMAND_QOS)
     deadline = time.monotonic() + 10
-    while ctl.command_pub.get_subscription_count() < 2:
+    while not ctl.command_has_listener:
         if time.monotonic() > deadline:
             raise TimeoutError("the controller's command writer never matched a reader")
         time.sleep(0.01)

@@ -285,8 +285,13 @@ class ValveControllerNode(Node):
             self.get_logger().info("hardware fault cleared: control starts afresh from the centre voltage")
         self.hardware_fault = fault
 
+    @property
+    def command_has_listener(self) -> bool:
+        """Whether another node subscribes to voltage_command (this node's own watch while disabled aside)."""
+        return self.command_pub.get_subscription_count() > (self._command_watch is not None)
+
     def _on_position(self, msg: Float64) -> None:
-        if self.command_pub.get_subscription_count() <= (self._command_watch is not None):   # ours aside
+        if not self.command_has_listener:
             # the command would go nowhere (e.g. the hardware's subscription is not matched yet): stepping
             # would wind the controller up against a valve that never got the command
             if not self._said_no_listener:
