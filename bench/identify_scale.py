@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from piezo_valve_ros.io.bags import SAMPLES_TYPE, BagRecorder, qos_profile, serialize_samples
+from piezo_valve_ros.runtime.memory import keep_freed_memory
 from piezo_valve_ros.core.identification.records import MAX_ANALYSED_S
 from piezo_valve_ros.core.sim.signals import identification_voltage
 from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
@@ -76,6 +77,7 @@ def identify_one(bag: str) -> None:
 
 
 def main() -> None:
+    keep_freed_memory()   # as valve_identify (runtime.memory)
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", default=",".join(map(str, CASES)), help="record lengths in minutes, of "
                     f"{', '.join(map(str, CASES))}")

@@ -25,6 +25,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from piezo_valve_ros.io.bags import read_samples, write_samples_bag
+from piezo_valve_ros.runtime.memory import keep_freed_memory
 from piezo_valve_ros.core.identification.effects import CATALOGUE
 from piezo_valve_ros.core.sim.experiments import simulate_rows
 from piezo_valve_ros.core.identification.fitting import FitCache, fit_model
@@ -116,6 +117,7 @@ def timed_under_load(fn):
 
 
 def main():
+    keep_freed_memory()   # as valve_identify (runtime.memory)
     ap = argparse.ArgumentParser()
     ap.add_argument("--skip-straightforward", action="store_true")
     ap.add_argument("--load", action="store_true", help="also measure with two busy loops running")

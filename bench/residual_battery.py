@@ -23,6 +23,7 @@ import sys
 import time
 
 from piezo_valve_ros.core.identification.records import Record, read_csv
+from piezo_valve_ros.runtime.memory import keep_freed_memory
 from piezo_valve_ros.core.identification.residual import SEPARATION_SHARE, analyse
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -98,6 +99,7 @@ def repeating_part(error_um, dt: float, period_s: float = 1.0):
 
 
 def main():
+    keep_freed_memory()   # as valve_identify (runtime.memory)
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--markdown", help="also write the table here")
     args = ap.parse_args()

@@ -22,6 +22,7 @@ sys.path.insert(0, os.path.join(HERE, "..", "test"))
 import valve_zoo as zoo                                        # noqa: E402  (test code, not the package's)
 import valve_battery as battery                                # noqa: E402
 from piezo_valve_ros.core.identification.records import Record   # noqa: E402
+from piezo_valve_ros.runtime.memory import keep_freed_memory   # noqa: E402
 from piezo_valve_ros.core.identification.residual import analyse   # noqa: E402
 
 RECORDS = ((1, 1.0), (2, 0.85), (3, 1.0), (4, 0.9), (5, 0.95))   # (seed, training length share) of each record
@@ -56,6 +57,7 @@ def battery_records(valve, seed, share):
 
 
 def main():
+    keep_freed_memory()   # as valve_identify (runtime.memory)
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--markdown", help="also write the tables here")
     ap.add_argument("--records", type=int, default=len(RECORDS), help="records per valve (at most 5)")

@@ -11,6 +11,10 @@ import pytest  # noqa: E402
 import shared  # noqa: E402  (found through the path set just above)
 from ros_helpers import ros_env  # noqa: E402
 
+# the workers analyse records: freed arrays kept for the next ones, as valve_identify keeps them (runtime.memory)
+from piezo_valve_ros.runtime.memory import keep_freed_memory  # noqa: E402
+keep_freed_memory()
+
 # nodes created in the test process join the suite's private DDS domain, on this machine only
 os.environ.update({k: ros_env()[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
 

@@ -550,3 +550,33 @@ def test_the_loop_analyses_the_first_part_of_a_long_record_and_says_so():
     short = analyse(Record(rows[:, 0], rows[:, 1], rows[:, 2] * 1e6)).report.to_json()
     assert short["analysed"]["train"]["samples"] == n == short["analysed"]["train"]["of_samples"]
     assert not any("were analysed" in w for w in short["warnings"])
+
+
+_REFILL_FAULTS = """
+import resource, sys
+import numpy as np
+from piezo_valve_ros.runtime.memory import keep_freed_memory
+kept = keep_freed_memory() if sys.argv[1] == "keep" else None
+size = 64 << 20   # above glibc's own mmap threshold (32 MB at the most), below MMAP_THRESHOLD_BYTES
+a = np.empty(size // 8); a.fill(1.0); del a
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+b = np.empty(size // 8); b.fill(1.0)
+print(kept, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before, size // (2 << 20))
+"""
+
+
+def test_a_process_that_keeps_freed_memory_refills_an_array_without_faulting_it_in_again():
+    """runtime.memory.keep_freed_memory (valve_identify, the identification and monitor nodes, the tests' workers):
+    an array freed and made again of the same size reuses the memory it had; without it glibc gave the memory back
+    and every page of the second array is faulted in afresh."""
+    def run(mode):
+        out = subprocess.run([sys.executable, "-c", _REFILL_FAULTS, mode], capture_output=True, text=True,
+                             check=True).stdout.split()
+        return out[0], int(out[1]), int(out[2])
+    kept, faults_kept, huge_pages = run("keep")
+    if kept != "True":
+        pytest.skip("the C library is not glibc: keep_freed_memory changes nothing")
+    _, faults_default, _ = run("default")
+    # a fault a page at the least (numpy asks for 2 MB pages where the kernel has them; 4 kB ones: 512x as many)
+    assert faults_default >= huge_pages, (faults_default, huge_pages)
+    assert faults_kept < huge_pages // 4, (faults_kept, huge_pages)

@@ -21,6 +21,7 @@ from dataclasses import replace
 from ..core.identification.records import HELD_OUT_FRACTION
 from ..core.identification.report import IdentificationReport
 from ..core.monitoring.health import WINDOW_S, HealthLimits
+from ..runtime.memory import keep_freed_memory
 from .tool import add_window_arguments, run_tool, window_from
 from ..identify import (command_range_note, compensation, controller_parameters_yaml, health_json,
                        check_output_paths, identify_bags, monitor_record, report_json, write_outputs)
@@ -44,6 +45,7 @@ def _summary(report: IdentificationReport) -> str:
 
 
 def main(argv=None) -> int:
+    keep_freed_memory()   # before any thread starts (runtime.memory)
     ap = argparse.ArgumentParser(prog="valve_identify", description=__doc__.split("\n\n")[0])
     ap.add_argument("train_bag", help="bag directory with a samples topic, or a .csv record")
     ap.add_argument("--validate", metavar="VAL_BAG", help=f"validation bag or .csv (default: hold out the last {100 * HELD_OUT_FRACTION:.0f} %%)")

@@ -62,6 +62,7 @@ from ..identify import (summary_json, compensation, controller_parameters, contr
                         write_atomically)
 from ..rig.client import get_parameter_values, wait_future, wait_until_answering
 from ..rig.recording import RigRecorder
+from ..runtime.memory import keep_freed_memory
 from .common import (CONTROL_PERIOD, COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, ParameterSpec, as_float, declare_all,
                      parameter_values, run_node)
 from ..core.model.drive import CENTRE_VOLTAGE_V
@@ -466,6 +467,7 @@ class ValveIdentificationNode(Node):
 
 def main(args=None) -> int:
     """Exit code 1 when the plan stopped on an error."""
+    keep_freed_memory()   # its refits' arrays (runtime.memory); before ROS starts its threads
     made = []
 
     def factory():

@@ -31,6 +31,7 @@ from ..core.control.compensation import MODEL_PARAMETERS, CompensationModel
 from ..core.monitoring.health import (ERROR_RATIO, MIN_SPAN_V, STEP_S, WARN_RATIO, WINDOW_S, Health, HealthLimits,
                                       HealthMonitor, Level)
 from ..io.samples import SamplesLayoutError
+from ..runtime.memory import keep_freed_memory
 from .common import SAMPLES_QOS, Diagnostics, ParameterSpec, as_float, declare_all, parameter_values, run_node, \
     samples_from_message, samples_message
 
@@ -216,6 +217,7 @@ class ValveMonitorNode(Node):
 
 
 def main(args=None) -> int:
+    keep_freed_memory()   # its windows' analyses (runtime.memory); before ROS starts its threads
     return run_node(ValveMonitorNode, "valve_monitor", args, specs=MONITOR_PARAMETERS)
 
 

@@ -1,6 +1,7 @@
 """How the package's processes run: the real-time settings a loop asks the operating system for (``realtime``),
 the loop's timing as the hardware sees it (``loop_timing``), the middleware setting for acknowledged references
-(``dds``) and child processes that die with their parent (``processes``).  No ROS import."""
+(``dds``), child processes that die with their parent (``processes``) and the allocator's settings for processes
+that analyse records (``memory``).  No ROS import."""
 from __future__ import annotations
 
 from ..core import lazy_exports
@@ -12,4 +13,5 @@ __all__, __getattr__ = lazy_exports(__name__, {
     "use_fast_acknowledgements": "dds",
     "ProcessGroup": "processes",
     "node_command": "processes",
+    "keep_freed_memory": "memory",
 })
