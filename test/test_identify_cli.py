@@ -557,7 +557,7 @@ import resource, sys
 import numpy as np
 from piezo_valve_ros.runtime.memory import keep_freed_memory
 kept = keep_freed_memory() if sys.argv[1] == "keep" else None
-size = 64 << 20   # above glibc's own mmap threshold (32 MB at the most), below MMAP_THRESHOLD_BYTES
+size = 48 << 20   # above glibc's own mmap threshold (32 MB at the most), below MMAP_THRESHOLD_BYTES
 a = np.empty(size // 8); a.fill(1.0); del a
 before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 b = np.empty(size // 8); b.fill(1.0)
