@@ -69,15 +69,20 @@ def solve_gram(gram: np.ndarray, rhs: np.ndarray, n_rows: int, lower: np.ndarray
     gram = gram / np.outer(scale, scale)
     rhs = rhs / scale
     gram[np.diag_indices_from(gram)] += np.asarray(ridge, float) * n_rows
+    return solve_standardised(gram, rhs, np.asarray(lower, float) * scale) / scale
+
+
+def solve_standardised(gram: np.ndarray, rhs: np.ndarray, lower: np.ndarray) -> np.ndarray:
+    """min x' gram x - 2 rhs' x subject to x >= lower, for a positive definite ``gram`` (standardised columns, ridge
+    added): the unbounded solution where it keeps every bound, else a bounded solve (BVLS) on its Cholesky factor."""
     factor = linalg.cho_factor(gram, lower=False, check_finite=False)
     x = linalg.cho_solve(factor, rhs, check_finite=False)
-    lo = np.asarray(lower, float) * scale
-    if np.any(x < lo):
+    if np.any(x < lower):
         R = np.triu(factor[0])
         d = linalg.solve_triangular(R, rhs, trans="T", check_finite=False)
-        x = optimize.lsq_linear(R, d, bounds=(lo, np.inf), method="bvls", lsmr_tol="auto").x
-        x = np.maximum(x, lo)   # BVLS may leave a bound broken by rounding (-3e-19): a weight must not be < 0
-    return x / scale
+        x = optimize.lsq_linear(R, d, bounds=(lower, np.inf), method="bvls", lsmr_tol="auto").x
+        x = np.maximum(x, lower)   # BVLS may leave a bound broken by rounding (-3e-19): a weight must not be < 0
+    return x
 
 
 # --------------------------------------------------------------------------- shared work
@@ -145,7 +150,7 @@ def _design(ctx: Context, effects: Sequence[Effect], with_sensitivities: bool):
     """The rows (k, N) of the design before G except the GPIM's (their filtered form is cached:
     ``FitCache.basis``): the offset, the effects' terms and (``with_sensitivities``) their nonlinear
     structures' sensitivities; with the layout, lower bounds and ridge of the whole design (GPIM first)."""
-    y_slope = max(float(np.ptp(ctx.record.position_um)) / max(float(np.ptp(ctx.v)), 1e-12), 1e-12)
+    y_slope = position_slope(ctx.record)
     n = ctx.model.gpim.n
     blocks = [np.zeros((len(ctx.record), e.after_dynamics)) if e.after_dynamics else e.columns(ctx) for e in effects]
     sens_blocks = [e.sensitivities(ctx) if with_sensitivities else None for e in effects]
@@ -156,7 +161,7 @@ def _design(ctx: Context, effects: Sequence[Effect], with_sensitivities: bool):
     if ctx.rest_states is not None:
         at_rest = np.concatenate([[1.0]] + [e.rest_columns(ctx, c) for e, c in zip(effects, blocks)]
                                  + [c[0] for c in sens_blocks if c is not None])
-    lower = [np.concatenate(([PARTIAL_SUM_FLOOR * y_slope], np.zeros(n - 1))), [-np.inf]]
+    lower = [gpim_lower_bounds(n, y_slope), [-np.inf]]
     ridge = [np.full(n + 1, BASIS_RIDGE)]
     terms, sens = [], []
     row = 1
@@ -175,6 +180,17 @@ def _design(ctx: Context, effects: Sequence[Effect], with_sensitivities: bool):
         lower.append(np.full(width, -np.inf))
         ridge.append(np.full(width, SENSITIVITY_RIDGE))
     return rows, at_rest, _Layout(n, tuple(terms), tuple(sens)), np.concatenate(lower), np.concatenate(ridge)
+
+
+def position_slope(record: Record) -> float:
+    """The record's position span over its voltage span [um/V]: the scale of the GPIM weights' floor."""
+    return max(float(np.ptp(record.position_um)) / max(float(np.ptp(record.voltage_v)), 1e-12), 1e-12)
+
+
+def gpim_lower_bounds(n: int, slope_um_per_v: float) -> np.ndarray:
+    """Lower bounds of the n GPIM weights [um/V] (columns: the operators' states less their first row): the first at
+    PARTIAL_SUM_FLOOR of the record's slope, the others at 0 (a loop that rises with the input)."""
+    return np.concatenate(([PARTIAL_SUM_FLOOR * slope_um_per_v], np.zeros(n - 1)))
 
 
 def _apply(model: ValveModel, x: np.ndarray, layout: _Layout, z_first: np.ndarray) -> ValveModel:

@@ -7,11 +7,9 @@ from dataclasses import dataclass, replace
 from typing import Callable, Optional
 
 import numpy as np
-from scipy import linalg
-
 from ..metrics import rms
 from .effects import Effect
-from .fitting import BASIS_RIDGE, run_in_order
+from .fitting import BASIS_RIDGE, gpim_lower_bounds, position_slope, run_in_order, solve_standardised
 from .split import SessionStart, Split
 from .valve_model import ValveModel
 
@@ -23,7 +21,9 @@ PEAK_TOLERANCE = 1.1                        # ... and not raise the held-out pea
 
 
 class SubsetSearch:
-    """Every subset of the effects fitted from the baseline in one ridge least-squares solve each.
+    """Every subset of the effects fitted from the baseline in one ridge least-squares solve each, the GPIM's weights
+    held to the bounds an exact refit holds them to (``fitting.gpim_lower_bounds``: without them, weights of either
+    sign fit the training part as well and extrapolate wildly where the held-out part drives the valve beyond it).
 
     The columns (GPIM basis, offset, every effect's search columns, all through the baseline's G) are
     built once for the fit rows and the held-out rows; one Gram matrix serves all subsets.
@@ -85,13 +85,16 @@ class SubsetSearch:
         self.gram = (A.T @ A) / np.outer(self.scale, self.scale)
         self.gram[np.diag_indices_from(self.gram)] += np.concatenate(ridge) * n
         self.rhs = (A.T @ y) / self.scale
+        lower = np.full(self.scale.size, -np.inf)
+        lower[:z_first.size] = gpim_lower_bounds(z_first.size, position_slope(split.fit))
+        self.lower = lower * self.scale   # in the standardised columns' units, as the Gram
         self._cache: dict[frozenset, float] = {}
 
     def score(self, subset: frozenset) -> "Score":
         if subset not in self._cache:
             chosen = [0] + [1 + i for i, e in enumerate(self.effects) if e.name in subset]
             idx = np.concatenate([self.groups[g] for g in chosen])
-            x = linalg.solve(self.gram[np.ix_(idx, idx)], self.rhs[idx], assume_a="pos") / self.scale[idx]
+            x = solve_standardised(self.gram[np.ix_(idx, idx)], self.rhs[idx], self.lower[idx]) / self.scale[idx]
             error = self.y_score.copy()
             start = 0
             for g in chosen:
