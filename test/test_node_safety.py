@@ -491,6 +491,31 @@ def test_a_node_leaves_its_real_time_priority_before_it_tears_down():
     assert out.stdout.split() == ["2", "True", "True"], out.stdout
 
 
+@pytest.mark.parametrize("priority, others", [(10, "FIFO 9"), (1, "OTHER 0")])
+def test_the_threads_beside_the_loop_run_below_its_priority(priority, others):
+    """``realtime.apply`` gives the calling (loop) thread the priority and every other thread of the process one
+    below it, so that one that spins cannot starve the loop: at priority 1 that is the normal scheduler (at the
+    loop's own FIFO priority a thread runs until it blocks).  In a child process; skipped where SCHED_FIFO is not
+    allowed."""
+    script = (
+        "import os, threading\n"
+        "from piezo_valve_ros.runtime import realtime\n"
+        "stop = threading.Event(); t = threading.Thread(target=stop.wait); t.start()\n"
+        "try:\n"
+        f"    realtime.apply(realtime.RealtimeSettings(priority={priority}))\n"
+        "except realtime.RealtimeError:\n"
+        "    print('refused'); stop.set(); raise SystemExit(0)\n"
+        "name = {os.SCHED_FIFO: 'FIFO', os.SCHED_OTHER: 'OTHER'}\n"
+        "rank = lambda tid: f'{name[os.sched_getscheduler(tid)]} {os.sched_getparam(tid).sched_priority}'\n"
+        "print(rank(threading.get_native_id()), '|', rank(t.native_id))\n"
+        "realtime.leave_realtime(); stop.set(); t.join()\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    if out.stdout.strip() == "refused":
+        pytest.skip("SCHED_FIFO is not allowed here")
+    assert out.stdout.strip() == f"FIFO {priority} | {others}", out.stdout
+
+
 def test_hardware_applies_its_real_time_priority_and_cpus(tmp_path):
     """realtime.priority / realtime.cpus reach every thread of the process: the loop's thread at the priority,
     every other (DDS's included) one below, so a middleware thread that spins cannot starve the loop on its CPU;

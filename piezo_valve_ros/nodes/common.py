@@ -79,7 +79,7 @@ def realtime_specs() -> tuple[ParameterSpec, ...]:
                       "CPython's GIL switch interval in this process [s] (the interpreter's default 5 ms lets another "
                       "thread, e.g. DDS's, hold it for several control periods)", read_only=True, low=lo, high=hi),
         ParameterSpec("realtime.priority", 0, "SCHED_FIFO priority of the node's loop thread, the process's other "
-                      "threads (DDS's) one below (0 = the normal "
+                      "threads (DDS's) one below, at 1 on the normal scheduler (0 = the normal "
                       f"scheduler; {PRIORITY_RANGE[0]}..{PRIORITY_RANGE[1]}); refused at start-up when the OS does not "
                       "allow it", read_only=True),
         ParameterSpec("realtime.cpus", [], "CPUs the process may run on (e.g. [1]; empty = any)", read_only=True),

@@ -40,7 +40,7 @@ class RealtimeSettings:
 
     switch_interval_s: CPython's GIL switch interval [s] (``sys.setswitchinterval``).
     priority: SCHED_FIFO priority (1..98) of the thread that applies the settings (a node's loop); every other
-        thread of the process (DDS's, the BLAS libraries') one below (1 at the least); 0 leaves the normal
+        thread of the process (DDS's, the BLAS libraries') one below (at priority 1: on the normal scheduler); 0 leaves the normal
         scheduler.  At one priority a thread runs until it blocks: Fast DDS's asynchronous writer thread, spinning,
         starved a node's loop on its pinned CPU for good (SIGTERM, even SIGUSR1, never handled); one below, the
         loop preempts it, while it still preempts everything on the normal scheduler.
@@ -126,10 +126,10 @@ def apply(settings: RealtimeSettings) -> None:
             raise RealtimeError("realtime.priority needs Linux (os.sched_setscheduler)")
         global _applied_priority
         own, tids = threading.get_native_id(), _threads()
-        loop, others = os.sched_param(settings.priority), _below(settings.priority)
+        loop, others = (os.SCHED_FIFO, os.sched_param(settings.priority)), _below(settings.priority)
         for tid in sorted(tids, key=lambda t: t != own):   # this thread first: it then preempts the others
             try:
-                os.sched_setscheduler(tid, os.SCHED_FIFO, loop if tid == own else others)
+                os.sched_setscheduler(tid, *(loop if tid == own else others))
             except ProcessLookupError:
                 pass  # the thread ended meanwhile
             except PermissionError as exc:
@@ -147,9 +147,10 @@ _applied_priority = 0     # the SCHED_FIFO priority ``apply`` gave this process'
 _ranked: set[int] = set()  # threads whose priority ``apply`` or ``rank_threads`` has set
 
 
-def _below(priority: int) -> os.sched_param:
-    """The priority of a real-time process's threads other than its loop's: one below (1 at the least)."""
-    return os.sched_param(max(priority - 1, 1))
+def _below(priority: int) -> tuple[int, os.sched_param]:
+    """(policy, priority) of a real-time process's threads other than its loop's: SCHED_FIFO one below; below FIFO 1,
+    the normal scheduler (at the loop's own priority a spinning thread would starve the loop, as above)."""
+    return (os.SCHED_FIFO, os.sched_param(priority - 1)) if priority > 1 else (os.SCHED_OTHER, os.sched_param(0))
 
 
 def rank_threads() -> None:
@@ -165,7 +166,7 @@ def rank_threads() -> None:
         _ranked.add(tid)
         try:
             if tid != own and os.sched_getscheduler(tid) == os.SCHED_FIFO:
-                os.sched_setscheduler(tid, os.SCHED_FIFO, others)
+                os.sched_setscheduler(tid, *others)
         except OSError:
             pass  # the thread ended meanwhile
 
