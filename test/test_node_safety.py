@@ -470,25 +470,34 @@ def test_a_node_leaves_its_real_time_priority_before_it_tears_down():
     """The shutdown runs on the normal scheduler: ``leave_realtime`` puts every SCHED_FIFO thread of the process
     back on SCHED_OTHER (threads at one FIFO priority on one CPU run until they block, so a teardown that waits
     by spinning would starve itself there).  In a child process; skipped where SCHED_FIFO is not allowed."""
-    script = (
-        "import os, threading, time\n"
-        "from piezo_valve_ros.runtime import realtime\n"
-        "stop = threading.Event(); t = threading.Thread(target=stop.wait); t.start()\n"
-        "try:\n"
-        "    realtime.apply(realtime.RealtimeSettings(priority=10))\n"
-        "except realtime.RealtimeError:\n"
-        "    print('refused'); stop.set(); raise SystemExit(0)\n"
-        "tids = [int(x) for x in os.listdir('/proc/self/task')]\n"
-        "before = {os.sched_getscheduler(tid) for tid in tids}\n"
-        "realtime.leave_realtime()\n"
-        "after = {os.sched_getscheduler(tid) for tid in tids}\n"
-        "stop.set(); t.join()\n"
-        "print(len(tids), before == {os.SCHED_FIFO}, after == {os.SCHED_OTHER})\n")
+    out = _in_a_realtime_child(10, "tids = [int(x) for x in os.listdir('/proc/self/task')]\n"
+                                   "before = {os.sched_getscheduler(tid) for tid in tids}\n"
+                                   "realtime.leave_realtime()\n"
+                                   "after = {os.sched_getscheduler(tid) for tid in tids}\n"
+                                   "print(len(tids), before == {os.SCHED_FIFO}, after == {os.SCHED_OTHER})\n")
+    assert out.split() == ["2", "True", "True"], out
+
+
+def _in_a_realtime_child(priority: int, body: str) -> str:
+    """What ``body`` prints, run in a child process (``os``, ``threading`` and ``realtime`` imported) after
+    ``realtime.apply`` at ``priority``, with a second thread ``t`` waiting beside the main one; the test is skipped
+    where SCHED_FIFO is not allowed."""
+    script = ("import os, threading\n"
+              "from piezo_valve_ros.runtime import realtime\n"
+              "stop = threading.Event(); t = threading.Thread(target=stop.wait); t.start()\n"
+              "try:\n"
+              f"    realtime.apply(realtime.RealtimeSettings(priority={priority}))\n"
+              "except realtime.RealtimeError:\n"
+              "    print('refused'); stop.set(); raise SystemExit(0)\n"
+              "try:\n"
+              + "".join(f"    {line}\n" for line in body.splitlines()) +
+              "finally:\n"
+              "    realtime.leave_realtime(); stop.set(); t.join()\n")
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     if out.stdout.strip() == "refused":
         pytest.skip("SCHED_FIFO is not allowed here")
-    assert out.stdout.split() == ["2", "True", "True"], out.stdout
+    return out.stdout.strip()
 
 
 @pytest.mark.parametrize("priority, others", [(10, "FIFO 9"), (1, "OTHER 0")])
@@ -497,23 +506,11 @@ def test_the_threads_beside_the_loop_run_below_its_priority(priority, others):
     below it, so that one that spins cannot starve the loop: at priority 1 that is the normal scheduler (at the
     loop's own FIFO priority a thread runs until it blocks).  In a child process; skipped where SCHED_FIFO is not
     allowed."""
-    script = (
-        "import os, threading\n"
-        "from piezo_valve_ros.runtime import realtime\n"
-        "stop = threading.Event(); t = threading.Thread(target=stop.wait); t.start()\n"
-        "try:\n"
-        f"    realtime.apply(realtime.RealtimeSettings(priority={priority}))\n"
-        "except realtime.RealtimeError:\n"
-        "    print('refused'); stop.set(); raise SystemExit(0)\n"
-        "name = {os.SCHED_FIFO: 'FIFO', os.SCHED_OTHER: 'OTHER'}\n"
-        "rank = lambda tid: f'{name[os.sched_getscheduler(tid)]} {os.sched_getparam(tid).sched_priority}'\n"
-        "print(rank(threading.get_native_id()), '|', rank(t.native_id))\n"
-        "realtime.leave_realtime(); stop.set(); t.join()\n")
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
-    assert out.returncode == 0, out.stderr
-    if out.stdout.strip() == "refused":
-        pytest.skip("SCHED_FIFO is not allowed here")
-    assert out.stdout.strip() == f"FIFO {priority} | {others}", out.stdout
+    out = _in_a_realtime_child(priority, "name = {os.SCHED_FIFO: 'FIFO', os.SCHED_OTHER: 'OTHER'}\n"
+                                         "rank = lambda tid: f'{name[os.sched_getscheduler(tid)]} "
+                                         "{os.sched_getparam(tid).sched_priority}'\n"
+                                         "print(rank(threading.get_native_id()), '|', rank(t.native_id))\n")
+    assert out == f"FIFO {priority} | {others}", out
 
 
 def test_hardware_applies_its_real_time_priority_and_cpus(tmp_path):
