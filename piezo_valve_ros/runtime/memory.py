@@ -41,4 +41,4 @@ def keep_freed_memory() -> bool:
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     settings = ((_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES), (_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES),
                 (_M_ARENA_MAX, ARENAS))
-    return all([mallopt(parameter, value) == 1 for parameter, value in settings])
+    return all([mallopt(parameter, value) == 1 for parameter, value in settings])   # a list: every one is tried

@@ -40,8 +40,8 @@ class RealtimeSettings:
 
     switch_interval_s: CPython's GIL switch interval [s] (``sys.setswitchinterval``).
     priority: SCHED_FIFO priority (1..98) of the thread that applies the settings (a node's loop); every other
-        thread of the process (DDS's, the BLAS libraries') one below (at priority 1: on the normal scheduler); 0 leaves the normal
-        scheduler.  At one priority a thread runs until it blocks: Fast DDS's asynchronous writer thread, spinning,
+        thread of the process (DDS's, the BLAS libraries') one below (at priority 1: on the normal scheduler); 0
+        leaves the normal scheduler.  At one priority a thread runs until it blocks: Fast DDS's asynchronous writer thread, spinning,
         starved a node's loop on its pinned CPU for good (SIGTERM, even SIGUSR1, never handled); one below, the
         loop preempts it, while it still preempts everything on the normal scheduler.
     cpus: CPU numbers every thread of the process may run on; empty = all.

@@ -28,7 +28,7 @@ from .records import Record, analysis_record
 from ..model.dynamics import PAPER_SECTION, unity_dc_poles
 from .valve_model import REST, Context, InitialState, ValveModel, discretise_for, filter_at_rest, filter_rows_at_rest
 
-__all__ = ["uniform_thresholds", "partial_sum_basis", "solve_bounded", "solve_gram", "fit_model", "fit_dynamics", "refit_poles_with_effects", "BASIS_RIDGE",
+__all__ = ["uniform_thresholds", "partial_sum_basis", "solve_bounded", "solve_gram", "solve_standardised", "gpim_lower_bounds", "position_slope", "fit_model", "fit_dynamics", "refit_poles_with_effects", "BASIS_RIDGE",
            "fit_paper_gpim", "PaperFit", "DynamicsFit", "FitCache", "PARTIAL_SUM_FLOOR", "DYNAMICS_CONDITION_LIMIT", "POLE_STEP_LIMIT"]
 
 PARTIAL_SUM_FLOOR = 1e-4          # partial sums of weights >= this share of the record's um/V slope

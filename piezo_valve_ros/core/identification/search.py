@@ -7,6 +7,7 @@ from dataclasses import dataclass, replace
 from typing import Callable, Optional
 
 import numpy as np
+
 from ..metrics import rms
 from .effects import Effect
 from .fitting import BASIS_RIDGE, gpim_lower_bounds, position_slope, run_in_order, solve_standardised
