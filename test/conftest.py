@@ -15,6 +15,10 @@ from ros_helpers import ros_env  # noqa: E402
 from piezo_valve_ros.runtime.memory import keep_freed_memory  # noqa: E402
 keep_freed_memory()
 
+# ... and run BLAS on one thread, as the nodes do: its idle workers spin, and the workers share the machine (core.blas)
+from piezo_valve_ros.core.blas import one_blas_thread_for_process  # noqa: E402
+one_blas_thread_for_process()
+
 # nodes created in the test process join the suite's private DDS domain, on this machine only
 os.environ.update({k: ros_env()[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
 

@@ -12,7 +12,7 @@ PACKAGE = "piezo_valve_ros"
 ROOT = Path(__file__).resolve().parent.parent / PACKAGE
 
 # what each part of the core may import from the rest of the core (besides itself and the shared leaves)
-SHARED_LEAVES = {"core.metrics", "core.validation", "core.defaults", "core.errors"}
+SHARED_LEAVES = {"core.metrics", "core.validation", "core.defaults", "core.errors", "core.blas"}
 MAY_IMPORT = {
     "core.model": set(),
     "core.control": {"core.model"},

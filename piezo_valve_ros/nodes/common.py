@@ -21,6 +21,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy, DurabilityPo
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
+from ..core.blas import one_blas_thread_for_process
 from ..core.defaults import CONTROL_PERIOD_S
 from ..io.samples import SAMPLES_LABEL, decode_samples
 from ..core.validation import ParameterSpec, as_float
@@ -464,6 +465,7 @@ def run_node(factory: Callable[[], Node], name: str, args=None, on_exit_of=None,
         print_help(name, sys.modules[getattr(factory, "__module__", __name__)].__doc__, specs)
         return 0
     die_with_parent()
+    one_blas_thread_for_process()   # a BLAS worker spinning beside a real-time loop takes its CPU (core.blas)
     init_ros(args)
     try:
         node = factory()

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import sys
 
+from ..core.blas import one_blas_thread_for_process
 from ..core.validation import same_period
 from ..runtime.processes import die_with_parent
 from .common import close, init_ros, print_help, spin, wants_help
@@ -50,6 +51,7 @@ def main(args=None) -> int:
                    + tuple(p.under("valve_controller:") for p in CONTROLLER_PARAMETERS))
         return 0
     die_with_parent()
+    one_blas_thread_for_process()   # as every node (nodes.common.run_node)
     init_ros(args)
     try:
         hardware, controller = build()

@@ -56,7 +56,6 @@ from dataclasses import dataclass, field, replace
 from typing import Callable, Optional
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from .effects import CATALOGUE, Effect
 from .fitting import FitCache, PaperFit, fit_model, fit_paper_gpim, refit_poles_with_effects, with_poles, uniform_thresholds
@@ -69,6 +68,7 @@ from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, MAX_ANALYSED_S, SUPPO
 from .search import (GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, Score, SubsetSearch, no_room_because,
                      percent, room_for_an_effect, support, unsupported_because)
 from .split import WIPE_MARGIN, SessionStart, Split, split_records
+from ..blas import one_blas_thread
 from ..metrics import ErrorFigures, error_figures, rms
 from ..model.dynamics import describe_dynamics
 from .valve_model import REST, InitialState, ValveModel
@@ -192,13 +192,13 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
     """Fit, diagnose and extend; ``validate_full`` None holds out the last ``HELD_OUT_FRACTION`` of the record.
 
     Independent refits run on ``threads`` threads (the result does not depend on how many).  BLAS runs on
-    one thread meanwhile: its threads gain nothing on these tall, narrow least-squares problems and, beside
-    other busy processes, oversubscribe the cores (measured 3-4x slower on a loaded 2-core machine).
+    one thread meanwhile (``core.blas``): its threads gain nothing on these tall, narrow least-squares problems
+    and, beside other busy processes, oversubscribe the cores (measured 3-4x slower on a loaded 2-core machine).
     """
     if threads < 1:
         raise ValueError(f"threads must be >= 1, got {threads}")
     # the forms of one refit run on a pool of their own: a refit on the first pool waits for them there
-    with threadpool_limits(limits=1, user_api="blas"), \
+    with one_blas_thread(), \
             ThreadPoolExecutor(threads, thread_name_prefix="refit") as pool, \
             ThreadPoolExecutor(threads, thread_name_prefix="form") as forms_pool:
         return _Loop(train_full, validate_full, max_rate_hz, log, pool, forms_pool).run()

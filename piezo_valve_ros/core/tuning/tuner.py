@@ -51,6 +51,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
+from ..blas import one_blas_thread
 from ..defaults import CONTROL_PERIOD_S
 from ..errors import PiezoValveError
 from ..control.compensation import CompensationModel, reference_filters
@@ -574,8 +575,11 @@ def tune(strategy: str, model: CompensationModel, dt: float, limits: TuningLimit
     controller inverting all of it); ``config`` gives the command range and derivative filter (default
     ControllerConfig's); ``starts``: gain sets tried besides the grid (default: Table 1's for the strategy).
     Raises TuningError when the strategy has no loop, the inputs are bad or no
-    candidate meets ``limits``."""
-    return _Tuner(strategy, model, dt, limits, config, plant, log).run(starts)
+    candidate meets ``limits``.  BLAS runs on one thread meanwhile (``core.blas``: the candidates' thousands of
+    small discretisations would keep a second core spinning for nothing)."""
+    tuner = _Tuner(strategy, model, dt, limits, config, plant, log)
+    with one_blas_thread():
+        return tuner.run(starts)
 
 
 class _Tuner:
