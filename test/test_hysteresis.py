@@ -245,6 +245,32 @@ def test_last_contact_is_the_same_whatever_its_block_size():
         assert set(np.unique(side)) <= {-1, 0, 1} and (np.diff(idx, axis=0) >= 0).all()
 
 
+@pytest.mark.parametrize("n", [3, 8, 15, 90, 128, 130])
+def test_contact_sensitivity_compiled_gives_the_numpy_paths_bits(n):
+    """contact_sensitivity's sums (the Gauss-Newton sensitivities of the descending envelope and of rate-dependent
+    thresholds): compiled, each row's terms formed and summed as numpy forms and sums them (its pairwise sum), so
+    the two paths agree to the bit for every operator count (above 128 the numpy path runs), each bound choice and
+    one or several columns; and both equal the sum written out, to rounding."""
+    from piezo_valve_ros.core.model.hysteresis import contact_sensitivity, last_contact, play_batch
+    rng = np.random.default_rng(n)
+    v = np.cumsum(rng.standard_normal(6000)) * 0.3
+    r = np.linspace(0, 3, n)
+    w = rng.uniform(0.0, 1.5, n) * 10.0 ** rng.integers(-3, 3, n)
+    rho = np.abs(np.gradient(v))
+    states, _ = play_batch(v - 0.2 * rho, v + 0.2 * rho, r, np.zeros(n))
+    side, idx = last_contact(states, v - 0.2 * rho, v + 0.2 * rho, r)
+    for change in (rho, rng.standard_normal((v.size, 4))):
+        for bounds, on in (("lower", side < 0), ("upper", side > 0), ("both", side)):
+            fast = contact_sensitivity(side, idx, w, change, bounds, compiled=True)
+            slow = contact_sensitivity(side, idx, w, change, bounds)
+            assert fast.shape == slow.shape == change.shape and np.array_equal(fast, slow), (bounds, change.ndim)
+            c = change if change.ndim == 2 else change[:, None]
+            written = np.stack([(on * w * c[np.maximum(idx, 0), k]).sum(axis=1) for k in range(c.shape[1])], axis=1)
+            assert np.allclose(fast, written.reshape(fast.shape), rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="bounds must be one of lower, upper, both"):
+        contact_sensitivity(side, idx, w, rho, "sideways")
+
+
 @pytest.mark.parametrize("method, delay", [("zoh", 0.0), ("foh", 0.0), ("foh", 5e-5)])
 def test_closed_form_discretisation_matches_scipy(method, delay):
     from scipy import signal

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property, lru_cache
-from typing import Callable, Optional, Protocol
+from typing import Optional, Protocol
 
 import numpy as np
 
@@ -22,7 +22,7 @@ from ..model.dynamics import (PAPER_SECTION, ContinuousTF, describe_dynamics, di
                               steady_state, unity_dc_poles)
 from ..model import hysteresis
 from ..model.iir import filter_rows
-from ..model.hysteresis import GPIM, last_contact, play_batch
+from ..model.hysteresis import GPIM, contact_sensitivity, last_contact, play_batch
 from ..model.rate_dependence import rate_terms
 from .records import Record
 
@@ -353,46 +353,21 @@ class Context:
             return last_contact(self.states, lower, upper, self.model.gpim.thresholds, compiled=True)
         return self._structural("contacts", compute)
 
-    def _gathered(self, change: np.ndarray, weighted_side: Callable[[slice], np.ndarray]) -> np.ndarray:
-        """Sum over operators of ``weighted_side(rows)`` ((rows, n): the operators' weights on the bound each
-        touched last) times each column of change (N,) or (N, k) at the operator's last contact: (N,) or (N, k).
-        Block by block of ``hysteresis.ROW_BLOCK`` rows (what a block gathers and weighs stays in the cache; the (N, n)
-        products are never formed), each row summed as one contiguous row (the same bits as a whole-array sum).
-        Only ``contacts`` is kept ((N, n) int8 and int32); the samples and sides are taken per block."""
-        index = self.contacts[1]
-        c = np.asarray(change, float)
-        columns = np.ascontiguousarray((c[:, None] if c.ndim == 1 else c).T)   # (k, N): each column contiguous
-        n_rows = index.shape[0]
-        out = np.empty((n_rows, columns.shape[0]))
-        step = hysteresis.ROW_BLOCK
-        gathered = np.empty((min(step, n_rows), index.shape[1]))
-        for start in range(0, n_rows, step):
-            rows = slice(start, min(start + step, n_rows))
-            g = gathered[:rows.stop - rows.start]
-            at_rows, side = np.maximum(index[rows], 0), weighted_side(rows)   # before any contact: sample 0, side 0
-            for k in range(columns.shape[0]):
-                np.take(columns[k], at_rows, out=g, mode="clip")   # indices lie in 0..N-1
-                np.multiply(g, side, out=g)
-                out[rows, k] = g.sum(axis=1)
-        return out[:, 0] if c.ndim == 1 else out
-
     def bound_sensitivity(self, lower_change: Optional[np.ndarray], upper_change: Optional[np.ndarray]) -> np.ndarray:
         """dH [um] for a small change of the operators' lower / upper bounds (each (N,) or (N, k) in V, or None),
-        exactly to first order: each operator moves by the change of the bound it touched last, at that time.
-        Returns (N,) or (N, k), a column per column of the changes."""
-        side = self.contacts[0]
+        exactly to first order: each operator moves by the change of the bound it touched last, at that time
+        (:func:`hysteresis.contact_sensitivity`).  Returns (N,) or (N, k), a column per column of the changes."""
+        side, index = self.contacts
         w = self.model.gpim.weights
-        moved = [self._gathered(lower_change, lambda rows: (side[rows] < 0) * w)] if lower_change is not None else []
-        if upper_change is not None:
-            moved.append(self._gathered(upper_change, lambda rows: (side[rows] > 0) * w))
+        moved = [contact_sensitivity(side, index, w, change, bounds, compiled=True)
+                 for change, bounds in ((lower_change, "lower"), (upper_change, "upper")) if change is not None]
         return sum(moved[1:], moved[0]) if moved else np.zeros(len(self.record))
 
     def widening_sensitivity(self, change: np.ndarray) -> np.ndarray:
         """dH [um] for the thresholds widened by ``change`` (N,) or (N, k) [V] (lower bounds down, upper bounds
         up by it): ``bound_sensitivity(-change, change)`` in one gather per column."""
-        side = self.contacts[0]
-        w = self.model.gpim.weights
-        return self._gathered(change, lambda rows: side[rows] * w)   # +1 upper, -1 lower, 0 no contact yet
+        side, index = self.contacts
+        return contact_sensitivity(side, index, self.model.gpim.weights, change, "both", compiled=True)
 
     # ------------------------------------------------------------------ the linear dynamics
     @cached_property

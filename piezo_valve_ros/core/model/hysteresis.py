@@ -29,7 +29,7 @@ from ..errors import PiezoValveError
 from .compiled import load as load_kernels
 from .drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
-__all__ = ["play_bounds", 
+__all__ = ["play_bounds", "contact_sensitivity", "CONTACT_BOUNDS", 
     "PlayOperatorBank",
     "play_batch",
     "last_contact",
@@ -376,6 +376,42 @@ def last_contact(states: np.ndarray, lower_drive: np.ndarray, upper_drive: np.nd
         side_last[rows], index[rows] = block_side, block_index
         carried_side, carried_index = block_side[-1].copy(), block_index[-1].copy()
     return side_last, index
+
+
+CONTACT_BOUNDS = {"lower": -1, "upper": 1, "both": 0}   # contact_sensitivity's ``bounds``, as the kernel codes them
+
+
+def contact_sensitivity(side: np.ndarray, index: np.ndarray, weights: np.ndarray, change: np.ndarray, bounds: str,
+                        compiled: bool = False) -> np.ndarray:
+    """dH [um] of a play bank for a small change of its operators' clamp bounds, exactly to first order: each
+    operator moves by the change of the bound it touched last (``side``, ``index`` (N, n) from :func:`last_contact`),
+    at that time, times its weight (``weights`` (n,) [um/V]).  ``change`` (N,) or (N, k) [V]; ``bounds`` "lower"
+    (the lower bounds move by it), "upper", or "both" (thresholds widened: lower bounds down, upper bounds up).
+    Returns (N,) or (N, k).  Block by block of ROW_BLOCK rows (the (N, n) products are never formed), each row
+    summed as one contiguous row; ``compiled`` (records of KERNEL_MIN_WORK operator-samples and more, up to
+    ``_play_kernel.PAIRWISE_BLOCK`` operators) runs it row by row in numba, to the same bits."""
+    if bounds not in CONTACT_BOUNDS:
+        raise ValueError(f"bounds must be one of {', '.join(CONTACT_BOUNDS)}, got {bounds!r}")
+    c = np.asarray(change, float)
+    columns = np.ascontiguousarray((c[:, None] if c.ndim == 1 else c).T)   # (k, N): each column contiguous
+    n_rows, n = index.shape
+    out = np.empty((n_rows, columns.shape[0]))
+    w = np.asarray(weights, float)
+    if compiled and index.size >= KERNEL_MIN_WORK and n <= _kernels().PAIRWISE_BLOCK:
+        _kernels().contact_sums(np.ascontiguousarray(side), np.ascontiguousarray(index), np.ascontiguousarray(w),
+                                CONTACT_BOUNDS[bounds], columns, out)
+        return out[:, 0] if c.ndim == 1 else out
+    which = {"lower": lambda s: (s < 0) * w, "upper": lambda s: (s > 0) * w, "both": lambda s: s * w}[bounds]
+    gathered = np.empty((min(ROW_BLOCK, n_rows), n))
+    for start in range(0, n_rows, ROW_BLOCK):
+        rows = slice(start, min(start + ROW_BLOCK, n_rows))
+        g = gathered[:rows.stop - rows.start]
+        at_rows, weighted = np.maximum(index[rows], 0), which(side[rows])   # before any contact: sample 0, side 0
+        for k in range(columns.shape[0]):
+            np.take(columns[k], at_rows, out=g, mode="clip")   # indices lie in 0..N-1
+            np.multiply(g, weighted, out=g)
+            out[rows, k] = g.sum(axis=1)
+    return out[:, 0] if c.ndim == 1 else out
 
 
 def output_play(x: np.ndarray, width: float, compiled: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
