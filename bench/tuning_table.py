@@ -4,7 +4,8 @@ run the paper's three steps on the valve with the tuned gains and with each Tabl
 Cases: the default valve at the paper's 10 kHz and at the rig's 1 kHz (where the one period of delay eats the
 margins Table 1 was tuned with), and the slow-dynamics valve (G_v with a 60 Hz section) at 1 kHz.  Prints,
 per case, every set's average settling time and overshoot on the valve and its margins on the model, and
-whether the tuned set beats the best Table 1 set within the tuner's overshoot limit (2 %).
+whether the tuned set beats the best Table 1 set within the tuner's overshoot limit (2 %), and the time and CPU the
+tuning and its comparison took (one core's worth: ``tune`` runs BLAS on one thread, ``core.blas``).
     python bench/tuning_table.py [--quick] [--markdown docs/results/tuning_table.md]
 ``--quick``: only the 1 kHz cases.
 """
@@ -49,8 +50,9 @@ def main():
         print(f"\n## {title}")
         lines += [f"## {title}", ""]
         for strategy in STRATEGIES:
-            t = time.perf_counter()
+            t, cpu = time.perf_counter(), time.process_time()
             cmp = compare_tuning(strategy, sim, model, log=lambda s: None)
+            took = f"tuning took {time.perf_counter() - t:.1f} s, {time.process_time() - cpu:.1f} s of CPU"
             header = ("| set | kp | ki [1/s] | kd [s] | settling [ms] | overshoot [%] | worst step [%] | "
                       "worst step, model with G_v +-10 % [%] | margins |")
             rows = [header, "|" + "---|" * 9]
@@ -60,7 +62,7 @@ def main():
                             f"{1e3 * score.settling_time_s:.2f} | {score.overshoot_pct:.2f} | "
                             f"{score.worst_overshoot_pct:.2f} | {cmp.robust_overshoot_pct[name]:.2f} | "
                             f"{cmp.margins[name].text()} |")
-            verdict = f"**{label(strategy)}: {cmp.verdict()}** (tuning took {time.perf_counter() - t:.0f} s)"
+            verdict = f"**{label(strategy)}: {cmp.verdict()}** ({took})"
             print(f"\n### {label(strategy)}")
             print("\n".join(rows))
             print(verdict)

@@ -4,9 +4,8 @@ The package's matrices are tall and narrow (an analysis's least squares: a recor
 or small (a filter's state space in ``scipy.signal.cont2discrete``'s matrix exponential, a companion matrix).
 BLAS threads gain nothing on them, and they cost: OpenBLAS hands a call to its worker threads, which then spin on
 a core waiting for the next one before they sleep, so work that calls BLAS often keeps a second core busy for
-nothing.  Measured on this 2-core machine: ``tune`` (PID HC on the default valve; 4,644 discretisations) took
-8.5 s of CPU in 4.4 s with the default two threads, 4.3 s in 4.3 s on one (the same gains); the test suite
-716 CPU-s, 647 with every process on one thread.
+nothing (``tune``'s candidates discretise thousands of filters: with the default threads it took twice the CPU
+for the same time and gains; ``bench/tuning_table.py`` prints each tuning's time and CPU).
 
 * :func:`one_blas_thread`: every loaded BLAS on one thread while a long computation runs (``analyse``,
   ``tune``), as a context manager;
