@@ -54,10 +54,13 @@ PAPER_T2 = {
 
 
 def config_for(name):
-    if not has_feedback(name):
-        return ControllerConfig(strategy=name, gains=PIDGains(0.0, 0.0))
-    strategy, gains = TABLE1_GAINS[name]
-    return ControllerConfig(strategy=strategy, gains=gains)
+    """The controller of a Table 1 gain set ("pid_hc_5"), or of a strategy without a loop by its name ("ol_hc")."""
+    if name in TABLE1_GAINS:
+        strategy, gains = TABLE1_GAINS[name]
+        return ControllerConfig(strategy=strategy, gains=gains)
+    if has_feedback(name):
+        raise ValueError(f"{name!r} closes a loop: name one of its Table 1 gain sets")
+    return ControllerConfig(strategy=name, gains=PIDGains(0.0, 0.0))
 
 
 def label(name):
