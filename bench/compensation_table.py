@@ -47,7 +47,7 @@ def main(argv=None) -> int:
             sb, se = result.spool_errors[("baseline", label)], result.spool_errors[("extended", label)]
             g = config.gains
             shown = label if label in strategies else f"{label} (kp {g.kp:.3g}, ki {g.ki:.4g}, kd {g.kd:.2g})"
-            row = (f"| {name} | {', '.join(result.effects_added) or 'none'} | {', '.join(result.refused) or '-'} | "
+            row = (f"| {name} | {', '.join(result.effects_added) or 'none'} | {', '.join(n + (' (in part)' if n in result.kept_in_part else '') for n in result.refused) or '-'} | "
                    f"{shown} | {b.rms_um:.3f} | {e.rms_um:.3f} | {b.peak_um:.3f} ({b.peak_pct:.2f} %) | "
                    f"{e.peak_um:.3f} ({e.peak_pct:.2f} %) | {e.rms_um / b.rms_um:.2f} | {e.peak_um / b.peak_um:.2f} | "
                    f"{sb.rms_um:.3f} -> {se.rms_um:.3f} | {sb.peak_um:.3f} -> {se.peak_um:.3f} | "

@@ -122,6 +122,7 @@ def model_tracking_test(compensation: CompensationModel, sim_config: ValveSimCon
 class CompensationResult:
     effects_added: list[str]
     refused: dict[str, str]
+    kept_in_part: list[str]   # refused effects compensated without what was refused (Effect.compensable)
     errors: dict[tuple[str, str], ErrorFigures]   # (model "baseline"/"extended", strategy label) -> error
     spool_errors: dict[tuple[str, str], ErrorFigures]   # the same runs, the spool's true position's error
     strategies: dict[str, ControllerConfig]         # strategy label -> the settings it ran with (tuned ones too)
@@ -150,6 +151,7 @@ def compare_compensations(sim_config: ValveSimConfig, strategies: dict[str, Cont
     runs = {(name, label): tracking_test(config, model, sim_config, reference)
             for name, model in models.items() for label, config in strategies.items()}
     return CompensationResult(list(analysis.report.effects_added), dict(extended.refused),
+                              [n for n in extended.refused if n in [e.name for e in extended.model.effects]],
                               {key: run.measured for key, run in runs.items()},
                               {key: run.spool for key, run in runs.items()}, strategies,
                               model_tracking_test(models["extended"], sim_config, reference))

@@ -282,3 +282,19 @@ def test_a_model_is_refused_under_a_command_range_it_was_not_fitted_on():
     with pytest.raises(ValueError, match="lo < hi"):
         CompensationModel.from_parameters({**params, "model.fitted_range_v": [5.0, 1.0]})
     assert FITTED_RANGE_MARGIN == 0.25 and MIN_FITTED_SPAN_SHARE == 0.25
+
+
+@pytest.mark.slow
+def test_a_rate_dependence_with_a_slope_keeps_its_widening_in_the_controller():
+    """The simulated valve with rate-dependent thresholds, identified at 1 kHz, gets dynamics in its "rates" form
+    (the thresholds' widening and a steepening slope).  The controller's inverse has no slope: the slope is left to
+    the feedback and said so, and the model is refitted with the widening alone, which the controller inverts
+    (before, the whole effect was dropped and OL HC compensated no rate dependence at all)."""
+    from evaluation import SIMULATED_EFFECTS, simulated_analysis
+    from piezo_valve_ros.identify import compensation
+    sim = replace(SIMULATED_EFFECTS["rate dependence"](ValveSimConfig()), dt=1e-3)
+    comp = compensation(simulated_analysis(sim, log=lambda s: None))
+    assert "rate-dependent slope" in comp.refused["dynamics"] and "refitted without it" in comp.refused["dynamics"], comp.refused
+    dynamics = [e for e in comp.model.effects if e.name == "dynamics"]
+    assert dynamics and dynamics[0].form == "rate", comp.model.effects
+    assert any(abs(c) > 0.01 for c in comp.controller_model.rate_widening_v), comp.controller_model.rate_widening_v

@@ -91,6 +91,10 @@ def test_a_rate_dependent_slope_is_left_to_the_feedback():
         Dynamics(form="rates").compensation(model, np.array([0.0, 0.2, 0.0, 0.0, 0.0, 0.0]))
     assert Dynamics(form="rates").compensation(model, np.zeros(6)) == {
         "rate_widening_v": (0.1, 0.0, 0.0, 0.0, 0.0, 0.0)}
+    # what of it the controller can take, for the refit without the slope (to_controller)
+    assert Dynamics(form="rates").compensable() == Dynamics(form="rate")
+    assert Dynamics(form="delay+poles+rate+slope").compensable() == Dynamics(form="delay+poles+rate")
+    assert Dynamics(form="slope").compensable() is None
 
 
 @pytest.mark.slow

@@ -56,7 +56,8 @@ def compensation(analysis: Analysis, dynamic_feedforward: bool = True) -> Compen
     it has none; an effect is taken only if the model with it still passes ``CompensationModel.problems`` as a
     whole on the fitted voltages (e.g. a saturation map that stays invertible together with the creep).  When
     anything is left out the model is refitted without it, so the GPIM the controller inverts is the best one
-    without that structure.  With ``dynamic_feedforward`` the feedforward also inverts the fitted G
+    without that structure; an effect whose ``compensation`` refuses part of it (a rate-dependent slope) is refitted
+    without that part (``Effect.compensable``) and the rest compensated.  With ``dynamic_feedforward`` the feedforward also inverts the fitted G
     (``compensation.DynamicFeedforward``).
     """
     final = analysis.final
@@ -68,6 +69,10 @@ def compensation(analysis: Analysis, dynamic_feedforward: bool = True) -> Compen
             trial = replace(controller, **e.compensation(final, c))
         except NotCompensable as exc:
             refused[e.name] = str(exc)
+            reduced = e.compensable()   # what of it the controller can take, refitted below without the rest
+            if reduced is not None:
+                usable.append(reduced)
+                refused[e.name] += f" (the rest of {e.name} refitted without it and compensated)"
             continue
         problems = trial.problems(*drive)
         if problems:

@@ -148,3 +148,8 @@ class Effect:
         """What compensates this effect: ``CompensationModel`` field -> typed value (a ``CreepModel``, an ``OutputMap``,
         ...); raises NotCompensable with the reason."""
         raise NotCompensable(f"{self.name}: the controller has no compensation for it")
+
+    def compensable(self) -> Optional["Effect"]:
+        """This effect without the structures its ``compensation`` refuses, for a model refitted with what the
+        controller can compensate (``to_controller``); None where nothing of it is left."""
+        return None

@@ -19,6 +19,7 @@ exact sensitivities.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Optional
 
 import numpy as np
 
@@ -164,3 +165,11 @@ class Dynamics(Effect):
         if any(c != 0.0 for c in model.rate_widening_v):
             return {"rate_widening_v": tuple(float(c) for c in model.rate_widening_v)}
         return {}
+
+    def compensable(self) -> Optional["Dynamics"]:
+        """This form without the rate-dependent slope (``rates``: the thresholds' widening alone); None where the
+        slope is all it has."""
+        kept = [s for s in STRUCTURES if self.has(s) and s != "slope"]
+        if not kept:
+            return None
+        return replace(self, form=kept[0] if len(kept) == 1 else "+".join(kept))
