@@ -453,3 +453,16 @@ def test_a_loop_with_two_periods_of_delay_is_caught_by_the_guard_through_ros(ros
         y = valve.run(np.full(10, v))[-1]
     assert ctl.guard_trips >= 1
     np.testing.assert_allclose(commands, v_core[50:], atol=1e-9)
+
+
+@pytest.mark.parametrize("demo, keeps", [("steps", True), ("none", False)])
+def test_valve_rig_keeps_the_samples_only_for_its_step_demo(ros_context, demo, keeps):
+    """valve_rig's own client subscribes to ``samples`` for the step demo, which reads them; with --demo none the
+    rig runs until stopped, and a client keeping every sample would grow without end."""
+    from piezo_valve_ros.cli.rig import parse_args, rig_client
+    client = rig_client(parse_args(["--demo", demo, "--namespace", f"/k{os.getpid()}_{demo}"]), 1)
+    try:
+        topics = [sub.topic_name for sub in client.subscriptions]
+        assert any(t.endswith("/samples") for t in topics) == keeps, topics
+    finally:
+        client.destroy_node()

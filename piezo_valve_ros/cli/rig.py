@@ -252,6 +252,14 @@ class StartUpError(PiezoValveError, RuntimeError):
     """A node of the rig ended while the rig came up (one line; the node said why on stderr)."""
 
 
+def rig_client(args, samples_per_period: int) -> RigClient:
+    """The launcher's own client of its rig.  It keeps the rig's samples only for the step demo, which reads them:
+    with ``--demo none`` the rig runs for as long as it is left, and a client keeping every sample (24 bytes a
+    sample and more) would grow without end and decode every batch on the loop's thread for nothing."""
+    return RigClient(namespace=args.namespace, samples_per_period=samples_per_period,
+                     with_samples=args.demo == "steps")
+
+
 def wait_until_up(client: RigClient, procs: ProcessGroup, timeout_s: float = READY_TIMEOUT_S) -> None:
     """Wait until the rig answers (``RigClient.wait_ready``); StartUpError as soon as one of ``procs`` ends
     (a node that refused its parameters exits at once: the rig must not wait for it), TimeoutError after
@@ -328,7 +336,7 @@ def main(argv=None) -> int:
         if args.monitor:
             procs.start("valve_monitor", node_command("valve_monitor", monitor_params, args.namespace))
         samples_per_period = max(int(round(args.control_period_s / ValveSimConfig().dt)), 1)
-        client = RigClient(namespace=args.namespace, samples_per_period=samples_per_period)
+        client = rig_client(args, samples_per_period)
         nodes.append(client)
         thread, stop, executor = run_in_background(nodes)
         wait_until_up(client, procs)
