@@ -46,19 +46,27 @@ def test_one_blas_thread_while_a_block_runs_and_for_the_rest_of_a_process_also_f
     assert json.loads(seen["child"]) == [1, 1], seen   # the variables reach the processes it starts
 
 
-@pytest.mark.parametrize("entry", ["run_node", "valve_composed"])
+@pytest.mark.parametrize("entry", ["run_node", "valve_composed", "valve_rig"])
 def test_a_node_process_runs_blas_on_one_thread(entry):
-    """Every node's process (``nodes.common.run_node``, and ``valve_composed``'s own main) sets one BLAS thread
-    before it builds its node: seen by the node's constructor, for numpy's BLAS and scipy's loaded after."""
+    """Every node's process (``nodes.common.run_node``, ``valve_composed``'s own main, and ``valve_rig``, which hosts
+    the nodes with --composed) sets one BLAS thread before it builds its nodes: seen where they would be built, for
+    numpy's BLAS and scipy's loaded after."""
     build = ("def build():\n"
              "    import scipy.linalg\n"
              "    print(json.dumps(threads()), flush=True)\n"
              "    raise RuntimeError('built no node')\n")
-    run = ("from piezo_valve_ros.nodes.common import run_node\n"
-           "code = run_node(build, 'probe', args=[])\n" if entry == "run_node" else
-           "from piezo_valve_ros.nodes import composed\n"
-           "composed.build = build\n"
-           "code = composed.main(args=[])\n")
+    run = {"run_node": "from piezo_valve_ros.nodes.common import run_node\n"
+                       "code = run_node(build, 'probe', args=[])\n",
+           "valve_composed": "from piezo_valve_ros.nodes import composed\n"
+                             "composed.build = build\n"
+                             "code = composed.main(args=[])\n",
+           "valve_rig": "import rclpy\n"   # the first thing it does after its settings: ROS up, then the nodes
+                        "from piezo_valve_ros.cli import rig\n"
+                        "rclpy.init = build\n"
+                        "try:\n"
+                        "    rig.main(['--composed', '--demo', 'none'])\n"
+                        "except RuntimeError:\n"
+                        "    code = 2\n"}[entry]
     seen = _child("import json, numpy\n" + build + run + "assert code == 2, code\n")
     assert seen == [1, 1]
 

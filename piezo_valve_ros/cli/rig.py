@@ -22,6 +22,7 @@ import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from ..core.blas import one_blas_thread_for_process
 from ..core.errors import PiezoValveError
 from ..core.validation import same_period
 from ..runtime.dds import use_fast_acknowledgements
@@ -314,6 +315,7 @@ def main(argv=None) -> int:
         print(f"valve_rig: {exc}", file=sys.stderr)
         return 2
     use_fast_acknowledgements()   # the step demo's references acknowledged within ms (its nodes: DDS defaults)
+    one_blas_thread_for_process()   # it hosts the nodes with --composed, as every node's process (core.blas)
     rclpy.init()
     procs = ProcessGroup()
     nodes: list[Node] = []

@@ -10,7 +10,8 @@ for the same time and gains; ``bench/tuning_table.py`` prints each tuning's time
 * :func:`one_blas_thread`: every loaded BLAS on one thread while a long computation runs (``analyse``,
   ``tune``), as a context manager;
 * :func:`one_blas_thread_for_process`: for the rest of the process, also for a BLAS loaded later (the nodes at
-  start-up: a spinning worker would take the CPU of the real-time loop beside it; the tests' workers).
+  start-up and ``valve_rig``, which hosts them with ``--composed``: a spinning worker would take the CPU of the
+  real-time loop beside it; the tests' workers).
 """
 from __future__ import annotations
 
