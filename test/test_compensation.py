@@ -285,7 +285,7 @@ def test_a_model_is_refused_under_a_command_range_it_was_not_fitted_on():
 
 
 @pytest.mark.slow
-def test_a_rate_dependence_with_a_slope_keeps_its_widening_in_the_controller():
+def test_a_rate_dependence_with_a_slope_keeps_its_widening_in_the_controller(monkeypatch):
     """The simulated valve with rate-dependent thresholds, identified at 1 kHz, gets dynamics in its "rates" form
     (the thresholds' widening and a steepening slope).  The controller's inverse has no slope: the slope is left to
     the feedback and said so, and the model is refitted with the widening alone, which the controller inverts
@@ -293,8 +293,16 @@ def test_a_rate_dependence_with_a_slope_keeps_its_widening_in_the_controller():
     from evaluation import SIMULATED_EFFECTS, simulated_analysis
     from piezo_valve_ros.identify import compensation
     sim = replace(SIMULATED_EFFECTS["rate dependence"](ValveSimConfig()), dt=1e-3)
-    comp = compensation(simulated_analysis(sim, log=lambda s: None))
+    analysis = simulated_analysis(sim, log=lambda s: None)
+    comp = compensation(analysis)
     assert "rate-dependent slope" in comp.refused["dynamics"] and "refitted without it" in comp.refused["dynamics"], comp.refused
     dynamics = [e for e in comp.model.effects if e.name == "dynamics"]
     assert dynamics and dynamics[0].form == "rate", comp.model.effects
     assert any(abs(c) > 0.01 for c in comp.controller_model.rate_widening_v), comp.controller_model.rate_widening_v
+    # where the widening does not pass with the rest of the model, the effect is left out whole, and said so
+    problems = CompensationModel.problems
+    monkeypatch.setattr(CompensationModel, "problems", lambda self, *a, **k: problems(self, *a, **k) + (
+        ["widening refused here"] if self.rate_widening_v else []))
+    whole = compensation(analysis)
+    assert "dynamics" not in [e.name for e in whole.model.effects] and not whole.controller_model.rate_widening_v
+    assert "does not pass with the model: widening refused here" in whole.refused["dynamics"], whole.refused

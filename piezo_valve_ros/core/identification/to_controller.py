@@ -57,22 +57,22 @@ def compensation(analysis: Analysis, dynamic_feedforward: bool = True) -> Compen
     whole on the fitted voltages (e.g. a saturation map that stays invertible together with the creep).  When
     anything is left out the model is refitted without it, so the GPIM the controller inverts is the best one
     without that structure; an effect whose ``compensation`` refuses part of it (a rate-dependent slope) is refitted
-    without that part (``Effect.compensable``) and the rest compensated.  With ``dynamic_feedforward`` the feedforward also inverts the fitted G
+    without that part (``Effect.compensable``) and the rest compensated, unless the refitted model does not pass
+    as a whole (then without the effect).  With ``dynamic_feedforward`` the feedforward also inverts the fitted G
     (``compensation.DynamicFeedforward``).
     """
     final = analysis.final
     drive = fitted_range(analysis)
     controller = base_model(final, dynamic_feedforward, drive)
-    usable, refused = [], {}
+    usable, refused, reduced = [], {}, []
     for e, c in zip(final.effects, final.coefs):
         try:
             trial = replace(controller, **e.compensation(final, c))
         except NotCompensable as exc:
             refused[e.name] = str(exc)
-            reduced = e.compensable()   # what of it the controller can take, refitted below without the rest
-            if reduced is not None:
-                usable.append(reduced)
-                refused[e.name] += f" (the rest of {e.name} refitted without it and compensated)"
+            part = e.compensable()   # what of it the controller can take, refitted below without the rest
+            if part is not None:
+                reduced.append(part)
             continue
         problems = trial.problems(*drive)
         if problems:
@@ -82,14 +82,34 @@ def compensation(analysis: Analysis, dynamic_feedforward: bool = True) -> Compen
         controller = trial
     if not refused:
         return Compensation(final, controller, refused)
-    model = fit_model(analysis.split.fit, analysis.baseline, usable, try_forms=False) if usable else analysis.baseline
+    if reduced:
+        try:
+            model, controller = _refitted(analysis, usable + reduced, dynamic_feedforward, drive)
+        except ValueError as exc:   # the parts do not pass with the rest of the model: left out whole
+            for part in reduced:
+                refused[part.name] += f" (without it, the rest of {part.name} does not pass with the model: {exc})"
+        else:
+            for part in reduced:
+                refused[part.name] += f" (the rest of {part.name} refitted without it and compensated)"
+            return Compensation(model, controller, refused)
+    model, controller = _refitted(analysis, usable, dynamic_feedforward, drive)
+    return Compensation(model, controller, refused)
+
+
+def _refitted(analysis: Analysis, effects: list, dynamic_feedforward: bool, drive) -> tuple[ValveModel, CompensationModel]:
+    """The model refitted with ``effects`` (in the forms given) and the controller's model of it; ValueError with
+    the problems where that does not pass as a whole."""
+    model = fit_model(analysis.split.fit, analysis.baseline, effects, try_forms=False) if effects else analysis.baseline
     controller = base_model(model, dynamic_feedforward, drive)
     for e, c in zip(model.effects, model.coefs):
-        controller = replace(controller, **e.compensation(model, c))
+        try:
+            controller = replace(controller, **e.compensation(model, c))
+        except NotCompensable as exc:
+            raise ValueError(str(exc)) from exc
     problems = controller.problems(*drive)
     if problems:
         raise ValueError("; ".join(problems))
-    return Compensation(model, controller, refused)
+    return model, controller
 
 
 def baseline_compensation(analysis: Analysis) -> Compensation:
