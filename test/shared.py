@@ -79,3 +79,13 @@ def directory_made_once(key: str, fill: Callable[[Path], None]) -> Path:
             fill(partial)
             partial.rename(entry)
     return entry
+
+
+def default_valve_analysis_1khz():
+    """The default simulated valve at the rig's 1 kHz, identified (``bench/evaluation.simulated_analysis``): the
+    tuning tests' model and the identification tests' poles come from this one analysis."""
+    def compute():
+        from evaluation import simulated_analysis
+        from piezo_valve_ros.core.sim.simulator import ValveSimConfig
+        return simulated_analysis(ValveSimConfig(dt=1e-3), log=lambda s: None)
+    return computed_once("shared.default_valve_analysis_1khz", compute)

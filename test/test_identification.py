@@ -466,12 +466,18 @@ def test_a_real_piezo_record_is_fitted_to_its_noise_and_nothing_is_invented():
 FULL_REAL_RECORD = Path(__file__).parent / "data" / "smart_hysteresis" / "hysteresis_v_150_1hz_1khz_full.csv"
 
 
+def _full_real_record_report() -> dict:
+    """The report on the whole measured record (computed once per test run: two tests judge it)."""
+    return computed_once("test_identification.full_real_record",
+                         lambda: analyse(read_csv(FULL_REAL_RECORD)).report.to_json())
+
+
 def test_a_real_record_that_starts_remanent_is_judged_after_its_input_wiped_the_state_out():
     """The whole measured record: 3.26 s at 0 V with the actuator 1.6 um off its loop's centre (left there by
     an earlier, unrecorded excitation), then the 1 Hz sine.  Neither rest nor cycled describes that start;
     the fit starts where the sine has reached both extremes, the report says so and estimates the state
     before the record, nothing is added, and the held-out error is at the noise (the issue's bound)."""
-    report = analyse(read_csv(FULL_REAL_RECORD)).report.to_json()
+    report = _full_real_record_report()
     start = report["baseline_fits"]["initial_state"]
     assert start["chosen"] == "wiped"
     assert 3.9 < start["fit_starts_at_s"] < 4.3                     # the sine reached -150 V then +150 V
@@ -545,7 +551,7 @@ def test_a_drift_on_the_real_record_does_not_hide_the_loop_structure_from_the_ca
     assert "drift" in report["effects_added"]
     assert report["final"]["validate"]["rms_um"] < 0.045, report["final"]["validate"]
     # the record itself, without a trend to dominate, is compared as it is
-    assert analyse(full).report.to_json()["baseline_fits"]["chosen_on"] == "held-out RMS"
+    assert _full_real_record_report()["baseline_fits"]["chosen_on"] == "held-out RMS"
 
 
 SOURCE_RECORD = Path(__file__).parent / "data" / "smart_hysteresis" / "hysteresis_v_150_1hz.csv.xz"
@@ -933,8 +939,8 @@ def test_a_valve_slower_than_its_g_v_gets_the_extra_pole_pair():
 def test_a_fast_creep_does_not_bend_the_identified_g_v():
     """Creep with a 30 ms lag takes part of the static gain away within a few samples, which bent the
     baseline's poles to 462/3248 rad/s; refitted with creep in the model they are the valve's 500/2400."""
-    from evaluation import simulated_analysis
-    a = simulated_analysis(ValveSimConfig(dt=1e-3), log=lambda s: None)
+    from shared import default_valve_analysis_1khz
+    a = default_valve_analysis_1khz()
     assert "creep" in a.report.to_json()["effects_added"]
     true = [500.0, 2400.0]
     baseline = sorted(np.abs(np.roots(a.baseline.dynamics.den)))

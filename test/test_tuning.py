@@ -6,7 +6,6 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import yaml
-from shared import computed_once
 
 from piezo_valve_ros.core.control.compensation import CompensationModel
 from evaluation import SIMULATED_EFFECTS
@@ -281,11 +280,10 @@ def test_the_comparison_says_why_a_faster_table1_set_is_not_the_tuners_choice():
 @pytest.fixture
 def default_valve_identified():
     """The default simulated valve at 1 kHz and the controller's model of it from identification (once per run)."""
-    from evaluation import simulated_analysis
+    from shared import default_valve_analysis_1khz
     from piezo_valve_ros.identify import compensation
-    sim = ValveSimConfig(dt=DT)
-    return sim, computed_once("test_tuning.default_valve_identified",
-                              lambda: compensation(simulated_analysis(sim, log=lambda s: None)).controller_model)
+    assert DT == 1e-3
+    return ValveSimConfig(dt=DT), compensation(default_valve_analysis_1khz()).controller_model
 
 
 @pytest.mark.slow
