@@ -454,19 +454,26 @@ def print_help(name: str, doc: Optional[str], specs=()) -> None:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
+def start_node_process(args=None) -> None:
+    """What a process that hosts nodes does before it builds them: it dies with its parent (a launcher's Ctrl-C
+    reaches it), holds BLAS to one thread (a worker spinning beside a real-time loop takes its CPU: core.blas), and
+    brings ROS up (``init_ros``)."""
+    from ..runtime.processes import die_with_parent
+    die_with_parent()
+    one_blas_thread_for_process()
+    init_ros(args)
+
+
 def run_node(factory: Callable[[], Node], name: str, args=None, on_exit_of=None, specs=()) -> int:
     """Console-script body: init, build the node (one clear line and exit 2 if that fails), spin.
 
     ``on_exit_of(node)`` gives the callable run when spinning ends (e.g. apply safe_voltage).
     """
     import sys
-    from ..runtime.processes import die_with_parent
     if wants_help(args):
         print_help(name, sys.modules[getattr(factory, "__module__", __name__)].__doc__, specs)
         return 0
-    die_with_parent()
-    one_blas_thread_for_process()   # a BLAS worker spinning beside a real-time loop takes its CPU (core.blas)
-    init_ros(args)
+    start_node_process(args)
     try:
         node = factory()
     except Exception as exc:

@@ -13,10 +13,8 @@ from __future__ import annotations
 
 import sys
 
-from ..core.blas import one_blas_thread_for_process
 from ..core.validation import same_period
-from ..runtime.processes import die_with_parent
-from .common import close, init_ros, print_help, spin, wants_help
+from .common import close, print_help, spin, start_node_process, wants_help
 from .controller import CONTROLLER_PARAMETERS, ValveControllerNode
 from .hardware import ValveHardwareNode, hardware_parameters_with_backends
 
@@ -50,9 +48,7 @@ def main(args=None) -> int:
                    tuple(p.under("valve_hardware:") for p in hardware_parameters_with_backends())
                    + tuple(p.under("valve_controller:") for p in CONTROLLER_PARAMETERS))
         return 0
-    die_with_parent()
-    one_blas_thread_for_process()   # as every node (nodes.common.run_node)
-    init_ros(args)
+    start_node_process(args)
     try:
         hardware, controller = build()
     except Exception as exc:
