@@ -538,3 +538,37 @@ def test_valve_record_reads_references_only_once_it_records_samples(tmp_path):
     assert counts[f"{ns}/position_reference"] == 1, counts
     rows, ref_t, ref_m, _ = read_run(tmp_path / "bag")
     assert ref_m.tolist() == [20e-6] and rows[0, 0] < ref_t[0] < rows[-1, 0]
+
+
+def test_a_recorder_reader_says_when_a_publisher_offers_a_qos_it_cannot_read(tmp_path, capfd):
+    """Each of the recorder's readers watches for a publisher whose QoS it cannot read (one line: nothing of it is
+    recorded) and for nothing else (every event handler is waited on in each executor round)."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import Float64
+    from piezo_valve_ros.rig.recording import RigRecorder
+    ns = f"/qos{os.getpid()}"
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    recorder_node = rclpy.create_node("recorder", namespace=ns, context=context)
+    rig = rclpy.create_node("rig", namespace=ns, context=context)
+    executor = SingleThreadedExecutor(context=context)
+    for node in (recorder_node, rig):
+        executor.add_node(node)
+    try:
+        RigRecorder(recorder_node)
+        assert all(len(s.event_handlers) == 1 for s in recorder_node.subscriptions), \
+            [len(s.event_handlers) for s in recorder_node.subscriptions]
+        # the recorder reads voltage_command reliably: a best-effort publisher cannot be matched
+        rig.create_publisher(Float64, "voltage_command", QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+        deadline, seen = time.monotonic() + 20.0, ""
+        while time.monotonic() < deadline and "offers a QoS" not in seen:
+            executor.spin_once(timeout_sec=0.05)
+            seen += capfd.readouterr().err
+    finally:
+        executor.shutdown()
+        for node in (recorder_node, rig):
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    assert f"a publisher of {ns}/voltage_command offers a QoS this recorder cannot read (RELIABILITY)" in seen, seen

@@ -93,7 +93,9 @@ def main(argv=None) -> int:
         print(f"valve_record: {out} exists already; every recording gets a new bag directory", file=sys.stderr)
         return 2
     init_ros(["valve_record"] + ros_args)
-    node = rclpy.create_node("valve_record", namespace=args.namespace or None)
+    # no parameter services: the recorder has no parameters to serve, and each service is waited on in every
+    # executor round (a recorder reads three messages a period from a lockstep rig)
+    node = rclpy.create_node("valve_record", namespace=args.namespace or None, start_parameter_services=False)
     executor = SingleThreadedExecutor()  # passes message info: each message keeps DDS's receive time
     executor.add_node(node)
     recorder = RigRecorder(node, args.storage, with_clock=True, dds_receive_time=True, reference_after_samples=True)
@@ -108,10 +110,11 @@ def main(argv=None) -> int:
         def keep_going() -> bool:
             nonlocal warned
             now = time.monotonic()
-            if not warned and now - started > NO_RIG_WARNING_S and not any(recorder.publishers().values()):
+            if not warned and now - started > NO_RIG_WARNING_S:   # asked once (a graph query on every spin costs)
                 warned = True
-                print(f"valve_record: nothing publishes {', '.join(recorder.topics)} yet (is the rig running in "
-                      f"namespace {args.namespace or '/'}?); still recording", file=sys.stderr, flush=True)
+                if not any(recorder.publishers().values()):
+                    print(f"valve_record: nothing publishes {', '.join(recorder.topics)} yet (is the rig running in "
+                          f"namespace {args.namespace or '/'}?); still recording", file=sys.stderr, flush=True)
             return now < end and rclpy.ok() and not stop_requested()
         spin_loop(executor, keep_going)
     except (BagError, OSError) as exc:

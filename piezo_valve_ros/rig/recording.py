@@ -13,7 +13,8 @@ from pathlib import Path
 from typing import Optional
 
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_policy_name_from_kind
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64, Float64MultiArray
 
@@ -72,8 +73,21 @@ class RigRecorder:
             if reference_after_samples and topic == DEFERRED_TOPIC:
                 self._deferred = subscription
             else:
-                node.create_subscription(*subscription, raw=True)
+                self._subscribe(subscription)
         node.create_timer(roll_period_s, self._roll)
+
+    def _subscribe(self, subscription: tuple) -> None:
+        """A raw reader with one event handler: a publisher offering an incompatible QoS is logged (rclpy's default
+        handlers also watch for an incompatible type, which these fixed topics cannot meet: each handler is waited on
+        in every executor round, a tenth of a recorder's CPU at 1 kHz)."""
+        topic = self.node.resolve_topic_name(subscription[1])
+        logger = self.node.get_logger()
+
+        def incompatible(event) -> None:
+            logger.warning(f"a publisher of {topic} offers a QoS this recorder cannot read "
+                           f"({qos_policy_name_from_kind(event.last_policy_kind)}): none of its messages is recorded")
+        self.node.create_subscription(*subscription, raw=True, event_callbacks=SubscriptionEventCallbacks(
+            incompatible_qos=incompatible, use_default_callbacks=False))
 
     def _callback(self, topic: str):
         is_samples = topic == self._samples_topic
@@ -105,7 +119,7 @@ class RigRecorder:
         """Open a deferred ``position_reference`` reader now (see ``reference_after_samples``)."""
         if self._deferred is not None:
             subscription, self._deferred = self._deferred, None
-            self.node.create_subscription(*subscription, raw=True)
+            self._subscribe(subscription)
 
     @property
     def reading_references(self) -> bool:
