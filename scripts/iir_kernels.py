@@ -13,6 +13,7 @@ from generated_page import main_for  # noqa: E402
 
 OUT = Path(__file__).resolve().parent.parent / "piezo_valve_ros" / "core" / "model" / "_iir_kernels.py"
 TAPS = range(2, 9)     # filter lengths (the longer of b and a) with a kernel
+COLUMNS_BLOCK = 64     # samples a columns kernel filters before writing them out as rows
 
 
 def unroll(taps: int) -> int:
@@ -73,6 +74,41 @@ def _rows_kernel(taps: int) -> str:
     return "\n".join(body) + "\n"
 
 
+def _columns_kernel(taps: int) -> str:
+    """The filter on each column of a sample-major x (N, k) less ``first`` (k,), written out as rows (k, N): at each
+    sample every column's recursion in one loop over the columns (independent: numba runs it on vector registers),
+    a block of COLUMNS_BLOCK samples kept and then written row by row."""
+    states = taps - 1
+    b_names, b_values = ", ".join(f"b{j}" for j in range(taps)), ", ".join(f"b[{j}]" for j in range(taps))
+    a_names, a_values = ", ".join(f"a{j}" for j in range(1, taps)), ", ".join(f"a[{j}]" for j in range(1, taps))
+    body = ["@numba.njit(nogil=True, cache=True)",
+            f"def columns_{taps}(b, a, x, first, z, out):",
+            f'    """Filters of {taps} taps on each column of x (N, k) less first (k,); z ({states}, k) states in and out; '
+            'out\n    (k, N): the filtered columns as rows."""',
+            "    n_samples, k = x.shape",
+            f"    {b_names} = {b_values}",
+            f"    {a_names} = {a_values}"]
+    body += [f"    s{j} = z[{j}].copy()" for j in range(states)]
+    body += [f"    block = np.empty(({COLUMNS_BLOCK}, k))",
+             f"    for start in range(0, n_samples, {COLUMNS_BLOCK}):",
+             f"        m = min({COLUMNS_BLOCK}, n_samples - start)",
+             "        for i in range(m):",
+             "            xi, yi = x[start + i], block[i]",
+             "            for j in range(k):",
+             "                u = xi[j] - first[j]",
+             "                y = s0[j] + b0 * u"]
+    for j in range(states - 1):
+        body.append(f"                s{j}[j] = s{j + 1}[j] + u * b{j + 1} - y * a{j + 1}")
+    body += [f"                s{states - 1}[j] = u * b{taps - 1} - y * a{taps - 1}",
+             "                yi[j] = y",
+             "        for j in range(k):",
+             "            oj = out[j]",
+             "            for i in range(m):",
+             "                oj[start + i] = block[i, j]"]
+    body += [f"    z[{j}] = s{j}" for j in range(states)]
+    return "\n".join(body) + "\n"
+
+
 def _bank_kernel() -> str:
     width = 4
     body = ["@numba.njit(nogil=True, cache=True)",
@@ -113,17 +149,22 @@ Each is lfilter's transposed direct form II, operation by operation,
     y[n] = z0 + b0 x[n];  z_j = z_(j+1) + x[n] b_(j+1) - y[n] a_(j+1);  z_last = x[n] b_last - y[n] a_last,
 
 on several rows at each sample (each output waits for the one before it; the rows' independent recursions
-overlap), their states and the coefficients locals, then the rows left over one at a time.  No fast-math: the
-operations and their order are lfilter's, so are the bits."""
+overlap), their states and the coefficients locals, then the rows left over one at a time; or (``columns_*``) on
+every column of a sample-major array at each sample, in one loop over the columns.  No fast-math: the operations
+and their order are lfilter's, so are the bits."""
 from __future__ import annotations
 
 import numba
+import numpy as np
 
 
 '''
     kernels = [_rows_kernel(t) for t in TAPS]
     table = "RUN_ROWS = {" + ", ".join(f"{t}: rows_{t}" for t in TAPS) + "}\n"
-    return head + "\n\n".join(kernels) + "\n\n" + table + "\n\n" + _bank_kernel()
+    columns = [_columns_kernel(t) for t in TAPS]
+    columns_table = "RUN_COLUMNS = {" + ", ".join(f"{t}: columns_{t}" for t in TAPS) + "}\n"
+    return (head + "\n\n".join(kernels) + "\n\n" + table + "\n\n" + "\n\n".join(columns) + "\n\n" + columns_table
+            + "\n\n" + _bank_kernel())
 
 
 if __name__ == "__main__":

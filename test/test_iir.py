@@ -123,3 +123,27 @@ def test_kernels_load_where_numba_can_write_no_cache_folder(monkeypatch):
     monkeypatch.setattr(compiled.importlib, "import_module", broken)
     with pytest.raises(RuntimeError, match="something else"):   # any other failure is not taken for the cache's
         compiled.load("piezo_valve_ros.core.model._iir_kernels")
+
+
+@pytest.mark.parametrize("name", FILTERS)
+@pytest.mark.parametrize("k", [1, 5, 90])
+def test_filter_columns_gives_the_rows_bits_of_the_transposed_columns(name, k):
+    """A sample-major bank (the operator states, N x n) filtered less its first row, without the transposed copy:
+    filter_rows' bits (lfilter's), for every filter length, across the kernel's sample blocks (1000 samples: 15 full
+    blocks and a part) and from a rest before the first sample."""
+    b, a = FILTERS[name]
+    rng = np.random.default_rng(k)
+    columns = rng.standard_normal((1000, k)).cumsum(axis=0)
+    taps = max(len(b), len(a))
+    zi = rng.standard_normal((k, taps - 1))
+    got = iir.filter_columns(b, a, columns, columns[0], zi)
+    assert got.shape == (k, 1000)
+    assert np.array_equal(got, iir.filter_rows(b, a, np.ascontiguousarray((columns - columns[0]).T), zi))
+    from piezo_valve_ros.core.identification.valve_model import filter_state_columns_at_rest
+    rest = rng.standard_normal(k)
+    for before in ((None, rest) if taps > 1 else ()):   # (a gain has no state to rest in)
+        expected = filter_rows_at_rest(b, a, np.ascontiguousarray((columns - columns[0]).T), before)
+        got = filter_state_columns_at_rest(b, a, columns, before)
+        assert np.array_equal(got, expected) and np.array_equal(np.signbit(got), np.signbit(expected))
+    with pytest.raises(ValueError, match=r"\(N, k\)"):
+        iir.filter_columns(b, a, np.zeros(5), np.zeros(1), np.zeros((1, max(taps - 1, 0))))

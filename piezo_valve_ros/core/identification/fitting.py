@@ -26,7 +26,8 @@ from .effects.base import Effect
 from ..model.hysteresis import GPIM, GPIMParams
 from .records import Record, analysis_record
 from ..model.dynamics import PAPER_SECTION, unity_dc_poles
-from .valve_model import REST, Context, InitialState, ValveModel, discretise_for, filter_at_rest, filter_rows_at_rest
+from .valve_model import (REST, Context, InitialState, ValveModel, discretise_for, filter_at_rest, filter_rows_at_rest,
+                          filter_state_columns_at_rest)
 
 __all__ = ["uniform_thresholds", "partial_sum_basis", "solve_bounded", "solve_gram", "solve_standardised", "gpim_lower_bounds", "position_slope", "fit_model", "fit_dynamics", "refit_poles_with_effects", "BASIS_RIDGE",
            "fit_paper_gpim", "PaperFit", "DynamicsFit", "FitCache", "PARTIAL_SUM_FLOOR", "DYNAMICS_CONDITION_LIMIT", "POLE_STEP_LIMIT"]
@@ -123,7 +124,7 @@ class FitCache:
         def make():
             # G at rest before the first move where the valve rested elsewhere (Context.through_dynamics)
             rest = None if ctx.rest_states is None else ctx.rest_states - ctx.states[0]
-            rows = filter_rows_at_rest(*ctx.filter, ctx.state_rows, rest)
+            rows = filter_state_columns_at_rest(*ctx.filter, ctx.states, rest)
             return rows, rows @ rows.T, rows @ ctx.record.position_um
         return self._get(self._basis, key, make)
 

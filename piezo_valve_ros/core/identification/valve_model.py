@@ -20,8 +20,7 @@ import numpy as np
 
 from ..model.dynamics import (PAPER_SECTION, ContinuousTF, describe_dynamics, discretise, scipy_signal,
                               steady_state, unity_dc_poles)
-from ..model import hysteresis
-from ..model.iir import filter_rows
+from ..model.iir import filter_columns, filter_rows
 from ..model.hysteresis import GPIM, contact_sensitivity, last_contact, play_batch
 from ..model.rate_dependence import rate_terms
 from .records import Record
@@ -236,21 +235,6 @@ class ValveModel:
         return out
 
 
-def _transposed_less_first(states: np.ndarray) -> np.ndarray:
-    """``(states - states[0]).T`` as a contiguous (n, N) array, written ``hysteresis.ROW_BLOCK`` rows at a time (a
-    block's difference is transposed while it is in the cache; a whole-array transposing copy strides over
-    all of it)."""
-    n_rows = states.shape[0]
-    out = np.empty((states.shape[1], n_rows))
-    step = hysteresis.ROW_BLOCK
-    block = np.empty((min(step, n_rows), states.shape[1]))
-    for start in range(0, n_rows, step):
-        stop = min(start + step, n_rows)
-        diff = np.subtract(states[start:stop], states[0], out=block[:stop - start])
-        out[:, start:stop] = diff.T
-    return out
-
-
 @dataclass
 class Context:
     """One evaluation of a model on one record: drives, operator states, hysteresis output, filters.
@@ -314,12 +298,6 @@ class Context:
             lower, upper = self.drives
             return play_batch(lower, upper, self.model.gpim.thresholds, self.initial_state, compiled=True)[0]
         return self._structural("states", compute)
-
-    @property
-    def state_rows(self) -> np.ndarray:
-        """(n, N) the operator states less their first row, one contiguous row per operator: the GPIM's columns
-        before G as the fits filter them (the same for every G, so kept with the structure)."""
-        return self._structural("state_rows", lambda: _transposed_less_first(self.states))
 
     @cached_property
     def H(self) -> np.ndarray:
@@ -437,6 +415,16 @@ def filter_at_rest(b: np.ndarray, a: np.ndarray, x: np.ndarray, rest=None) -> np
     if rest is not None:
         rest = np.broadcast_to(np.asarray(rest, float), (x.shape[1],))
     return filter_rows_at_rest(b, a, np.ascontiguousarray(x.T), rest).T
+
+
+def filter_state_columns_at_rest(b: np.ndarray, a: np.ndarray, states: np.ndarray,
+                                 rest: Optional[np.ndarray] = None) -> np.ndarray:
+    """``filter_rows_at_rest(b, a, (states - states[0]).T, rest)``, bit for bit, from the operator states (N, n) as
+    they are (``iir.filter_columns``: no transposed copy of them): the GPIM's columns through G, one row per
+    operator (n, N), each at rest at its first sample (zero) or at ``rest`` (n,) before it."""
+    first = states[0]
+    start = (first - first) if rest is None else np.asarray(rest, float).reshape(-1)
+    return filter_columns(b, a, states, first, start[:, None] * steady_state(b, a)[None, :])
 
 
 def filter_rows_at_rest(b: np.ndarray, a: np.ndarray, rows: np.ndarray, rest: Optional[np.ndarray] = None) -> np.ndarray:

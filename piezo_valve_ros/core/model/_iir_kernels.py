@@ -6,11 +6,13 @@ Each is lfilter's transposed direct form II, operation by operation,
     y[n] = z0 + b0 x[n];  z_j = z_(j+1) + x[n] b_(j+1) - y[n] a_(j+1);  z_last = x[n] b_last - y[n] a_last,
 
 on several rows at each sample (each output waits for the one before it; the rows' independent recursions
-overlap), their states and the coefficients locals, then the rows left over one at a time.  No fast-math: the
-operations and their order are lfilter's, so are the bits."""
+overlap), their states and the coefficients locals, then the rows left over one at a time; or (``columns_*``) on
+every column of a sample-major array at each sample, in one loop over the columns.  No fast-math: the operations
+and their order are lfilter's, so are the bits."""
 from __future__ import annotations
 
 import numba
+import numpy as np
 
 
 @numba.njit(nogil=True, cache=True)
@@ -515,6 +517,247 @@ def rows_8(b, a, x, z, out):
 
 
 RUN_ROWS = {2: rows_2, 3: rows_3, 4: rows_4, 5: rows_5, 6: rows_6, 7: rows_7, 8: rows_8}
+
+
+@numba.njit(nogil=True, cache=True)
+def columns_2(b, a, x, first, z, out):
+    """Filters of 2 taps on each column of x (N, k) less first (k,); z (1, k) states in and out; out
+    (k, N): the filtered columns as rows."""
+    n_samples, k = x.shape
+    b0, b1 = b[0], b[1]
+    a1 = a[1]
+    s0 = z[0].copy()
+    block = np.empty((64, k))
+    for start in range(0, n_samples, 64):
+        m = min(64, n_samples - start)
+        for i in range(m):
+            xi, yi = x[start + i], block[i]
+            for j in range(k):
+                u = xi[j] - first[j]
+                y = s0[j] + b0 * u
+                s0[j] = u * b1 - y * a1
+                yi[j] = y
+        for j in range(k):
+            oj = out[j]
+            for i in range(m):
+                oj[start + i] = block[i, j]
+    z[0] = s0
+
+
+@numba.njit(nogil=True, cache=True)
+def columns_3(b, a, x, first, z, out):
+    """Filters of 3 taps on each column of x (N, k) less first (k,); z (2, k) states in and out; out
+    (k, N): the filtered columns as rows."""
+    n_samples, k = x.shape
+    b0, b1, b2 = b[0], b[1], b[2]
+    a1, a2 = a[1], a[2]
+    s0 = z[0].copy()
+    s1 = z[1].copy()
+    block = np.empty((64, k))
+    for start in range(0, n_samples, 64):
+        m = min(64, n_samples - start)
+        for i in range(m):
+            xi, yi = x[start + i], block[i]
+            for j in range(k):
+                u = xi[j] - first[j]
+                y = s0[j] + b0 * u
+                s0[j] = s1[j] + u * b1 - y * a1
+                s1[j] = u * b2 - y * a2
+                yi[j] = y
+        for j in range(k):
+            oj = out[j]
+            for i in range(m):
+                oj[start + i] = block[i, j]
+    z[0] = s0
+    z[1] = s1
+
+
+@numba.njit(nogil=True, cache=True)
+def columns_4(b, a, x, first, z, out):
+    """Filters of 4 taps on each column of x (N, k) less first (k,); z (3, k) states in and out; out
+    (k, N): the filtered columns as rows."""
+    n_samples, k = x.shape
+    b0, b1, b2, b3 = b[0], b[1], b[2], b[3]
+    a1, a2, a3 = a[1], a[2], a[3]
+    s0 = z[0].copy()
+    s1 = z[1].copy()
+    s2 = z[2].copy()
+    block = np.empty((64, k))
+    for start in range(0, n_samples, 64):
+        m = min(64, n_samples - start)
+        for i in range(m):
+            xi, yi = x[start + i], block[i]
+            for j in range(k):
+                u = xi[j] - first[j]
+                y = s0[j] + b0 * u
+                s0[j] = s1[j] + u * b1 - y * a1
+                s1[j] = s2[j] + u * b2 - y * a2
+                s2[j] = u * b3 - y * a3
+                yi[j] = y
+        for j in range(k):
+            oj = out[j]
+            for i in range(m):
+                oj[start + i] = block[i, j]
+    z[0] = s0
+    z[1] = s1
+    z[2] = s2
+
+
+@numba.njit(nogil=True, cache=True)
+def columns_5(b, a, x, first, z, out):
+    """Filters of 5 taps on each column of x (N, k) less first (k,); z (4, k) states in and out; out
+    (k, N): the filtered columns as rows."""
+    n_samples, k = x.shape
+    b0, b1, b2, b3, b4 = b[0], b[1], b[2], b[3], b[4]
+    a1, a2, a3, a4 = a[1], a[2], a[3], a[4]
+    s0 = z[0].copy()
+    s1 = z[1].copy()
+    s2 = z[2].copy()
+    s3 = z[3].copy()
+    block = np.empty((64, k))
+    for start in range(0, n_samples, 64):
+        m = min(64, n_samples - start)
+        for i in range(m):
+            xi, yi = x[start + i], block[i]
+            for j in range(k):
+                u = xi[j] - first[j]
+                y = s0[j] + b0 * u
+                s0[j] = s1[j] + u * b1 - y * a1
+                s1[j] = s2[j] + u * b2 - y * a2
+                s2[j] = s3[j] + u * b3 - y * a3
+                s3[j] = u * b4 - y * a4
+                yi[j] = y
+        for j in range(k):
+            oj = out[j]
+            for i in range(m):
+                oj[start + i] = block[i, j]
+    z[0] = s0
+    z[1] = s1
+    z[2] = s2
+    z[3] = s3
+
+
+@numba.njit(nogil=True, cache=True)
+def columns_6(b, a, x, first, z, out):
+    """Filters of 6 taps on each column of x (N, k) less first (k,); z (5, k) states in and out; out
+    (k, N): the filtered columns as rows."""
+    n_samples, k = x.shape
+    b0, b1, b2, b3, b4, b5 = b[0], b[1], b[2], b[3], b[4], b[5]
+    a1, a2, a3, a4, a5 = a[1], a[2], a[3], a[4], a[5]
+    s0 = z[0].copy()
+    s1 = z[1].copy()
+    s2 = z[2].copy()
+    s3 = z[3].copy()
+    s4 = z[4].copy()
+    block = np.empty((64, k))
+    for start in range(0, n_samples, 64):
+        m = min(64, n_samples - start)
+        for i in range(m):
+            xi, yi = x[start + i], block[i]
+            for j in range(k):
+                u = xi[j] - first[j]
+                y = s0[j] + b0 * u
+                s0[j] = s1[j] + u * b1 - y * a1
+                s1[j] = s2[j] + u * b2 - y * a2
+                s2[j] = s3[j] + u * b3 - y * a3
+                s3[j] = s4[j] + u * b4 - y * a4
+                s4[j] = u * b5 - y * a5
+                yi[j] = y
+        for j in range(k):
+            oj = out[j]
+            for i in range(m):
+                oj[start + i] = block[i, j]
+    z[0] = s0
+    z[1] = s1
+    z[2] = s2
+    z[3] = s3
+    z[4] = s4
+
+
+@numba.njit(nogil=True, cache=True)
+def columns_7(b, a, x, first, z, out):
+    """Filters of 7 taps on each column of x (N, k) less first (k,); z (6, k) states in and out; out
+    (k, N): the filtered columns as rows."""
+    n_samples, k = x.shape
+    b0, b1, b2, b3, b4, b5, b6 = b[0], b[1], b[2], b[3], b[4], b[5], b[6]
+    a1, a2, a3, a4, a5, a6 = a[1], a[2], a[3], a[4], a[5], a[6]
+    s0 = z[0].copy()
+    s1 = z[1].copy()
+    s2 = z[2].copy()
+    s3 = z[3].copy()
+    s4 = z[4].copy()
+    s5 = z[5].copy()
+    block = np.empty((64, k))
+    for start in range(0, n_samples, 64):
+        m = min(64, n_samples - start)
+        for i in range(m):
+            xi, yi = x[start + i], block[i]
+            for j in range(k):
+                u = xi[j] - first[j]
+                y = s0[j] + b0 * u
+                s0[j] = s1[j] + u * b1 - y * a1
+                s1[j] = s2[j] + u * b2 - y * a2
+                s2[j] = s3[j] + u * b3 - y * a3
+                s3[j] = s4[j] + u * b4 - y * a4
+                s4[j] = s5[j] + u * b5 - y * a5
+                s5[j] = u * b6 - y * a6
+                yi[j] = y
+        for j in range(k):
+            oj = out[j]
+            for i in range(m):
+                oj[start + i] = block[i, j]
+    z[0] = s0
+    z[1] = s1
+    z[2] = s2
+    z[3] = s3
+    z[4] = s4
+    z[5] = s5
+
+
+@numba.njit(nogil=True, cache=True)
+def columns_8(b, a, x, first, z, out):
+    """Filters of 8 taps on each column of x (N, k) less first (k,); z (7, k) states in and out; out
+    (k, N): the filtered columns as rows."""
+    n_samples, k = x.shape
+    b0, b1, b2, b3, b4, b5, b6, b7 = b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]
+    a1, a2, a3, a4, a5, a6, a7 = a[1], a[2], a[3], a[4], a[5], a[6], a[7]
+    s0 = z[0].copy()
+    s1 = z[1].copy()
+    s2 = z[2].copy()
+    s3 = z[3].copy()
+    s4 = z[4].copy()
+    s5 = z[5].copy()
+    s6 = z[6].copy()
+    block = np.empty((64, k))
+    for start in range(0, n_samples, 64):
+        m = min(64, n_samples - start)
+        for i in range(m):
+            xi, yi = x[start + i], block[i]
+            for j in range(k):
+                u = xi[j] - first[j]
+                y = s0[j] + b0 * u
+                s0[j] = s1[j] + u * b1 - y * a1
+                s1[j] = s2[j] + u * b2 - y * a2
+                s2[j] = s3[j] + u * b3 - y * a3
+                s3[j] = s4[j] + u * b4 - y * a4
+                s4[j] = s5[j] + u * b5 - y * a5
+                s5[j] = s6[j] + u * b6 - y * a6
+                s6[j] = u * b7 - y * a7
+                yi[j] = y
+        for j in range(k):
+            oj = out[j]
+            for i in range(m):
+                oj[start + i] = block[i, j]
+    z[0] = s0
+    z[1] = s1
+    z[2] = s2
+    z[3] = s3
+    z[4] = s4
+    z[5] = s5
+    z[6] = s6
+
+
+RUN_COLUMNS = {2: columns_2, 3: columns_3, 4: columns_4, 5: columns_5, 6: columns_6, 7: columns_7, 8: columns_8}
 
 
 @numba.njit(nogil=True, cache=True)

@@ -16,7 +16,7 @@ import numpy as np
 
 from .compiled import load as load_kernels
 
-__all__ = ["filter_rows", "first_order_bank", "padded", "KERNEL_TAPS"]
+__all__ = ["filter_rows", "filter_columns", "first_order_bank", "padded", "KERNEL_TAPS"]
 
 KERNEL_TAPS = tuple(range(2, 9))   # filter lengths (taps of the longer of b and a) with a kernel; others: lfilter
 
@@ -53,6 +53,29 @@ def filter_rows(b, a, rows: np.ndarray, zi: np.ndarray) -> np.ndarray:
     out = np.empty(rows.shape)
     state = np.array(zi.T)   # (taps - 1, k): each tap's states contiguous across the rows
     _kernels().RUN_ROWS[taps](b, a, np.ascontiguousarray(rows), state, out)
+    return out
+
+
+def filter_columns(b, a, columns: np.ndarray, less: np.ndarray, zi: np.ndarray) -> np.ndarray:
+    """``filter_rows(b, a, (columns - less).T, zi)``, bit for bit, from a sample-major ``columns`` (N, k) without its
+    transposed copy: each column less ``less`` (k,), filtered from its state ``zi`` (k, taps - 1); returns the
+    filtered columns as rows (k, N).  The kernel advances every column at each sample in one loop (vector registers;
+    a bank of tens of columns in about half the time of the rows kernel on the transposed copy, which it also saves).
+    Filters the kernels do not run go the way of ``filter_rows``."""
+    given = (b, a)
+    b, a = padded(b, a)
+    columns = np.asarray(columns, float)
+    if columns.ndim != 2:
+        raise ValueError(f"columns must be (N, k), got shape {columns.shape}")
+    n_samples, k = columns.shape
+    less = np.asarray(less, float).reshape(k)
+    taps = b.size
+    zi = np.asarray(zi, float).reshape(k, taps - 1) if taps > 1 else np.zeros((k, 0))
+    if np.size(given[1]) == 1 or a[0] != 1.0 or taps not in KERNEL_TAPS:
+        return filter_rows(*given, (columns - less).T, zi)
+    out = np.empty((k, n_samples))
+    state = np.array(zi.T)   # (taps - 1, k)
+    _kernels().RUN_COLUMNS[taps](b, a, np.ascontiguousarray(columns), np.ascontiguousarray(less), state, out)
     return out
 
 
