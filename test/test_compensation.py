@@ -8,7 +8,7 @@ import pytest
 from piezo_valve_ros.core.control.compensation import (MODEL_PARAMETERS, CompensationModel, CreepModel, DynamicFeedforward,
                                                StaticInverse)
 from piezo_valve_ros.core.model.dynamics import PAPER_VALVE_MODEL, ContinuousTF, first_order_lag
-from piezo_valve_ros.core.model.output_map import TERM_COUNT, OutputMap, terms
+from piezo_valve_ros.core.model.output_map import TERM_COUNT, OutputMap, term_rows, terms
 from piezo_valve_ros.core.sim.experiments import run_closed_loop
 from piezo_valve_ros.core.model.hysteresis import GPIM, PAPER_GPIM
 from piezo_valve_ros.core.sim.signals import validation_reference_m
@@ -113,6 +113,15 @@ def test_output_map_scalar_and_batch_agree_and_solve_is_exact():
     for s in np.linspace(FLATTENING.value(-70.0), FLATTENING.value(70.0), 57):
         assert FLATTENING.value(FLATTENING.solve(s, 0.0)) == pytest.approx(s, abs=1e-9)
     assert len(FLATTENING.coefficients_um) == TERM_COUNT
+
+
+def test_the_maps_terms_as_rows_are_its_columns_bit_for_bit():
+    """term_rows (a fit's design) writes terms' columns as rows with the same bits, signed zeros and the knots' edges
+    included."""
+    h = np.concatenate((np.random.default_rng(4).standard_normal(5001) * 1.2, [0.0, -0.0, 0.4, -0.4, 0.6, -0.8, 1.0]))
+    rows, columns = term_rows(h), terms(h)
+    assert rows.shape == (TERM_COUNT, h.size) and rows.flags.c_contiguous
+    assert rows.tobytes() == np.ascontiguousarray(columns.T).tobytes()
 
 
 def test_static_inverse_of_creep_and_map_is_exact_over_a_long_random_demand():

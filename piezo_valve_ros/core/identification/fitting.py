@@ -153,25 +153,25 @@ def _design(ctx: Context, effects: Sequence[Effect], with_sensitivities: bool):
     structures' sensitivities; with the layout, lower bounds and ridge of the whole design (GPIM first)."""
     y_slope = position_slope(ctx.record)
     n = ctx.model.gpim.n
-    blocks = [np.zeros((len(ctx.record), e.after_dynamics)) if e.after_dynamics else e.columns(ctx) for e in effects]
+    blocks = [np.zeros((e.after_dynamics, len(ctx.record))) if e.after_dynamics else e.design_rows(ctx) for e in effects]
     sens_blocks = [e.sensitivities(ctx) if with_sensitivities else None for e in effects]
-    widths = [b.shape[1] for b in blocks] + [0 if b is None else b.shape[1] for b in sens_blocks]
+    widths = [b.shape[0] for b in blocks] + [0 if b is None else b.shape[1] for b in sens_blocks]
     rows = np.empty((1 + sum(widths), len(ctx.record)))
     rows[0] = 1.0
     at_rest = None   # each row's value before the record where the valve rested at another voltage
     if ctx.rest_states is not None:
-        at_rest = np.concatenate([[1.0]] + [e.rest_columns(ctx, c) for e, c in zip(effects, blocks)]
+        at_rest = np.concatenate([[1.0]] + [e.rest_columns(ctx, c.T) for e, c in zip(effects, blocks)]
                                  + [c[0] for c in sens_blocks if c is not None])
     lower = [gpim_lower_bounds(n, y_slope), [-np.inf]]
     ridge = [np.full(n + 1, BASIS_RIDGE)]
     terms, sens = [], []
     row = 1
     for e, c in zip(effects, blocks):
-        rows[row:row + c.shape[1]] = c.T   # an output map's rows: zero here, its columns after G (_after_dynamics)
-        terms.append(slice(n + row, n + row + c.shape[1]))
-        row += c.shape[1]
-        lower.append(np.full(c.shape[1], e.coefficient_floor))
-        ridge.append(np.full(c.shape[1], e.ridge))
+        rows[row:row + c.shape[0]] = c   # an output map's rows: zero here, its columns after G (_after_dynamics)
+        terms.append(slice(n + row, n + row + c.shape[0]))
+        row += c.shape[0]
+        lower.append(np.full(c.shape[0], e.coefficient_floor))
+        ridge.append(np.full(c.shape[0], e.ridge))
     for c in sens_blocks:
         width = 0 if c is None else c.shape[1]
         if width:

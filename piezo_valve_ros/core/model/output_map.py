@@ -10,7 +10,7 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ["OutputMap", "terms", "KNOTS", "TERM_COUNT", "MIN_MAP_SLOPE", "MAP_CHECK_MARGIN"]
+__all__ = ["OutputMap", "terms", "term_rows", "KNOTS", "TERM_COUNT", "MIN_MAP_SLOPE", "MAP_CHECK_MARGIN"]
 
 KNOTS = (0.4, 0.6, 0.8)
 TERM_COUNT = 2 + 2 * len(KNOTS)
@@ -25,6 +25,25 @@ def terms(h: np.ndarray) -> np.ndarray:
     """(N, TERM_COUNT) terms of the normalised output ``h``: h^2, h^3, then max(+-h - k, 0)^2 per knot."""
     h = np.asarray(h, float)
     return np.column_stack([h ** 2, h ** 3] + [np.maximum(s * h - k, 0.0) ** 2 for s in (1.0, -1.0) for k in KNOTS])
+
+
+def term_rows(h: np.ndarray) -> np.ndarray:
+    """:func:`terms` as rows (TERM_COUNT, N), bit for bit, each written in place (no temporaries, no strided
+    column writes): what a fit's design takes."""
+    h = np.asarray(h, float).reshape(-1)
+    out = np.empty((TERM_COUNT, h.size))
+    np.multiply(h, h, out=out[0])
+    np.power(h, 3, out=out[1])
+    row = 2
+    for s in (1.0, -1.0):
+        for k in KNOTS:
+            r = out[row]
+            np.multiply(s, h, out=r)
+            np.subtract(r, k, out=r)
+            np.maximum(r, 0.0, out=r)
+            np.multiply(r, r, out=r)
+            row += 1
+    return out
 
 
 @dataclass(frozen=True)

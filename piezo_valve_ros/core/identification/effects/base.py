@@ -66,6 +66,11 @@ class Effect:
         """(N, k) terms added before G; k = 0 when the effect is purely structural."""
         return np.zeros((len(ctx.record), 0))
 
+    def design_rows(self, ctx: "Context") -> np.ndarray:
+        """``columns`` as rows (k, N), the layout a fit's design takes; an effect may write them so directly
+        (the same values)."""
+        return self.columns(ctx).T
+
     def rest_columns(self, ctx: "Context", columns: np.ndarray) -> np.ndarray:
         """(k,) values of ``columns`` (this effect's ``columns`` or ``search_columns`` on ``ctx``) while the
         valve rested before the record, where it rested at another voltage (``Context.rest_states``): what G

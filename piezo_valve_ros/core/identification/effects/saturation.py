@@ -19,7 +19,7 @@ from typing import Optional
 
 import numpy as np
 
-from ...model.output_map import KNOTS, OutputMap, terms
+from ...model.output_map import KNOTS, OutputMap, term_rows, terms
 from ..records import Record
 from .base import Effect, NotCompensable, normalised
 
@@ -42,6 +42,9 @@ class Saturation(Effect):
 
     def columns(self, ctx) -> np.ndarray:
         return terms(normalised(ctx.H, self.centre_um, self.half_range_um))
+
+    def design_rows(self, ctx) -> np.ndarray:
+        return term_rows(normalised(ctx.H, self.centre_um, self.half_range_um))
 
     def describe(self, model, coefs) -> dict:
         return {"terms": ["h^2", "h^3"] + [f"max({s}h-{k},0)^2" for s in ("+", "-") for k in KNOTS],
