@@ -91,3 +91,19 @@ def test_package_xml_declares_what_the_code_imports_through_keys_rosdep_resolves
     setup = (ROOT / "setup.py").read_text()
     for pip_only in ("rosbags", "threadpoolctl", "numba"):
         assert pip_only in text and f'"{pip_only}' in setup, pip_only
+
+
+def test_the_venvs_packages_are_compiled_to_bytecode():
+    """scripts/setup_venv.sh installs the packages compiled (uv's --compile-bytecode, pip's default): a node or tool
+    started where bytecode may not be written (PYTHONDONTWRITEBYTECODE) would compile every module it imports,
+    at every start.  Checked on the modules every node imports, in the venv these tests run in."""
+    import importlib
+    import importlib.util
+    import os
+    import sys
+    if sys.prefix == sys.base_prefix:
+        import pytest
+        pytest.skip("not run from a venv: scripts/setup_venv.sh made none of these packages")
+    for name in ("numpy", "numpy.linalg._linalg", "scipy.signal", "rclpy.node", "rosbags.rosbag2", "yaml"):
+        source = importlib.util.find_spec(name).origin
+        assert os.path.exists(importlib.util.cache_from_source(source)), f"{name}: {source} has no bytecode"
