@@ -451,8 +451,10 @@ def test_a_node_dumps_its_threads_stacks_on_sigusr1_and_runs_on(tmp_path):
         proc = subprocess.Popen([exe, "--ros-args", "-r", f"__ns:={namespace()}"], env=ros_env(), stdout=out,
                                 stderr=subprocess.STDOUT)
     try:
+        # its first health line comes from a timer: the node is in its spin loop ("up" is logged before it gets
+        # there, and a dump then shows the constructor)
         deadline = time.monotonic() + 30
-        while "valve_controller up" not in log.read_text() and proc.poll() is None and time.monotonic() < deadline:
+        while "health " not in log.read_text() and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.05)
         proc.send_signal(signal.SIGUSR1)
         deadline = time.monotonic() + 10
