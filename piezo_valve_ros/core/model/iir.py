@@ -59,9 +59,10 @@ def filter_rows(b, a, rows: np.ndarray, zi: np.ndarray) -> np.ndarray:
 def filter_columns(b, a, columns: np.ndarray, less: np.ndarray, zi: np.ndarray) -> np.ndarray:
     """``filter_rows(b, a, (columns - less).T, zi)``, bit for bit, from a sample-major ``columns`` (N, k) without its
     transposed copy: each column less ``less`` (k,), filtered from its state ``zi`` (k, taps - 1); returns the
-    filtered columns as rows (k, N).  The kernel advances every column at each sample in one loop (vector registers;
-    a bank of tens of columns in about half the time of the rows kernel on the transposed copy, which it also saves).
-    Filters the kernels do not run go the way of ``filter_rows``."""
+    filtered columns as rows (k, N).  The kernel advances every column at each sample in one loop (vector registers)
+    and writes the rows out a block of samples at a time; on a long bank it is bound by memory, like the rows kernel,
+    and saves the transposed copy (bench/core_speed.py).  Filters the kernels do not run go the way of
+    ``filter_rows``."""
     given = (b, a)
     b, a = padded(b, a)
     columns = np.asarray(columns, float)
