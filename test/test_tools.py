@@ -1,4 +1,5 @@
 """The everyday tools around a running rig: valve_record, valve_command, valve_plot (issue 12)."""
+import contextlib
 import json
 import os
 import signal
@@ -488,53 +489,62 @@ def test_valve_record_summary_says_what_went_into_the_bag(tmp_path):
     assert parse_args(["out", "--json"]).json
 
 
+@contextlib.contextmanager
+def recorder_and_rig_nodes(ns: str):
+    """A recorder node and a rig node in namespace ``ns``, in their own ROS context, on one executor: (recorder node,
+    rig node, executor); everything shut down after."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    nodes = [rclpy.create_node(name, namespace=ns, context=context) for name in ("recorder", "rig")]
+    executor = SingleThreadedExecutor(context=context)
+    for node in nodes:
+        executor.add_node(node)
+    try:
+        yield nodes[0], nodes[1], executor
+    finally:
+        executor.shutdown()
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
 def test_valve_record_reads_references_only_once_it_records_samples(tmp_path):
     """valve_record's reader of position_reference opens with the first recorded samples message: a sender that
     waits for it (valve_command --wait-readers) sends nothing the bag cannot place on the samples' time axis, however
     late discovery matches the samples topic on a loaded computer."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from std_msgs.msg import Float64, Float64MultiArray
     from piezo_valve_ros.io.bags import read_run
     from piezo_valve_ros.nodes.common import REFERENCE_QOS, SAMPLES_QOS, samples_message
     from piezo_valve_ros.rig.recording import RigRecorder
     ns = f"/deferred{os.getpid()}"
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    recorder_node = rclpy.create_node("recorder", namespace=ns, context=context)
-    rig = rclpy.create_node("rig", namespace=ns, context=context)
-    executor = SingleThreadedExecutor(context=context)
-    for node in (recorder_node, rig):
-        executor.add_node(node)
-    reference = rig.create_publisher(Float64, "position_reference", REFERENCE_QOS)
-    recorder = RigRecorder(recorder_node, reference_after_samples=True)
-    try:
-        recorder.start(tmp_path / "bag")
-        deadline = time.monotonic() + 2.0            # no samples yet: nobody reads the references
-        while time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.05)
-        assert not recorder.reading_references and reference.get_subscription_count() == 0
-        samples = rig.create_publisher(Float64MultiArray, "samples", SAMPLES_QOS)
-        rows = np.column_stack([np.arange(100) * 1e-3, np.full(100, 5.0), np.zeros(100)])
-        deadline = time.monotonic() + 20.0
-        while time.monotonic() < deadline and reference.get_subscription_count() == 0:
-            samples.publish(samples_message(rows))
-            rows[:, 0] += 0.1
-            executor.spin_once(timeout_sec=0.05)
-        assert recorder.reading_references and reference.get_subscription_count() == 1
-        time.sleep(0.3)
-        reference.publish(Float64(data=20e-6))
-        deadline = time.monotonic() + 5.0
-        while time.monotonic() < deadline:
-            samples.publish(samples_message(rows))
-            rows[:, 0] += 0.1
-            executor.spin_once(timeout_sec=0.05)
-    finally:
-        counts = recorder.stop()
-        executor.shutdown()
-        for node in (recorder_node, rig):
-            node.destroy_node()
-        rclpy.try_shutdown(context=context)
+    with recorder_and_rig_nodes(ns) as (recorder_node, rig, executor):
+        reference = rig.create_publisher(Float64, "position_reference", REFERENCE_QOS)
+        recorder = RigRecorder(recorder_node, reference_after_samples=True)
+        try:
+            recorder.start(tmp_path / "bag")
+            deadline = time.monotonic() + 2.0            # no samples yet: nobody reads the references
+            while time.monotonic() < deadline:
+                executor.spin_once(timeout_sec=0.05)
+            assert not recorder.reading_references and reference.get_subscription_count() == 0
+            samples = rig.create_publisher(Float64MultiArray, "samples", SAMPLES_QOS)
+            rows = np.column_stack([np.arange(100) * 1e-3, np.full(100, 5.0), np.zeros(100)])
+            deadline = time.monotonic() + 20.0
+            while time.monotonic() < deadline and reference.get_subscription_count() == 0:
+                samples.publish(samples_message(rows))
+                rows[:, 0] += 0.1
+                executor.spin_once(timeout_sec=0.05)
+            assert recorder.reading_references and reference.get_subscription_count() == 1
+            time.sleep(0.3)
+            reference.publish(Float64(data=20e-6))
+            deadline = time.monotonic() + 5.0
+            while time.monotonic() < deadline:
+                samples.publish(samples_message(rows))
+                rows[:, 0] += 0.1
+                executor.spin_once(timeout_sec=0.05)
+        finally:
+            counts = recorder.stop()
     assert counts[f"{ns}/position_reference"] == 1, counts
     rows, ref_t, ref_m, _ = read_run(tmp_path / "bag")
     assert ref_m.tolist() == [20e-6] and rows[0, 0] < ref_t[0] < rows[-1, 0]
@@ -543,20 +553,11 @@ def test_valve_record_reads_references_only_once_it_records_samples(tmp_path):
 def test_a_recorder_reader_says_when_a_publisher_offers_a_qos_it_cannot_read(tmp_path, capfd):
     """Each of the recorder's readers watches for a publisher whose QoS it cannot read (one line: nothing of it is
     recorded) and for nothing else (every event handler is waited on in each executor round)."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from std_msgs.msg import Float64
     from piezo_valve_ros.rig.recording import RigRecorder
     ns = f"/qos{os.getpid()}"
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    recorder_node = rclpy.create_node("recorder", namespace=ns, context=context)
-    rig = rclpy.create_node("rig", namespace=ns, context=context)
-    executor = SingleThreadedExecutor(context=context)
-    for node in (recorder_node, rig):
-        executor.add_node(node)
-    try:
+    with recorder_and_rig_nodes(ns) as (recorder_node, rig, executor):
         RigRecorder(recorder_node)
         assert all(len(s.event_handlers) == 1 for s in recorder_node.subscriptions), \
             [len(s.event_handlers) for s in recorder_node.subscriptions]
@@ -566,9 +567,4 @@ def test_a_recorder_reader_says_when_a_publisher_offers_a_qos_it_cannot_read(tmp
         while time.monotonic() < deadline and "offers a QoS" not in seen:
             executor.spin_once(timeout_sec=0.05)
             seen += capfd.readouterr().err
-    finally:
-        executor.shutdown()
-        for node in (recorder_node, rig):
-            node.destroy_node()
-        rclpy.try_shutdown(context=context)
     assert f"a publisher of {ns}/voltage_command offers a QoS this recorder cannot read (RELIABILITY)" in seen, seen
