@@ -19,6 +19,11 @@ keep_freed_memory()
 from piezo_valve_ros.core.blas import one_blas_thread_for_process  # noqa: E402
 one_blas_thread_for_process()
 
+# ... and analyse on one thread: the suite's workers fill the cores already, and a second analysis thread then costs
+# ~10 % more CPU for no time (core.defaults.analysis_threads); the tools the tests start inherit it
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ.setdefault("PIEZO_ANALYSIS_THREADS", "1")
+
 # nodes created in the test process join the suite's private DDS domain, on this machine only
 os.environ.update({k: ros_env()[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
 

@@ -1,5 +1,6 @@
 """The residual loop judged on valves it was not written for (``valve_battery``: effect forms unlike the
 catalogue's regressors, all with G_v and sensor noise), and the pieces it decides with."""
+import os
 from dataclasses import replace
 from pathlib import Path
 
@@ -729,6 +730,29 @@ def test_the_report_does_not_depend_on_the_number_of_threads():
     assert reports[0] == reports[1]
     with pytest.raises(ValueError, match="threads must be >= 1"):
         analyse(train, validate, threads=0)
+
+
+def test_the_analysis_threads_come_from_the_environment_or_the_cpus_this_process_may_use(monkeypatch):
+    """PIEZO_ANALYSIS_THREADS sets them (the suite's workers, which fill the cores, use one); unset, the CPUs
+    of the process' affinity, at most four; anything but a whole number >= 1 is refused with what it was."""
+    from piezo_valve_ros.core import defaults
+    from piezo_valve_ros.core.errors import PiezoValveError
+    assert defaults.available_cpu_count() == len(os.sched_getaffinity(0))
+    assert defaults.analysis_threads({}) == min(4, len(os.sched_getaffinity(0)))
+    assert defaults.analysis_threads({"PIEZO_ANALYSIS_THREADS": "3"}) == 3
+    assert defaults.analysis_threads({"PIEZO_ANALYSIS_THREADS": " 1 "}) == 1
+    monkeypatch.setattr(defaults, "available_cpu_count", lambda: 64)   # a many-core host
+    assert defaults.analysis_threads({}) == defaults.analysis_threads({"PIEZO_ANALYSIS_THREADS": ""}) == 4
+    monkeypatch.setattr(defaults, "available_cpu_count", lambda: 1)    # a process pinned to one CPU
+    assert defaults.analysis_threads({}) == 1
+    for bad in ("0", "-2", "1.5", "all"):
+        with pytest.raises(PiezoValveError, match=f"PIEZO_ANALYSIS_THREADS={bad!r}: .* whole number >= 1"):
+            defaults.analysis_threads({"PIEZO_ANALYSIS_THREADS": bad})
+    # analyse() asks for them where it is given no number: a bad value ends it before any work
+    monkeypatch.setenv("PIEZO_ANALYSIS_THREADS", "none")
+    train, validate = records("masking pair: creep + drift")
+    with pytest.raises(ValueError, match="PIEZO_ANALYSIS_THREADS='none'"):
+        analyse(train, validate)
 
 
 def test_asymmetry_is_compensated_only_where_the_controller_can_invert_it():

@@ -23,8 +23,8 @@ from piezo_valve_ros.core.sim.simulator import ValveSimConfig
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 
 
-def run_cli(*args, timeout=300):
-    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+def run_cli(*args, timeout=300, env_extra=None):
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""), **(env_extra or {}))
     return subprocess.run([sys.executable, "-m", "piezo_valve_ros.cli.identify", *map(str, args)],
                           capture_output=True, text=True, timeout=timeout, env=env)
 
@@ -194,8 +194,12 @@ def test_bad_input_ends_with_one_clear_line_and_keeps_the_last_good_parameters(t
     # a directory that is not a bag
     (tmp_path / "empty_dir").mkdir()
     cases["not a bag"] = (tmp_path / "empty_dir", ("cannot read bag",))
+    # a good bag, the analysis' thread count set to nonsense
+    write_samples_bag(tmp_path / "good", rows)
+    cases["threads"] = (tmp_path / "good", ("PIEZO_ANALYSIS_THREADS='0'", "whole number >= 1"))
     for name, (bag, needles) in cases.items():
-        out = run_cli(bag, "--params-out", good, "--report", tmp_path / f"{name}.json")
+        out = run_cli(bag, "--params-out", good, "--report", tmp_path / f"{name}.json",
+                      env_extra={"PIEZO_ANALYSIS_THREADS": "0"} if name == "threads" else None)
         _one_error_line(out, *needles)
         assert good.read_text() == "# last good parameters\n", name
         assert not (tmp_path / f"{name}.json").exists()

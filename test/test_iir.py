@@ -147,3 +147,34 @@ def test_filter_columns_gives_the_rows_bits_of_the_transposed_columns(name, k):
         assert np.array_equal(got, expected) and np.array_equal(np.signbit(got), np.signbit(expected))
     with pytest.raises(ValueError, match=r"\(N, k\)"):
         iir.filter_columns(b, a, np.zeros(5), np.zeros(1), np.zeros((1, max(taps - 1, 0))))
+
+
+@pytest.mark.parametrize("name", FILTERS)
+def test_a_bank_filtered_in_parts_into_one_array_has_the_whole_banks_bits(name):
+    """``out=``: the rows kernel and the columns kernel (and lfilter's own path) write the rows of one larger
+    array; each row's arithmetic is its own, so a bank filtered in two parts gives the whole bank's bits.  The
+    states and a design's other columns through G in one array (Context.states_and_columns_through_dynamics)
+    give through_dynamics' bits on their stacked copy, from the first sample and from a rest before it."""
+    b, a = FILTERS[name]
+    rng = np.random.default_rng(5)
+    states = rng.standard_normal((700, 6)).cumsum(axis=0)
+    others = rng.standard_normal((700, 3))
+    less = states[3]
+    taps = max(len(b), len(a))
+    zi = rng.standard_normal((9, taps - 1))
+    whole = iir.filter_rows(b, a, np.ascontiguousarray(np.column_stack([states - less, others]).T), zi)
+    out = np.full((9, 700), np.nan)
+    assert iir.filter_columns(b, a, states, less, zi[:6], out=out[:6]) is not None
+    iir.filter_rows(b, a, np.ascontiguousarray(others.T), zi[6:], out=out[6:])
+    assert np.array_equal(out, whole)
+    with pytest.raises(ValueError, match="C-contiguous float64 array of shape"):
+        iir.filter_rows(b, a, np.ascontiguousarray(others.T), zi[6:], out=np.empty((700, 3)).T)
+    from types import SimpleNamespace
+    from piezo_valve_ros.core.identification.valve_model import Context
+    ctx = SimpleNamespace(filter=(np.asarray(b, float), np.asarray(a, float)), states=states, record=np.zeros(700))
+    rest = rng.standard_normal(9)
+    for before in ((None, rest) if taps > 1 else ()):   # (a gain has no state to rest in)
+        expected = filter_at_rest(b, a, np.column_stack([states - less, others]), before)
+        got = Context.states_and_columns_through_dynamics(ctx, less, others, before)
+        assert got.shape == (700, 9) and got.T.flags.c_contiguous
+        assert np.array_equal(got, expected) and np.array_equal(np.signbit(got), np.signbit(expected))

@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 from dataclasses import replace
 
+from ..core.defaults import analysis_threads
 from ..core.identification.records import HELD_OUT_FRACTION
 from ..core.identification.report import IdentificationReport
 from ..core.monitoring.health import WINDOW_S, HealthLimits
@@ -88,6 +89,7 @@ def main(argv=None) -> int:
 
     def work() -> list[str]:
         check_output_paths([p for p in (args.params_out, args.report) if p])   # before the work, not after it
+        analysis_threads()   # a bad PIEZO_ANALYSIS_THREADS ends here, before the record is read
         if args.plots:
             from ..io import plots  # fail before the work, with the reason
             plots.require()

@@ -50,7 +50,7 @@ from rclpy.exceptions import InvalidServiceNameException
 from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Float64
 
-from ..core.defaults import BAG_STORAGE
+from ..core.defaults import BAG_STORAGE, analysis_threads
 from ..io.bags import STORAGES, BagError
 from ..core.identification.records import IdentificationError
 from ..core.identification.report import to_json
@@ -137,6 +137,8 @@ class ValveIdentificationNode(Node):
             raise ValueError("plan: refit needs a train step before it (it refits on that run's bag)")
         if "tune" in self.plan and ("refit" not in self.plan or self.plan.index("refit") > self.plan.index("tune")):
             raise ValueError("plan: tune needs a refit step before it (it tunes on that model)")
+        if "refit" in self.plan:
+            analysis_threads()   # a bad PIEZO_ANALYSIS_THREADS refuses the plan now, not after its experiments
         self.tune_strategy = SPECS["tune_strategy"].checked(p["tune_strategy"])
         self.tune_limits = TuningLimits(max_overshoot_pct=as_float("tune_max_overshoot_pct",
                                                                    p["tune_max_overshoot_pct"]))

@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -69,6 +68,7 @@ from .search import (GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, Sco
                      percent, room_for_an_effect, support, unsupported_because)
 from .split import WIPE_MARGIN, SessionStart, Split, split_records
 from ..blas import one_blas_thread
+from ..defaults import analysis_threads
 from ..metrics import ErrorFigures, error_figures, rms
 from ..model.dynamics import describe_dynamics
 from .valve_model import REST, InitialState, ValveModel
@@ -102,7 +102,6 @@ PEAK_NOISE_RATIO = 2.5                      # held-out peaks above this many tim
 PEAK_BLOCK_S = 0.005                        # ... judged on the PEAK_RANK-th largest peak of blocks this long
 PEAK_RANK = 3
 MIN_STRUCTURE_PCT = 0.01                    # ... and above this % of the range (noise-free records)
-REFIT_THREADS = min(4, os.cpu_count() or 1)  # independent refits run on this many threads (BLAS on one each)
 CONFIRM_ROUNDS = 4                          # exact drop-one rounds at most
 SEPARATION_SHARE = 0.8                       # an effect that does this share of an added one's work in its
                                             # place: the record cannot tell the two apart (reported)
@@ -188,14 +187,17 @@ def _peak_structure(e_full: np.ndarray, dt: float, noise_um: float, range_um: fl
 
 
 def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_rate_hz: float = ANALYSIS_RATE_HZ,
-            log: Callable[[str], None] = lambda s: None, threads: int = REFIT_THREADS) -> Analysis:
+            log: Callable[[str], None] = lambda s: None, threads: Optional[int] = None) -> Analysis:
     """Fit, diagnose and extend; ``validate_full`` None holds out the last ``HELD_OUT_FRACTION`` of the record.
 
-    Independent refits run on ``threads`` threads (the result does not depend on how many).  BLAS runs on
+    Independent refits run on ``threads`` threads (the result does not depend on how many; None:
+    ``defaults.analysis_threads()``, which PIEZO_ANALYSIS_THREADS sets).  BLAS runs on
     one thread meanwhile (``core.blas``): its threads gain nothing on these tall, narrow least-squares problems
     and, beside other busy processes, oversubscribe the cores (measured 3-4x slower on a loaded 2-core machine).
     """
-    if threads < 1:
+    if threads is None:
+        threads = analysis_threads()
+    elif threads < 1:
         raise ValueError(f"threads must be >= 1, got {threads}")
     # the forms of one refit run on a pool of their own: a refit on the first pool waits for them there
     with one_blas_thread(), \

@@ -45,19 +45,19 @@ class SubsetSearch:
             """The columns through the baseline's G, and each effect's width (``each`` runs fit and score
             records side by side)."""
             before = [e for e in effects if not e.after_dynamics]
-            blocks = [ctx.states - z_first, np.ones((len(ctx.record), 1))] + [e.search_columns(ctx) for e in before]
-            columns = np.column_stack(blocks)
+            blocks = [np.ones((len(ctx.record), 1))] + [e.search_columns(ctx) for e in before]
             rest = None
             if ctx.rest_states is not None:   # G at rest before the first move: each column's rest value
                 rest = np.concatenate([ctx.rest_states - z_first, [1.0]]
-                                      + [e.rest_columns(ctx, b) for e, b in zip(before, blocks[2:])])
-            through = ctx.through_dynamics(columns, rest)
+                                      + [e.rest_columns(ctx, b) for e, b in zip(before, blocks[1:])])
+            # the GPIM's columns (the states less the fit record's first) and the others, through G
+            through = ctx.states_and_columns_through_dynamics(z_first, np.column_stack(blocks), rest)
             if len(before) == len(effects):
-                return through, [b.shape[1] for b in blocks[2:]]
+                return through, [b.shape[1] for b in blocks[1:]]
             # an output map after G: its search columns on the baseline's output, after G, in the catalogue's order
             x = ctx.through_dynamics(*ctx.model.static_output_and_rest(ctx))
-            n_basis = blocks[0].shape[1] + 1
-            filtered = iter(np.split(through[:, n_basis:], np.cumsum([b.shape[1] for b in blocks[2:]])[:-1], axis=1))
+            n_basis = z_first.size + 1
+            filtered = iter(np.split(through[:, n_basis:], np.cumsum([b.shape[1] for b in blocks[1:]])[:-1], axis=1))
             own = [e.output_search_columns(x) if e.after_dynamics else next(filtered) for e in effects]
             return np.column_stack([through[:, :n_basis]] + own), [b.shape[1] for b in own]
 

@@ -359,6 +359,23 @@ class Context:
         adding (rest - x[0]) times G's free response, G being linear)."""
         return filter_at_rest(*self.filter, x, rest)
 
+    def states_and_columns_through_dynamics(self, less: np.ndarray, columns: np.ndarray,
+                                            rest: Optional[np.ndarray] = None) -> np.ndarray:
+        """``through_dynamics(np.column_stack([states - less, columns]), rest)``, bit for bit, without the stacked
+        copy nor its transpose: the operator states (N, n) less ``less`` (n,) and ``columns`` (N, k) through G,
+        each at rest at its first sample or at ``rest`` (n + k,) before it; (N, n + k), a transposed view of one
+        C-contiguous (n + k, N) array, as ``filter_at_rest`` returns."""
+        b, a = self.filter
+        states = self.states
+        n = states.shape[1]
+        zi = steady_state(b, a)
+        out = np.empty((n + columns.shape[1], len(self.record)))
+        start = (states[0] - less) if rest is None else np.asarray(rest, float).reshape(-1)[:n]
+        filter_columns(b, a, states, less, start[:, None] * zi[None, :], out[:n])
+        rows = np.ascontiguousarray(np.asarray(columns, float).T)
+        filter_rows_at_rest(b, a, rows, None if rest is None else np.asarray(rest, float).reshape(-1)[n:], out[n:])
+        return out.T
+
     @cached_property
     def free_response(self) -> np.ndarray:
         """(N,) G's output from rest at 1 with its input at 0 from the first sample on (1 - step response)."""
@@ -427,10 +444,11 @@ def filter_state_columns_at_rest(b: np.ndarray, a: np.ndarray, states: np.ndarra
     return filter_columns(b, a, states, first, start[:, None] * steady_state(b, a)[None, :])
 
 
-def filter_rows_at_rest(b: np.ndarray, a: np.ndarray, rows: np.ndarray, rest: Optional[np.ndarray] = None) -> np.ndarray:
+def filter_rows_at_rest(b: np.ndarray, a: np.ndarray, rows: np.ndarray, rest: Optional[np.ndarray] = None,
+                        out: Optional[np.ndarray] = None) -> np.ndarray:
     """lfilter of each row of ``rows`` (k, N), started at rest at its first sample, or at rest at ``rest`` (k,)
-    before it (the same as adding ``(rest - first) x`` G's free response: G is linear); (k, N).  The rows are
-    advanced together (``iir.filter_rows``)."""
+    before it (the same as adding ``(rest - first) x`` G's free response: G is linear); (k, N), in ``out`` where
+    given.  The rows are advanced together (``iir.filter_rows``)."""
     zi = steady_state(b, a)
     start = rows[:, :1] if rest is None else np.asarray(rest, float).reshape(-1, 1)
-    return filter_rows(b, a, rows, start * zi[None, :])
+    return filter_rows(b, a, rows, start * zi[None, :], out)

@@ -11,6 +11,7 @@ importing this module costs nothing until a bank is filtered.  Nothing here impo
 from __future__ import annotations
 
 import functools
+from typing import Optional
 
 import numpy as np
 
@@ -34,11 +35,31 @@ def padded(b, a) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate((b, np.zeros(taps - b.size))), np.concatenate((a, np.zeros(taps - a.size)))
 
 
-def filter_rows(b, a, rows: np.ndarray, zi: np.ndarray) -> np.ndarray:
+def _into(out: Optional[np.ndarray], result: np.ndarray) -> np.ndarray:
+    """``result``, or ``out`` (checked as ``_output`` checks it) holding a copy of it."""
+    if out is None:
+        return result
+    out = _output(out, result.shape)
+    out[...] = result
+    return out
+
+
+def _output(out: Optional[np.ndarray], shape: tuple[int, int]) -> np.ndarray:
+    """``out`` checked to be a C-contiguous float array of ``shape`` (the kernels write into it), or a new one."""
+    if out is None:
+        return np.empty(shape)
+    if out.shape != shape or out.dtype != np.float64 or not out.flags.c_contiguous or not out.flags.writeable:
+        raise ValueError(f"out must be a writeable C-contiguous float64 array of shape {shape}, got {out.dtype} "
+                         f"{out.shape}")
+    return out
+
+
+def filter_rows(b, a, rows: np.ndarray, zi: np.ndarray, out: Optional[np.ndarray] = None) -> np.ndarray:
     """``scipy.signal.lfilter(b, a, rows, axis=1, zi=zi)[0]``, bit for bit: the filter b(z)/a(z) on each row of
-    ``rows`` (k, N), each from its own transposed-direct-form-II state ``zi`` (k, taps - 1); returns (k, N).
-    FIR filters (a of one tap: lfilter convolves them), a[0] != 1 and lengths the kernels do not run
-    (``KERNEL_TAPS``) go to lfilter itself."""
+    ``rows`` (k, N), each from its own transposed-direct-form-II state ``zi`` (k, taps - 1); returns (k, N), in
+    ``out`` where given (C-contiguous, e.g. rows of a larger design).  Each row's arithmetic is its own: a bank
+    filtered in parts gives the same bits.  FIR filters (a of one tap: lfilter convolves them), a[0] != 1 and
+    lengths the kernels do not run (``KERNEL_TAPS``) go to lfilter itself."""
     given = (b, a)
     b, a = padded(b, a)
     rows = np.asarray(rows, float)
@@ -48,18 +69,19 @@ def filter_rows(b, a, rows: np.ndarray, zi: np.ndarray) -> np.ndarray:
     zi = np.asarray(zi, float).reshape(rows.shape[0], taps - 1) if taps > 1 else np.zeros((rows.shape[0], 0))
     if np.size(given[1]) == 1 or a[0] != 1.0 or taps not in KERNEL_TAPS:
         from scipy import signal
-        return (signal.lfilter(*given, rows, axis=1, zi=zi)[0] if taps > 1
-                else signal.lfilter(*given, rows, axis=1))
-    out = np.empty(rows.shape)
+        return _into(out, signal.lfilter(*given, rows, axis=1, zi=zi)[0] if taps > 1
+                     else signal.lfilter(*given, rows, axis=1))
+    out = _output(out, rows.shape)
     state = np.array(zi.T)   # (taps - 1, k): each tap's states contiguous across the rows
     _kernels().RUN_ROWS[taps](b, a, np.ascontiguousarray(rows), state, out)
     return out
 
 
-def filter_columns(b, a, columns: np.ndarray, less: np.ndarray, zi: np.ndarray) -> np.ndarray:
+def filter_columns(b, a, columns: np.ndarray, less: np.ndarray, zi: np.ndarray,
+                   out: Optional[np.ndarray] = None) -> np.ndarray:
     """``filter_rows(b, a, (columns - less).T, zi)``, bit for bit, from a sample-major ``columns`` (N, k) without its
     transposed copy: each column less ``less`` (k,), filtered from its state ``zi`` (k, taps - 1); returns the
-    filtered columns as rows (k, N).  The kernel advances every column at each sample in one loop (vector registers)
+    filtered columns as rows (k, N), in ``out`` where given (C-contiguous).  The kernel advances every column at each sample in one loop (vector registers)
     and writes the rows out a block of samples at a time; on a long bank it is bound by memory, like the rows kernel,
     and saves the transposed copy (bench/core_speed.py).  Filters the kernels do not run go the way of
     ``filter_rows``."""
@@ -73,8 +95,8 @@ def filter_columns(b, a, columns: np.ndarray, less: np.ndarray, zi: np.ndarray) 
     taps = b.size
     zi = np.asarray(zi, float).reshape(k, taps - 1) if taps > 1 else np.zeros((k, 0))
     if np.size(given[1]) == 1 or a[0] != 1.0 or taps not in KERNEL_TAPS:
-        return filter_rows(*given, (columns - less).T, zi)
-    out = np.empty((k, n_samples))
+        return filter_rows(*given, (columns - less).T, zi, out)
+    out = _output(out, (k, n_samples))
     state = np.array(zi.T)   # (taps - 1, k)
     _kernels().RUN_COLUMNS[taps](b, a, np.ascontiguousarray(columns), np.ascontiguousarray(less), state, out)
     return out
