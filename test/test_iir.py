@@ -154,7 +154,8 @@ def test_a_bank_filtered_in_parts_into_one_array_has_the_whole_banks_bits(name):
     """``out=``: the rows kernel and the columns kernel (and lfilter's own path) write the rows of one larger
     array; each row's arithmetic is its own, so a bank filtered in two parts gives the whole bank's bits.  The
     states and a design's other columns through G in one array (Context.states_and_columns_through_dynamics)
-    give through_dynamics' bits on their stacked copy, from the first sample and from a rest before it."""
+    give through_dynamics' bits on their stacked copy, from the first sample and from a rest before it, whatever
+    the blocks' memory order."""
     b, a = FILTERS[name]
     rng = np.random.default_rng(5)
     states = rng.standard_normal((700, 6)).cumsum(axis=0)
@@ -175,6 +176,6 @@ def test_a_bank_filtered_in_parts_into_one_array_has_the_whole_banks_bits(name):
     rest = rng.standard_normal(9)
     for before in ((None, rest) if taps > 1 else ()):   # (a gain has no state to rest in)
         expected = filter_at_rest(b, a, np.column_stack([states - less, others]), before)
-        got = Context.states_and_columns_through_dynamics(ctx, less, others, before)
+        got = Context.states_and_columns_through_dynamics(ctx, less, [others[:, :1], others[:, 1:].T.copy().T], before)
         assert got.shape == (700, 9) and got.T.flags.c_contiguous
         assert np.array_equal(got, expected) and np.array_equal(np.signbit(got), np.signbit(expected))

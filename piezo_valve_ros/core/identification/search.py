@@ -51,7 +51,7 @@ class SubsetSearch:
                 rest = np.concatenate([ctx.rest_states - z_first, [1.0]]
                                       + [e.rest_columns(ctx, b) for e, b in zip(before, blocks[1:])])
             # the GPIM's columns (the states less the fit record's first) and the others, through G
-            through = ctx.states_and_columns_through_dynamics(z_first, np.column_stack(blocks), rest)
+            through = ctx.states_and_columns_through_dynamics(z_first, blocks, rest)
             if len(before) == len(effects):
                 return through, [b.shape[1] for b in blocks[1:]]
             # an output map after G: its search columns on the baseline's output, after G, in the catalogue's order

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property, lru_cache
-from typing import Optional, Protocol
+from typing import Optional, Protocol, Sequence
 
 import numpy as np
 
@@ -359,20 +359,26 @@ class Context:
         adding (rest - x[0]) times G's free response, G being linear)."""
         return filter_at_rest(*self.filter, x, rest)
 
-    def states_and_columns_through_dynamics(self, less: np.ndarray, columns: np.ndarray,
+    def states_and_columns_through_dynamics(self, less: np.ndarray, blocks: Sequence[np.ndarray],
                                             rest: Optional[np.ndarray] = None) -> np.ndarray:
-        """``through_dynamics(np.column_stack([states - less, columns]), rest)``, bit for bit, without the stacked
-        copy nor its transpose: the operator states (N, n) less ``less`` (n,) and ``columns`` (N, k) through G,
-        each at rest at its first sample or at ``rest`` (n + k,) before it; (N, n + k), a transposed view of one
-        C-contiguous (n + k, N) array, as ``filter_at_rest`` returns."""
+        """``through_dynamics(np.column_stack([states - less, *blocks]), rest)``, bit for bit, without the stacked
+        copy nor its transpose: the operator states (N, n) less ``less`` (n,) and the columns of ``blocks`` (each
+        (N, w); a block that is a transposed view of rows is copied as rows) through G, each at rest at its first
+        sample or at ``rest`` (n + k,) before it; (N, n + k), a transposed view of one C-contiguous (n + k, N)
+        array, as ``filter_at_rest`` returns."""
         b, a = self.filter
         states = self.states
-        n = states.shape[1]
+        n, samples = states.shape[1], len(self.record)
+        blocks = [np.asarray(block, float).reshape(samples, -1) for block in blocks]
+        rows = np.empty((sum(block.shape[1] for block in blocks), samples))
+        at = 0
+        for block in blocks:
+            rows[at:at + block.shape[1]] = block.T
+            at += block.shape[1]
         zi = steady_state(b, a)
-        out = np.empty((n + columns.shape[1], len(self.record)))
+        out = np.empty((n + rows.shape[0], samples))
         start = (states[0] - less) if rest is None else np.asarray(rest, float).reshape(-1)[:n]
         filter_columns(b, a, states, less, start[:, None] * zi[None, :], out[:n])
-        rows = np.ascontiguousarray(np.asarray(columns, float).T)
         filter_rows_at_rest(b, a, rows, None if rest is None else np.asarray(rest, float).reshape(-1)[n:], out[n:])
         return out.T
 
