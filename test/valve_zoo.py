@@ -1,8 +1,8 @@
 """A zoo of piezo valves and actuators written from the literature's equations, for judging the residual loop.
 
 Nothing here comes from the package: no model, operator, signal, simulator or effect of ``piezo_valve_ros`` is
-imported or copied (only numpy and scipy), so a detector cannot pass by recognising its own columns.  Each valve is
-simulated on a fine time grid (the "continuous" valve: a DAQ's zero-order hold on the drive, the sensor sampled at
+imported or copied (only numpy and scipy, and numba to compile the sample-by-sample loops), so a detector cannot
+pass by recognising its own columns.  Each valve is simulated on a fine time grid (the "continuous" valve: a DAQ's zero-order hold on the drive, the sensor sampled at
 the record's instants), with sensor noise and quantisation, and recorded in separate sessions: each session starts
 after an excitation nobody recorded, and a re-zeroed sensor may read another zero in each.
 
@@ -29,6 +29,7 @@ branch shape of a PI model).
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 from typing import Callable, Optional
@@ -122,16 +123,57 @@ def play_operators(v: np.ndarray, lower_r: np.ndarray, upper_r: Optional[np.ndar
     """States (N, n) of play operators with thresholds ``lower_r`` (n,) (or per sample ``thresholds_t`` (N, n)),
     on envelopes ``lower_env``/``upper_env`` (default: the input itself), started relaxed at the first input."""
     v = np.asarray(v, float)
-    lo_env = v if lower_env is None else lower_env
-    hi_env = v if upper_env is None else upper_env
+    lo_env = np.ascontiguousarray(v if lower_env is None else lower_env, dtype=float)
+    hi_env = np.ascontiguousarray(v if upper_env is None else upper_env, dtype=float)
     r = np.asarray(lower_r, float)
     z = np.full(r.size, 0.5 * (lo_env[0] + hi_env[0]))
     out = np.empty((v.size, r.size))
-    for k in range(v.size):
-        rk = r if thresholds_t is None else thresholds_t[k]
-        z = np.minimum(np.maximum(z, lo_env[k] - rk), hi_env[k] + rk)
-        out[k] = z
+    per_sample = thresholds_t is not None
+    thresholds = np.ascontiguousarray(thresholds_t if per_sample else r[None, :], dtype=float)
+    _loops().play(lo_env, hi_env, thresholds, per_sample, z, out)
     return out
+
+
+@functools.cache
+def _loops():
+    """The sample-by-sample recursions below, compiled (numba, cached on disk): the same arithmetic, operation by
+    operation, as numpy's ``maximum``/``minimum`` and Python's floats, so the records are the same to the bit."""
+    import numba
+
+    @numba.njit(cache=True)
+    def play(lo_env, hi_env, thresholds, per_sample, z, out):
+        for k in range(lo_env.size):
+            row = k if per_sample else 0
+            for j in range(z.size):
+                r = thresholds[row, j]
+                lo = lo_env[k] - r
+                hi = hi_env[k] + r
+                x = z[j] if z[j] >= lo else lo      # np.maximum(z, lo)
+                x = x if x <= hi else hi            # np.minimum(x, hi)
+                z[j] = x
+                out[k, j] = x
+
+    @numba.njit(cache=True)
+    def bouc_wen(dv, h, d_alpha, beta, gamma, out):
+        for k in range(dv.size):
+            step = dv[k] / 4.0
+            for _ in range(4):
+                h += d_alpha * step - beta * abs(step) * h - gamma * step * abs(h)
+            out[k] = h
+
+    @numba.njit(cache=True)
+    def relays(v, up, down, relay, out):
+        for k in range(v.size):
+            total = 0.0
+            for i in range(relay.size):
+                if v[k] >= up[i]:
+                    relay[i] = 1.0
+                if v[k] <= down[i]:
+                    relay[i] = -1.0
+                total += relay[i]
+            out[k] = total
+    return type("Loops", (), {"play": staticmethod(play), "bouc_wen": staticmethod(bouc_wen),
+                              "relays": staticmethod(relays)})
 
 
 @dataclass(frozen=True)
@@ -204,16 +246,11 @@ def bouc_wen(d_um_per_v: float = 14.0, alpha: float = 0.42, beta: float = 0.035,
              offset_um: float = -70.0) -> Callable:
     """Low & Guo's piezo Bouc-Wen model, integrated over each move of the drive in 4 substeps."""
     def model(v, dt):
-        h = 0.0
-        out = np.empty(v.size)
-        dv = np.diff(v, prepend=v[0])
-        for k in range(v.size):
-            # dh = alpha d dv - beta |dv| h - gamma dv |h|, in 4 substeps for accuracy on steep moves
-            step = dv[k] / 4.0
-            for _ in range(4):
-                h += alpha * d_um_per_v * step - beta * abs(step) * h - gamma * step * abs(h)
-            out[k] = d_um_per_v * v[k] - h
-        return out + offset_um
+        v = np.asarray(v, float)
+        h = np.empty(v.size)
+        # dh = alpha d dv - beta |dv| h - gamma dv |h|, in 4 substeps for accuracy on steep moves
+        _loops().bouc_wen(np.diff(v, prepend=v[0]), 0.0, alpha * d_um_per_v, beta, gamma, h)
+        return (d_um_per_v * v - h) + offset_um
     return model
 
 
@@ -230,12 +267,10 @@ def preisach(relays: int = 4000, lo: float = -1.0, hi: float = 11.0, coercivity_
     weight = scale_um / relays / 2.0
 
     def model(v, dt):
+        v = np.ascontiguousarray(v, dtype=float)
         relay = np.where(centre <= v[0], 1.0, -1.0)   # demagnetised about the first input
         out = np.empty(v.size)
-        for k in range(v.size):
-            relay[v[k] >= a] = 1.0
-            relay[v[k] <= b] = -1.0
-            out[k] = relay.sum()
+        _loops().relays(v, a, b, relay, out)   # each relay up where v >= alpha, then down where v <= beta; summed
         return out * weight + offset_um
     return model
 
