@@ -122,6 +122,29 @@ def test_references_are_put_on_the_samples_time_axis_where_simulated_time_runs_a
     assert abs(float(to_t(np.array([wall[1500]]))[0]) - 1.5) < 0.1
 
 
+def test_two_steps_sent_close_together_are_each_moved_to_their_own_reaction():
+    """A tour's two steps, 20 um then -20 um, sent a few tenths of a second apart on a loaded machine: the command's
+    reaction to the second (a 40 um swing down the loop's other branch) is more than twice the first's, and within
+    a second of both.  Each jump is moved to the command's change in its own direction, after the jump before it
+    (the first was moved onto the second's reaction, held for no time, and the step table had no 20 -> -20)."""
+    from piezo_valve_ros.core.runs import align_jumps, find_steps, reference_on_samples
+    dt = 1e-3
+    t = np.arange(3000) * dt
+    up_at, down_at = 1.0, 1.35                                            # where the controller applied them
+    ref = np.where(t < up_at, 0.0, np.where(t < down_at, 20e-6, -20e-6))
+    command = 5.0 + np.where(t < up_at, 0.0, np.where(t < down_at, 1.0, -1.5))   # 1 V up, then 2.5 V down
+    command = command + 1e-4 * np.sin(40.0 * t)                           # a controller's small corrections
+    received = np.array([0.2, up_at - 0.15, down_at - 0.25])              # delivered early (the rig's time lags)
+    values = np.array([0.0, 20e-6, -20e-6])
+    aligned = align_jumps(t, command, received, values)
+    assert aligned[1] == pytest.approx(up_at, abs=dt) and aligned[2] == pytest.approx(down_at, abs=dt), aligned
+    steps = find_steps(t, ref, reference_on_samples(t, aligned, values))
+    assert [(round(s.start_um), round(s.end_um)) for s in steps] == [(0, 20), (20, -20)]
+    # a jump with no reaction in its direction keeps its receive time
+    flat = align_jumps(t, np.where(t < up_at, 5.0, 4.0), received[:2], values[:2])
+    assert flat[1] == pytest.approx(received[1])
+
+
 def test_parameter_assignments_read_as_yaml():
     assert parse_assignment("kp:=1.5") == ("kp", 1.5)
     assert parse_assignment("samples_batch:=10") == ("samples_batch", 10)

@@ -108,29 +108,38 @@ def receive_to_sample_time(stamps_s: np.ndarray, sample_times_s: np.ndarray):
 def align_jumps(time_s: np.ndarray, command_v: np.ndarray, ref_time_s: np.ndarray, ref_m: np.ndarray,
                 min_jump_m: float = STEP_MIN_JUMP_M, window_s: float = ALIGN_WINDOW_S) -> np.ndarray:
     """Reference times [s] with each jump of the reference (a change of at least ``min_jump_m``) moved to the sample
-    where the command reacted to it: the first sample within ``window_s`` of its time whose command change is at
-    least half the largest there and ``ALIGN_MIN_RATIO`` times the window's median change; the references after
-    it that came in the same burst (received within ``BURST_S``) move with it.  Receive times place a reference within
-    the recorder's delivery delay, which on a loaded machine, on a lockstep rig whose time runs in bursts, reaches
-    tenths of a second of the rig's time; the command shows when the controller applied it.  A jump with no clear
-    reaction (a strategy without proportional action, a rail) keeps its time."""
+    where the command reacted to it: within ``window_s`` of its time and after the sample the jump before it was
+    moved to, the first sample whose command change in the jump's direction is at least half the largest such
+    change there and ``ALIGN_MIN_RATIO`` times the window's median change; the references after it that came in the
+    same burst (received within ``BURST_S``) move with it.  Receive times place a reference within the recorder's
+    delivery delay, which on a loaded machine, on a lockstep rig whose time runs in bursts, reaches tenths of a
+    second of the rig's time; the command shows when the controller applied it.  Two jumps sent close together
+    each find their own reaction (a step back down the loop's other branch moves the command more than twice as
+    far as the step before it).  A jump with no clear reaction (a strategy without proportional action, a rail)
+    keeps its time."""
     t = np.asarray(time_s, float)
     v = np.asarray(command_v, float)
     received = np.asarray(ref_time_s, float)
     values = np.asarray(ref_m, float)
-    change = np.abs(np.diff(v, prepend=v[:1]))
-    jumps = np.flatnonzero(np.abs(np.diff(values, prepend=np.nan)) >= min_jump_m)
+    signed = np.diff(v, prepend=v[:1])
+    change = np.abs(signed)
+    steps = np.diff(values, prepend=np.nan)
+    jumps = np.flatnonzero(np.abs(steps) >= min_jump_m)
     shift = np.zeros(received.size)
+    after = 0   # the first sample a jump's reaction may be at: after the reaction the jump before it was moved to
     for j, end in zip(jumps, np.append(jumps[1:], received.size)):
-        lo, hi = np.searchsorted(t, received[j] - window_s), np.searchsorted(t, received[j] + window_s)
+        lo = max(int(np.searchsorted(t, received[j] - window_s)), after)
+        hi = int(np.searchsorted(t, received[j] + window_s))
         if hi - lo < 3:
             continue
-        window = change[lo:hi]
-        largest = float(np.max(window))
-        if largest <= 0 or largest < ALIGN_MIN_RATIO * float(np.median(window)):
+        toward = np.sign(steps[j]) * signed[lo:hi]   # the command's changes in the jump's direction
+        largest = float(np.max(toward))
+        if largest <= 0 or largest < ALIGN_MIN_RATIO * float(np.median(change[lo:hi])):
             continue
+        reaction = lo + int(np.argmax(toward >= 0.5 * largest))
         burst = j + np.flatnonzero(received[j:end] <= received[j] + BURST_S)
-        shift[burst] = t[lo + int(np.argmax(window >= 0.5 * largest))] - received[j]
+        shift[burst] = t[reaction] - received[j]
+        after = reaction + 1
     return np.maximum.accumulate(received + shift)
 
 
