@@ -53,14 +53,14 @@ def main(argv=None) -> int:
     page = ["# Where the test suite's time goes", ""]
     line = page.append
     line(f"`python bench/suite_cpu.py` at {commit}: `scripts/run_tests.sh` as CI runs it (the venv already made), "
-              f"on {len(os.sched_getaffinity(0))} CPUs; exit code {code}.")
+         f"on {len(os.sched_getaffinity(0))} CPUs; exit code {code}.")
     line("")
     tests_cpu = sum(r["self_s"] + r["children_s"] for r in rows)
     line(f"- wall time {wall:.0f} s; CPU time of the run and every process it started {cpu:.0f} s "
-              f"({cpu / wall:.2f} CPUs busy on average)")
+         f"({cpu / wall:.2f} CPUs busy on average)")
     line(f"- {len(rows)} tests: {tests_cpu:.0f} CPU-s in them, {sum(r['self_s'] for r in rows):.0f} in the "
-              f"workers and {sum(r['children_s'] for r in rows):.0f} in the processes they started (nodes, tools); "
-              f"the rest of the run's CPU is start-up, collection and scheduling")
+         f"workers and {sum(r['children_s'] for r in rows):.0f} in the processes they started (nodes, tools); "
+         f"the rest of the run's CPU is start-up, collection and scheduling")
     line("")
     modules: dict[str, list[float]] = collections.defaultdict(lambda: [0, 0.0, 0.0, 0.0])
     for r in rows:

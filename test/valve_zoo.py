@@ -2,9 +2,10 @@
 
 Nothing here comes from the package: no model, operator, signal, simulator or effect of ``piezo_valve_ros`` is
 imported or copied (only numpy and scipy, and numba to compile the sample-by-sample loops), so a detector cannot
-pass by recognising its own columns.  Each valve is simulated on a fine time grid (the "continuous" valve: a DAQ's zero-order hold on the drive, the sensor sampled at
-the record's instants), with sensor noise and quantisation, and recorded in separate sessions: each session starts
-after an excitation nobody recorded, and a re-zeroed sensor may read another zero in each.
+pass by recognising its own columns.  Each valve is simulated on a fine time grid (the "continuous" valve: a DAQ's
+zero-order hold on the drive, the sensor sampled at the record's instants), with sensor noise and quantisation, and
+recorded in separate sessions: each session starts after an excitation nobody recorded, and a re-zeroed sensor may
+read another zero in each.
 
 The equations:
 * Prandtl-Ishlinskii (PI) hysteresis: play operators ``z_j = min(max(z_j, v - r_j), v + r_j)`` summed with weights

@@ -375,11 +375,11 @@ class Context:
         for block in blocks:
             rows[at:at + block.shape[1]] = block.T
             at += block.shape[1]
-        zi = steady_state(b, a)
+        rest = None if rest is None else np.asarray(rest, float).reshape(-1)
+        start = (states[0] - less) if rest is None else rest[:n]
         out = np.empty((n + rows.shape[0], samples))
-        start = (states[0] - less) if rest is None else np.asarray(rest, float).reshape(-1)[:n]
-        filter_columns(b, a, states, less, start[:, None] * zi[None, :], out[:n])
-        filter_rows_at_rest(b, a, rows, None if rest is None else np.asarray(rest, float).reshape(-1)[n:], out[n:])
+        filter_columns(b, a, states, less, start[:, None] * steady_state(b, a)[None, :], out[:n])
+        filter_rows_at_rest(b, a, rows, None if rest is None else rest[n:], out[n:])
         return out.T
 
     @cached_property
