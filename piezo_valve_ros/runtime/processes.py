@@ -87,19 +87,21 @@ def _watch_parent(parent: int) -> None:
     """Backstop for the death signal: a watcher process (``_WATCHER``) notices the parent gone, asks for an
     orderly stop (SIGTERM) and, if the process still lives PARENT_DEATH_GRACE_S later (its shutdown hung),
     dumps its threads' stacks and kills it.  A process whose parent was killed must not live on, holding a
-    valve or a CPU, not even one stuck in C code that holds the GIL."""
+    valve or a CPU, not even one stuck in C code that holds the GIL.  The watcher runs in a session of its own:
+    the Ctrl-C a terminal sends its foreground process group is for the node, not for the watcher (whose
+    KeyboardInterrupt would print a traceback on every Ctrl-C)."""
     import atexit
     import faulthandler
     faulthandler.register(signal.SIGUSR1, all_threads=True)
     watcher = subprocess.Popen([sys.executable, "-I", "-S", "-c", _WATCHER, str(os.getpid()), str(parent),
                                 str(PARENT_POLL_S), str(PARENT_DEATH_GRACE_S)], stdin=subprocess.DEVNULL,
-                               close_fds=True)
+                               close_fds=True, start_new_session=True)
     atexit.register(_end_watcher, watcher)
 
 
 def _end_watcher(watcher: subprocess.Popen) -> None:
     """At an orderly exit: the watcher ended and reaped (it would die with this process anyway, but as an
-    orphan that is left to init to reap, still in the launcher's process group until then)."""
+    orphan that is left to init to reap)."""
     watcher.kill()
     watcher.wait()
 
