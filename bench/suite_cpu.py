@@ -3,7 +3,7 @@ worker and in the processes it started (``suite_cpu_plugin.py``), summed by test
 run's wall time and total CPU.  On a 2-core machine the suite is bound by CPU: its wall time is about its CPU time
 over the cores it keeps busy.
 
-    python bench/suite_cpu.py [--markdown docs/results/suite_cpu.md] [--top 15] [pytest arguments after --]
+    python bench/suite_cpu.py [--markdown docs/results/suite_cpu.md] [--json FILE] [--top 15] [-- pytest arguments]
 """
 from __future__ import annotations
 
@@ -41,6 +41,7 @@ def run_suite(extra: list[str]) -> tuple[list[dict], float, float, int]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--markdown", metavar="FILE", help="write the page here")
+    ap.add_argument("--json", metavar="FILE", help="write every test's figures here (a JSON list)")
     ap.add_argument("--top", type=int, default=15, help="the costliest tests listed (default 15)")
     ap.add_argument("pytest_args", nargs="*", help="after --: passed to the suite (e.g. --quick)")
     args = ap.parse_args(argv)
@@ -61,6 +62,13 @@ def main(argv=None) -> int:
     line(f"- {len(rows)} tests: {tests_cpu:.0f} CPU-s in them, {sum(r['self_s'] for r in rows):.0f} in the "
          f"workers and {sum(r['children_s'] for r in rows):.0f} in the processes they started (nodes, tools); "
          f"the rest of the run's CPU is start-up, collection and scheduling")
+    ends = collections.defaultdict(float)
+    for r in rows:
+        ends[r["worker"]] = max(ends[r["worker"]], r["end"])
+    if len(ends) > 1:
+        first, last = min(ends.values()), max(ends.values())
+        line(f"- the {len(ends)} workers finished their last tests within {last - first:.0f} s of each other "
+             f"(the run's tail: fewer tests than workers left to run)")
     line("")
     modules: dict[str, list[float]] = collections.defaultdict(lambda: [0, 0.0, 0.0, 0.0])
     for r in rows:
@@ -81,6 +89,8 @@ def main(argv=None) -> int:
     for r in sorted(rows, key=lambda r: -(r["self_s"] + r["children_s"]))[:args.top]:
         line(f"| `{r['test']}` | {r['self_s'] + r['children_s']:.1f} | {r['wall_s']:.1f} |")
     print("\n".join(page))
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=0) + "\n")
     if args.markdown:
         Path(args.markdown).write_text("\n".join(page) + "\n")
     return code
