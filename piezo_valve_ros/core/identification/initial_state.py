@@ -189,8 +189,8 @@ def session_start(model: ValveModel, record: Record, t0: float, bounds: Optional
         lower_step = np.concatenate(((L[0] - z)[free_states], [-np.inf, -np.inf])) * scale
         upper_step = np.concatenate(((U[0] - z)[free_states], [np.inf, np.inf])) * scale
         factor = np.linalg.cholesky(A.T @ A + np.diag(ridge))      # the ridge problem as a square bounded one
-        step = optimize.lsq_linear(factor.T, np.linalg.solve(factor, A.T @ error(z, rest, offset)),
-                                   bounds=(lower_step, np.maximum(upper_step, lower_step + 1e-12)), method="bvls").x / scale
+        step = optimize.lsq_linear(factor.T, np.linalg.solve(factor, A.T @ error(z, rest, offset)), method="bvls",
+                                   bounds=(lower_step, np.maximum(upper_step, lower_step + 1e-12))).x / scale
         for fraction in (1.0, 0.5, 0.25):   # the clamps bend the straight line: take the part that pays
             trial_z = z.copy()
             trial_z[free_states] = np.clip(z[free_states] + fraction * step[:k], L[0][free_states], U[0][free_states])
