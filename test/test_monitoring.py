@@ -237,6 +237,48 @@ def test_valve_identify_monitor_judges_a_recorded_day_offline(tmp_path):
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "broken.yaml" in bad.stderr
 
 
+def _verdict(level: Level, end_s: float, resembles: str = "", mean_um: float = 0.0):
+    from piezo_valve_ros.core.monitoring.health import Health
+    return Health(level, end_s - 4.0, end_s, abs(mean_um), mean_um, 0.1, 0.05, 2.0, 3.0, 0.0, resembles, 0.3, "")
+
+
+ENABLED = {"enabled": 1.0, "guard_active": 0.0}
+
+
+def test_a_push_that_leaves_part_of_a_settling_drift_at_warn_is_followed_up_until_ok():
+    """refit_when error: an offset at ERROR is pushed; the rest a still-settling drift leaves shows at WARN on the new
+    model and is pushed too, once a window, until a verdict is OK; after that a WARN waits for ERROR again."""
+    from piezo_valve_ros.core.monitoring.refits import RefitPolicy
+    from piezo_valve_ros.core.monitoring.health import OFFSET_PREFIX
+    policy = RefitPolicy(Level.ERROR, window_s=4.0)
+    offset = f"{OFFSET_PREFIX} of +1.000 um the model lacks"
+    assert policy.decide(_verdict(Level.WARN, 28.0, offset, 0.5), ENABLED) is None     # below refit_when
+    assert policy.decide(_verdict(Level.ERROR, 30.0, offset, 2.0), ENABLED).offset_change_um == 2.0
+    assert policy.decide(_verdict(Level.ERROR, 31.0, offset, 0.8), ENABLED).not_now == \
+        "a refit was pushed less than a window ago"
+    assert policy.decide(_verdict(Level.WARN, 35.0, offset, 0.16), ENABLED).offset_change_um == 0.16  # the rest
+    assert policy.decide(_verdict(Level.WARN, 36.0, "dynamics: a lag", 0.0), ENABLED) is None  # no offset: waits
+    assert policy.decide(_verdict(Level.OK, 40.0), ENABLED) is None
+    assert policy.decide(_verdict(Level.WARN, 50.0, offset, 0.3), ENABLED) is None      # not following up now
+    assert policy.decide(_verdict(Level.ERROR, 51.0, offset, 1.9), ENABLED).offset_change_um == 1.9
+
+
+def test_a_refit_is_pushed_only_to_an_enabled_controller_without_its_guard_and_anything_else_is_advised_once():
+    from piezo_valve_ros.core.monitoring.refits import RefitPolicy
+    from piezo_valve_ros.core.monitoring.health import OFFSET_PREFIX
+    offset = f"{OFFSET_PREFIX} of +1.000 um the model lacks"
+    for state, why in (({}, "the controller's state is not known (~/controller_state)"),
+                       ({"enabled": 0.0, "guard_active": 0.0}, "the controller is disabled"),
+                       ({"enabled": 1.0, "guard_active": 1.0}, "the controller's oscillation guard is active")):
+        decision = RefitPolicy(Level.WARN, 4.0).decide(_verdict(Level.WARN, 30.0, offset, 1.0), state)
+        assert decision.offset_change_um is None and decision.not_now == why
+    policy = RefitPolicy(Level.WARN, 4.0)
+    gain = "drift: a gain change of -4.0 % (the valve's output scaled by 0.9600) the model lacks"
+    assert "plan:=validate,train,refit,validate" in policy.decide(_verdict(Level.ERROR, 30.0, gain), ENABLED).advice
+    assert policy.decide(_verdict(Level.ERROR, 31.0, gain), ENABLED) is None             # said once
+    assert RefitPolicy(None, 4.0).decide(_verdict(Level.ERROR, 30.0, offset, 1.0), ENABLED) is None   # never
+
+
 @pytest.mark.parametrize("override, says", [("refit_when:=sometimes", "refit_when must be one of never, warn, error"),
                                             ("window_s:=-1.0", "window_s"), ("step_s:=nan", "step_s"),
                                             ("error_ratio:=1.5", "error_ratio (1.5) must exceed warn_ratio"),

@@ -10,8 +10,9 @@ labelled row: HEALTH_COLUMNS); a change of level is logged in one line.  When th
 ``refit_when`` (never, warn, error; default never): at that level it asks for a refit.  What the operating
 data determine, an offset the model lacks (a drift), it pushes itself: the controller's ``gpim.offset_um``
 moved by the window's mean residual, only while the controller is enabled with its oscillation guard off
-(read on ``~/controller_state``) and at most once a window.  Anything else needs a designed experiment:
-it logs the identification plan to run.
+(read on ``~/controller_state``) and at most once a window; what a push leaves is followed up at WARN until the
+valve is OK again.  Anything else needs a designed experiment: it logs the identification plan to run
+(``core/monitoring/refits.py``).
 
     valve_monitor [--ros-args -p window_s:=20.0 -p controller:=valve_controller -r __ns:=/valve1]
 """
@@ -29,7 +30,8 @@ from std_msgs.msg import Float64MultiArray
 
 from ..core.control.compensation import MODEL_PARAMETERS, CompensationModel
 from ..core.monitoring.health import (ERROR_RATIO, MIN_SPAN_V, STEP_S, WARN_RATIO, WINDOW_S, Health, HealthLimits,
-                                      HealthMonitor, Level)
+                                      HealthMonitor)
+from ..core.monitoring.refits import REFIT_LEVELS, RefitDecision, RefitPolicy
 from ..io.samples import SamplesLayoutError
 from ..runtime.memory import keep_freed_memory
 from .common import SAMPLES_QOS, Diagnostics, ParameterSpec, as_float, declare_all, parameter_values, run_node, \
@@ -52,11 +54,9 @@ MONITOR_PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("min_span_v", MIN_SPAN_V, "a window whose voltage spans less [V] is not judged (STALE)",
                   read_only=True, low=0.0, high=1000.0),
     ParameterSpec("refit_when", "never", "never, warn or error: at that level push what the operating data "
-                  "determine (an offset the model lacks) to the controller, else log the identification plan "
-                  "to run", read_only=True),
+                  "determine (an offset the model lacks) to the controller, and what a push leaves at WARN until "
+                  "OK; else log the identification plan to run", read_only=True),
 )
-REFIT_LEVELS = {"never": None, "warn": Level.WARN, "error": Level.ERROR}
-OFFSET_PREFIX = "drift: an offset"   # what the health core says when a constant explains the residual
 
 
 class ValveMonitorNode(Node):
@@ -86,8 +86,7 @@ class ValveMonitorNode(Node):
         self._first_sample_s: Optional[float] = None   # the rig's time [s] of the first and the latest sample judged
         self._latest_sample_s: Optional[float] = None
         self.controller_state: dict[str, float] = {}
-        self._last_push_s = -math.inf
-        self._advised = False
+        self.refits = RefitPolicy(self.refit_at, self.limits.window_s)
         self.create_subscription(Float64MultiArray, "samples", self._on_samples, SAMPLES_QOS)
         self.create_subscription(Float64MultiArray, f"{self.controller_name}/controller_state", self._on_state, 10)
         self.create_subscription(ParameterEvent, "/parameter_events", self._on_parameter_event, 10)
@@ -157,37 +156,26 @@ class ValveMonitorNode(Node):
                 health.end_s, float(health.level), health.ratio, health.structured_rms_um, health.residual_mean_um,
                 health.noise_um, health.voltage_span_v]]), ",".join(HEALTH_COLUMNS)))
             self.diagnostics.publish()
-            if self.refit_at is not None and health.level in (Level.WARN, Level.ERROR) \
-                    and health.level >= self.refit_at:
-                self._ask_for_refit(health)
+            self._act_on(self.refits.decide(health, self.controller_state))
 
     # ------------------------------------------------------------------ refits
     def _on_state(self, msg: Float64MultiArray) -> None:
         if len(msg.layout.dim) == 2:
             self.controller_state = dict(zip(msg.layout.dim[1].label.split(","), msg.data))
 
-    def _ask_for_refit(self, health: Health) -> None:
-        """Push the offset a drift moved, when it is safe; otherwise say which experiment would refit."""
-        if not health.resembles.startswith(OFFSET_PREFIX):
-            if not self._advised:
-                self.get_logger().warning(
-                    f"a refit is needed ({health.resembles}): the operating data do not determine it; run the "
-                    f"identification plan (valve_identification --ros-args -p plan:=validate,train,refit,validate)")
-                self._advised = True
+    def _act_on(self, decision: Optional[RefitDecision]) -> None:
+        """Push the offset a drift moved, or say why not now, or which experiment would refit."""
+        if decision is None:
             return
-        state = self.controller_state
-        unsafe = ("the controller's state is not known (~/controller_state)" if not state else
-                  "the controller is disabled" if state.get("enabled", 0.0) < 0.5 else
-                  "the controller's oscillation guard is active" if state.get("guard_active", 0.0) > 0.5 else
-                  "a refit was pushed less than a window ago" if health.end_s - self._last_push_s < self.limits.window_s
-                  else "")
-        if unsafe:
-            self.get_logger().info(f"refit not pushed: {unsafe}")
-            return
-        offset = float(self.model.gpim.offset_um) + health.residual_mean_um
-        self._last_push_s = health.end_s
-        future = self.client.set_parameters([Parameter("gpim.offset_um", value=offset)])
-        future.add_done_callback(lambda f: self._pushed(f, offset, health.residual_mean_um))
+        if decision.advice:
+            self.get_logger().warning(decision.advice)
+        elif decision.not_now:
+            self.get_logger().info(f"refit not pushed: {decision.not_now}")
+        else:
+            moved = decision.offset_change_um
+            offset = float(self.model.gpim.offset_um) + moved
+            future = self.client.set_parameters([Parameter("gpim.offset_um", value=offset)])
+            future.add_done_callback(lambda f: self._pushed(f, offset, moved))
 
     def _pushed(self, future, offset: float, moved: float) -> None:
         try:

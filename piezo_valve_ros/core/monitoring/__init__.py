@@ -8,4 +8,6 @@ __all__, __getattr__ = lazy_exports(__name__, {
     "HealthLimits": "health",
     "Health": "health",
     "Level": "health",
+    "RefitPolicy": "refits",
+    "RefitDecision": "refits",
 })

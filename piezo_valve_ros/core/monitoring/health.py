@@ -59,6 +59,7 @@ REFIT_SHARE = 0.5         # "the model's own parameters" when a GPIM refit on th
 GAIN_SHARE = 0.2          # a gain change (not an offset) when a gain term takes this share of what an offset leaves
 SEARCH_RATE_HZ = 500.0    # the window's subset search runs on block means at most this rate [Hz]
 START_ROWS_S = 2.0        # the operators' state at the first sample is estimated on this much of the first rows [s]
+OFFSET_PREFIX = "drift: an offset"   # how a residual a constant explains is named (what refit_when can push)
 
 
 class Level(IntEnum):
@@ -295,7 +296,7 @@ class HealthMonitor:
                     f"scaled by {1.0 + gain:.4f}) and an offset of {level_um:+.3f} um the model lacks",
                     1.0 - gain_rms / in_force)
         if in_force > 0 and 1.0 - offset_rms / in_force >= REFIT_SHARE:
-            return f"drift: an offset of {shift:+.3f} um the model lacks", 1.0 - offset_rms / in_force
+            return f"{OFFSET_PREFIX} of {shift:+.3f} um the model lacks", 1.0 - offset_rms / in_force
         history = tuple(before) + (float(v[0]),)
         start = InitialState("remanent", dominant_turning_points(np.asarray(history))) if len(history) > 1 else InitialState()
         baseline = ValveModel(self.model.gpim, tuple(sections(self.model.valve_model)), t0=split.t0, history=start)
