@@ -107,9 +107,9 @@ def test_bad_limits_and_rows_are_refused_with_the_reason():
 @pytest.mark.slow
 @pytest.mark.wall_clock(seconds=40)
 def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_after_a_refit(tmp_path):
-    """A real-time rig (the simulated valve: G_v and noise, a 3 um drift setting in 25 s after the hardware
-    opened) under PID HC following a slow sine; valve_monitor beside it (`valve_rig --monitor`, its section of
-    the parameters file: 4 s windows, a verdict a second):
+    """A lockstep rig at the wall clock's pace (the simulated valve: G_v and noise, a 3 um drift setting in 25 s of
+    the valve's time after the hardware opened) under PID HC following a slow sine; valve_monitor beside it
+    (`valve_rig --monitor`, its section of the parameters file: 4 s windows, a verdict a second):
     OK on /diagnostics before the drift, ERROR after it, named as an offset; with refit_when: error it pushes
     the offset the drift moved to the controller (gpim.offset_um), follows the new model and is OK again."""
     import os
@@ -125,8 +125,9 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
     bin_dir = os.path.dirname(sys.executable)
     ns = f"/monitor{os.getpid()}"
     params = tmp_path / "rig.yaml"
-    params.write_text("valve_hardware:\n  ros__parameters:\n    clock: realtime\n    control_period_s: 0.001\n"
-                      "    realtime.busy_poll_s: 0.0\n"   # sleeping between ticks: the suite's other worker keeps a core
+    # lockstep: no command is ever late, so the verdicts depend on the valve alone, however loaded the machine
+    params.write_text("valve_hardware:\n  ros__parameters:\n    clock: lockstep\n    lockstep.max_speed: 1.0\n"
+                      "    control_period_s: 0.001\n"
                       "    sim.creep: false\n    sim.saturation: false\n    sim.slew_limit: false\n    sim.drift: true\n"
                       "    sim.drift_offset_um: 3.0\n    sim.drift_gain_change: 0.0\n    sim.drift_time_constant_s: 1.0\n"
                       "    sim.drift_start_s: 25.0\n"
@@ -168,8 +169,9 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
             # OK while the valve matches its model (before the drift sets in 25 s after the rig came up)
             assert spin_until(lambda: any(lv == b"\x00" for lv, _, _ in levels_since(opened)), 25.0), \
                 (levels_since(opened)[-3:], (tmp_path / "rig.log").read_text()[-2000:])
-            assert time.monotonic() - opened < 24.0, "no OK verdict before the drift"
             ok_before = [x for x in levels_since(opened) if x[0] == b"\x00"]
+            first_ok = next(k for k, x in enumerate(levels_since(opened)) if x[0] == b"\x00")
+            assert all(lv != b"\x02" for lv, _, _ in levels_since(opened)[:first_ok]), "an ERROR before the drift"
             # ERROR after it, named as an offset the model lacks
             assert spin_until(lambda: any(lv == b"\x02" for lv, _, _ in levels_since(opened + 25.0)), 30.0), \
                 levels_since(opened + 25.0)[-3:]
@@ -178,19 +180,9 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
                 levels_since(opened + 25.0)[-3:]
             # refit_when: error: the monitor pushes the offset the drift moved to the controller, follows the
             # new model and finds the valve matching it again
-            # (on a machine so loaded that the real-time loop answers late, the hardware says so, and what that delay
-            # leaves may keep the verdict at WARN, a tenth of a micrometre off: then the loop's delay is on record, and
-            # what load cannot change is checked: the ERROR is gone for good, and the pushed offset below)
             refit_at = time.monotonic()
-
-            def cleared():
-                after = levels_since(refit_at)
-                if any(lv == b"\x00" for lv, _, _ in after):
-                    return True
-                late = "command arrived more than a period after its measurement" in (tmp_path / "rig.log").read_text()
-                recent = after[-3:]
-                return late and len(recent) == 3 and all(lv == b"\x01" for lv, _, _ in recent)
-            assert spin_until(cleared, 30.0), (levels_since(refit_at)[-3:], (tmp_path / "rig.log").read_text()[-2000:])
+            assert spin_until(lambda: any(lv == b"\x00" for lv, _, _ in levels_since(refit_at)), 30.0), \
+                (levels_since(refit_at)[-3:], (tmp_path / "rig.log").read_text()[-2000:])
             from piezo_valve_ros.core.control.compensation import MODEL_DEFAULTS
             got = tool("get", "controller", "gpim.offset_um")
             moved = float(got.stdout.split(":")[1]) - MODEL_DEFAULTS["gpim.offset_um"]
