@@ -38,6 +38,32 @@ def verdicts(monitor: HealthMonitor, rows: np.ndarray, chunk: int = 100):
     return [h for k in range(0, len(rows), chunk) for h in monitor.add(rows[k:k + chunk])]
 
 
+def test_a_residual_on_a_valve_held_still_is_not_named_a_gain_change_of_hundreds_of_percent():
+    """The README tour's monitor once said "a gain change of +51658.8 % (the swing about 0.0 um scaled by 517.6)":
+    its window's held-out part came after the sine, the valve held still, and the residual's slow settling was
+    regressed on the prediction's last hundredths of a micrometre.  A gain change beyond GAIN_CHANGE_MAX is not one."""
+    t = np.arange(10_000) * DT
+    rng = np.random.default_rng(3)
+    moving = t < 6.0   # a sine, then the valve held (the controller's commands still wander a little)
+    settling = np.where(moving, 0.0, np.exp(-(t - 6.0) / 2.0))
+    v = np.where(moving, 5.0 + 2.0 * np.sin(2 * np.pi * 0.5 * t), 5.0 + 0.3 * settling)
+    v = v + 0.01 * rng.standard_normal(t.size)
+    predicted = np.where(moving, 40.0 * np.sin(2 * np.pi * 0.5 * t), 0.02 * settling)
+    y = predicted + 0.6 * settling + 0.02 * rng.standard_normal(t.size)   # the valve settles 30x what the model says
+    monitor = HealthMonitor(CompensationModel(), DT)
+    name, _ = monitor.resemblance(np.column_stack((t, v, y, predicted)))   # was: a gain change of +3020.1 %
+    assert not name.startswith("drift: a gain change"), name
+
+
+@pytest.mark.parametrize("window_s, step_s", [(20.0, 5.0), (10.0, 2.0), (8.0, 5.0), (8.0, 1.0)])
+def test_the_first_verdict_comes_when_the_limits_say(window_s, step_s):
+    """``HealthLimits.first_verdict_s`` (what valve_monitor's STALE message counts towards, and what the README
+    tour's window and step are chosen by) is when the first verdict comes."""
+    limits = HealthLimits(window_s=window_s, step_s=step_s)
+    first = verdicts(HealthMonitor(CompensationModel(), DT, limits), operating_rows(PLAIN, 30.0))[0]
+    assert first.end_s == pytest.approx(limits.first_verdict_s - DT)
+
+
 def test_a_valve_that_matches_its_model_stays_ok():
     monitor = HealthMonitor(CompensationModel(), DT)
     health = verdicts(monitor, operating_rows(PLAIN, 180.0))

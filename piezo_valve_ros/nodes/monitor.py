@@ -194,9 +194,10 @@ class ValveMonitorNode(Node):
             if self.model is None:
                 return "STALE", "waiting for the controller's model", {}
             have = 0.0 if self._first_sample_s is None else self._latest_sample_s - self._first_sample_s
-            return "STALE", (f"waiting for a full window of samples: {have:.1f} of {self.limits.window_s:g} s of the "
-                             "rig's time so far (a lockstep rig's time runs at its own pace; window_s sets the "
-                             "window)"), {}
+            lim = self.limits
+            return "STALE", (f"waiting for its first window: {have:.1f} of {lim.first_verdict_s:g} s of the rig's "
+                             f"time so far (its prediction settles for step_s {lim.step_s:g} s, then a window of "
+                             f"window_s {lim.window_s:g} s; a lockstep rig's time runs at its own pace)"), {}
         return self.latest.level.name, self.latest.message, self.latest.values()
 
     def _report_while_waiting(self) -> None:

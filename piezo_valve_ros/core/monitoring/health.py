@@ -57,6 +57,8 @@ MIN_SPAN_V = 0.5          # a window whose voltage spans less [V] does not excit
 RESEMBLANCE_GAIN = 0.2    # a catalogue effect resembles the residual when it cuts the window's held-out RMS by this
 REFIT_SHARE = 0.5         # "the model's own parameters" when a GPIM refit on the window takes this share of the RMS
 GAIN_SHARE = 0.2          # a gain change (not an offset) when a gain term takes this share of what an offset leaves
+GAIN_CHANGE_MAX = 0.5     # ... and changes the gain by at most this share: more is a residual regressed on a swing
+                          # too small to carry it (a valve held still in the held-out part), not a drifting gain
 SEARCH_RATE_HZ = 500.0    # the window's subset search runs on block means at most this rate [Hz]
 START_ROWS_S = 2.0        # the operators' state at the first sample is estimated on this much of the first rows [s]
 OFFSET_PREFIX = "drift: an offset"   # how a residual a constant explains is named (what refit_when can push)
@@ -77,6 +79,12 @@ class HealthLimits:
     warn_ratio: float = WARN_RATIO
     error_ratio: float = ERROR_RATIO
     min_span_v: float = MIN_SPAN_V
+
+    @property
+    def first_verdict_s(self) -> float:
+        """Samples [s] the first verdict needs: the prediction settles for a step, then rows are held a step at a
+        time until a window is full."""
+        return self.step_s * (1 + math.ceil(self.window_s / self.step_s - 1e-9))
 
     def problems(self) -> list[str]:
         out = []
@@ -291,7 +299,8 @@ class HealthMonitor:
         (level_um, gain), *_ = np.linalg.lstsq(design, held_out, rcond=None)
         gain_rms = rms(held_out - design @ np.array([level_um, gain]))
         if in_force > 0 and 1.0 - gain_rms / in_force >= REFIT_SHARE \
-                and 1.0 - gain_rms / max(offset_rms, 1e-30) >= GAIN_SHARE:
+                and 1.0 - gain_rms / max(offset_rms, 1e-30) >= GAIN_SHARE \
+                and abs(gain) <= GAIN_CHANGE_MAX:
             return (f"drift: a gain change of {100.0 * gain:+.1f} % (the swing about {np.mean(swing):.1f} um "
                     f"scaled by {1.0 + gain:.4f}) and an offset of {level_um:+.3f} um the model lacks",
                     1.0 - gain_rms / in_force)
