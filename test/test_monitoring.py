@@ -343,3 +343,47 @@ def test_a_gain_change_is_named_a_gain_change_and_an_offset_an_offset(drift, nam
     if "gain" in named:
         sizes = [float(h.resembles.split("gain change of ")[1].split(" %")[0]) for h in warned]
         assert all(-5.0 < x < -3.0 for x in sizes), sizes
+
+
+@pytest.mark.slow
+def test_valve_monitor_reports_every_second_before_and_between_its_verdicts(tmp_path):
+    """valve_command status waits for every node of the rig to report; the monitor, heard only at its verdicts
+    (every step_s, 5 s by default) or while waiting at that pace, was missed by the status's listening under load
+    (the README tour).  Alone, without a controller, it says STALE on /diagnostics every second."""
+    import os
+    import subprocess
+    import sys
+    import time
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from ros_helpers import ros_env
+    from piezo_valve_ros.runtime.processes import ProcessGroup
+    ns = f"/alone{os.getpid()}"
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    probe = rclpy.create_node("monitor_probe", namespace=ns, context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(probe)
+    heard = []
+    probe.create_subscription(DiagnosticArray, "/diagnostics", lambda m: heard.extend(
+        (time.monotonic(), s.message) for s in m.status if s.name == f"{ns}/valve_monitor"), 10)
+    try:
+        with ProcessGroup() as procs:
+            procs.start("monitor", [os.path.join(os.path.dirname(sys.executable), "valve_monitor"), "--ros-args",
+                                    "-r", f"__ns:={ns}"], env=ros_env(), stdout=subprocess.DEVNULL,
+                        stderr=subprocess.STDOUT)
+            deadline = time.monotonic() + 60.0
+            while time.monotonic() < deadline and not heard:
+                executor.spin_once(timeout_sec=0.05)
+            assert heard, "the monitor never reported"
+            first = heard[0][0]
+            while time.monotonic() < first + 3.5:
+                executor.spin_once(timeout_sec=0.05)
+        assert len([t for t, _ in heard if t <= first + 3.5]) >= 3, heard
+        assert all(message == "waiting for the controller's model" for _, message in heard), heard
+    finally:
+        executor.remove_node(probe)
+        probe.destroy_node()
+        executor.shutdown()
+        rclpy.try_shutdown(context=context)

@@ -83,8 +83,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     sub.add_parser("reset", help="leave the hardware's latched fault (its ~/reset service) once its cause is gone")
     p = sub.add_parser("status", help="print the rig's health (/diagnostics) and the controller's state")
     p.add_argument("--listen", type=float, default=6.0, metavar="S",
-                   help="listen at most this long for every node to report (default 6 s: valve_monitor reports "
-                        "every 5 s)")
+                   help="listen at most this long for every node to report (default 6 s; the nodes report every "
+                        "second)")
     return ap.parse_args(argv)
 
 

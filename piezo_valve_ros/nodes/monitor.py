@@ -34,7 +34,7 @@ from ..core.monitoring.health import (ERROR_RATIO, MIN_SPAN_V, STEP_S, WARN_RATI
 from ..core.monitoring.refits import REFIT_LEVELS, RefitDecision, RefitPolicy
 from ..io.samples import SamplesLayoutError
 from ..runtime.memory import keep_freed_memory
-from .common import SAMPLES_QOS, Diagnostics, ParameterSpec, as_float, declare_all, parameter_values, run_node, \
+from .common import DIAGNOSTICS_PERIOD, SAMPLES_QOS, Diagnostics, ParameterSpec, as_float, declare_all, parameter_values, run_node, \
     samples_from_message, samples_message
 
 HEALTH_COLUMNS = ("end_s", "level", "ratio_to_noise", "structured_rms_um", "residual_mean_um", "noise_um",
@@ -91,9 +91,10 @@ class ValveMonitorNode(Node):
         self.create_subscription(Float64MultiArray, f"{self.controller_name}/controller_state", self._on_state, 10)
         self.create_subscription(ParameterEvent, "/parameter_events", self._on_parameter_event, 10)
         self.health_pub = self.create_publisher(Float64MultiArray, "~/health", 10)
-        self.diagnostics = Diagnostics(self, 0.0, self._status)   # published with every verdict
+        # with every verdict, and the latest every second as the other nodes report (valve_command status waits
+        # for every node of the rig: a monitor heard only at its verdicts, every step_s, could miss its listening)
+        self.diagnostics = Diagnostics(self, DIAGNOSTICS_PERIOD.default, self._status)
         self.create_timer(MODEL_FETCH_PERIOD_S, self._fetch_model)
-        self.create_timer(self.limits.step_s, self._report_while_waiting)
         self.get_logger().info(f"valve_monitor up: watching {self.controller_name}'s model; windows of "
                                f"{self.limits.window_s:g} s every {self.limits.step_s:g} s; WARN at "
                                f"{self.limits.warn_ratio:g}x, ERROR at {self.limits.error_ratio:g}x the noise")
@@ -199,10 +200,6 @@ class ValveMonitorNode(Node):
                              f"time so far (its prediction settles for step_s {lim.step_s:g} s, then a window of "
                              f"window_s {lim.window_s:g} s; a lockstep rig's time runs at its own pace)"), {}
         return self.latest.level.name, self.latest.message, self.latest.values()
-
-    def _report_while_waiting(self) -> None:
-        if self.latest is None:
-            self.diagnostics.publish()
 
 
 def main(args=None) -> int:
