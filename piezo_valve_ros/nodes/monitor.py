@@ -34,8 +34,8 @@ from ..core.monitoring.health import (ERROR_RATIO, MIN_SPAN_V, STEP_S, WARN_RATI
 from ..core.monitoring.refits import REFIT_LEVELS, RefitDecision, RefitPolicy
 from ..io.samples import SamplesLayoutError
 from ..runtime.memory import keep_freed_memory
-from .common import DIAGNOSTICS_PERIOD, SAMPLES_QOS, Diagnostics, ParameterSpec, as_float, declare_all, parameter_values, run_node, \
-    samples_from_message, samples_message
+from .common import DIAGNOSTICS_PERIOD, SAMPLES_QOS, Diagnostics, ParameterSpec, as_float, declare_all, \
+    parameter_values, run_node, samples_from_message, samples_message
 
 HEALTH_COLUMNS = ("end_s", "level", "ratio_to_noise", "structured_rms_um", "residual_mean_um", "noise_um",
                   "voltage_span_v")
