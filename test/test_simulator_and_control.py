@@ -43,6 +43,29 @@ def test_simulator_step_equals_run_bit_for_bit_and_repeats(config):
         assert not np.array_equal(SimulatedValve(replace(config, seed=99)).run(v), yb)
 
 
+@pytest.mark.parametrize("envelope", [None, (0.95, 0.2), (1.2, -1.0)])
+def test_the_hysteresis_stage_held_at_one_input_gives_what_its_operators_give(envelope):
+    """A rig samples several times per control period at one command: the stage returns its last output there
+    instead of stepping the operators again.  Bit for bit what stepping gives, symmetric or not (lower > upper
+    too), also after a batch run."""
+    from piezo_valve_ros.core.sim.stages.hysteresis import Hysteresis
+    model = PAPER_GPIM.model()
+    if envelope is not None:
+        model = GPIM(model.thresholds, model.weights, model.a0, model.a1, model.offset_um, *envelope)
+    k = np.arange(600)
+    held = np.repeat(5.0 + 4.5 * np.sin(0.37 * k) * np.linspace(0.2, 1.0, k.size), 10)   # 10 samples per command
+    held[3500:3510] = held[2999]   # after the run: the input the stage last stepped at, on a moved state
+    stage, reference = Hysteresis(model, 5.0), model.stream(v0=5.0)
+    out = [stage.step(float(x), k) for k, x in enumerate(held[:3000])]
+    out.extend(stage.run(held[3000:3500], 3000))
+    ref = [reference.step(float(x)) for x in held[:3000]]
+    reference.run(held[3000:3500])
+    out.extend(stage.step(float(x), k) for k, x in enumerate(held[3500:], 3500))
+    ref.extend(reference.step(float(x)) for x in held[3500:])
+    assert np.array_equal(np.array(out[:3000] + out[3500:]), np.array(ref))
+    assert np.array_equal(stage.stream.state, reference.state)
+
+
 def test_slew_limit_bounds_electrode_rate():
     limit_v_per_sample = ValveSimConfig().amplifier.slew_v_per_s * DT / 20.0  # amplifier-input volts
     sim2 = SimulatedValve(replace(ValveSimConfig().ideal(), amplifier=ValveSimConfig().amplifier,
