@@ -179,3 +179,45 @@ def test_a_bank_filtered_in_parts_into_one_array_has_the_whole_banks_bits(name):
         got = Context.states_and_columns_through_dynamics(ctx, less, [others[:, :1], others[:, 1:].T.copy().T], before)
         assert got.shape == (700, 9) and got.T.flags.c_contiguous
         assert np.array_equal(got, expected) and np.array_equal(np.signbit(got), np.signbit(expected))
+
+
+COMPILE_RACE = """
+import os, sys, time
+import numpy as np
+from piezo_valve_ros.core.model.dynamics import lag_bank
+from piezo_valve_ros.core.model import compiled
+kernels = compiled.load("piezo_valve_ros.core.model._iir_kernels")
+open(sys.argv[2], "w").close()
+while not os.path.exists(sys.argv[1]):
+    time.sleep(0.001)
+lag_bank(np.linspace(0.0, 1.0, 50), [0.01, 0.1], 1e-3)
+stats = kernels.first_order_bank.stats
+print(sum(stats.cache_hits.values()), sum(stats.cache_misses.values()))
+"""
+
+
+def test_processes_that_start_together_on_a_cold_cache_compile_a_kernel_once(tmp_path):
+    """Two processes ask for the same kernel at the same moment on an empty numba cache: one compiles it, the
+    other waits for it and loads it from the cache (each compiled it: about 10 s of CPU per process for an
+    analysis's kernels)."""
+    import os
+    import subprocess
+    import sys
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"))
+    go = tmp_path / "go"
+    ready = [tmp_path / f"ready{k}" for k in range(2)]
+    procs = [subprocess.Popen([sys.executable, "-c", COMPILE_RACE, str(go), str(r)], env=env, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for r in ready]
+    try:
+        import time
+        deadline = time.monotonic() + 60
+        while not all(r.exists() for r in ready) and time.monotonic() < deadline:
+            time.sleep(0.01)   # both have imported numpy, numba and the kernels' module
+        go.touch()
+        outs = [p.communicate(timeout=120) for p in procs]
+    finally:
+        for p in procs:
+            p.kill()
+    assert all(p.returncode == 0 for p in procs), [err for _, err in outs]
+    hits, misses = (sum(int(out.split()[k]) for out, _ in outs) for k in (0, 1))
+    assert (hits, misses) == (1, 1), outs
