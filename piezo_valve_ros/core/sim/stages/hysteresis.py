@@ -1,6 +1,7 @@
 """The GPIM hysteresis of the input-equivalent voltage; asymmetry: a descending envelope of its own."""
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -20,18 +21,17 @@ class Hysteresis:
 
     def __init__(self, model: GPIM, v0: float):
         self.stream = model.stream(v0=v0)
-        self._last: tuple[float, float] | None = None   # (input [V], output [um]) of the last sample
+        self._last_v, self._last_y = math.nan, math.nan   # the last sample's input [V] and output [um]
 
     def step(self, v: float, k: int) -> float:
-        last = self._last
-        if last is not None and last[0] == v:
-            return last[1]
-        y = self.stream.step(v)
-        self._last = (v, y)
-        return y
+        if v == self._last_v:   # never true after a run or at the start (NaN)
+            return self._last_y
+        self._last_y = self.stream.step(v)
+        self._last_v = v
+        return self._last_y
 
     def run(self, v: np.ndarray, k0: int) -> np.ndarray:
-        self._last = None   # the next step computes its output as a step does
+        self._last_v = math.nan   # the next step computes its output as a step does
         return self.stream.run(v)
 
 
