@@ -989,6 +989,53 @@ def test_the_bounded_solve_keeps_its_bounds_exactly():
         assert np.all(x >= 0.0), (seed, x.min())
 
 
+def _bounded_problem(seed: int):
+    """A fit-like bounded problem: a standardised Gram (cumulated columns: strongly correlated, as the operators'
+    are) with its ridge, a target that puts about half the bounded coefficients on their bounds, bounds at 0 and
+    elsewhere, and the last four coefficients free (lower -inf: an offset, an effect's terms)."""
+    rng = np.random.default_rng(seed)
+    A = np.cumsum(rng.normal(size=(500, 40)), axis=0)
+    A /= np.sqrt(np.mean(A ** 2, axis=0))
+    lower = np.where(rng.random(40) < 0.3, rng.normal(0.0, 0.5, 40), 0.0)
+    lower[-4:] = -np.inf
+    truth = np.where(rng.random(40) < 0.5, np.where(np.isfinite(lower), lower, 0.0) - rng.random(40), rng.random(40))
+    y = A @ truth + rng.normal(0.0, 2.0, 500)
+    gram = A.T @ A
+    gram[np.diag_indices_from(gram)] += 1e-10 * 500
+    return gram, A.T @ y, lower
+
+
+def test_the_bounded_solve_is_the_unique_minimiser_with_free_coefficients_and_bounds_off_zero(monkeypatch):
+    """solve_standardised's bounded branch (free coefficients eliminated, NNLS on the rest) meets the optimality
+    conditions of the bounded problem (gradient zero off the bounds, >= 0 on them) and gives what BVLS gives on
+    the same problem; where NNLS cannot finish, the solve falls back to BVLS with the same answer."""
+    from scipy import linalg, optimize
+    from piezo_valve_ros.core.identification import fitting
+    on_bounds = 0
+    for seed in range(40):
+        gram, rhs, lower = _bounded_problem(seed)
+        x = fitting.solve_standardised(gram, rhs, lower)
+        assert np.all(x >= lower)
+        grad = gram @ x - rhs
+        at = np.isfinite(lower) & (x == lower)
+        scale = np.max(np.abs(rhs))
+        assert np.max(np.abs(grad[~at])) < 1e-9 * scale and np.min(grad[at], initial=0.0) > -1e-9 * scale, seed
+        on_bounds += int(at.sum())
+        R = linalg.cholesky(gram)
+        bvls = optimize.lsq_linear(R, linalg.solve_triangular(R, rhs, trans="T"), bounds=(lower, np.inf),
+                                   method="bvls").x
+        assert np.allclose(x, bvls, rtol=1e-6, atol=1e-6 * np.max(np.abs(bvls))), seed
+    assert on_bounds > 200   # the problems do put coefficients on their bounds
+
+    def stuck(*args, **kwargs):
+        raise RuntimeError("too many iterations")
+    monkeypatch.setattr(fitting.optimize, "nnls", stuck)
+    gram, rhs, lower = _bounded_problem(0)
+    fallback = fitting.solve_standardised(gram, rhs, lower)
+    monkeypatch.undo()
+    assert np.allclose(fallback, fitting.solve_standardised(gram, rhs, lower), rtol=1e-6, atol=1e-9)
+
+
 def test_a_transport_delay_in_fractional_samples_shifts_the_prediction_by_that_much():
     """discretise_for's delay: whole samples, then the fraction by linear interpolation; a model with delay_s
     predicts its undelayed prediction that much later (a ramp: exactly)."""
