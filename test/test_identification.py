@@ -978,8 +978,8 @@ def test_a_fast_creep_does_not_bend_the_identified_g_v():
 
 
 def test_the_bounded_solve_keeps_its_bounds_exactly():
-    """Weights bounded at 0 come out >= 0, not -5e-19: the bounded solver (BVLS) leaves such rounding on a
-    few of these problems, and a negative weight makes a model with crossing envelopes uninvertible."""
+    """Weights bounded at 0 come out >= 0, not -5e-19: a bounded solver may leave such rounding (BVLS did on a
+    few of these problems), and a negative weight makes a model with crossing envelopes uninvertible."""
     from piezo_valve_ros.core.identification.fitting import solve_gram
     for seed in range(200):
         rng = np.random.default_rng(seed)
