@@ -221,3 +221,28 @@ def test_processes_that_start_together_on_a_cold_cache_compile_a_kernel_once(tmp
     assert all(p.returncode == 0 for p in procs), [err for _, err in outs]
     hits, misses = (sum(int(out.split()[k]) for out, _ in outs) for k in (0, 1))
     assert (hits, misses) == (1, 1), outs
+
+
+def test_each_kernel_compiles_once_whatever_the_banks_size_or_the_thresholds_flags():
+    """A kernel's arguments reach it with one layout and one writability, so numba compiles (or loads) one
+    specialisation per kernel: a state array passed as it came (a bank of one row is C-contiguous, of several
+    Fortran) or thresholds read-only in one caller and writable in another each cost a second compile on a cold
+    cache (about 0.5 s of CPU each, in every process that starts on one)."""
+    from piezo_valve_ros.core.model import hysteresis
+    b, a = FILTERS["second order (G at 2 kHz)"]
+    rng = np.random.default_rng(3)
+    for k in (1, 3):
+        rows = rng.normal(size=(k, 500))
+        iir.filter_rows(b, a, rows, np.zeros((k, 2)))
+        iir.filter_columns(b, a, np.ascontiguousarray(rows.T), np.zeros(k), np.zeros((k, 2)))
+    v = np.cumsum(rng.normal(size=30_000))
+    for writable in (True, False):
+        r = np.linspace(0.0, 2.0, 4)
+        r.flags.writeable = writable
+        states, _ = hysteresis.play_batch(v, v, r, np.zeros(4), compiled=True)
+        hysteresis.last_contact(states, v, v, r, compiled=True)
+    kernels = [iir._kernels(), hysteresis._kernels()]
+    used = {name: len(f.signatures) for module in kernels for name, f in vars(module).items()
+            if hasattr(f, "signatures") and f.signatures}
+    assert {"rows_3", "columns_3", "play_rows", "last_contacts"} <= set(used), used
+    assert all(count == 1 for count in used.values()), used

@@ -279,6 +279,7 @@ def _play_by_kernel(lower_drive, upper_drive, r, z0, weights, chunk, scale, symm
     n_samples = lower_drive.shape[0]
     run = _kernels().play_rows
     z = np.array(z0, dtype=float)
+    r = np.array(r, dtype=float)   # a writable copy: the kernel compiles once, not again for read-only thresholds
     no_scale = np.zeros(0)
     lower_drive, upper_drive = np.ascontiguousarray(lower_drive), np.ascontiguousarray(upper_drive)
     if weights is None:
@@ -341,8 +342,9 @@ def last_contact(states: np.ndarray, lower_drive: np.ndarray, upper_drive: np.nd
     n = states.shape[0]
     if compiled and states.size >= KERNEL_MIN_WORK:   # the scan compiled (the same sides and indices; see play_batch)
         side_last, index = np.empty(states.shape, np.int8), np.empty(states.shape, np.int32)
+        # the thresholds as a writable copy: the kernel compiles once, not again for read-only ones
         _kernels().last_contacts(np.ascontiguousarray(states), np.ascontiguousarray(lower_drive),
-                                 np.ascontiguousarray(upper_drive), r,
+                                 np.ascontiguousarray(upper_drive), np.array(r, dtype=float),
                                  np.zeros(0) if scale is None else np.ascontiguousarray(scale), same,
                                  lower_drive + upper_drive, side_last, index)
         return side_last, index

@@ -72,7 +72,8 @@ def filter_rows(b, a, rows: np.ndarray, zi: np.ndarray, out: Optional[np.ndarray
         return _into(out, signal.lfilter(*given, rows, axis=1, zi=zi)[0] if taps > 1
                      else signal.lfilter(*given, rows, axis=1))
     out = _output(out, rows.shape)
-    state = np.array(zi.T)   # (taps - 1, k): each tap's states contiguous across the rows
+    state = np.array(zi.T, order="C")   # (taps - 1, k): each tap's states contiguous across the rows; a copy,
+    # always C (one compiled specialisation, whether a bank has one row or several)
     _kernels().RUN_ROWS[taps](b, a, np.ascontiguousarray(rows), state, out)
     return out
 
@@ -97,7 +98,7 @@ def filter_columns(b, a, columns: np.ndarray, less: np.ndarray, zi: np.ndarray,
     if np.size(given[1]) == 1 or a[0] != 1.0 or taps not in KERNEL_TAPS:
         return filter_rows(*given, (columns - less).T, zi, out)
     out = _output(out, (k, n_samples))
-    state = np.array(zi.T)   # (taps - 1, k)
+    state = np.array(zi.T, order="C")   # (taps - 1, k): a copy, always C (one compiled specialisation)
     _kernels().RUN_COLUMNS[taps](b, a, np.ascontiguousarray(columns), np.ascontiguousarray(less), state, out)
     return out
 
