@@ -178,8 +178,11 @@ def session_start(model: ValveModel, record: Record, t0: float, bounds: Optional
         return y - filter_rows_at_rest(b, a, H_[None, :])[0] - (rest_ - H_[0]) * free - offset_
 
     sse = float(np.sum(error(z, rest, offset) ** 2))
+    L_free, U_free = L[:, free_states], U[:, free_states]   # the states estimated: their bounds alone
+    open_free, w_free = L_free < U_free, g.weights[free_states]
     for _ in range(SESSION_ROUNDS):
-        active = (((L <= z) & (z <= U) & (L < U)) * g.weights)[:, free_states]   # dH / dz_j while the start counts
+        z_free = z[free_states]
+        active = ((L_free <= z_free) & (z_free <= U_free) & open_free) * w_free   # dH / dz_j while the start counts
         columns = filter_rows_at_rest(b, a, np.ascontiguousarray(active.T))   # through G, at rest at the first row
         design = np.vstack((columns, free[None, :], np.ones((1, n_rows))))
         scale = np.sqrt(np.mean(design * design, axis=1))
