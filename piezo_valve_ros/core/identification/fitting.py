@@ -97,10 +97,11 @@ def _solve_at_bounds(gram: np.ndarray, rhs: np.ndarray, lower: np.ndarray, facto
     try:
         if free.any():
             free_factor = linalg.cho_factor(gram[np.ix_(free, free)], check_finite=False)
-            coupling = linalg.cho_solve(free_factor, gram[np.ix_(free, bounded)], check_finite=False)
+            cross = gram[np.ix_(bounded, free)]
+            coupling = linalg.cho_solve(free_factor, cross.T, check_finite=False)
             free_alone = linalg.cho_solve(free_factor, rhs[free], check_finite=False)
-            schur = gram[np.ix_(bounded, bounded)] - gram[np.ix_(bounded, free)] @ coupling
-            target = rhs[bounded] - gram[np.ix_(bounded, free)] @ free_alone
+            schur = gram[np.ix_(bounded, bounded)] - cross @ coupling
+            target = rhs[bounded] - cross @ free_alone
         else:
             schur, target = gram, rhs
         floor = lower[bounded]
