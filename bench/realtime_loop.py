@@ -2,7 +2,8 @@
 
     python bench/realtime_loop.py                 # everything (about 3 min)
     python bench/realtime_loop.py --seconds 10 --json loop.json
-    python bench/realtime_loop.py --conditions --only-conditions   # section 6 alone (about 3 min)
+    python bench/realtime_loop.py --conditions --only-conditions   # sections 6 and 7 alone
+    python bench/realtime_loop.py --only-misses --seconds 10 --markdown docs/results/realtime_misses.md   # section 8
     python bench/realtime_loop.py --conditions --json docs/results/realtime_loop.json \
         --markdown docs/results/realtime_loop.md   # the results page
 
@@ -21,6 +22,9 @@ Sections (figures from this run; the machine is shared, so compare them with eac
   7. (--conditions) the edge: composed 10 kHz and 5 kHz across processes, quiet and loaded, with the
      options the handbook recommends (quiet: polling; any: realtime.priority 50 with the processes pinned
      to their own CPUs, sleeping between ticks) and, for comparison, priority 50 floating
+  8. (--conditions, or --only-misses) where the edge's missed periods go: the loop's thread traced
+     (bench/loop_trace.py), each late tick given to garbage collection, the tick itself, node callbacks,
+     a wake-up later than its timeout, or nothing the process saw
 
 The hardware node runs in this process exactly as ``valve_hardware`` runs it (same executor, same
 spin loop); the controller is a separate ``valve_controller`` process.  Latency is measured by the
@@ -31,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 from contextlib import contextmanager
+from dataclasses import replace
 import os
 import subprocess
 import sys
@@ -42,14 +47,15 @@ os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 import rclpy
+import rclpy.node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
 
 from piezo_valve_ros.nodes.common import (COMMAND_QOS, SENSOR_QOS, claim_pacing, make_executor,
                                           spin_loop)
 from piezo_valve_ros.runtime.processes import ProcessGroup, node_command
-
 from harness import Lines
+from loop_trace import LoopTrace, attribute_misses
 
 print = Lines()   # noqa: A001  (printed and kept for --markdown)
 
@@ -233,10 +239,11 @@ def back_to_normal_scheduling() -> None:
 def rig_loop(clock: str, period_s: float, seconds: float, composed: bool = False, tick: str = "loop",
              busy_poll_s: float = 0.0, switch_interval_s: float | None = None, priority: int = 0,
              hardware_cpus: list[int] | None = None, controller_cpus: list[int] | None = None,
-             cpu_wakeup_latency_us: int = -1) -> dict:
-    """Sections 3-7: the hardware node here, the controller in another process (or here, composed);
+             cpu_wakeup_latency_us: int = -1, trace: LoopTrace | None = None) -> dict:
+    """Sections 3-8: the hardware node here, the controller in another process (or here, composed);
     ``priority``, ``*_cpus`` and ``cpu_wakeup_latency_us`` are the nodes' realtime.priority / realtime.cpus /
-    realtime.cpu_wakeup_latency_us (its request withdrawn at the end: ``back_to_normal_scheduling``)."""
+    realtime.cpu_wakeup_latency_us (its request withdrawn at the end: ``back_to_normal_scheduling``).  ``trace``
+    (section 8) records what the loop's thread did in the measured time (``loop_trace``)."""
     from piezo_valve_ros.nodes.composed import build
     from piezo_valve_ros.nodes.hardware import ValveHardwareNode
     hw_params = {"clock": clock, "control_period_s": period_s, "command_timeout_s": 0.5,
@@ -252,32 +259,46 @@ def rig_loop(clock: str, period_s: float, seconds: float, composed: bool = False
         ctl_params["realtime.cpus"] = controller_cpus
     overrides = (lambda d: [Parameter(k, value=v) for k, v in d.items()])
     executor = make_executor()
-    with ProcessGroup() as procs:
-        if composed:  # exactly what valve_composed runs (direct link on the real-time clock)
-            nodes = list(build(overrides(hw_params), overrides(ctl_params)))
-            hw = nodes[0]
-        else:
-            hw = ValveHardwareNode(parameter_overrides=overrides(hw_params))
-            nodes = [hw]
-            procs.start("valve_controller", node_command("valve_controller", ctl_params), env=env(),
-                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        for n in nodes:
-            executor.add_node(n)
-        pacing = claim_pacing(nodes) if tick == "loop" else None  # "timer": the node's rclpy timer ticks
-        spin_for(executor, 30.0, until=lambda: hw.loop_timing.answered > 0, pacing=pacing)
-        if hw.loop_timing.answered == 0:
-            raise TimeoutError("the controller never answered")
-        spin_for(executor, 1.0, pacing=pacing)  # warm-up
-        hw.loop_timing.reset()
-        cpu0 = time.process_time()
-        switches0 = context_switches()
-        spin_for(executor, seconds, pacing=pacing)
-        switches = {k: v - switches0.get(k, 0) for k, v in context_switches().items()}
-        cpu = time.process_time() - cpu0
-        summary = hw.loop_timing.summary().as_dict()
-        summary["cpu_share_of_hardware_process"] = cpu / max(summary["elapsed_s"], 1e-9)
-        summary["loop_thread_context_switches"] = switches
-        hw.shutdown_safely()
+    untrace = trace.time_callbacks_of(rclpy.node.Node) if trace is not None else (lambda: None)
+    spun = trace.executor(executor) if trace is not None else executor
+    try:
+        with ProcessGroup() as procs:
+            if composed:  # exactly what valve_composed runs (direct link on the real-time clock)
+                nodes = list(build(overrides(hw_params), overrides(ctl_params)))
+                hw = nodes[0]
+            else:
+                hw = ValveHardwareNode(parameter_overrides=overrides(hw_params))
+                nodes = [hw]
+                procs.start("valve_controller", node_command("valve_controller", ctl_params), env=env(),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            untrace()   # the nodes' callbacks are timed; nodes made later elsewhere are not
+            for n in nodes:
+                executor.add_node(n)
+            pacing = claim_pacing(nodes) if tick == "loop" else None  # "timer": the node's rclpy timer ticks
+            if trace is not None and pacing is not None:
+                pacing = replace(pacing, tick=trace.tick(pacing.tick))
+            spin_for(spun, 30.0, until=lambda: hw.loop_timing.answered > 0, pacing=pacing)
+            if hw.loop_timing.answered == 0:
+                raise TimeoutError("the controller never answered")
+            spin_for(spun, 1.0, pacing=pacing)  # warm-up
+            hw.loop_timing.reset()
+            untrace_collections = trace.time_collections() if trace is not None else (lambda: None)
+            try:
+                if trace is not None:
+                    trace.clear()
+                cpu0 = time.process_time()
+                switches0 = context_switches()
+                spin_for(spun, seconds, pacing=pacing)
+                switches = {k: v - switches0.get(k, 0) for k, v in context_switches().items()}
+                cpu = time.process_time() - cpu0
+            finally:
+                untrace_collections()
+            summary = hw.loop_timing.summary().as_dict()
+            summary["cpu_share_of_hardware_process"] = cpu / max(summary["elapsed_s"], 1e-9)
+            summary["loop_thread_context_switches"] = switches
+            hw.shutdown_safely()
+    finally:
+        untrace()
     for n in nodes:
         executor.remove_node(n)
         n.destroy_node()
@@ -294,7 +315,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write all figures to this file")
     ap.add_argument("--markdown", metavar="FILE", help="also write what is printed here")
     ap.add_argument("--conditions", action="store_true", help="also run section 6 (load, pinning, switch interval)")
-    ap.add_argument("--only-conditions", action="store_true", help="run section 6 alone")
+    ap.add_argument("--only-conditions", action="store_true", help="run sections 6 and 7 alone")
+    ap.add_argument("--only-misses", action="store_true", help="run section 8 alone (where the missed periods go)")
     args = ap.parse_args(argv)
     rclpy.init()
     results: dict = {}
@@ -302,6 +324,9 @@ def main(argv=None) -> int:
         if args.only_conditions:
             results["conditions"] = conditions(args.seconds, args.repeats)
             results["edge"] = edge(args.seconds, args.repeats)
+            return 0
+        if args.only_misses:
+            results["misses"] = misses(args.seconds, args.repeats)
             return 0
         print("1. cost per period in this process, no DDS partner:")
         costs = per_period_costs()
@@ -365,6 +390,7 @@ def main(argv=None) -> int:
         if args.conditions:
             results["conditions"] = conditions(args.seconds, args.repeats)
             results["edge"] = edge(args.seconds, args.repeats)
+            results["misses"] = misses(args.seconds, args.repeats)
     finally:
         rclpy.try_shutdown()
         if args.json:
@@ -453,6 +479,43 @@ def edge(seconds: float, repeats: int) -> list[dict]:
                               + f" %  ({met} of {len(shares)} runs at the target)", flush=True)
     return out
 
+
+
+def misses(seconds: float, repeats: int) -> list[dict]:
+    """Section 8: where the edge's missed periods go (``loop_trace``): composed 10 kHz quiet polling, and composed
+    10 kHz and 5 kHz across processes loaded at priority 50 pinned, each run traced."""
+    cpus = sorted(os.sched_getaffinity(0))
+    print("\n8. where the missed periods go (the loop's thread traced: bench/loop_trace.py; a traced run costs ~1 us "
+          "per tick more):\n   each gap between ticks over 1.5 periods, its periods given to what filled the time "
+          "after the tick was due")
+    cases = [("composed 10 kHz", 1e-4, True, False, 0), ("composed 10 kHz", 1e-4, True, True, 50),
+             ("5 kHz across processes", 2e-4, False, True, 50)]
+    out = []
+    for case, period, composed, loaded, priority in cases:
+        label = f"{case:22s} {'loaded' if loaded else 'quiet ':6s} {'FIFO 50, pinned' if priority else 'poll, normal'}"
+        with busy_loops_beside(len(cpus) if loaded else 0):
+            for _ in range(repeats):
+                trace = LoopTrace()
+                try:
+                    s = rig_loop("realtime", period, seconds, composed=composed,
+                                 busy_poll_s=0.0 if priority else period, priority=priority,
+                                 hardware_cpus=[cpus[0]] if priority else None,
+                                 controller_cpus=([cpus[0]] if composed else [cpus[-1]]) if priority else None,
+                                 trace=trace)
+                except ValueError as exc:  # e.g. no permission for SCHED_FIFO here
+                    print(f"   {label}: not run: {exc}")
+                    break
+                finally:
+                    back_to_normal_scheduling()
+                m = attribute_misses(trace, period)
+                due = int(s["elapsed_s"] / period + 0.5) + 1
+                out.append({"case": case, "loaded": loaded, "priority": priority, **s,
+                            "missed_periods": m.periods, "missed_excess_s": m.excess_s,
+                            "missed_to_callbacks": m.by_callback})
+                print(f"   {label}: in time {100 * s['in_time_share']:6.2f} %, {due - s['periods']} periods short, "
+                      f"{s['answered'] - s['in_time']} answers later than a period;\n      traced: {m.line()}",
+                      flush=True)
+    return out
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -457,3 +457,34 @@ def test_a_burst_of_signals_stops_a_node_cleanly(tmp_path, burst):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_a_traced_loops_late_ticks_are_given_to_what_filled_them():
+    """bench/loop_trace.attribute_misses on a made-up trace of a 100 us loop: a gap after a collection, one after a
+    tick that ran past the next one's due time, one with a callback in it, one after a wait that woke late and one
+    with nothing in it; each gap's missed periods (whole periods less one) go to its cause, the callback's by name."""
+    from loop_trace import CAUSES, LoopTrace, attribute_misses
+    period = 1e-4
+    trace = LoopTrace()
+    t = 0.0
+    starts = []
+    for gap in [1] * 5 + [3] + [1] * 5 + [2] + [1] * 5 + [4] + [1] * 5 + [2] + [1] * 5 + [3] + [1] * 3:
+        starts.append(t)
+        t += gap * period
+    for s in starts:
+        trace.ticks.append((s, 3e-5))
+    late = [k for k in range(1, len(starts)) if starts[k] - starts[k - 1] > 1.5 * period]
+    gc_gap, tick_gap, callback_gap, wake_gap, silent_gap = (starts[k - 1] for k in late)
+    trace.collections.append((gc_gap + 1.2 * period, 1.5 * period))
+    trace.ticks[starts.index(tick_gap)] = (tick_gap, 1.6 * period)
+    trace.callbacks.append((callback_gap + 0.5 * period, 2.8 * period, "controller: publish_state"))
+    trace.waits.append((wake_gap + 3e-5, 1.6 * period, 5e-5))   # asked for 50 us, back after 160 us
+    trace.waits.append((silent_gap + 3e-5, 5e-5, 5e-5))          # on time: the gap is nothing the process saw
+    misses = attribute_misses(trace, period)
+    assert misses.late_ticks == 5
+    assert misses.periods == dict(zip(CAUSES, (2, 1, 3, 1, 2))), misses.periods
+    assert misses.by_callback == {"controller: publish_state": 3}
+    assert misses.excess_s["callbacks"] == pytest.approx(3 * period)
+    assert misses.line().startswith("9 periods missed in 5 late ticks: garbage collection 2, the tick itself 1, "
+                                    "callbacks 3 (controller: publish_state 3), woke late 1, unaccounted 2")
+
