@@ -488,3 +488,19 @@ def test_a_traced_loops_late_ticks_are_given_to_what_filled_them():
     assert misses.line().startswith("9 periods missed in 5 late ticks: garbage collection 2, the tick itself 1, "
                                     "callbacks 3 (controller: publish_state 3), woke late 1, unaccounted 2")
 
+
+def test_a_samples_buffer_refilled_in_place_is_the_message_made_anew():
+    """nodes.common.SamplesBuffer (what the hardware's full batches and the controller's state go out in): after
+    each refill its message equals ``samples_message`` of the same rows, layout and label included, and reads back
+    as those rows."""
+    from piezo_valve_ros.nodes.common import SamplesBuffer, samples_from_message, samples_message
+    rng = np.random.default_rng(3)
+    buffer = SamplesBuffer(4, 3)
+    for _ in range(2):
+        rows = rng.normal(size=(4, 3))
+        buffer.rows[:] = rows
+        assert buffer.message == samples_message(rows)
+        np.testing.assert_array_equal(samples_from_message(buffer.message), rows)
+    state = SamplesBuffer(1, 2, "a,b")
+    state.rows[0] = (1.5, 2.5)
+    assert state.message == samples_message(np.array([[1.5, 2.5]]), "a,b")

@@ -33,7 +33,7 @@ from ..core.sim.signals import ReferenceRamp
 from ..core.control.strategies import (GUARD_WINDOW_S, has_feedback, SAFE_PERIOD_S, STRATEGIES, TABLE1_GAINS, ControllerConfig,
                                        PIDGains, ValveController, default_gain_set, gain_set, loop_settings)
 from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, LATEST_SENSOR_QOS, SAMPLES_QOS, STATE_QOS, Diagnostics, period_parameter,
-                     ParameterSpec, samples_message, as_float, declare_all,
+                     ParameterSpec, SamplesBuffer, as_float, declare_all,
                      parameter_values, realtime_settings, realtime_specs, refuse, run_node, samples_from_message,
                      Throttle)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
@@ -160,6 +160,7 @@ class ValveControllerNode(Node):
         self._last_reference_m = float("nan")
         self._last_command_v = float("nan")
         self.state_pub = self.create_publisher(Float64MultiArray, "~/controller_state", 10)
+        self._state = SamplesBuffer(1, len(CONTROLLER_STATE_COLUMNS), ",".join(CONTROLLER_STATE_COLUMNS))
         state_period = period_parameter(STATE_PERIOD, p["state_period_s"])
         if state_period > 0:
             self.create_timer(state_period, self.publish_state)
@@ -240,11 +241,13 @@ class ValveControllerNode(Node):
         """One row of CONTROLLER_STATE_COLUMNS on ~/controller_state (the latest period)."""
         y = self._last_position_m if self._last_position_m is not None else float("nan")
         ctl = self.controller
-        row = np.array([[self.get_clock().now().nanoseconds * 1e-9, self._last_reference_m, y,
-                         self._last_reference_m - y, self._last_command_v,
-                         float(STRATEGIES.index(ctl.config.strategy)), float(ctl.in_fallback), float(self.enabled)]])
-        self.state_pub.publish(samples_message(row, ",".join(CONTROLLER_STATE_COLUMNS)))
-        return row
+        row = self._state.rows[0]   # the message's own data, refilled in place (nodes.common.SamplesBuffer)
+        clock = self.get_clock()   # ROS time: simulated where /clock drives it, else the system clock, read directly
+        row[0] = clock.now().nanoseconds * 1e-9 if clock.ros_time_is_active else time.time()
+        row[1], row[2], row[3], row[4] = self._last_reference_m, y, self._last_reference_m - y, self._last_command_v
+        row[5], row[6], row[7] = STRATEGIES.index(ctl.config.strategy), ctl.in_fallback, self.enabled
+        self.state_pub.publish(self._state.message)
+        return self._state.rows.copy()
 
     def _health(self) -> tuple[str, str, dict]:
         """(level, message, values) for /diagnostics: the oscillation guard, the model in force, refused and

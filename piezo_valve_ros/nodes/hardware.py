@@ -37,7 +37,7 @@ from ..runtime.loop_timing import LoopTiming
 from .common import (COMMAND_QOS, CONTROL_PERIOD, DIAGNOSTICS_PERIOD, MAX_CONTROL_PERIOD_S, SAMPLES_QOS, SENSOR_QOS,
                      STATE_QOS, Diagnostics, Pacing, ParameterSpec, as_float, declare_all, given_parameter_names,
                      parameter_values, period_parameter, realtime_settings, realtime_specs, refuse, run_node,
-                     samples_message, tighten_timer_slack, Throttle)
+                     SamplesBuffer, samples_message, tighten_timer_slack, Throttle)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 from ..core.validation import as_int, whole_periods
 
@@ -203,6 +203,9 @@ class ValveHardwareNode(Node):
         self._tick_timer = None
         self._linked_controller: Optional[Callable[[float], Optional[float]]] = None
         self._batch = np.empty((self.samples_batch + self.samples_per_period, 3))  # rows awaiting `samples`
+        # a batch fills a period at a time: it goes out at the first whole number of periods >= samples_batch
+        full = -(-self.samples_batch // self.samples_per_period) * self.samples_per_period
+        self._full_batch = SamplesBuffer(full, 3)
         self._batch_rows = 0
         self._held_command: Optional[float] = None
         self._last_valid_command_wall = time.monotonic()
@@ -420,9 +423,12 @@ class ValveHardwareNode(Node):
     def _flush_samples(self) -> None:
         if self._batch_rows == 0:
             return
-        msg = samples_message(self._batch[:self._batch_rows])
-        self._batch_rows = 0
-        self.samples_pub.publish(msg)
+        n, self._batch_rows = self._batch_rows, 0
+        if n == self._full_batch.rows.shape[0]:   # the usual case: a full batch, into the message made once
+            self._full_batch.rows[:] = self._batch[:n]
+            self.samples_pub.publish(self._full_batch.message)
+        else:
+            self.samples_pub.publish(samples_message(self._batch[:n]))
 
     def _check_watchdog(self) -> bool:
         """True when the watchdog fired just now."""
