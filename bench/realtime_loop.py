@@ -437,6 +437,21 @@ def conditions(seconds: float, repeats: int) -> list[dict]:
 EDGE_TARGETS = {"composed 10 kHz": 0.995, "5 kHz across processes": 0.99}   # share of commands in time (issue 35)
 
 
+def edge_run(period_s: float, seconds: float, composed: bool, priority: int, pinned: bool,
+             cpu_wakeup_latency_us: int = -1, trace: LoopTrace | None = None) -> dict:
+    """One run at the edge (sections 7 and 8) with the handbook's options: polling on the normal scheduler, or at
+    ``priority`` sleeping between ticks; ``pinned``: composed on the first CPU, across processes the hardware on
+    the first and the controller on the last.  ValueError where an option is not permitted here."""
+    cpus = sorted(os.sched_getaffinity(0))
+    try:
+        return rig_loop("realtime", period_s, seconds, composed=composed, busy_poll_s=0.0 if priority else period_s,
+                        priority=priority, hardware_cpus=[cpus[0]] if pinned else None,
+                        controller_cpus=([cpus[0]] if composed else [cpus[-1]]) if pinned else None,
+                        cpu_wakeup_latency_us=cpu_wakeup_latency_us, trace=trace)
+    finally:
+        back_to_normal_scheduling()
+
+
 def edge(seconds: float, repeats: int) -> list[dict]:
     """Section 7: composed 10 kHz and 5 kHz across processes, quiet and loaded (one busy loop per CPU), polling
     on the normal scheduler, or at realtime.priority 50 sleeping between ticks, pinned (composed: one CPU;
@@ -460,16 +475,10 @@ def edge(seconds: float, repeats: int) -> list[dict]:
                     shares = []
                     for _ in range(repeats):
                         try:
-                            s = rig_loop("realtime", period, seconds, composed=composed,
-                                         busy_poll_s=0.0 if priority else period, priority=priority,
-                                         hardware_cpus=[cpus[0]] if pinned else None,
-                                         controller_cpus=([cpus[0]] if composed else [cpus[-1]]) if pinned else None,
-                                         cpu_wakeup_latency_us=wakeup_us)
+                            s = edge_run(period, seconds, composed, priority, pinned, wakeup_us)
                         except ValueError as exc:  # e.g. no permission for SCHED_FIFO or the PM QoS file here
                             print(f"   {case} {label}: not run: {exc}")
                             break
-                        finally:
-                            back_to_normal_scheduling()
                         shares.append(s["in_time_share"])
                         out.append({"case": case, "loaded": loaded, "options": label, **s})
                     if shares:
@@ -497,16 +506,10 @@ def misses(seconds: float, repeats: int) -> list[dict]:
             for _ in range(repeats):
                 trace = LoopTrace()
                 try:
-                    s = rig_loop("realtime", period, seconds, composed=composed,
-                                 busy_poll_s=0.0 if priority else period, priority=priority,
-                                 hardware_cpus=[cpus[0]] if priority else None,
-                                 controller_cpus=([cpus[0]] if composed else [cpus[-1]]) if priority else None,
-                                 trace=trace)
+                    s = edge_run(period, seconds, composed, priority, pinned=bool(priority), trace=trace)
                 except ValueError as exc:  # e.g. no permission for SCHED_FIFO here
                     print(f"   {label}: not run: {exc}")
                     break
-                finally:
-                    back_to_normal_scheduling()
                 m = attribute_misses(trace, period)
                 due = int(s["elapsed_s"] / period + 0.5) + 1
                 out.append({"case": case, "loaded": loaded, "priority": priority, **s,
