@@ -44,7 +44,8 @@ class LoopTrace:
 
     def clear(self) -> None:
         """Forget what was recorded so far (e.g. after a warm-up)."""
-        self.ticks.clear(), self.waits.clear(), self.callbacks.clear(), self.collections.clear()
+        for intervals in (self.ticks, self.waits, self.callbacks, self.collections):
+            intervals.clear()
 
     def tick(self, tick: Callable[[], None]) -> Callable[[], None]:
         """``tick``, timed."""

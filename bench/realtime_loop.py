@@ -3,7 +3,7 @@
     python bench/realtime_loop.py                 # everything (about 3 min)
     python bench/realtime_loop.py --seconds 10 --json loop.json
     python bench/realtime_loop.py --conditions --only-conditions   # sections 6 and 7 alone
-    python bench/realtime_loop.py --only-misses --seconds 10 --markdown docs/results/realtime_misses.md   # section 8
+    python bench/realtime_loop.py --only-misses --seconds 10   # section 8 alone
     python bench/realtime_loop.py --conditions --json docs/results/realtime_loop.json \
         --markdown docs/results/realtime_loop.md   # the results page
 
@@ -314,7 +314,7 @@ def main(argv=None) -> int:
                     help="runs of each target case (2 kHz across processes, lockstep, composed 10 kHz)")
     ap.add_argument("--json", help="write all figures to this file")
     ap.add_argument("--markdown", metavar="FILE", help="also write what is printed here")
-    ap.add_argument("--conditions", action="store_true", help="also run section 6 (load, pinning, switch interval)")
+    ap.add_argument("--conditions", action="store_true", help="also run sections 6-8 (load, pinning, switch interval; the edge; where its missed periods go)")
     ap.add_argument("--only-conditions", action="store_true", help="run sections 6 and 7 alone")
     ap.add_argument("--only-misses", action="store_true", help="run section 8 alone (where the missed periods go)")
     args = ap.parse_args(argv)
@@ -487,7 +487,6 @@ def edge(seconds: float, repeats: int) -> list[dict]:
                               + " / ".join(f"{100 * x:6.2f}" for x in shares)
                               + f" %  ({met} of {len(shares)} runs at the target)", flush=True)
     return out
-
 
 
 def misses(seconds: float, repeats: int) -> list[dict]:
