@@ -27,7 +27,7 @@ def test_each_term_declares_writes_and_reads_its_own_parameters():
     from dataclasses import fields
     from piezo_valve_ros.core.control.terms import TERMS
     model = CompensationModel(PAPER_GPIM.model(), ContinuousTF((4.0e6,), (1.0, 3000.0, 4.0e6)), CREEP, FLATTENING,
-                              True, (0.5, 0.0, 1.0, -0.2, 0.0, 0.3), (0.0, 10.0))
+                              True, (0.5, 0.0, 1.0, -0.2, 0.0, 0.3, 0.1, 0.0, 0.0), (0.0, 10.0))
     assert {t.field for t in TERMS} == {f.name for f in fields(CompensationModel)} - {"gpim"}
     declared = [name for t in TERMS for name in t.parameters]
     assert len(declared) == len(set(declared)) and set(declared) <= set(MODEL_PARAMETERS)
@@ -55,13 +55,13 @@ def test_the_schema_round_trips_and_covers_every_declared_parameter():
     g = PAPER_GPIM.model()
     model = CompensationModel(GPIM(g.thresholds, g.weights, g.a0, g.a1, g.offset_um, 0.95, 0.2),
                               ContinuousTF((4.0e6,), (1.0, 3000.0, 4.0e6)), CREEP, FLATTENING, True,
-                              (0.5, 0.0, 1.0, -0.2, 0.0, 0.3))
+                              (0.5, 0.0, 1.0, -0.2, 0.0, 0.3, 0.1, 0.0, 0.0))
     params = model.to_parameters()
     assert set(params) <= set(MODEL_PARAMETERS) and not any(v == [] for v in params.values())
     again = CompensationModel.from_parameters(params)
     assert again.to_parameters() == params
     assert again.output_map == FLATTENING and again.creep == CREEP and again.dynamic_feedforward
-    assert again.rate_widening_v == (0.5, 0.0, 1.0, -0.2, 0.0, 0.3) and again.rate_dependent
+    assert again.rate_widening_v == (0.5, 0.0, 1.0, -0.2, 0.0, 0.3, 0.1, 0.0, 0.0) and again.rate_dependent
     # no widening is written as zeros (a typed ROS array) and read back as none
     assert not CompensationModel.from_parameters(CompensationModel().to_parameters()).rate_dependent
     # the defaults are the paper's model, in its 5-parameter form
@@ -82,9 +82,9 @@ def test_the_schema_round_trips_and_covers_every_declared_parameter():
     ({"feedforward.dynamics": True, "valve_model.num": [1.0, 1.2e6]}, "without zeros"),
     ({"creep.gains": [0.5, 0.5], "creep.time_constants_s": [1.0, 2.0]}, "compensation needs a sum"),
     ({"gpim.descending_envelope": [1.0, 0.5, -0.06]}, "not rising"),
-    ({"gpim.rate_widening_v": [1.0, 2.0]}, "needs 6 coefficients"),
+    ({"gpim.rate_widening_v": [1.0, 2.0]}, "needs 9 coefficients"),
     ({"gpim.rate_widening_v": [0.0] * 5 + [25.0]}, "within"),
-    ({"gpim.rate_widening_v": [float("inf")] * 6}, "finite"),
+    ({"gpim.rate_widening_v": [float("inf")] * 9}, "finite"),
 ])
 def test_a_model_is_refused_as_a_whole_with_every_reason(change, says):
     params = {**CompensationModel().to_parameters(), **change}

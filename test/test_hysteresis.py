@@ -158,13 +158,13 @@ def test_play_bank_step_does_not_allocate_new_state():
 
 
 def _play_by_definition(lower, upper, r, z0, scale=None):
-    """The play recursion written out sample by sample (the reference for the batch scan)."""
+    """The play recursion written out sample by sample, as the paper writes it (the reference for the batch scan):
+    ``min(max(z, L - r), U + r)``, so the upper bound wins where the bounds cross."""
     m = np.ones(lower.size) if scale is None else scale
     z = np.array(z0, float)
     out = np.empty((lower.size, r.size))
     for k in range(lower.size):
-        lo = lower[k] - r * m[k]
-        z = np.minimum(np.maximum(z, lo), np.maximum(upper[k] + r * m[k], lo))
+        z = np.minimum(np.maximum(z, lower[k] - r * m[k]), upper[k] + r * m[k])
         out[k] = z
     return out
 

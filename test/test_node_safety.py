@@ -226,8 +226,8 @@ def test_an_active_gain_set_decides_strategy_and_gains_and_says_so(controller):
                                          ("feedforward.dynamics", 0), ("derivative_filter_s", 0.0),
                                          ("derivative_filter_s", -1e-3), ("derivative_filter_s", 1.0),
                                          ("derivative_filter_s", float("nan")), ("derivative_filter_s", "abc"),
-                                         ("gpim.rate_widening_v", [30.0] * 6), ("gpim.rate_widening_v", "abc"),
-                                         ("gpim.rate_widening_v", [float("nan")] * 6),
+                                         ("gpim.rate_widening_v", [30.0] * 9), ("gpim.rate_widening_v", "abc"),
+                                         ("gpim.rate_widening_v", [float("nan")] * 9),
                                          ("gpim.rate_widening_v", [1.0, 2.0])])
 def test_controller_refuses_what_it_would_not_apply(controller, name, value):
     ctl = controller(gain_set="")
@@ -243,8 +243,8 @@ def test_controller_refuses_what_it_would_not_apply(controller, name, value):
     ({"derivative_filter_s": float("nan")}, "derivative_filter_s must be"),
     ({"derivative_filter_s": "abc"}, "derivative_filter_s must be a number"),
     ({"derivative_filter_s": 1.0}, "within"),
-    ({"gpim__rate_widening_v": [1.0, 2.0]}, "needs 6 coefficients"),
-    ({"gpim__rate_widening_v": [float("nan")] * 6}, "must be finite"),
+    ({"gpim__rate_widening_v": [1.0, 2.0]}, "needs 9 coefficients"),
+    ({"gpim__rate_widening_v": [float("nan")] * 9}, "must be finite"),
     ({"gpim__rate_widening_v": "abc"}, "list of numbers"),
     ({"state_period_s": -0.1}, "state_period_s out of range"),     # a double: rclpy's range check
     ({"state_period_s": -1}, "state_period_s must lie in"),        # an integer: the node's own
@@ -259,9 +259,9 @@ def test_controller_refuses_bad_filter_and_rate_widening_at_start_up(controller,
 
 def test_rate_widening_zeros_mean_none_and_negative_coefficients_are_a_model(controller):
     from piezo_valve_ros.core.model.rate_dependence import RateDependentInverseGPIM
-    assert not isinstance(controller(gain_set="", gpim__rate_widening_v=[0.0] * 6).controller.ff_inverse,
+    assert not isinstance(controller(gain_set="", gpim__rate_widening_v=[0.0] * 9).controller.ff_inverse,
                           RateDependentInverseGPIM)
-    narrowing = controller(gain_set="", gpim__rate_widening_v=[-1.0] * 6)   # thresholds that narrow with the rate
+    narrowing = controller(gain_set="", gpim__rate_widening_v=[-1.0] * 9)   # thresholds that narrow with the rate
     assert isinstance(narrowing.controller.ff_inverse, RateDependentInverseGPIM)
 
 
@@ -650,7 +650,7 @@ def test_controller_takes_a_rate_dependent_model_and_says_what_its_inverse_costs
     assert isinstance(ctl.controller.ff_inverse, RateDependentInverseGPIM)
     assert ctl.controller.compensation.rate_widening_v == model.rate_widening_v
     result = set_one(ctl, "gpim.rate_widening_v", [1.0, 2.0])
-    assert not result.successful and "needs 6 coefficients" in result.reason
+    assert not result.successful and "needs 9 coefficients" in result.reason
     assert ctl.controller.compensation.rate_widening_v == model.rate_widening_v  # untouched
     assert "may overrun" not in capfd.readouterr().err
     fast = controller(gain_set="", strategy="ol_hc", control_period_s=1e-4,

@@ -21,8 +21,9 @@ MODELS = {
     "crossing": GPIM(PAPER.thresholds, PAPER.weights, PAPER.a0, PAPER.a1, PAPER.offset_um, PAPER.a0 * 1.05,
                      PAPER.a1 - 0.2, -0.002),
 }
-WIDENINGS = {"widens": (2.0, 1.0, 0.5, 1.0, 0.3, -0.5), "narrows": (-1.0, 0.0, 0.0, 0.0, 0.0, 0.5),
-             "mixed": (-0.006, -0.37, 1.79, -0.028, 0.44, -1.25)}   # the last as identified on the rate valve
+WIDENINGS = {"widens": (2.0, 1.0, 0.5, 1.0, 0.3, -0.5, 0.4, 0.0, 0.2), "narrows": (-1.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0),
+             "mixed": (-0.006, -0.37, 1.79, -0.028, 0.44, -1.25, 0.0, 0.0, 0.0)}   # the last as identified on the
+                                                                                   # rate valve (before the 5 ms filter)
 
 
 def _demand(model: GPIM, n: int, seed: int) -> np.ndarray:
@@ -53,7 +54,7 @@ def test_rate_terms_batch_equals_the_stream_and_are_causal():
 
 
 def test_play_batch_follows_thresholds_that_narrow_until_the_bounds_cross():
-    """While an operator's bounds cross (L - w - r > U + w + r) the lower one wins and its state forgets the
+    """While an operator's bounds cross (L - w - r > U + w + r) the upper one wins and its state forgets the
     past; the batch scan must restart after such a stretch (it once kept the state from before it)."""
     rng = np.random.default_rng(3)
     n = 6000
@@ -121,7 +122,7 @@ def test_every_step_is_exact_for_widenings_that_jump_about():
             y = float(np.clip(y + rng.normal(0.0, 0.3 if rng.random() < 0.8 else 20.0), lo + 2.0, hi - 2.0))
             z, r = inv.forward_state(), model.thresholds + leader.applied_widening_v
             v = inv.step(y)
-            z = np.maximum(np.minimum(z, model.descending_envelope(v) + r), model.ascending_envelope(v) - r)
+            z = np.minimum(np.maximum(z, model.ascending_envelope(v) - r), model.descending_envelope(v) + r)
             if 0.0 < v < 10.0:
                 worst = max(worst, abs(float(model.weights @ z) + model.offset_um - y))
         assert worst <= 1e-9, (name, worst)
@@ -142,7 +143,7 @@ def test_a_follower_predicts_the_output_it_just_produced():
 
 
 def test_without_widening_the_closed_form_inverse_is_kept():
-    assert not isinstance(hysteresis_inverse(PAPER, (0.0,) * 6, DT), RateDependentInverseGPIM)
+    assert not isinstance(hysteresis_inverse(PAPER, (0.0,) * 9, DT), RateDependentInverseGPIM)
     assert not isinstance(hysteresis_inverse(PAPER, (), DT), RateDependentInverseGPIM)
 
 

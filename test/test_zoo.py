@@ -86,7 +86,7 @@ def test_a_rate_dependent_slope_is_left_to_the_feedback():
     from piezo_valve_ros.core.identification.effects.dynamics import Dynamics
     from piezo_valve_ros.core.identification.valve_model import ValveModel
     from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM
-    model = ValveModel(PAPER_GPIM.model(), rate_widening_v=(0.1, 0.0, 0.0, 0.0, 0.0, 0.0))
+    model = ValveModel(PAPER_GPIM.model(), rate_widening_v=(0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
     with pytest.raises(NotCompensable, match="rate-dependent slope"):
         Dynamics(form="rates").compensation(model, np.array([0.0, 0.2, 0.0, 0.0, 0.0, 0.0]))
     assert Dynamics(form="rates").compensation(model, np.zeros(6)) == {

@@ -392,6 +392,7 @@ class Case:
     note: str = ""
     train_drive: Callable = training_drive        # (rate_hz, lo, hi, main_s) -> V
     validate_drive: Callable = validation_drive   # (rate_hz, lo, hi) -> V
+    must_say_unexplained: bool = False            # structure no effect explains: right only with unexplained
 
     def records(self, seed: int, train_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """(training session, validation session) rows for this seed; ``train_scale`` shortens the main training
@@ -406,6 +407,8 @@ class Case:
 
     def judged_right(self, names: list[str], unexplained: bool) -> bool:
         named = set(names)
+        if self.must_say_unexplained and not unexplained:
+            return False                       # what no effect explains, called noise
         if not named <= self.names:
             return False                       # a wrong name
         if self.need <= named:
@@ -478,6 +481,46 @@ def nested_loops_drive(rate_hz: float, lo: float, hi: float) -> np.ndarray:
                       max(int(round(2e-3 * rate_hz)), 2))
 
 
+def multisine(rate_hz: float, lo: float, hi: float, period_s: float, periods: int, top_hz: float,
+              seed: int) -> np.ndarray:
+    """A periodic multisine over ``lo..hi`` [V]: every harmonic of 1 / ``period_s`` up to ``top_hz`` with equal
+    amplitudes and random phases (seeded), repeated ``periods`` times sample for sample (the period a whole number
+    of samples)."""
+    n = int(round(period_s * rate_hz))
+    rng = np.random.default_rng(seed)
+    lines = np.arange(1, int(top_hz * period_s) + 1)
+    phases = rng.uniform(0.0, 2.0 * np.pi, lines.size)
+    tt = np.arange(n) / rate_hz
+    x = np.sin(2.0 * np.pi * np.outer(tt, lines) / period_s + phases).sum(axis=1)
+    c, a = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    return np.tile(c + 0.9 * a * x / np.max(np.abs(x)), periods)
+
+
+def broadband_training(rate_hz: float, lo: float = 0.0, hi: float = 10.0, main_s: float = 20.0) -> np.ndarray:
+    """Twelve periods of a 0.5 s multisine to 1 kHz (``main_s`` sets nothing: the periods are the experiment)."""
+    return multisine(rate_hz, lo, hi, 0.5, 12, 1000.0, 11)
+
+
+def broadband_validation(rate_hz: float, lo: float = 0.0, hi: float = 10.0) -> np.ndarray:
+    """Eight periods of another 0.5 s multisine to 1 kHz."""
+    return multisine(rate_hz, lo, hi, 0.5, 8, 1000.0, 12)
+
+
+def unrecorded_input(amplitude_um: float, period_s: float, top_hz: float, seed: int) -> Callable:
+    """What a second drive nobody recorded adds to the position: a periodic multisine of its own (the same period as
+    the recorded drive's, so the position still repeats period for period), summed at the output."""
+    rng = np.random.default_rng(seed)
+    lines = np.arange(1, int(top_hz * period_s) + 1)
+    phases = rng.uniform(0.0, 2.0 * np.pi, lines.size)
+    peak = float(np.max(np.abs(np.sin(2.0 * np.pi * np.outer(np.arange(4096) / 4096.0 * period_s, lines) / period_s
+                                      + phases).sum(axis=1))))
+
+    def after(y, t_s):
+        w = np.sin(2.0 * np.pi * np.outer(t_s - t_s[0], lines) / period_s + phases).sum(axis=1)
+        return y + amplitude_um * w / peak
+    return after
+
+
 BASE = PI()
 VALVE = ZooValve(BASE)
 MICRO = PI(n=10, spacing_v=0.12, p0=4.0, decay=2.2, offset_um=-16.0)   # a 0..3.6 V micromanipulator, ~40 um
@@ -522,4 +565,9 @@ CASES: dict[str, Case] = {
         slow_sine_drive, nested_loops_drive),
     "creeping valve in closed loop": Case(replace(VALVE, closed_loop=True, creep_gamma=0.012),
                                           frozenset({"creep"}), frozenset({"creep"})),
+    "6.4 kHz broadband periodic drive, a second drive nobody recorded": Case(
+        ZooValve(BASE, dynamics=second_order(1200.0, 0.5), rate_hz=6400.0, after=unrecorded_input(12.0, 0.5, 300.0, 13)),
+        note="a second periodic drive summed at the output: no catalogue effect explains it, and the record's periods "
+             "repeat to its sensor noise", train_drive=broadband_training, validate_drive=broadband_validation,
+        must_say_unexplained=True),
 }

@@ -16,7 +16,7 @@ from typing import Optional, Union
 from ..metrics import ErrorFigures
 
 __all__ = ["IdentificationReport", "Figures", "Baseline", "Final", "Decision", "Indistinguishable",
-           "ResidualStructure", "Capacity", "SearchRow", "ConfirmRound", "Session", "BaselineFits", "ErrorFigures",
+           "ResidualStructure", "NoiseEstimate", "NoiseFloorReport", "Capacity", "SearchRow", "ConfirmRound", "Session", "BaselineFits", "ErrorFigures",
            "check_report", "schema_tables", "to_json"]
 
 
@@ -80,12 +80,19 @@ class Final(Figures):
 class Decision(_Node):
     effect: str = _item("")
     added: bool = _item("")
-    statistic: float = _item("held-out RMS cut the effect gives, added last (exactly for an added one and for one "
-                             "refitted exactly on top of the final set, by the linear search otherwise)")
+    statistic: float = _item("the share of the structured held-out residual (its RMS above the noise floor) the "
+                             "effect removes, added last (exactly for an added one and for one refitted exactly on top "
+                             "of the final set, by the linear search otherwise)")
     threshold: float = _item("")
     margin: float = _item("statistic - threshold: how far from the knife edge")
-    held_out_gain: float = _item("")
+    held_out_gain: float = _item("the held-out RMS cut it gives (a share)")
     explained_rms_um: float = _item("RMS the effect explains [um]")
+    better_share: float = _item("the share of the held-out data's stretches (search.SEGMENTS) where the model with it "
+                                "does better")
+    loss_ratio: float = _item("what it loses in the stretches it does worse in, as a share of what it gains in the "
+                              "others (mean squares)")
+    t: float = _item("the paired t statistic of its mean-square cut over those stretches")
+    decided_by: str = _item("the rule that supported it: share, small but consistent, or empty (not supported)")
     evidence: str = _item("the decision in words")
 
 
@@ -116,6 +123,25 @@ class ResidualStructure(_Node):
     held_out_noise_peak_um: float = _item("the held-out measurement's own deviation from its 2 ms local cubic: the "
                                           "peak its noise alone puts there [um]")
     held_out_noise_peak_pct: float = _item("")
+    share_of_spread: float = _item("the held-out RMS over the held-out output's own standard deviation (1 - fit_pct / "
+                                   "100): at SPREAD_SHARE or more the residual is never called noise")
+
+
+@dataclass(frozen=True)
+class NoiseEstimate(_Node):
+    source: str = _item("the kind of evidence: holds, repeated periods or input-free band")
+    rms_um: Optional[float] = _item("the noise RMS it gives [um] (null: the records offer no such evidence)")
+    detail: str = _item("what it was taken from, or why there is none, in words")
+    samples: int = _item("the degrees of freedom (or samples) behind it")
+
+
+@dataclass(frozen=True)
+class NoiseFloorReport(_Node):
+    rms_um: Optional[float] = _item("the sensor noise RMS at the record's rate [um]; null where the records offer no "
+                                    "evidence for it (then no residual is called noise)")
+    source: str = _item("the evidence it was taken from: holds, repeated periods, input-free band, or none")
+    detail: str = _item("what it was taken from, in words")
+    evidence: tuple[NoiseEstimate, ...] = _item("every kind of evidence looked for, with its estimate")
 
 
 @dataclass(frozen=True)
@@ -149,6 +175,9 @@ class Session(_Node):
     start: str = _item("how the session's unknown start was handled, in words")
     start_rows: int = _item("rows (record rate) the start counts on: until the input wiped it out")
     start_rows_rms_um: float = _item("the final model's held-out error RMS over those rows [um]")
+    left_out: Optional[dict] = _item("a session that starts in motion (settling from a voltage before it): its first "
+                                     "rows left out of the held-out figures (rows, seconds, peak_error_um, spread_um); "
+                                     "null where none are", default=None)
 
 
 @dataclass(frozen=True)
@@ -203,7 +232,12 @@ class IdentificationReport(_Node):
     validate_range_um: float = _item("range of the held-out position [um]")
     sample_rate_hz: float = _item("the record's sampling rate [Hz]")
     analysis_rate_hz: float = _item("the rate fits and decisions run at (block means) [Hz]")
-    noise_floor_um: float = _item("the sensor noise measured on the record [um]")
+    noise_floor_um: Optional[float] = _item("the sensor noise measured on the records from what the input cannot "
+                                            "explain (noise_floor says how) [um]; null where they offer no evidence")
+    noise_floor: NoiseFloorReport = _item("the noise floor's evidence: holds, repeated periods of the drive, or a band "
+                                          "where the drive has no power (each tried, the floor's source named)")
+    summary: str = _item("the story in one line: effects added, unexplained, held-out RMS and fit before and after, "
+                         "and the noise floor's source")
     thresholds: dict = _item("every threshold the decisions used, by name")
     sessions: tuple[Session, ...] = _item(
         "each record as a session of its own, for the final model: the training record (the model's own offset "

@@ -59,12 +59,14 @@ import numpy as np
 from .effects import CATALOGUE, Effect
 from .fitting import FitCache, PaperFit, fit_model, fit_paper_gpim, refit_poles_with_effects, with_poles, uniform_thresholds
 from ..model.hysteresis import GPIM
+from .noise import NoiseFloor, estimate_noise_floor
 from .initial_state import ESTIMATE_ROUNDS, ESTIMATE_STATE_GAIN, WIPE_STATE_GAIN, estimate_state, session_start
 from .report import (Baseline, BaselineFits, Capacity, ConfirmRound, Decision, Final, IdentificationReport,
-                     Indistinguishable, ResidualStructure, SearchRow, Session, to_json)
+                     Indistinguishable, NoiseEstimate, NoiseFloorReport, ResidualStructure, SearchRow, Session, to_json)
 from .records import (ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, MAX_ANALYSED_S, SUPPORTED_RATE_HZ, Record, noise_floor_um,
                       noise_peak_um)
-from .search import (GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, Score, SubsetSearch, no_room_because,
+from .search import (MAX_LOSS_RATIO, GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, NoiseLevels, Score, SubsetSearch, Support,
+                     no_room_because,
                      percent, room_for_an_effect, support, unsupported_because)
 from .split import WIPE_MARGIN, SessionStart, Split, split_records
 from ..blas import one_blas_thread
@@ -99,6 +101,13 @@ KNOWN_MIN_SHARE = 0.1                       # ... and where they leave it after 
 RESOLUTION_SHARE = 1e-6                     # a record's noise is taken as at least this share of its range
 UNEXPLAINED_NOISE_RATIO = 2.0               # structured residual RMS above this many noise RMS: unexplained
 PEAK_NOISE_RATIO = 2.5                      # held-out peaks above this many times the noise's: unexplained
+START_MOTION_MAX_S = 0.1                    # a validation session's start in motion: within its first this long ...
+START_MOTION_MAX_SHARE = 0.01               # ... and this share of it ...
+START_MOTION_FIRST_ROWS = 3                 # ... starting within its first rows ...
+START_MOTION_RATIO = 5.0                    # ... the rows whose error stands this many spreads off are left out
+MAD_TO_SIGMA = 1.4826                       # the median absolute deviation of a normal variable times this: its sigma
+SPREAD_SHARE = 0.5                          # a held-out RMS of this share of the held-out output's own standard
+                                            # deviation (a fit of 50 % or less) is unexplained, whatever else
 PEAK_BLOCK_S = 0.005                        # ... judged on the PEAK_RANK-th largest peak of blocks this long
 PEAK_RANK = 3
 MIN_STRUCTURE_PCT = 0.01                    # ... and above this % of the range (noise-free records)
@@ -144,18 +153,20 @@ class Analysis:
         return self.split.held_out_error(model, full, self.session(model))
 
 
-def _structure(e_score: np.ndarray, dt: float, noise_um: float, range_um: float) -> dict:
-    """Size and shape of what remains in a held-out residual (analysis rate)."""
-    total = rms(e_score)
-    noise_here = noise_floor_um(e_score)
-    structured = math.sqrt(max(total ** 2 - noise_here ** 2, 0.0))
-    ec = e_score - e_score.mean()
+def _structure(error: np.ndarray, dt: float, noise_um: float, range_um: float) -> dict:
+    """Size and shape of what remains in a held-out residual ``error`` [um] sampled every ``dt`` [s], against the
+    sensor noise at that rate ``noise_um``: its RMS above the noise (structured), its lag-1 autocorrelation and its
+    strongest spectral line (``noise_here_um``: the residual's own white-noise level from its second differences,
+    for the reader: where the model misses fast structure it is not the sensor's)."""
+    total = rms(error)
+    structured = math.sqrt(max(total ** 2 - noise_um ** 2, 0.0))
+    ec = error - error.mean()
     r1 = float(np.dot(ec[1:], ec[:-1]) / max(np.dot(ec, ec), 1e-30))
     spectrum = np.abs(np.fft.rfft(ec * np.hanning(ec.size)))
     freqs = np.fft.rfftfreq(ec.size, dt)
     k = int(np.argmax(spectrum[1:]) + 1) if spectrum.size > 1 else 0
     share = float(spectrum[k] ** 2 / max(np.sum(spectrum[1:] ** 2), 1e-30)) if k else 0.0
-    return {"rms_um": total, "structured_rms_um": structured, "noise_here_um": noise_here, "lag1": r1,
+    return {"rms_um": total, "structured_rms_um": structured, "noise_here_um": noise_floor_um(error), "lag1": r1,
             "line_hz": float(freqs[k]) if k else 0.0, "line_share": share,
             "ratio_to_noise": structured / max(noise_um, 1e-12),
             "pct_of_range": 100.0 * structured / range_um if range_um > 0 else 0.0}
@@ -239,6 +250,7 @@ class CapacityChoice:
     chosen_on: str             # what they were compared on, in words
     baseline: ValveModel
     paper: PaperFit            # the paper's 5-parameter fit
+    effects_grid: Optional[str] = None   # the size the effects are fitted on, where chosen again with them in
 
     def chosen(self) -> CapacityFit:
         return next(c for c in self.fits if c.label == self.label)
@@ -282,6 +294,7 @@ class _Loop:
         self.log, self.pool, self.forms_pool = log, pool, forms_pool
         self.warnings: list[str] = []
         self.known_rows: Optional[int] = None   # held-out rows before the input first leaves the fit part's range
+        self.start_left_out: Optional[dict] = None   # a validation session's first rows left out (in motion)
         self.analysed: dict = {}   # what of each record the loop analysed (the report's "analysed")
         train_full = self.representative_part(train_full, "train", "training record")
         if validate_full is not None:
@@ -296,19 +309,33 @@ class _Loop:
                                  f"rate dependence and the slow effects are identified as at any rate")
             log("warning: " + self.warnings[-1])
         self.range_um = float(np.ptp(split.score_full.position_um if split.held_out else full.position_um))
-        self.noise = noise_floor_um(full.position_um)
-        if not self.noise >= RESOLUTION_SHARE * self.range_um:   # a simulated or a smoothed record
-            self.noise = RESOLUTION_SHARE * self.range_um
-            self.warnings.append(f"the record shows no sensor noise (below {RESOLUTION_SHARE:g} of its range): the "
-                                 f"noise is taken as {self.noise:.3g} um, and figures relative to it are relative to that")
+        # the sensor's noise from what the input cannot explain, on every record the loop analyses (record rate)
+        self.noise_records = [train_full, validate_full]
+        self.floor = estimate_noise_floor(self.noise_records)
+        resolution = RESOLUTION_SHARE * self.range_um
+        if not self.floor.known:
+            self.noise = resolution
+            self.warnings.append(f"the records offer no evidence for the sensor noise ({self.floor.detail}): no "
+                                 f"residual is called noise (unexplained unless the model leaves nothing), and effects "
+                                 f"are judged on their held-out cuts alone")
             log("warning: " + self.warnings[-1])
+        elif not self.floor.rms_um >= resolution:   # a simulated or a smoothed record
+            self.noise = resolution
+            self.warnings.append(f"the record shows no sensor noise (below {RESOLUTION_SHARE:g} of its range, from "
+                                 f"{self.floor.source}): the noise is taken as {self.noise:.3g} um, and figures "
+                                 f"relative to it are relative to that")
+            log("warning: " + self.warnings[-1])
+        else:
+            self.noise = self.floor.rms_um
+        block = split.score.block / max(split.score_full.block, 1)   # block means: the noise's share at that rate
+        self.levels = NoiseLevels(self.noise, self.noise / math.sqrt(block))
         self.range_val = (float(np.ptp(split.score_full.position_um[split.start_full:])) if not split.held_out
                           else self.range_um)
         held_out_text = ('last ' + format(100 * HELD_OUT_FRACTION, '.0f') + ' %' if split.held_out
                          else 'validation record')
         log(f"records: fit {len(full)} samples ({full.duration_s:.1f} s at {full.rate_hz:.0f} Hz), held-out "
             f"{len(split.score_full) - split.start_full} samples ({held_out_text}); "
-            f"analysis at {split.fit.rate_hz:.0f} Hz; sensor noise {self.noise:.4f} um")
+            f"analysis at {split.fit.rate_hz:.0f} Hz; sensor noise: {self.floor.describe()}")
         self.cache = FitCache()  # operator states etc. shared by every fit on the fit record
         self.polishes: dict[int, tuple[ValveModel, ValveModel]] = {}   # id(model) -> (model, its poles refitted)
         self.sessions: dict[int, tuple[ValveModel, SessionStart]] = {}   # each model's start on a validation session
@@ -631,6 +658,49 @@ class _Loop:
                  f"{capacity.label} kept")
         return capacity, story
 
+    def rechoose_capacity(self, start: StartChoice, capacity: CapacityChoice, story: Story
+                          ) -> tuple[CapacityChoice, Story]:
+        """The GPIM's size chosen again with ``story``'s effects in the model (capacity and effects are chosen
+        together: an effect must not stand in for operators the baseline's choice left out, nor a size win only
+        because an effect it lacks swamped what the sizes differ in).  Each size of the capacity choice gets the
+        story's effects refitted on it (from the story's structures); where another size leaves a held-out RMS lower
+        by more than CAPACITY_TOLERANCE, the effects are confirmed, checked and swapped again from it
+        (``_EffectChoice.story``), and that story replaces the first where it explains at least as much."""
+        if not story.added:
+            return capacity, story
+        before = self.held_out(story.final).rms
+        chosen = capacity.chosen()
+        others = [c for c in capacity.fits if c.label != capacity.label and c.operators != chosen.operators]
+
+        def refit(c: CapacityFit) -> tuple[CapacityFit, float]:   # a job on the pool: refit, not refit_many
+            return c, _EffectChoice(self, c.model, c.label, search=False).refit(story.added, story.final)[1].rms
+        tried = self.each([lambda c=c: refit(c) for c in others])
+        effects = ", ".join(story.added)
+        text = ", ".join(f"{c.label} {r:.4f}" for c, r in tried)
+        better = [(r, c.operators, c) for c, r in tried if r < (1 - CAPACITY_TOLERANCE) * before]
+        if not better:
+            self.log(f"capacity with {effects}: {capacity.label} {before:.4f} um held-out RMS, the other sizes "
+                     f"{text}: {capacity.label} kept")
+            return capacity, story
+        best = min(better)[2]
+        self.log(f"capacity with {effects}: {capacity.label} {before:.4f} um held-out RMS, the other sizes {text}: "
+                 f"the effects chosen again on {best.label}")
+        baseline = fit_model(self.fit, best.model, poles="baseline", cache=self.cache)
+        # the story's effects confirmed on it (each must still earn its place: one that stood in for operators does
+        # not); the other effects were judged on the first size already
+        second = _EffectChoice(self, baseline, best.label).story(story.added, extend=False)
+        after, names = self.held_out(second.final).rms, ", ".join(second.added) or "nothing"
+        if after <= (1 + CAPACITY_TOLERANCE) * before:
+            self.log(f"capacity: {names} on {best.label} (held-out RMS {after:.4f} um) against {effects} on "
+                     f"{capacity.label} ({before:.4f} um): {best.label} taken")
+            chosen_on = (f"{capacity.chosen_on}; chosen again with the effects in the model: {best.label} ({names}, "
+                         f"{after:.4f} um) against {capacity.label} ({effects}, {before:.4f} um): the effects are "
+                         f"fitted on {best.label}, the baseline's figures stay those of {capacity.label}")
+            return replace(capacity, chosen_on=chosen_on, effects_grid=best.label), second
+        self.log(f"capacity: {names} on {best.label} leaves {after:.4f} um against {before:.4f} um with {effects} on "
+                 f"{capacity.label}: {capacity.label} kept")
+        return capacity, story
+
     def capacity_fit(self, thresholds: np.ndarray, first: ValveModel) -> CapacityFit:
         """A GPIM on ``thresholds`` fitted from the chosen start's model ``first`` (G_v fixed), with its held-out
         figures."""
@@ -640,35 +710,49 @@ class _Loop:
 
     # ------------------------------------------------------------------ 4. what remains
     def what_remains(self, story: Story) -> Remains:
-        """Size, peaks and shape of ``story``'s final held-out residual."""
+        """Size, peaks and shape of ``story``'s final held-out residual at the record's rate, against the noise floor
+        the records give evidence for.  Unexplained where its RMS above the floor is more than
+        UNEXPLAINED_NOISE_RATIO times the floor, where its peaks stand PEAK_NOISE_RATIO above the noise's, where the
+        records give no evidence for the floor (no residual is then called noise), and wherever the model leaves
+        SPREAD_SHARE of the held-out output's own spread (whatever a floor says)."""
         split, final, noise, search = self.split, story.final, self.noise, story.choice.search
-        e_score = self.error(final)
-        structure = _structure(e_score, split.score.dt, noise, self.range_val)
+        e_full = self.error(final, full=True)
+        structure = _structure(e_full, split.score_full.dt, noise, self.range_val)
         final_set = frozenset(story.added)
         closest = {n: 1.0 - search.score(final_set | {n}).rms / max(search.score(final_set).rms, 1e-30)
                    for n in story.choice.names if n not in final_set}
         near = max(closest.items(), key=lambda kv: kv[1]) if closest else ("none", 0.0)
-        peaks = _peak_structure(self.error(final, full=True), split.score_full.dt, noise, self.range_val)
+        peaks = _peak_structure(e_full, split.score_full.dt, noise, self.range_val)
         structure.update(peaks)
         measured = split.score_full.position_um[split.start_full:]
         structure["held_out_noise_peak_um"] = noise_peak_um(measured, split.score_full.dt)
         structure["held_out_noise_peak_pct"] = (100.0 * structure["held_out_noise_peak_um"] / self.range_val
                                                 if self.range_val > 0 else 0.0)
+        spread = float(np.std(measured))
+        structure["share_of_spread"] = structure["rms_um"] / spread if spread > 0 else 0.0
         by_rms = _unexplained_by_rms(structure)
         by_peak = peaks["peak_ratio"] > PEAK_NOISE_RATIO and peaks["peak_pct_of_range"] > MIN_STRUCTURE_PCT
+        by_spread = structure["share_of_spread"] >= SPREAD_SHARE
+        no_floor = not self.floor.known and structure["pct_of_range"] > MIN_STRUCTURE_PCT
+        floor = (f"the sensor noise {noise:.4f} um from {self.floor.source}" if self.floor.known
+                 else f"no evidence for the sensor noise, so none of it is called noise")
         seen = (
-            f"held-out residual RMS {structure['rms_um']:.4f} um at {split.score.rate_hz:.0f} Hz, of which "
-            f"{structure['structured_rms_um']:.4f} um structured ({structure['ratio_to_noise']:.1f}x the sensor noise "
-            f"{noise:.4f} um, threshold {UNEXPLAINED_NOISE_RATIO:g}x); peaks: the {_ordinal(PEAK_RANK)} largest "
-            f"{1e3 * PEAK_BLOCK_S:g} ms peak {peaks['peak_um']:.3f} um at {split.score_full.rate_hz:.0f} Hz is "
+            f"held-out residual RMS {structure['rms_um']:.4f} um at {split.score_full.rate_hz:.0f} Hz "
+            f"({100 * structure['share_of_spread']:.1f} % of the held-out output's own spread, threshold "
+            f"{100 * SPREAD_SHARE:.0f} %), of which {structure['structured_rms_um']:.4f} um stands above "
+            + (f"{floor} ({structure['ratio_to_noise']:.1f}x it, threshold {UNEXPLAINED_NOISE_RATIO:g}x)"
+               if self.floor.known else floor)
+            + f"; peaks: the {_ordinal(PEAK_RANK)} largest "
+            f"{1e3 * PEAK_BLOCK_S:g} ms peak {peaks['peak_um']:.3f} um is "
             f"{peaks['peak_ratio']:.1f}x what the noise gives ({peaks['expected_noise_peak_um']:.3f} um, threshold "
             f"{PEAK_NOISE_RATIO:g}x; the held-out measurement's own noise peaks at "
             f"{structure['held_out_noise_peak_um']:.3f} um about its local cubic); lag-1 autocorrelation "
             f"{structure['lag1']:.2f}; strongest spectral line {structure['line_hz']:.3g} Hz "
             f"({100 * structure['line_share']:.0f} % of residual power); closest catalogue effect: {near[0]} "
             f"(would cut the held-out RMS by {100 * max(near[1], 0):.1f} %)")
-        self.log(("structure remains: " if by_rms or by_peak else "residual: ") + seen)
-        return Remains(structure, by_rms or by_peak, seen)
+        unexplained = by_rms or by_peak or by_spread or no_floor
+        self.log(("structure remains: " if unexplained else "residual: ") + seen)
+        return Remains(structure, unexplained, seen)
 
     # ------------------------------------------------------------------ 5. figures at the record's own rate, report
     def figures(self, model: ValveModel) -> dict[str, ErrorFigures]:
@@ -685,33 +769,37 @@ class _Loop:
                                                         self.range_val).rounded()}
 
     def diagnosis(self, story: Story) -> list[Decision]:
-        """Each effect's decision with its statistic, threshold and margin: the added ones by their exact
-        drop-one refits, the others by their exact refit on top of the final set where one was made (an exact
-        check, or forward selection's), else added last to the final set in the linear search."""
+        """Each effect's decision with its statistic (the share of the structured residual it removes), threshold,
+        margin and consistency: the added ones by their exact drop-one refits, the others by their exact refit on
+        top of the final set where one was made (an exact check, or forward selection's), else added last to the
+        final set in the linear search."""
         added, names, final_set, search = story.added, story.choice.names, frozenset(story.added), story.choice.search
         diagnosis = []
         checked, refits = story.choice.exact_checks.get(final_set, {}), story.choice.refits
         for n in names:
             exact = n in story.verdicts and n in added
             if exact:
-                cut, explained, _, without, with_ = story.verdicts[n]
+                verdict = story.verdicts[n]
                 how = "exact refit without it"
             else:   # the exact refit on top of the final set where there was one: the figure the decision used
                 refitted = checked.get(n) or (
                     (refits[final_set | {n}][1], refits[final_set][1]) if final_set | {n} in refits
                     and final_set in refits else None)
                 with_s, without_s = refitted or (search.score(final_set | {n}), search.score(final_set))
-                cut, explained, supported = support(with_s, without_s, self.noise)
-                with_, without = with_s.rms, without_s.rms
+                verdict = Verdict(support(with_s, without_s, self.levels), without_s.rms, with_s.rms)
                 how = ("refitted exactly on top of the final model" if refitted
                        else "added last to the final model (one linear solve from the baseline)")
-                if refitted and not supported and cut >= GAIN_THRESHOLD:   # refused for another reason than its cut
-                    how += f"; not supported: {unsupported_because(with_s, without_s, self.noise)}"
-            diagnosis.append(Decision(effect=n, added=exact, statistic=round(cut, 4), threshold=GAIN_THRESHOLD,
-                                      margin=round(cut - GAIN_THRESHOLD, 4), held_out_gain=round(cut, 4),
-                                      explained_rms_um=round(explained, 5),
-                                      evidence=_evidence(story.choice.by_name[n], cut, explained, without, with_,
-                                                         self.noise, how)))
+                if refitted and not verdict.support.supported and verdict.support.share >= GAIN_THRESHOLD:
+                    how += f"; not supported: {unsupported_because(with_s, without_s, self.levels)}"
+            sup = verdict.support
+            diagnosis.append(Decision(effect=n, added=exact, statistic=round(sup.share, 4), threshold=GAIN_THRESHOLD,
+                                      margin=round(sup.share - GAIN_THRESHOLD, 4), held_out_gain=round(sup.cut, 4),
+                                      explained_rms_um=round(sup.explained_um, 5),
+                                      better_share=round(sup.consistency.better_share, 4),
+                                      loss_ratio=round(min(sup.consistency.loss_ratio, 1e9), 4),
+                                      t=round(sup.consistency.t, 3) if math.isfinite(sup.consistency.t) else 1e9,
+                                      decided_by=sup.by,
+                                      evidence=_evidence(story.choice.by_name[n], verdict, self.levels, how)))
         diagnosis.sort(key=lambda d: (not d.added, added.index(d.effect) if d.added else names.index(d.effect)))
         return diagnosis
 
@@ -766,7 +854,13 @@ class _Loop:
             validate_range_um=round(self.range_val, 4),
             sample_rate_hz=round(self.full.rate_hz, 3),
             analysis_rate_hz=round(self.fit.rate_hz, 3),
-            noise_floor_um=round(self.noise, 6),
+            noise_floor_um=round(self.noise, 6) if self.floor.known else None,
+            noise_floor=NoiseFloorReport(
+                rms_um=None if self.floor.rms_um is None else round(self.floor.rms_um, 6), source=self.floor.source,
+                detail=self.floor.detail,
+                evidence=tuple(NoiseEstimate(source=e.source, rms_um=None if e.rms_um is None else round(e.rms_um, 6),
+                                             detail=e.detail, samples=e.samples) for e in self.floor.evidence)),
+            summary="",
             thresholds={"held_out_gain": GAIN_THRESHOLD, "signature": GAIN_THRESHOLD,
                         "min_effect_noise_ratio": MIN_EFFECT_NOISE_RATIO, "peak_tolerance": PEAK_TOLERANCE,
                         "unexplained_noise_ratio": UNEXPLAINED_NOISE_RATIO, "unexplained_pct": MIN_STRUCTURE_PCT,
@@ -774,17 +868,15 @@ class _Loop:
                         "peak_rank": PEAK_RANK, "capacity_tolerance": CAPACITY_TOLERANCE,
                         "initial_state_tolerance": INITIAL_STATE_TOLERANCE, "wipe_gain": WIPE_GAIN,
                         "wipe_state_gain": WIPE_STATE_GAIN, "wipe_margin": WIPE_MARGIN,
-                        "separation_share": SEPARATION_SHARE},   # signature: earlier reports' name of held_out_gain
+                        "separation_share": SEPARATION_SHARE, "unexplained_spread_share": SPREAD_SHARE},   # signature: earlier reports' name of held_out_gain
             sessions=tuple(sessions),
             transport_delay_s=round(final.delay_s, 7),
             warnings=tuple(self.warnings),
             final_model=final.describe(),
             seconds=round(time.monotonic() - self.started, 3),
         )
-        b, f = report.baseline.validate, report.final.validate
-        self.log(f"added: {', '.join(story.added) or 'nothing'}; held-out RMS {b.rms_um:.4f} -> {f.rms_um:.4f} um, "
-                 f"peak {b.peak_um:.3f} -> {f.peak_um:.3f} um at {self.full.rate_hz:.0f} Hz; unexplained: "
-                 f"{str(remains.unexplained).lower()} ({report.seconds:.1f} s)")
+        report = replace(report, summary=_summary_line(report, self.floor))
+        self.log(f"{report.summary} ({report.seconds:.1f} s)")
         return report
 
     def sessions_report(self, start: StartChoice, final: ValveModel) -> tuple[list[Session], dict]:
@@ -798,7 +890,8 @@ class _Loop:
             final_start["validation_record_start_final_model"] = session.history.describe()
             out.append(Session(record="validation", offset_um=round(session.offset_um, 6),
                                start="its own, estimated for the model: " + session.history.describe(),
-                               start_rows=session.rows, start_rows_rms_um=round(session.first_rows_rms_um, 6)))
+                               start_rows=session.rows, start_rows_rms_um=round(session.first_rows_rms_um, 6),
+                               left_out=self.start_left_out))
             self.log(f"validation session: sensor offset {session.offset_um:+.4f} um against the training record's; "
                      f"start estimated on its first {session.rows} rows ({session.first_rows_rms_um:.4f} um RMS there)")
         return out, final_start
@@ -829,13 +922,69 @@ class _Loop:
                                                  if self.known_rows is not None else ""))
             self.log("warning: " + self.warnings[-1])
 
+    def leave_out_start_in_motion(self, start: StartChoice) -> None:
+        """A separate validation session that starts in motion, still settling from a voltage nobody recorded (a
+        jump just before it), shows an error at its first rows that no start estimated for the valve's memory takes
+        away: the rows from the first to the last one, within START_MOTION_MAX_S, whose error (``start``'s model, at
+        the record's rate) stands START_MOTION_RATIO times above the rest of the session's robust spread are left out
+        of every held-out figure and decision (``split``'s start moves past them; the models still run from the
+        session's first sample), and the report says so (``start_left_out``)."""
+        split = self.split
+        if split.held_out:
+            return
+        e = self.error(start.first, full=True)
+        dt = split.score_full.dt
+        reach = min(int(START_MOTION_MAX_S / dt), int(START_MOTION_MAX_SHARE * e.size))
+        if reach < 1 or e.size <= 4 * reach:
+            return
+        rest = e[reach:]
+        spread = max(MAD_TO_SIGMA * float(np.median(np.abs(rest - np.median(rest)))), self.noise)
+        outside = np.flatnonzero(np.abs(e[:reach] - np.median(rest)) > START_MOTION_RATIO * spread)
+        if outside.size == 0 or outside[0] > START_MOTION_FIRST_ROWS:
+            return
+        rows_full = int(outside[-1]) + 1
+        ratio = split.score.block // max(split.score_full.block, 1)
+        rows = -(-rows_full // ratio)   # whole analysis rows, so both rates leave out the same stretch
+        rows_full = rows * ratio
+        self.start_left_out = {"rows": rows_full, "seconds": round(rows_full * dt, 6),
+                               "peak_error_um": round(float(np.max(np.abs(e[:rows_full]))), 4),
+                               "spread_um": round(spread, 5)}
+        self.split = replace(split, start=rows, start_full=rows_full)
+        self.warnings.append(f"the validation session starts in motion (still settling from a voltage before it): its "
+                             f"first {rows_full} rows ({1e3 * rows_full * dt:.0f} ms, error up to "
+                             f"{self.start_left_out['peak_error_um']:.3g} um against a spread of {spread:.3g} um after "
+                             f"them) are left out of the held-out figures")
+        self.log("warning: " + self.warnings[-1])
+
+    def noise_beyond_response(self, start: StartChoice) -> None:
+        """Where the records gave no direct evidence for the noise (a closed loop's drive is never still and feeds
+        the sensor's noise back at every frequency), the band beyond the response of ``start``'s fitted G."""
+        if self.floor.known:
+            return
+        tf = start.first.dynamics
+
+        def response(f: np.ndarray) -> np.ndarray:
+            return np.abs(tf.frequency_response(f)) ** 2
+        floor = estimate_noise_floor(self.noise_records, response)
+        if not floor.known:
+            self.floor = floor
+            return
+        self.floor = floor
+        self.warnings[:] = [w for w in self.warnings if not w.startswith("the records offer no evidence")]
+        self.noise = max(floor.rms_um, RESOLUTION_SHARE * self.range_um)
+        self.levels = NoiseLevels(self.noise, self.noise * self.levels.analysis_um / self.levels.record_um)
+        self.log(f"sensor noise: {floor.describe()}")
+
     def run(self) -> Analysis:
         start = self.choose_initial_state()
+        self.noise_beyond_response(start)
+        self.leave_out_start_in_motion(start)
         self.check_held_out_range()
         capacity = self.choose_capacity(start)
         story = _EffectChoice(self, capacity.baseline, capacity.label).story()
         capacity, story = self.revisit_placement(start, capacity, story)
         capacity, story = self.revisit_capacity(capacity, story)
+        capacity, story = self.rechoose_capacity(start, capacity, story)
         remains = self.what_remains(story)
         report = self.report(start, capacity, story, remains)
         return Analysis(report, capacity.baseline, story.final, self.split, story.drop_one, self.sessions)
@@ -850,6 +999,7 @@ class _EffectChoice:
     def __init__(self, loop: "_Loop", baseline: ValveModel, label: str, search: bool = True):
         self.baseline, self.label = baseline, label
         self.fit, self.split, self.noise, self.cache = loop.fit, loop.split, loop.noise, loop.cache
+        self.levels = loop.levels
         self.log, self.pool, self.each, self.each_form = loop.log, loop.pool, loop.each, loop.each_form
         self.held_out, self.session, self.polishes = loop.held_out, loop.session, loop.polishes
         self.error, self.range_val = loop.error, loop.range_val
@@ -877,10 +1027,10 @@ class _EffectChoice:
         table = []
         for s in subsets:
             sc = search.score(s)
-            checks = {e: support(sc, search.score(s - {e}), self.noise) for e in s}
+            checks = {e: support(sc, search.score(s - {e}), self.levels) for e in s}
             table.append(SearchRow(effects=tuple(n for n in names if n in s), held_out_rms_um=round(sc.rms, 6),
                                    held_out_peak_um=round(sc.peak, 5),
-                                   supported=all(c[2] for c in checks.values())))
+                                   supported=all(c.supported for c in checks.values())))
         supported = [(t.held_out_rms_um, len(t.effects), frozenset(t.effects)) for t in table if t.supported]
         self.table, self.chosen_set = table, min(supported)[2]
         self.log(f"search on {self.label}: {len(subsets)} subsets of {', '.join(names)}; best supported: "
@@ -889,23 +1039,28 @@ class _EffectChoice:
     # ------------------------------------------------------------------ 3. exact refits and drop-one checks
     def refit_many(self, requests: list[tuple[list[str], Optional[ValveModel]]]) -> list[tuple[ValveModel, Score]]:
         """Exact refits of subsets with their held-out scores (cached; the missing ones on the pool).  In a
-        request ``(subset, like)``, effects that ``like`` has keep the form it chose and start from the
-        nonlinear structure it fitted (a warm start: drop-one refits and additions stay near it); the others
-        are fitted in each of their forms from their neutral structure."""
-        def job(subset: list[str], like: Optional[ValveModel]) -> tuple[ValveModel, Score]:
-            chosen = {e.name: e for e in like.effects} if like is not None else {}
-            effects = [chosen.get(n, self.by_name[n]) for n in subset]
-            m = fit_model(self.fit, self.baseline, effects, try_forms={n for n in subset if n not in chosen},
-                          cache=self.cache, warm=like, each=self.each_form)
-            return self.held_out_form(m, [n for n in subset if n not in chosen])
-
+        request ``(subset, like)``, effects that ``like`` has keep the form it chose (their nested held-out forms
+        chosen again: ``held_out_form``) and start from the nonlinear structure it fitted (a warm start: drop-one
+        refits and additions stay near it); the others are fitted in each of their forms from their neutral
+        structure."""
         missing = {}
         for subset, like in requests:
             if frozenset(subset) not in self.refits:
                 missing.setdefault(frozenset(subset), (subset, like))
-        for key, result in zip(missing, self.each([lambda r=r: job(*r) for r in missing.values()])):
+        for key, result in zip(missing, self.each([lambda r=r: self.refit(*r) for r in missing.values()])):
             self.refits[key] = result
         return [self.refits[frozenset(subset)] for subset, _ in requests]
+
+    def refit(self, subset: list[str], like: Optional[ValveModel]) -> tuple[ValveModel, Score]:
+        """One exact refit of ``subset`` (``refit_many``'s job; uncached): a job for the loop's pool, whose forms
+        run on the forms' pool."""
+        chosen = {e.name: e for e in like.effects} if like is not None else {}
+        effects = [chosen.get(n, self.by_name[n]) for n in subset]
+        m = fit_model(self.fit, self.baseline, effects, try_forms={n for n in subset if n not in chosen},
+                      cache=self.cache, warm=like, each=self.each_form)
+        # nested forms are chosen on held-out data again in every set: a form chosen beside one effect (a drift's
+        # slow form beside creep) need not be the best without it
+        return self.held_out_form(m, subset)
 
     def held_out_form(self, model: ValveModel, free: list[str]) -> tuple[ValveModel, Score]:
         """``model`` with each effect of ``free`` that has nested forms (``Effect.held_out_forms``) in the one
@@ -952,22 +1107,24 @@ class _EffectChoice:
         current: list[str] = []
         score = self.held_out(self.baseline)
         while len(current) < len(self.names):
-            if not room_for_an_effect(score, self.noise):
+            if not room_for_an_effect(score, self.levels):
                 self.log(f"exact selection: nothing more on top of {_set_named(current)}: "
-                         f"{no_room_because(score, self.noise)}")
+                         f"{no_room_because(score, self.levels)}")
                 break
             options = [n for n in self.names if n not in current]
             so_far = self.refit_many([(current, None)])[0][0] if current else None
             fits = self.refit_many([([m for m in self.names if m in current or m == n], so_far) for n in options])
-            supported = [(s.rms, n) for n, (_, s) in zip(options, fits) if support(s, score, self.noise)[2]]
+            supported = [(s.rms, n) for n, (_, s) in zip(options, fits) if support(s, score, self.levels).supported]
+            supported_fits = [(n, s) for n, (_, s) in zip(options, fits)]
             if not supported:
                 self.log(f"exact selection: nothing more on top of {_set_named(current)}: "
-                         + "; ".join(f"{n} ({unsupported_because(s, score, self.noise)})"
+                         + "; ".join(f"{n} ({unsupported_because(s, score, self.levels)})"
                                      for n, (_, s) in zip(options, fits)))
                 break
             best_rms, best = min(supported)
             self.log(f"exact selection: {best} cuts the held-out RMS {score.rms:.4f} -> {best_rms:.4f} um on top of "
-                     f"{_set_named(current)} (the first-order search is not trusted here)")
+                     f"{_set_named(current)}, {_decided(support(dict(supported_fits)[best], score, self.levels))} "
+                     f"(the first-order search is not trusted here)")
             current = [m for m in self.names if m in current or m == best]
             score = self.delay_on_held_out(current)
         return current
@@ -1027,12 +1184,12 @@ class _EffectChoice:
         search_score, forward_score = self.held_out(confirmed[0]), self.held_out(forward[0])
         with_search, with_forward = search_score.rms, forward_score.rms
         # effects supported only together must, together, pass the rule an effect added last passes
-        together = support(search_score, forward_score, self.noise)[2]
+        together = support(search_score, forward_score, self.levels).supported
         if with_search < with_forward and not together:
             self.log(f"exact selection: the search's {', '.join(searched)}, confirmed as {', '.join(confirmed[3])}, "
                      f"leaves a held-out RMS of {with_search:.4f} um against {with_forward:.4f} um with "
                      f"{', '.join(forward[3]) or 'nothing'} chosen one at a time; together they are not supported "
-                     f"({unsupported_because(search_score, forward_score, self.noise)}); "
+                     f"({unsupported_because(search_score, forward_score, self.levels)}); "
                      f"{', '.join(forward[3]) or 'nothing'} kept")
             return forward
         if with_search < with_forward:
@@ -1065,7 +1222,8 @@ class _EffectChoice:
         """Whether ``model``'s held-out residual holds structure above UNEXPLAINED_NOISE_RATIO times the sensor noise
         (and above MIN_STRUCTURE_PCT of the range): what the story's end reports as unexplained (``what_remains``,
         which also counts peaks)."""
-        return _unexplained_by_rms(_structure(self.error(model), self.split.score.dt, self.noise, self.range_val))
+        return _unexplained_by_rms(_structure(self.error(model), self.split.score.dt, self.levels.analysis_um,
+                                              self.range_val))
 
     def confirm(self, current: list[str]) -> tuple[ValveModel, dict, dict, list[str]]:
         """Backward elimination with exact refits: (final model, drop-one models, verdicts, effects kept)."""
@@ -1079,15 +1237,17 @@ class _EffectChoice:
             drops, verdicts, withouts = {}, {}, {}
             for n, (without_model, without) in zip(current, dropped):
                 drops[n], withouts[n] = without_model, without
-                verdicts[n] = support(score_model, without, self.noise) + (without.rms, score_model.rms)
+                verdicts[n] = Verdict(support(score_model, without, self.levels), without.rms, score_model.rms)
             self.confirm_log.append(ConfirmRound(effects=tuple(current), held_out_rms_um=round(score_model.rms, 6),
-                                                 drop_one={n: round(v[0], 4) for n, v in verdicts.items()}))
-            failing = [n for n in current if not verdicts[n][2]]
+                                                 drop_one={n: round(v.support.share, 4) for n, v in verdicts.items()}))
+            failing = [n for n in current if not verdicts[n].support.supported]
             if not failing:
+                for n in current:
+                    self.log(f"confirm: {n} kept, {_decided(verdicts[n].support)}")
                 return model, drops, verdicts, current
-            weakest = min(failing, key=lambda n: verdicts[n][0])
+            weakest = min(failing, key=lambda n: verdicts[n].support.share)
             self.log(f"confirm: {weakest} not supported by the exact refit "
-                     f"({unsupported_because(score_model, withouts[weakest], self.noise)}); dropped")
+                     f"({unsupported_because(score_model, withouts[weakest], self.levels)}); dropped")
             current = [n for n in current if n != weakest]
         return self.baseline, {}, {}, []
 
@@ -1107,8 +1267,8 @@ class _EffectChoice:
         if len(current) == len(self.names):
             return None
         final_score = self.held_out(final)
-        if not room_for_an_effect(final_score, self.noise):   # (the polished model's is lower still)
-            self.log(f"exact check on top of {_set_named(current)}: none, {no_room_because(final_score, self.noise)}")
+        if not room_for_an_effect(final_score, self.levels):   # (the polished model's is lower still)
+            self.log(f"exact check on top of {_set_named(current)}: none, {no_room_because(final_score, self.levels)}")
             return None
         # against the set as it ends if nothing is added: with G_v's poles fitted again through it (an effect
         # added here must do more than the poles' refit at the end would do anyway)
@@ -1133,11 +1293,11 @@ class _EffectChoice:
             if options:   # one line for what the exact checks found, not silence after seconds of refits
                 self.log(f"exact check on top of {_set_named(current)}: " + "; ".join(
                     f"{n} {base_score.rms:.4f} -> {score.rms:.4f} um, not supported "
-                    f"({unsupported_because(score, base_score, self.noise)})"
+                    f"({unsupported_because(score, base_score, self.levels)})"
                     for n, (_, score) in zip(options, refits)) + "; nothing added")
             return None
-        self.log(f"exact check: {best[0]} cuts the held-out RMS {base_score.rms:.4f} -> {best[1].rms:.4f} um "
-                 f"(the first-order search underrated it); added")
+        self.log(f"exact check: {best[0]} cuts the held-out RMS {base_score.rms:.4f} -> {best[1].rms:.4f} um, "
+                 f"{_decided(support(best[1], base_score, self.levels))} (the first-order search underrated it); added")
         return current + [best[0]]
 
     def _best_supported(self, options: list[str], refits: list[tuple[ValveModel, Score]], base: Score
@@ -1146,7 +1306,7 @@ class _EffectChoice:
         lowest held-out RMS; None where none is."""
         best = None
         for n, (_, score) in zip(options, refits):
-            if support(score, base, self.noise)[2] and (best is None or score.rms < best[1].rms):
+            if support(score, base, self.levels).supported and (best is None or score.rms < best[1].rms):
                 best = (n, score)
         return best
 
@@ -1169,18 +1329,18 @@ class _EffectChoice:
                  f"{a} (the first-order search ranked {a} first); {a} replaced by {b}")
         return swapped
 
-    def story(self, start: Optional[list[str]] = None) -> Story:
-        """The winning subset (or ``start``) confirmed; then effects the linear search underrated, checked exactly,
-        and effects that do better in an added one's place, swapped in (each change confirmed again); then G_v's
-        poles again through the effects found.  The final model is never worse on held-out data than the baseline
-        (by the one score every decision used: ``held_out``)."""
+    def story(self, start: Optional[list[str]] = None, extend: bool = True) -> Story:
+        """The winning subset (or ``start``) confirmed; then (``extend``) effects the linear search underrated,
+        checked exactly, and effects that do better in an added one's place, swapped in (each change confirmed
+        again); then G_v's poles again through the effects found.  The final model is never worse on held-out data
+        than the baseline (by the one score every decision used: ``held_out``)."""
         if start is None:
             final, drop_one, verdicts, current = self.untrusted_or_confirmed(
                 [n for n in self.names if n in self.chosen_set])
         else:
             final, drop_one, verdicts, current = self.confirm([n for n in self.names if n in start])
         tried: set[frozenset] = set()   # sets already put to confirm: each once (an effect added here and dropped
-        while True:                     # by confirm would be added again, and dropped again, forever)
+        while extend:                   # by confirm would be added again, and dropped again, forever)
             changed = self.exact_addition(current, final, tried) or self.better_swap(current, verdicts, tried)
             if changed is None:
                 break
@@ -1209,8 +1369,28 @@ class _EffectChoice:
         if self.held_out(final).rms > self.held_out(self.baseline).rms:
             self.log("the extended model is worse on held-out data than the baseline: baseline kept")
             final, drop_one, current = self.baseline, {}, []
+        elif current and self.split.score.block > self.split.score_full.block:
+            # decided on block means: the record's own rate must not disagree (what happens faster than the
+            # analysis rate resolves, an effect may fit worse)
+            before, after = (rms(self.error(m, full=True)) for m in (self.baseline, final))
+            if after > before:
+                self.log(f"{', '.join(current)} cut the held-out RMS at the analysis rate ({self.split.score.rate_hz:.0f} "
+                         f"Hz) but raise it at the record's ({self.split.score_full.rate_hz:.0f} Hz), {before:.4f} -> "
+                         f"{after:.4f} um: baseline kept")
+                final, drop_one, current = self.baseline, {}, []
         return Story(self.baseline, final, [n for n in self.names if n in current], drop_one, verdicts,
                      self.confirm_log, self)
+
+
+def _summary_line(report: IdentificationReport, floor: NoiseFloor) -> str:
+    """The report's story in one line: what was added, whether structure remains, the held-out RMS, peak and fit
+    before and after at the record's rate, and where the noise floor came from."""
+    b, f = report.baseline.validate, report.final.validate
+    noise = (f"noise floor {floor.rms_um:.4f} um from {floor.source}" if floor.known
+             else "noise floor unknown (no holds, repeated periods or input-free band)")
+    return (f"added: {', '.join(report.effects_added) or 'nothing'}; unexplained: {str(report.unexplained).lower()}; "
+            f"held-out RMS {b.rms_um:.4f} -> {f.rms_um:.4f} um, peak {b.peak_pct:.2f} -> {f.peak_pct:.2f} % of the "
+            f"range, fit {b.fit_pct:.1f} -> {f.fit_pct:.1f} % at {report.sample_rate_hz:.0f} Hz; {noise}")
 
 
 def _set_named(effects: list[str]) -> str:
@@ -1242,7 +1422,7 @@ def _alternatives(added: list[str], names: list[str], verdicts: dict, search: "S
                    >= SEPARATION_SHARE * cut_a_linear]
         if not options:
             continue
-        _, _, _, without, with_ = verdicts[a]
+        without, with_ = verdicts[a].without_um, verdicts[a].with_um
         cut_a = 1.0 - with_ / max(without, 1e-30)
         for b, (_, swapped) in zip(options, refit_many([([n for n in names if n in rest | {b}], None)
                                                          for b in options])):
@@ -1262,8 +1442,25 @@ def _alternatives(added: list[str], names: list[str], verdicts: dict, search: "S
     return found
 
 
-def _evidence(effect: Effect, cut: float, explained: float, without: float, with_: float, noise: float,
-              how: str) -> str:
-    return (f"{effect.signature}; held-out RMS {without:.4f} -> {with_:.4f} um with it ({how}): "
-            f"{percent(cut, sign=True)} % cut (threshold {100 * GAIN_THRESHOLD:.0f} %), explaining {explained:.4f} um RMS "
-            f"(threshold {MIN_EFFECT_NOISE_RATIO:g}x the sensor noise {noise:.4f} um)")
+def _evidence(effect: Effect, verdict: "Verdict", noise: NoiseLevels, how: str) -> str:
+    sup, c = verdict.support, verdict.support.consistency
+    return (f"{effect.signature}; held-out RMS {verdict.without_um:.4f} -> {verdict.with_um:.4f} um with it ({how}): "
+            f"{percent(sup.cut, sign=True)} % cut, removing {percent(sup.share)} % of the structured residual "
+            f"(threshold {100 * GAIN_THRESHOLD:.0f} %), better in {100 * c.better_share:.0f} % of the held-out "
+            f"stretches, losing {percent(min(c.loss_ratio, 9.99))} % of its gain in the others (threshold "
+            f"{100 * MAX_LOSS_RATIO:.0f} %, t {c.t:.1f}), explaining {sup.explained_um:.4f} um "
+            f"RMS (threshold {MIN_EFFECT_NOISE_RATIO:g}x the sensor noise {noise.record_um:.4f} um)"
+            + (f"; decided by: {sup.by}" if sup.by else "; not supported"))
+
+
+def _decided(sup: Support) -> str:
+    """Which evidence supported an effect, in words (for the log)."""
+    return f"supported by {sup.by}: {sup.describe()}"
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """An effect's exact drop-one check: its :class:`Support` and the held-out RMS without and with it [um]."""
+    support: Support
+    without_um: float
+    with_um: float

@@ -14,11 +14,20 @@ from .fitting import BASIS_RIDGE, gpim_lower_bounds, position_slope, run_in_orde
 from .split import SessionStart, Split
 from .valve_model import ValveModel
 
-__all__ = ["SubsetSearch", "Score", "support", "GAIN_THRESHOLD", "MIN_EFFECT_NOISE_RATIO", "PEAK_TOLERANCE"]
+__all__ = ["SubsetSearch", "Score", "Consistency", "consistency", "NoiseLevels", "Support", "structured_rms", "support", "GAIN_THRESHOLD", "MIN_EFFECT_NOISE_RATIO", "PEAK_TOLERANCE"]
 
-GAIN_THRESHOLD = 0.2                        # an effect added last must cut the held-out RMS by >= 20 %
-MIN_EFFECT_NOISE_RATIO = 1.0                # ... and explain an RMS >= the sensor noise RMS
+GAIN_THRESHOLD = 0.2                        # an effect added last must remove >= 20 % of the structured residual
+MAX_LOSS_RATIO = 0.1                        # ... losing in the held-out stretches it does worse in at most 10 % of what
+                                            # it gains in those it does better in
+SMALL_SHARE = 0.05                          # ... or >= 5 % of a structured residual
+LARGE_RESIDUAL_RATIO = 2.0                  # ... of this many times the noise or more
+STRONG_SHARE = 0.9                          # ... doing better in >= 90 % of the stretches
+STRONG_LOSS_RATIO = 0.02                    # ... losing at most 2 % of what it gains
+STRONG_T = 5.0                              # ... with a paired t of at least this
+MIN_EFFECT_NOISE_RATIO = 1.0                # ... and explain an RMS >= the sensor noise RMS (near the floor the
+                                            # structured residual's share is a ratio of small differences)
 PEAK_TOLERANCE = 1.1                        # ... and not raise the held-out peak by > 10 %
+SEGMENTS = 10                               # the held-out data in this many stretches, for how consistent a cut is
 
 
 class SubsetSearch:
@@ -79,7 +88,7 @@ class SubsetSearch:
         if session is not None:   # G's settling from before the session, as the baseline has it
             static, rest = scored.static_output_and_rest(ctx_s)
             settling = 0.0 if rest is None else (rest - static[0]) * ctx_s.free_response
-            self.y_score = self.y_score - settling
+            self.y_score = self.y_score - (settling[split.start:] if np.ndim(settling) else settling)
         n = A.shape[0]
         self.scale = np.sqrt(np.einsum("ij,ij->j", A, A) / n)
         self.scale[self.scale == 0] = 1.0
@@ -109,26 +118,134 @@ class SubsetSearch:
 @dataclass(frozen=True)
 class Score:
     """Held-out error [um] at the analysis rate; ``known_rms``: its RMS over the held-out rows before the input first
-    leaves the fit part's voltage range (None where it never leaves it, or leaves it too soon to tell)."""
+    leaves the fit part's voltage range (None where it never leaves it, or leaves it too soon to tell);
+    ``segments``: its mean square [um^2] over each of SEGMENTS stretches of the held-out data in turn (what
+    :func:`consistency` compares)."""
 
     rms: float
     peak: float
     known_rms: Optional[float] = None
+    segments: tuple[float, ...] = ()
 
     @classmethod
     def of(cls, error: np.ndarray, known_rows: Optional[int] = None) -> "Score":
+        parts = np.array_split(error, SEGMENTS) if error.size >= SEGMENTS else []
         return cls(rms(error), float(np.max(np.abs(error))) if error.size else 0.0,
-                   None if known_rows is None else rms(error[:known_rows]))
+                   None if known_rows is None else rms(error[:known_rows]),
+                   tuple(float(np.mean(p * p)) for p in parts))
 
 
-def unsupported_because(with_: Score, without: Score, noise_um: float) -> str:
+@dataclass(frozen=True)
+class Consistency:
+    """How consistently a model ``with_`` beats one ``without`` over the held-out data's SEGMENTS stretches: the
+    share of stretches where its mean square error is lower, what it loses where it does worse as a share of what
+    it gains where it does better (an effect that shows only in part of the record, a lag in the fast stretches,
+    loses next to nothing elsewhere; one that fits the training record's quirks pays for its cut elsewhere), and
+    the paired t statistic of the differences (their mean over its standard error)."""
+
+    better_share: float
+    loss_ratio: float
+    t: float
+
+
+def consistency(with_: Score, without: Score) -> Consistency:
+    """:class:`Consistency` of ``with_`` against ``without`` (no segments: none shown, t 0)."""
+    if not with_.segments or len(with_.segments) != len(without.segments):
+        return Consistency(0.0, math.inf, 0.0)
+    d = np.asarray(without.segments) - np.asarray(with_.segments)
+    spread = float(np.std(d, ddof=1)) if d.size > 1 else 0.0
+    mean = float(np.mean(d))
+    t = mean / (spread / math.sqrt(d.size)) if spread > 0 else (math.inf if mean > 0 else 0.0)
+    gained, lost = float(np.sum(np.maximum(d, 0.0))), float(np.sum(np.maximum(-d, 0.0)))
+    return Consistency(float(np.mean(d > 0)), lost / gained if gained > 0 else math.inf, t)
+
+
+@dataclass(frozen=True)
+class NoiseLevels:
+    """The sensor noise floor [um RMS] at the record's rate (what an effect must explain a share of) and at the
+    analysis rate the held-out scores are taken at (block means: the noise's share there; what the structured
+    residual is measured above)."""
+
+    record_um: float
+    analysis_um: float
+
+    @classmethod
+    def same(cls, noise_um: float) -> "NoiseLevels":
+        return cls(noise_um, noise_um)
+
+
+@dataclass(frozen=True)
+class Support:
+    """The evidence for an effect added last (its model ``with_`` against the one ``without`` it), on held-out data:
+    the held-out RMS cut (a share), the share of the structured residual (the RMS above the noise floor) it
+    removes, the RMS it explains [um], how consistently it does so over the held-out stretches, whether that
+    supports it and by which rule (``by``: "share", "small but consistent", or "" when it does not)."""
+
+    cut: float
+    share: float
+    explained_um: float
+    consistency: Consistency
+    supported: bool
+    by: str
+
+    def describe(self) -> str:
+        """The evidence in words (one phrase)."""
+        c = self.consistency
+        return (f"held-out RMS cut {percent(self.cut, sign=True)} %, {percent(self.share)} % of the structured "
+                f"residual, better in {100 * c.better_share:.0f} % of the held-out stretches, losing "
+                f"{percent(min(c.loss_ratio, 9.99))} % of its gain elsewhere (t {c.t:.1f})")
+
+
+def structured_rms(score: Score, noise: NoiseLevels) -> float:
+    """The RMS [um] of ``score``'s held-out error above the noise at the analysis rate."""
+    return math.sqrt(max(score.rms ** 2 - noise.analysis_um ** 2, 0.0))
+
+
+def support(with_: Score, without: Score, noise: NoiseLevels) -> Support:
+    """The evidence for an effect added last (:class:`Support`).  It is supported where it does not raise the
+    held-out peak by more than PEAK_TOLERANCE, explains MIN_EFFECT_NOISE_RATIO times the sensor noise, does no worse
+    before the held-out data leave the fit part's voltage range (``Score.known_rms``: a cut made only where the
+    model extrapolates is the extrapolation's, not the effect's), and either
+
+    * removes GAIN_THRESHOLD of the structured residual (its RMS above the noise floor) and loses, in the held-out
+      stretches it does worse in, at most MAX_LOSS_RATIO of what it gains in the others ("share"), or
+    * removes at least SMALL_SHARE of a large structured residual (LARGE_RESIDUAL_RATIO times the noise or more),
+      doing better in STRONG_SHARE of the stretches, losing at most STRONG_LOSS_RATIO, with a paired t of STRONG_T
+      ("small but consistent": a small but real effect on a residual much of which stays unexplained)."""
+    cut = 1.0 - with_.rms / without.rms if without.rms > 0 else 0.0
+    before, after = structured_rms(without, noise), structured_rms(with_, noise)
+    explained = math.sqrt(max(before ** 2 - after ** 2, 0.0))   # of the structure (below the floor: the noise's)
+    share = 1.0 - after / before if before > 0 else 0.0
+    c = consistency(with_, without)
+    admissible = (explained >= MIN_EFFECT_NOISE_RATIO * noise.record_um and with_.peak <= PEAK_TOLERANCE * without.peak
+                  and not _worse_where_known(with_, without))
+    by = ""
+    if admissible and share >= GAIN_THRESHOLD and c.loss_ratio <= MAX_LOSS_RATIO:
+        by = "share"
+    elif (admissible and share >= SMALL_SHARE and before >= LARGE_RESIDUAL_RATIO * noise.analysis_um
+          and c.better_share >= STRONG_SHARE and c.loss_ratio <= STRONG_LOSS_RATIO and c.t >= STRONG_T):
+        by = "small but consistent"
+    return Support(cut, share, explained, c, bool(by), by)
+
+
+def unsupported_because(with_: Score, without: Score, noise: NoiseLevels) -> str:
     """Why :func:`support` refuses an effect added last (empty when it does not)."""
-    cut, explained, _ = support(with_, without, noise_um)
+    s = support(with_, without, noise)
+    if s.supported:
+        return ""
     why = []
-    if cut < GAIN_THRESHOLD:
-        why.append(f"held-out RMS cut {percent(cut)} % < {100 * GAIN_THRESHOLD:.0f} %")
-    if explained < MIN_EFFECT_NOISE_RATIO * noise_um:
-        why.append(f"explains {explained:.4f} um < {MIN_EFFECT_NOISE_RATIO:g}x the sensor noise {noise_um:.4f} um")
+    c = s.consistency
+    if s.share < GAIN_THRESHOLD or c.loss_ratio > MAX_LOSS_RATIO:
+        why.append(f"removes {percent(s.share)} % of the structured residual (threshold {100 * GAIN_THRESHOLD:.0f} %), "
+                   f"losing {percent(min(c.loss_ratio, 9.99))} % of that gain in the held-out stretches it does worse "
+                   f"in (threshold {100 * MAX_LOSS_RATIO:.0f} %; better in {100 * c.better_share:.0f} % of them, "
+                   f"held-out RMS cut {percent(s.cut, sign=True)} %); not small but consistent either (needs "
+                   f"{100 * SMALL_SHARE:.0f} % of a structured residual of {LARGE_RESIDUAL_RATIO:g}x the noise, better "
+                   f"in {100 * STRONG_SHARE:.0f} % of the stretches losing at most {100 * STRONG_LOSS_RATIO:.0f} %, t "
+                   f">= {STRONG_T:g}; t {c.t:.1f})")
+    if s.explained_um < MIN_EFFECT_NOISE_RATIO * noise.record_um:
+        why.append(f"explains {s.explained_um:.4f} um < {MIN_EFFECT_NOISE_RATIO:g}x the sensor noise "
+                   f"{noise.record_um:.4f} um")
     if with_.peak > PEAK_TOLERANCE * without.peak:
         why.append(f"raises the held-out peak {without.peak:.3f} -> {with_.peak:.3f} um (> {PEAK_TOLERANCE:g}x)")
     if _worse_where_known(with_, without):
@@ -150,26 +267,15 @@ def percent(share: float, sign: bool = False) -> str:
     return f"{value:+.1f}" if sign else f"{value:.1f}"
 
 
-def room_for_an_effect(without: Score, noise_um: float) -> bool:
+def room_for_an_effect(without: Score, noise: NoiseLevels) -> bool:
     """Whether an effect added to a model that leaves ``without`` could be supported at all: it must explain
-    MIN_EFFECT_NOISE_RATIO times the sensor noise (:func:`support`), and it explains at most ``without``'s RMS.
-    False: every exact refit on top would be refused, whatever it gives."""
-    return without.rms >= MIN_EFFECT_NOISE_RATIO * noise_um
+    MIN_EFFECT_NOISE_RATIO times the sensor noise of the structured residual (:func:`support`), and it explains at
+    most all of it.  False: every exact refit on top would be refused, whatever it gives."""
+    return structured_rms(without, noise) >= MIN_EFFECT_NOISE_RATIO * noise.record_um
 
 
-def no_room_because(without: Score, noise_um: float) -> str:
+def no_room_because(without: Score, noise: NoiseLevels) -> str:
     """Why :func:`room_for_an_effect` is False (one phrase)."""
-    return (f"its held-out RMS {without.rms:.4f} um is below {MIN_EFFECT_NOISE_RATIO:g}x the sensor noise "
-            f"{noise_um:.4f} um: no effect added to it could explain that much")
-
-
-def support(with_: Score, without: Score, noise_um: float) -> tuple[float, float, bool]:
-    """(held-out RMS cut, explained RMS [um], supported?) of an effect added last: it must cut the held-out
-    RMS by GAIN_THRESHOLD, explain MIN_EFFECT_NOISE_RATIO times the sensor noise and not raise the peak by
-    more than PEAK_TOLERANCE; where the held-out data leave the fit part's voltage range (``Score.known_rms``),
-    it must not raise the RMS before they first do: a cut made only where the model extrapolates is the
-    extrapolation's, not the effect's."""
-    cut = 1.0 - with_.rms / without.rms if without.rms > 0 else 0.0
-    explained = math.sqrt(max(without.rms ** 2 - with_.rms ** 2, 0.0))
-    return cut, explained, (cut >= GAIN_THRESHOLD and explained >= MIN_EFFECT_NOISE_RATIO * noise_um
-                            and with_.peak <= PEAK_TOLERANCE * without.peak and not _worse_where_known(with_, without))
+    return (f"its held-out RMS {without.rms:.4f} um stands {structured_rms(without, noise):.4f} um above the noise "
+            f"(structured), below {MIN_EFFECT_NOISE_RATIO:g}x the sensor noise {noise.record_um:.4f} um: no effect "
+            f"added to it could explain that much")

@@ -1,6 +1,7 @@
 """numba kernels of ``hysteresis`` (imported on first use): ``play_batch``'s recursion itself,
 
-    z_j = min(max(z_j, L - r_j s), U_j)   with   U_j = max(U + r_j s, L - r_j s)   (L - r_j s + 2 r_j s when symmetric),
+    z_j = min(max(z_j, L - r_j s), U + r_j s)   (U + r_j s: L - r_j s + 2 r_j s when symmetric; the upper bound wins
+                                                 where the bounds cross),
 
 sample by sample, with the bounds formed by the same operations as the composed-clamp path's (so the same bits: min
 and max do not round); ``last_contact``'s scan; and ``contact_sensitivity``'s sums."""
@@ -29,8 +30,6 @@ def play_rows(lower, upper, r, scale, symmetric, z, out):
         low, up, st = lower[t], upper[t], scale[t] if scaled else 1.0
         for j in range(n):
             lo, hi = _bounds(low, up, r[j], st, symmetric)
-            if hi < lo:
-                hi = lo
             v = z[j]
             if v < lo:
                 v = lo

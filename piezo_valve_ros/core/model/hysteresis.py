@@ -7,7 +7,9 @@ The play operator with threshold ``r`` is a clamp of its own state::
 
     z_k = min(max(z_{k-1}, L_k), U_k),   L_k = gamma_asc(v_k) - r,  U_k = gamma_desc(v_k) + r
 
-(for the paper's symmetric envelope ``gamma_asc = gamma_desc = a0*v + a1``).
+(for the paper's symmetric envelope ``gamma_asc = gamma_desc = a0*v + a1``).  Where the bounds cross (a descending
+envelope below the ascending one, thresholds the rate narrows below zero) the formula's last clamp, the upper
+bound, wins: the state is ``U_k``, as the paper's operator (``paper.md``) and other implementations of it give.
 Clamps compose into clamps, and within a monotone stretch of input the state is
 the closed form ``clip(z_at_last_reversal, L_k, U_k)``.  The batch evaluation
 uses both facts: a log-depth scan over the reversal points only, then one vectorised
@@ -180,10 +182,10 @@ def _turns_per_operator(drive: np.ndarray, r: np.ndarray, scale: np.ndarray, sig
 
 
 def _last_crossed_indices(lower_drive: np.ndarray, upper_drive: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """Samples after which some operator's bounds stop crossing (lower - r > upper + r, where the lower bound
-    wins and the state is ``lower - r`` whatever came before), and the first sample after: while crossed, the
-    effective upper bound ``max(upper + r, lower - r)`` follows the lower drive, so it need not move with the
-    upper drive, and the state after is not a clip of one from before (thresholds that narrow with the
+    """Samples after which some operator's bounds stop crossing (lower - r > upper + r, where the upper bound
+    wins and the state is ``upper + r`` whatever came before), and the first sample after: while crossed, the
+    effective lower bound ``min(lower - r, upper + r)`` follows the upper drive, so it need not move with the
+    lower drive, and the state after is not a clip of one from before (thresholds that narrow with the
     rate, crossing envelopes)."""
     crossed = np.searchsorted(2.0 * r, lower_drive - upper_drive, side="left")   # operators with 2 r_j < L - U
     last = np.flatnonzero(crossed[1:] < crossed[:-1])
@@ -202,8 +204,8 @@ def play_batch(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Evaluate a bank of (generalized) play operators over a whole record.
 
-    ``lower_drive`` = gamma_asc(v) and ``upper_drive`` = gamma_desc(v), shape (N,), with
-    ``upper_drive >= lower_drive - 2 r`` wherever the lower bound is to win.  Within any stretch where
+    ``lower_drive`` = gamma_asc(v) and ``upper_drive`` = gamma_desc(v), shape (N,); where an operator's bounds
+    cross (``upper_drive + r < lower_drive - r``) the upper one wins.  Within any stretch where
     each drive is monotone (whichever way each goes) an operator's state is the clip of its state at the
     stretch's start to the present bounds, so only the reversal points of either drive are scanned:
     this covers asymmetric envelopes and thresholds that widen with time (rate dependence: pass
@@ -238,7 +240,7 @@ def play_batch(
     if not same:
         turns = _union(turns, _last_crossed_indices(lower_drive, upper_drive, r))
     lo_t, hi_t = _clamp_bounds(lower_drive[turns], upper_drive[turns], r, same, None if scale is None else scale[turns])
-    hi_t = np.maximum(hi_t, lo_t)
+    lo_t = np.minimum(lo_t, hi_t)   # crossed bounds: the upper wins (min(max(z, lo), hi) = hi)
     A, B = _compose_clamps_scan(lo_t, hi_t)
     state_at_turns = np.minimum(np.maximum(z0, A), B)  # (R, n)
     # base state for sample t in (T_k, T_{k+1}] is the state at T_k; for t = 0 it is z0
@@ -253,7 +255,6 @@ def play_batch(
         idx = np.searchsorted(turns, np.arange(start, stop), side="left")
         lo, hi = _clamp_bounds(lower_drive[start:stop], upper_drive[start:stop], r, symmetric,
                                None if scale is None else scale[start:stop])
-        hi = np.maximum(hi, lo, out=hi)
         z = np.maximum(bases[idx], lo, out=lo)
         z = np.minimum(z, hi, out=z)
         if weights is not None:
@@ -311,13 +312,12 @@ def play_bounds(lower_drive: np.ndarray, upper_drive: np.ndarray, thresholds: np
         _reversal_indices(lower_drive), _reversal_indices(upper_drive),
         _last_crossed_indices(lower_drive, upper_drive, r))
     lo_t, hi_t = _clamp_bounds(lower_drive[turns], upper_drive[turns], r, same)
-    A, B = _compose_clamps_scan(lo_t, np.maximum(hi_t, lo_t))
+    A, B = _compose_clamps_scan(np.minimum(lo_t, hi_t), hi_t)
     # each sample: the composition up to the turn before it, then its own clamp
     A = np.vstack((np.full((1, r.size), -np.inf), A))
     B = np.vstack((np.full((1, r.size), np.inf), B))
     idx = np.searchsorted(turns, np.arange(lower_drive.shape[0]), side="left")
     lo, hi = _clamp_bounds(lower_drive, upper_drive, r, same)
-    hi = np.maximum(hi, lo)
     return np.minimum(np.maximum(A[idx], lo), hi), np.minimum(np.maximum(B[idx], lo), hi)
 
 
@@ -332,7 +332,7 @@ def last_contact(states: np.ndarray, lower_drive: np.ndarray, upper_drive: np.nd
     index)``, both (N, n): side +1 = upper (descending) bound, -1 = lower (ascending) bound, 0 = no
     contact yet; index = sample of the last contact (-1: none).  Where both bounds coincide (threshold
     0, equal drives) the side follows the direction of the input; where the upper bound lies below the
-    lower one the lower wins.
+    lower one the upper wins.
     """
     lower_drive = np.asarray(lower_drive, float)
     upper_drive = np.asarray(upper_drive, float)
@@ -447,11 +447,7 @@ class PlayOperatorBank:
         np.subtract(lower_drive, self.thresholds, out=buf)
         np.maximum(self.state, buf, out=self.state)
         np.add(upper_drive, self.thresholds, out=buf)
-        np.minimum(self.state, buf, out=self.state)
-        # generalized operator with lower > upper (asymmetric envelopes, small r): lower wins
-        if upper_drive < lower_drive:
-            np.subtract(lower_drive, self.thresholds, out=buf)
-            np.maximum(self.state, buf, out=self.state)
+        np.minimum(self.state, buf, out=self.state)   # last: where the bounds cross, the upper wins
         return self.state
 
     def run(self, lower_drive: np.ndarray, upper_drive: np.ndarray, weights: Optional[np.ndarray] = None):
@@ -588,7 +584,7 @@ class GPIM:
         z_new = np.interp(other.thresholds, self.thresholds, np.asarray(state, float))
         r = other.thresholds + widening_v
         lo = other.ascending_envelope(v_now) - r
-        hi = np.maximum(other.descending_envelope(v_now) + r, lo)
+        hi = other.descending_envelope(v_now) + r
         return np.minimum(np.maximum(z_new, lo), hi)
 
     def major_loop(self, v_min: float = COMMAND_MIN_V, v_max: float = COMMAND_MAX_V, points: int = 2001):
@@ -868,7 +864,7 @@ class InverseGPIM:
 class MonotoneInverseGPIM:
     """Exact inverse of a GPIM whose envelopes rise but may cross, one step at a time.
 
-    From a given state every operator's next output ``max(min(z_j, U(v) + r_j), L(v) - r_j)`` (the lower
+    From a given state every operator's next output ``min(max(z_j, L(v) - r_j), U(v) + r_j)`` (the upper
     bound wins where the bounds cross, as in :class:`PlayOperatorBank`) rises with
     the input v, and so does the model's output (nonnegative weights; or, where the bounds do not cross,
     positive partial sums of the weights, since the operators that move are then a prefix of the bank).  Between the inputs where an operator
@@ -943,7 +939,7 @@ class MonotoneInverseGPIM:
         m = self.model
         lo = m.ascending_envelope(v)[:, None] - self._r
         hi = m.descending_envelope(v)[:, None] + self._r
-        return np.maximum(np.minimum(self._z, hi), lo) @ self._p + m.offset_um
+        return np.minimum(np.maximum(self._z, lo), hi) @ self._p + m.offset_um
 
     def peek_forward(self, v: float) -> float:
         return float(self._outputs(np.array([float(v)]))[0])
@@ -961,22 +957,22 @@ class MonotoneInverseGPIM:
         return np.concatenate(points)
 
     def _solve_on_one_envelope(self, y: float, rising: bool, z: list, now: float) -> Optional[float]:
-        """The usual step, in closed form, from a state the last step left (so no operator lies outside its
-        bounds at the last input) with the operators in order (``z_j + r_j`` rising and ``z_j - r_j`` falling
-        with j, as every step keeps them): rising, each operator's next state is ``max(z_j, L(v) - r_j)``;
-        falling with bounds that cannot cross, ``min(z_j, U(v) + r_j)``.  The output is then piecewise linear
+        """The usual step, in closed form, from a state within its bounds at the last input with the operators
+        in order (``z_j + r_j`` rising and ``z_j - r_j`` falling with j, as every step keeps them): falling, each
+        operator's next state is ``min(z_j, U(v) + r_j)`` (a crossed one sits on its upper bound and follows it);
+        rising with bounds that cannot cross, ``max(z_j, L(v) - r_j)``.  The output is then piecewise linear
         in L(v) (U(v)) with breakpoints ``z_j + r_j`` (``z_j - r_j``) in the operators' order; a demand a
         step away passes a few of them, so a plain loop from the first finds the piece and solves it.  None
         when the step is not of this kind (the general solve then takes it).  ``state``: the operators at the
         last input under the present thresholds (a list, which the step updates), ``now``: the output there [um];
         sets ``_moving`` (how many operators follow, that list)."""
         # one envelope (L = U): an operator whose threshold the rate narrowed below 0 has crossed bounds for good
-        # and follows L(v) - r_j = U(v) - r_j; with two, any crossing on the way down is the general solve's
-        crossed_for_good = not rising and self._one_envelope
-        if not rising and not crossed_for_good and \
-                self._gap_range(min(self.v_min, self._v_last), self._v_last)[1] > \
+        # and follows U(v) + r_j = L(v) + r_j; with two, any crossing on the way up is the general solve's
+        crossed_for_good = rising and self._one_envelope
+        if rising and not crossed_for_good and \
+                self._gap_range(self._v_last, max(self.v_max, self._v_last))[1] > \
                 2.0 * (self._base_list[0] + self._shift):
-            return None   # some operator's bounds may cross on the way down
+            return None   # some operator's bounds may cross on the way up
         p, base, w = self._p_list, self._base_list, self._shift
         off = self.model.offset_um
         sign = 1.0 if rising else -1.0    # the breakpoints are z_j + sign r_j
@@ -985,7 +981,7 @@ class MonotoneInverseGPIM:
         moving = len(z)                   # the operators that follow: a prefix (the thresholds rise with j)
         for i in range(len(z)):
             r_i = base[i] + w
-            if crossed_for_good and r_i < 0.0:    # follows from the start, on its lower bound U(v) - r_i
+            if crossed_for_good and r_i < 0.0:    # follows from the start, on its upper bound L(v) + r_i
                 p_i = p[i]
                 following += p_i
                 before -= p_i * r_i
@@ -1016,40 +1012,29 @@ class MonotoneInverseGPIM:
         gaps = [q2 * u * u + q1 * u + q0 for u in points]
         return min(gaps), max(gaps)
 
-    def _state_at_last_input(self) -> tuple[list, float, float, bool]:
+    def _state_at_last_input(self) -> tuple[list, float, bool, float]:
         """The operators at the last input under the present thresholds, after the thresholds changed (rate
-        dependence) or the state was set: (states, output there [um], the largest 2 r_j of an operator above
-        both its bounds (-inf: none), whether one lies below its lower bound with bounds that do not cross).
-        One pass over the operators in floats: a bank is a few dozen operators, where numpy's per-call cost
-        is most of a step."""
+        dependence) or the state was set: (states, output there [um], whether one lies above its upper bound, the
+        largest 2 r_j of an operator below its lower bound (-inf: none)).  Each state clamped to its bounds there,
+        the upper bound last (it wins where they cross).  One pass over the operators in floats: a bank is a few
+        dozen operators, where numpy's per-call cost is most of a step."""
         m, v_last, w = self.model, self._v_last, self._shift
         low, high = float(m.ascending_envelope(v_last)), float(m.descending_envelope(v_last))
         state, f_now = [], m.offset_um
-        above_r2, below = -math.inf, False
-        if high >= low and self._base_list[0] + w >= 0.0:   # no bounds cross here: lo_j <= hi_j for every j
-            for z_j, base_j in zip(self._state, self._base_list):
-                r_j = base_j + w
-                if z_j > high + r_j:
-                    z_j = high + r_j
-                    above_r2 = 2.0 * r_j   # the thresholds rise with j: the last one above is the largest
-                elif z_j < low - r_j:
-                    z_j = low - r_j
-                    below = True
-                state.append(z_j)
-            return state, sum(map(operator.mul, self._p_list, state)) + f_now, above_r2, below
+        above, below_r2 = False, -math.inf
         for z_j, base_j, p_j in zip(self._state, self._base_list, self._p_list):
             r_j = base_j + w
             lo, hi = low - r_j, high + r_j
-            s_j = hi if z_j > hi else z_j
-            if s_j < lo:
-                s_j = lo
+            s_j = lo if z_j < lo else z_j
+            if s_j > hi:
+                s_j = hi
             state.append(s_j)
             f_now += p_j * s_j
-            if z_j > (hi if hi > lo else lo) and 2.0 * r_j > above_r2:
-                above_r2 = 2.0 * r_j
-            elif z_j < lo <= hi:
-                below = True
-        return state, f_now, above_r2, below
+            if z_j > hi:
+                above = True
+            elif z_j < lo and 2.0 * r_j > below_r2:
+                below_r2 = 2.0 * r_j
+        return state, f_now, above, below_r2
 
     def _solve(self, y: float) -> float:
         self._moving = None
@@ -1057,16 +1042,17 @@ class MonotoneInverseGPIM:
         if self._consistent:
             state, f_now, usual = self._state, self._y_now, self._ordered
         else:  # the thresholds changed since the last step (rate dependence) or the state was set
-            state, f_now, above_r2, below = self._state_at_last_input()
+            state, f_now, above, below_r2 = self._state_at_last_input()
         if abs(y - f_now) <= HOLD_TOLERANCE_UM:
             return v_last
         rising = y > f_now
-        # an operator pushed against the motion by the new thresholds would follow its other bound for a while:
-        # not the usual step (one pushed along the motion follows anyway, and so does one whose bounds cross
-        # all the way up: rising, it stays on its lower bound)
+        # an operator pushed against the motion by the new thresholds follows its other bound for a while: not
+        # the usual step.  Rising, one above its upper bound follows U + r up (the upper bound is the last clamp);
+        # falling, one below its lower bound follows L - r down, unless its bounds cross all the way down (then
+        # the upper wins, as it does for one pushed along the motion)
         if not self._consistent:
             usual = self._ordered and not (
-                above_r2 >= self._gap_range(v_last, max(self.v_max, v_last))[0] if rising else below)
+                above if rising else below_r2 >= self._gap_range(min(self.v_min, v_last), v_last)[0])
         if usual:
             v = self._solve_on_one_envelope(y, rising, state, f_now)
             if v is not None:
@@ -1088,8 +1074,8 @@ class MonotoneInverseGPIM:
         m, z, r, p = self.model, self._z, self._r, self._p
         mid = 0.5 * (a + b_)
         lo, hi = m.ascending_envelope(mid) - r, m.descending_envelope(mid) + r
-        lower = lo >= np.minimum(z, hi)             # follows L - r (the lower bound wins where they cross)
-        upper = ~lower & (hi <= z)                  # follows U + r
+        upper = hi <= np.maximum(z, lo)             # follows U + r (the upper bound wins where they cross)
+        lower = ~upper & (lo >= z)                  # follows L - r
         held = ~upper & ~lower
         A, B = float(p[lower].sum()), float(p[upper].sum())
         C = float(p[held] @ z[held] - p[lower] @ r[lower] + p[upper] @ r[upper]) + m.offset_um
@@ -1113,10 +1099,10 @@ class MonotoneInverseGPIM:
         for j in range(moving):
             r_j = base[j] + w
             z_j = state[j]
-            if z_j > high + r_j:
-                z_j = high + r_j
-            if z_j < low - r_j:    # after the upper clamp: the lower bound wins where they cross
+            if z_j < low - r_j:
                 z_j = low - r_j
+            if z_j > high + r_j:   # after the lower clamp: the upper bound wins where they cross
+                z_j = high + r_j
             state[j] = z_j
         self._state = state
         self._v_last = v

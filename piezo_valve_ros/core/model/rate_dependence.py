@@ -6,7 +6,7 @@ of the input rate.  Ours widens every threshold by the same amount::
     r_j(t) = r_j + w(t),    w(t) = sum_{f,k} c_{f,k} rho_f(t) / (rho_f(t) + s_k)     [V]
 
 with ``rho_f`` the input rate |dv/dt| (backward difference, V/s) through the zero-order-hold lag of time
-constant ``f`` (``RATE_FILTERS_S``: cycling rates over two memories, not the slope inside a 2 ms ramp)
+constant ``f`` (``RATE_FILTERS_S``: cycling rates over three memories, not the slope inside a 2 ms ramp)
 and the scales ``s_k`` of ``RATE_SCALES_V_S`` (linear at low rates, levelling off).  The ZOH lag makes
 ``rho`` at sample k depend on the inputs up to k - 1 only, so ``w`` is known before the sample's input
 is chosen: at every sample the model is the GPIM with thresholds ``r + w``.  Its inverse is of the same
@@ -27,13 +27,15 @@ from .drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 from .dynamics import scipy_signal
 from .hysteresis import GPIM, MonotoneInverseGPIM, PlayOperatorBank, inverse_gpim
 
-__all__ = ["RATE_FILTERS_S", "RATE_SCALES_V_S", "TERM_COUNT", "MAX_WIDENING_V", "rate_terms", "RateWidening",
+__all__ = ["RATE_FILTERS_S", "RATE_SCALES_V_S", "TERM_COUNT", "EARLIER_TERM_COUNT", "MAX_WIDENING_V", "rate_terms", "RateWidening",
            "RateDependentInverseGPIM", "RateDependentGPIMStream", "hysteresis_stream", "hysteresis_inverse",
            "solved_each_step", "describe_inverse", "swap_inverse", "take_over_state", "widening_problems"]
 
-RATE_FILTERS_S = (0.02, 0.1)             # the input rate |dv/dt| through first-order lags of these [s] ...
+RATE_FILTERS_S = (0.02, 0.1, 0.005)      # the input rate |dv/dt| through first-order lags of these [s] (the 5 ms
+                                         # one last: it came last, and earlier files' coefficients keep their place)
 RATE_SCALES_V_S = (10.0, 100.0, 1000.0)  # ... widens the thresholds by sum c rho / (rho + s_k), for each lag
 TERM_COUNT = len(RATE_FILTERS_S) * len(RATE_SCALES_V_S)   # coefficients c, filter-major: (f0 s0, f0 s1, ...)
+EARLIER_TERM_COUNT = 2 * len(RATE_SCALES_V_S)             # parameters files before the 5 ms filter: its terms are 0
 MAX_WIDENING_V = 20.0  # |c| at most [V] (rho / (rho + 1000 V/s) is still linear at 350 V/s)
 
 
@@ -66,7 +68,8 @@ def widening_problems(widening_v: Sequence[float]) -> list[str]:
         return []
     if len(c) != TERM_COUNT:
         return [f"rate widening needs {TERM_COUNT} coefficients ({len(RATE_FILTERS_S)} filters x "
-                f"{len(RATE_SCALES_V_S)} scales) or none, got {len(c)}"]
+                f"{len(RATE_SCALES_V_S)} scales; a parameters file may give the {EARLIER_TERM_COUNT} of the first two "
+                f"filters) or none, got {len(c)}"]
     if not all(isinstance(x, (int, float)) and math.isfinite(x) for x in c):
         return ["rate widening: non-finite coefficient"]
     if max(abs(x) for x in c) > MAX_WIDENING_V:
@@ -178,7 +181,7 @@ class RateDependentInverseGPIM(MonotoneInverseGPIM):
         """Thresholds for the next step: r + w (default: this inverse's own widening)."""
         w = self.rate.value if w is None else w
         # the state stays what the last step left only in a band at least as wide, where no bounds cross (a
-        # crossed operator sits on its lower bound, which moves with w)
+        # crossed operator sits on its upper bound, which moves with w)
         self._consistent = (self._consistent and w >= self.applied_widening_v and self._dead_band
                             and self._base_list[0] + self.applied_widening_v >= 0.0)
         self._shift = w

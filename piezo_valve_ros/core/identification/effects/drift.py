@@ -1,13 +1,17 @@
 """Drift: a slow change of offset and gain (thermal), not tied to the hysteresis' memory.
 
 Terms: offset and gain (times the normalised output) multiplied by slow functions of
-* the time since the record started (ambient drift): linear, and exponential approaches over 0.3 and 1
-  times the training record's length;
+* the time since the record started (ambient drift): linear, and exponential approaches over 0.3 and 1 times the
+  training record's length, and over 0.03 and 0.1 times it (a warm-up of a few seconds);
 * the drive's activity (self-heating): the input rate |dv/dt| through first-order lags of 10 s and 40 s,
-  normalised by its mean over the training record.
-Two forms, chosen on held-out data (``held_out_forms``): "linear" (the time alone) and "all".  The richer one
-always fits the training record better; where the drift is linear its exponentials and heating terms fit a
-share of the hysteresis' own slow misfit and bend the extrapolated slope.
+  normalised by its mean over the training record;
+* a slow wander of any shape the record resolves: half-cosines of the time over the training record's length
+  (``WANDER_TERMS`` of them, held at their end beyond it).
+Four nested forms, chosen on held-out data (``held_out_forms``): "linear" (the time alone), "all" (the time, the
+slow exponentials and the heating), "fast" (and the fast exponentials) and "wander" (all of it).  A richer one always fits the training record better; where
+the drift is linear the exponentials and heating terms fit a share of the hysteresis' own slow misfit and bend the
+extrapolated slope.  So a smooth trend in time, whatever its shape, is drift, and creep (tied to the input's
+history) is not needed for it.
 A separate validation record starts its own clock and its own heating (the same initial state).
 """
 from __future__ import annotations
@@ -21,11 +25,13 @@ from ...model.dynamics import lag_bank
 from ..records import Record
 from .base import Effect, NotCompensable, normalised
 
-__all__ = ["Drift", "TIME_SCALES", "HEATING_TIME_CONSTANTS_S", "FORMS"]
+__all__ = ["Drift", "TIME_SCALES", "FAST_TIME_SCALES", "HEATING_TIME_CONSTANTS_S", "WANDER_TERMS", "FORMS"]
 
 TIME_SCALES = (0.3, 1.0)                # exponential approaches, as shares of the training record's length
+FAST_TIME_SCALES = (0.03, 0.1)          # ... and those of the "fast" and "wander" forms
 HEATING_TIME_CONSTANTS_S = (10.0, 40.0)
-FORMS = ("linear", "all")   # see Drift.held_out_forms: the simplest first
+WANDER_TERMS = 3                        # half-cosines cos(pi k t / T) - 1, k = 1..3, of the "wander" form
+FORMS = ("linear", "all", "fast", "wander")   # see Drift.held_out_forms: the simplest first, each in the next
 
 
 @dataclass(frozen=True)
@@ -57,7 +63,16 @@ class Drift(Effect):
         activity = np.abs(np.gradient(ctx.v, ctx.dt)) / self.mean_rate_v_s
         heating = lag_bank(activity, HEATING_TIME_CONSTANTS_S, ctx.dt)
         heating -= heating[0]
-        return np.column_stack([t / T] + [1.0 - np.exp(-t / (f * T)) for f in TIME_SCALES] + [heating])
+        columns = [t / T] + [1.0 - np.exp(-t / (f * T)) for f in self.time_scales] + [heating]
+        if self.form == "wander":
+            held = np.minimum(t / T, 1.0)
+            columns += [np.cos(np.pi * k * held) - 1.0 for k in range(1, WANDER_TERMS + 1)]
+        return np.column_stack(columns)
+
+    @property
+    def time_scales(self) -> tuple[float, ...]:
+        """The exponential approaches of this form, as shares of the training record's length."""
+        return TIME_SCALES + (FAST_TIME_SCALES if self.form in ("fast", "wander") else ())
 
     def columns(self, ctx) -> np.ndarray:
         k = self.slow_functions(ctx)
@@ -65,8 +80,9 @@ class Drift(Effect):
         return np.column_stack((k, k * h[:, None]))
 
     def describe(self, model, coefs) -> dict:
-        names = ["t/T"] + ([] if self.form == "linear" else [f"1-exp(-t/({f}T))" for f in TIME_SCALES]
-                           + [f"heating_{int(t)}s" for t in HEATING_TIME_CONSTANTS_S])
+        names = ["t/T"] + ([] if self.form == "linear" else [f"1-exp(-t/({f}T))" for f in self.time_scales]
+                           + [f"heating_{int(t)}s" for t in HEATING_TIME_CONSTANTS_S]) + (
+            [f"cos({k} pi min(t/T, 1))-1" for k in range(1, WANDER_TERMS + 1)] if self.form == "wander" else [])
         n = len(names)
         return {"form": self.form, "functions": names, "T_s": self.duration_s, "offset_um": [float(c) for c in coefs[:n]],
                 "gain_um": [float(c) for c in coefs[n:]]}
