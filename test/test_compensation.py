@@ -62,6 +62,9 @@ def test_the_schema_round_trips_and_covers_every_declared_parameter():
     assert again.to_parameters() == params
     assert again.output_map == FLATTENING and again.creep == CREEP and again.dynamic_feedforward
     assert again.rate_widening_v == (0.5, 0.0, 1.0, -0.2, 0.0, 0.3, 0.1, 0.0, 0.0) and again.rate_dependent
+    # a file written before the 5 ms rate filter (6 coefficients, its two filters') gives the same widening
+    earlier = CompensationModel.from_parameters({**params, "gpim.rate_widening_v": [0.5, 0.0, 1.0, -0.2, 0.0, 0.3]})
+    assert earlier.rate_widening_v == (0.5, 0.0, 1.0, -0.2, 0.0, 0.3, 0.0, 0.0, 0.0)
     # no widening is written as zeros (a typed ROS array) and read back as none
     assert not CompensationModel.from_parameters(CompensationModel().to_parameters()).rate_dependent
     # the defaults are the paper's model, in its 5-parameter form

@@ -644,7 +644,7 @@ def test_controller_takes_a_rate_dependent_model_and_says_what_its_inverse_costs
     an inverse solved each step may overrun, at 1 ms it does not."""
     from piezo_valve_ros.core.control.compensation import CompensationModel
     from piezo_valve_ros.core.model.rate_dependence import RateDependentInverseGPIM
-    model = CompensationModel(rate_widening_v=(-0.006, -0.37, 1.79, -0.028, 0.44, -1.25))
+    model = CompensationModel(rate_widening_v=(-0.006, -0.37, 1.79, -0.028, 0.44, -1.25, 0.0, 0.0, 0.0))
     ctl = controller(gain_set="", strategy="ol_hc")
     assert ctl.set_parameters_atomically([Parameter(k, value=v) for k, v in model.to_parameters().items()]).successful
     assert isinstance(ctl.controller.ff_inverse, RateDependentInverseGPIM)

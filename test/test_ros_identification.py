@@ -83,7 +83,7 @@ def test_identification_refits_pushes_and_cuts_the_ol_hc_error(tmp_path):
     assert np.ptp(rows[:, 1]) > 8.0
     report = json.loads(open(os.path.join(summary[1]["bag"], "report.json")).read())
     assert report["effects_added"] == refit["effects_added"]
-    assert f"refit: added: {', '.join(refit['effects_added']) or 'nothing'}; held-out RMS" in log
+    assert f"refit: added: {', '.join(refit['effects_added']) or 'nothing'}; unexplained: " in log and "; noise floor " in log
     assert "tracking error RMS" in log
     assert "s elapsed, about " in log and " s left" in log  # the long experiments say how far they are
     # the lockstep rig stood still while the node refitted and tuned: the second validation's samples go on

@@ -310,7 +310,7 @@ def test_the_model_run_over_a_block_equals_the_model_stepped_sample_by_sample():
     v = 5.0 + 4.0 * np.sin(np.linspace(0.0, 12.0, 3000)) + 0.3 * rng.standard_normal(3000)
     models = [PAPER, replace(PAPER, creep=CreepModel((0.05, 1.0), (0.02, 0.03)),
                              output_map=OutputMap(-5.0, 40.0, tuple(0.2 * rng.standard_normal(TERM_COUNT)))),
-              replace(PAPER, rate_widening_v=(0.02, 0.0, 0.01, 0.0, 0.0, 0.01))]
+              replace(PAPER, rate_widening_v=(0.02, 0.0, 0.01, 0.0, 0.0, 0.01, 0.0, 0.0, 0.0))]
     for model in models:
         stepped = ModelValve(model, DT, 5.0)
         expected = np.array([stepped.step(x) for x in v])

@@ -88,9 +88,9 @@ def test_a_rate_dependent_slope_is_left_to_the_feedback():
     from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM
     model = ValveModel(PAPER_GPIM.model(), rate_widening_v=(0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
     with pytest.raises(NotCompensable, match="rate-dependent slope"):
-        Dynamics(form="rates").compensation(model, np.array([0.0, 0.2, 0.0, 0.0, 0.0, 0.0]))
-    assert Dynamics(form="rates").compensation(model, np.zeros(6)) == {
-        "rate_widening_v": (0.1, 0.0, 0.0, 0.0, 0.0, 0.0)}
+        Dynamics(form="rates").compensation(model, np.array([0.0, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    assert Dynamics(form="rates").compensation(model, np.zeros(9)) == {
+        "rate_widening_v": (0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)}
     # what of it the controller can take, for the refit without the slope (to_controller)
     assert Dynamics(form="rates").compensable() == Dynamics(form="rate")
     assert Dynamics(form="delay+poles+rate+slope").compensable() == Dynamics(form="delay+poles+rate")
@@ -105,7 +105,8 @@ def test_another_record_of_the_same_valve_gets_the_same_names(name, seed, share)
     each session) that were once judged apart from the valve's other records: the training record's start,
     which held-out data cannot tell from rest, is taken from its first rows (a start they refute bends every
     later fit), and the validation session's start is estimated until every operator it moves is wiped (its
-    first rows then fit to the noise, not to an offset of their own)."""
+    first rows then fit to the noise, not to an offset of their own: within 1.6 times the floor, which the sessions'
+    holds give as the sensor's own 0.050 um)."""
     case = CASES[name]
     train, validate = case.records(seed, share)
     lines: list[str] = []
@@ -114,7 +115,7 @@ def test_another_record_of_the_same_valve_gets_the_same_names(name, seed, share)
     assert report["effects_added"] == ["dynamics"] and not report["unexplained"], (report["effects_added"], lines)
     assert any(line.startswith("initial state: rest") and line.endswith("chosen estimated") for line in lines), lines
     _, validation = report["sessions"]
-    assert validation["start_rows_rms_um"] < 1.5 * report["noise_floor_um"], (validation, report["noise_floor_um"])
+    assert validation["start_rows_rms_um"] < 1.6 * report["noise_floor_um"], (validation, report["noise_floor_um"])
 
 
 @pytest.mark.slow
@@ -134,23 +135,25 @@ def test_a_linear_drift_is_named_drift_alone_in_its_linear_form():
 
 
 @pytest.mark.slow
-def test_an_effect_standing_in_for_the_grid_at_a_knife_edge_is_dropped():
-    """The asymmetric valve's seed-3 record: on the (symmetric) baseline the paper's 15-operator grid beats 12
-    operators by 2.1 %, just outside the capacity tolerance; with it the asymmetry leaves 0.14 um and creep takes a
-    share of it (creep and asymmetry named).  Two effects found where a smaller size scored within 5 %: the effects
-    are chosen again on 12 operators, where the asymmetry alone explains more, and that story (a part of the first
-    one's names) is kept."""
+def test_an_effect_standing_in_for_the_grid_is_not_named():
+    """The asymmetric valve's seed-3 record: on the (symmetric) baseline the paper's 15-operator grid wins, and with
+    it the asymmetry leaves 0.16 um, of which creep takes a share (it was named beside asymmetry) but pays for a tenth
+    of its gain in the held-out stretches it does worse in: refused.  With the asymmetry in the model the sizes are
+    compared again, and the largest takes what creep took: asymmetry alone, near the noise."""
     case = CASES["asymmetric envelopes (generalized PI)"]
     train, validate = case.records(3, 1.0)
     lines: list[str] = []
     report = analyse(Record(train[:, 0], train[:, 1], train[:, 2]),
                      Record(validate[:, 0], validate[:, 1], validate[:, 2]), log=lines.append).report.to_json()
     assert report["effects_added"] == ["asymmetry"] and not report["unexplained"], (report["effects_added"], lines)
-    assert any(line.startswith("capacity: creep, asymmetry found on paper grid") and
-               "the effects chosen again on 12 operators" in line for line in lines), lines
-    assert report["baseline"]["fit"] == report["baseline_fits"]["chosen"] == "12 operators"
-    assert "with the effects found, 12 operators (asymmetry" in report["baseline_fits"]["chosen_on"]
-    assert report["final"]["validate"]["rms_um"] < 0.11
+    assert any(line.startswith("exact check on top of asymmetry: creep ") and "not supported" in line
+               and "losing" in line for line in lines), lines
+    assert any(line.startswith("capacity with asymmetry: ") and "the effects chosen again on 60 operators" in line
+               for line in lines), lines
+    assert report["baseline"]["fit"] == report["baseline_fits"]["chosen"]            # the baseline keeps its own size
+    assert "the effects are fitted on 60 operators" in report["baseline_fits"]["chosen_on"]
+    assert report["final_model"]["gpim"]["thresholds"].__len__() == 60
+    assert report["final"]["validate"]["rms_um"] < 0.07
 
 
 @pytest.mark.slow

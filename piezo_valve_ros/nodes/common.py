@@ -9,7 +9,7 @@ import os
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 import rclpy
@@ -478,8 +478,41 @@ def start_node_process(args=None) -> None:
     init_ros(args)
 
 
+def nearest_parameter(name: str, nodes: Sequence[Node]) -> Optional[str]:
+    """The declared parameter of ``nodes`` whose name is nearest ``name`` (a typo's intended name), or None."""
+    import difflib
+    declared = sorted({n for node in nodes for n in node.get_parameters_by_prefix("")})
+    close_ = difflib.get_close_matches(name, declared, n=1, cutoff=0.6)
+    return close_[0] if close_ else None
+
+
+def undeclared_parameters(nodes: Sequence[Node], argv=None) -> list[str]:
+    """Each parameter the process's command line (``-p``, ``--params-file`` sections) gives the nodes of this process
+    that none of them declares, with the nearest declared name: rclpy ignores such a name without a word, so a
+    misspelt one (``gain_sett``, ``plann``) would leave its default in force.  Names for one node by name are its own
+    alone; names for every node of the process count where no node of it declares them."""
+    unknown: list[str] = []
+    shared_names: set[str] = set()
+    for node in nodes:
+        own, shared = given_parameter_names(node.get_name(), argv)
+        unknown += [f"{node.get_name()}:{n}" if len(nodes) > 1 else n for n in sorted(own) if not node.has_parameter(n)]
+        shared_names |= shared
+    unknown += sorted(n for n in shared_names if not any(node.has_parameter(n) for node in nodes))
+    return [u + (f" (did you mean {near}?)" if (near := nearest_parameter(u.rpartition(":")[2], nodes)) else "")
+            for u in unknown]
+
+
+def refuse_undeclared(nodes: Sequence[Node], tool: str, argv=None) -> None:
+    """ValueError naming every parameter the command line gives ``nodes`` that none of them declares
+    (``undeclared_parameters``), at start-up, before anything runs."""
+    unknown = undeclared_parameters(nodes, argv)
+    if unknown:
+        raise ValueError(f"unknown parameter(s): {'; '.join(unknown)} (every parameter: {tool} --help)")
+
+
 def run_node(factory: Callable[[], Node], name: str, args=None, on_exit_of=None, specs=()) -> int:
-    """Console-script body: init, build the node (one clear line and exit 2 if that fails), spin.
+    """Console-script body: init, build the node (one clear line and exit 2 if that fails: a parameter it refuses, or
+    one it does not declare), spin.
 
     ``on_exit_of(node)`` gives the callable run when spinning ends (e.g. apply safe_voltage).
     """
@@ -488,10 +521,17 @@ def run_node(factory: Callable[[], Node], name: str, args=None, on_exit_of=None,
         print_help(name, sys.modules[getattr(factory, "__module__", __name__)].__doc__, specs)
         return 0
     start_node_process(args)
+    node = None
     try:
         node = factory()
+        refuse_undeclared([node], name)
     except Exception as exc:
         print(f"{name}: {exc}", file=sys.stderr)
+        if node is not None:
+            stop = on_exit_of(node) if on_exit_of else None
+            if stop is not None:
+                stop()
+            node.destroy_node()
         close()
         return 2
     return spin([node], on_exit=on_exit_of(node) if on_exit_of else None)

@@ -14,7 +14,7 @@ from __future__ import annotations
 import sys
 
 from ..core.validation import same_period
-from .common import close, print_help, spin, start_node_process, wants_help
+from .common import close, print_help, refuse_undeclared, spin, start_node_process, wants_help
 from .controller import CONTROLLER_PARAMETERS, ValveControllerNode
 from .hardware import ValveHardwareNode, hardware_parameters_with_backends
 
@@ -53,6 +53,15 @@ def main(args=None) -> int:
         hardware, controller = build()
     except Exception as exc:
         print(f"valve_composed: {exc}", file=sys.stderr)
+        close()
+        return 2
+    try:
+        refuse_undeclared([hardware, controller], "valve_composed")
+    except ValueError as exc:
+        print(f"valve_composed: {exc}", file=sys.stderr)
+        hardware.shutdown_safely()
+        hardware.destroy_node()
+        controller.destroy_node()
         close()
         return 2
     return spin([hardware, controller], on_exit=hardware.shutdown_safely)

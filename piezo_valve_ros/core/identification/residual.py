@@ -662,15 +662,24 @@ class _Loop:
                           ) -> tuple[CapacityChoice, Story]:
         """The GPIM's size chosen again with ``story``'s effects in the model (capacity and effects are chosen
         together: an effect must not stand in for operators the baseline's choice left out, nor a size win only
-        because an effect it lacks swamped what the sizes differ in).  Each size of the capacity choice gets the
-        story's effects refitted on it (from the story's structures); where another size leaves a held-out RMS lower
-        by more than CAPACITY_TOLERANCE, the effects are confirmed, checked and swapped again from it
-        (``_EffectChoice.story``), and that story replaces the first where it explains at least as much."""
+        because an effect it lacks swamped what the sizes differ in).  Each larger size of the capacity choice gets
+        the story's effects refitted on it (from the story's structures); where one leaves a held-out RMS lower by
+        more than CAPACITY_TOLERANCE, the effects are confirmed again on it (each must earn its place there), and
+        that story replaces the first where it explains at least as much.  Skipped for a story of one effect that
+        leaves no room for another (``search.room_for_an_effect``): near the noise no size shows more."""
         if not story.added:
             return capacity, story
-        before = self.held_out(story.final).rms
+        final_score = self.held_out(story.final)
+        if len(story.added) < 2 and not room_for_an_effect(final_score, self.levels):
+            # one effect that leaves the noise's order: no effect stands in for another, and no size could show more
+            return capacity, story
+        before = final_score.rms
         chosen = capacity.chosen()
-        others = [c for c in capacity.fits if c.label != capacity.label and c.operators != chosen.operators]
+        # the larger sizes: an effect that stands in for operators makes up for too few (the smaller sizes within
+        # reach of the chosen one are revisit_capacity's)
+        others = [c for c in capacity.fits if c.operators > chosen.operators]
+        if not others:
+            return capacity, story
 
         def refit(c: CapacityFit) -> tuple[CapacityFit, float]:   # a job on the pool: refit, not refit_many
             return c, _EffectChoice(self, c.model, c.label, search=False).refit(story.added, story.final)[1].rms
@@ -687,8 +696,12 @@ class _Loop:
                  f"the effects chosen again on {best.label}")
         baseline = fit_model(self.fit, best.model, poles="baseline", cache=self.cache)
         # the story's effects confirmed on it (each must still earn its place: one that stood in for operators does
-        # not); the other effects were judged on the first size already
-        second = _EffectChoice(self, baseline, best.label).story(story.added, extend=False)
+        # not); the other effects were judged on the first size already, and the report's first-order figures
+        # (the subset search) stay the first size's, the baseline's
+        choice = _EffectChoice(self, baseline, best.label, search=False)
+        choice.search, choice.table, choice.chosen_set = story.choice.search, story.choice.table, frozenset(story.added)
+        choice.exact_checks = dict(story.choice.exact_checks)   # the checks that refused the others, as they decided
+        second = choice.story(story.added, extend=False)
         after, names = self.held_out(second.final).rms, ", ".join(second.added) or "nothing"
         if after <= (1 + CAPACITY_TOLERANCE) * before:
             self.log(f"capacity: {names} on {best.label} (held-out RMS {after:.4f} um) against {effects} on "
@@ -742,10 +755,10 @@ class _Loop:
             f"{100 * SPREAD_SHARE:.0f} %), of which {structure['structured_rms_um']:.4f} um stands above "
             + (f"{floor} ({structure['ratio_to_noise']:.1f}x it, threshold {UNEXPLAINED_NOISE_RATIO:g}x)"
                if self.floor.known else floor)
-            + f"; peaks: the {_ordinal(PEAK_RANK)} largest "
-            f"{1e3 * PEAK_BLOCK_S:g} ms peak {peaks['peak_um']:.3f} um is "
-            f"{peaks['peak_ratio']:.1f}x what the noise gives ({peaks['expected_noise_peak_um']:.3f} um, threshold "
-            f"{PEAK_NOISE_RATIO:g}x; the held-out measurement's own noise peaks at "
+            + f"; peaks: the {_ordinal(PEAK_RANK)} largest {1e3 * PEAK_BLOCK_S:g} ms peak {peaks['peak_um']:.3f} um"
+            + (f" is {peaks['peak_ratio']:.1f}x what the noise gives ({peaks['expected_noise_peak_um']:.3f} um, "
+               f"threshold {PEAK_NOISE_RATIO:g}x;" if self.floor.known else " (no noise to compare it with;")
+            + f" the held-out measurement's own noise peaks at "
             f"{structure['held_out_noise_peak_um']:.3f} um about its local cubic); lag-1 autocorrelation "
             f"{structure['lag1']:.2f}; strongest spectral line {structure['line_hz']:.3g} Hz "
             f"({100 * structure['line_share']:.0f} % of residual power); closest catalogue effect: {near[0]} "

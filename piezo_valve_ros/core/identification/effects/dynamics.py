@@ -9,7 +9,7 @@ Structure, nonlinear in its parameters (fitted by Gauss-Newton with the rest of 
   rate-dependent Prandtl-Ishlinskii model of Al Janaideh and Krejci (thresholds as functions of the
   rate) with a widening that is linear at low rates and levels off, at the scales
   ``RATE_SCALES_V_S``; ``rho`` is |dv/dt| through each lag of ``RATE_FILTERS_S`` (cycling rates over
-  two memories, not the slope inside a 2 ms ramp);
+  three memories, the shortest 5 ms, not the slope inside a 2 ms ramp);
 * the loading curve's slope grows with the input rate (Ang, Khosla and Riviere's modified PI model):
   ``(H - H_c) / H_h * rho / (rho + rate_k)`` for the same rate terms, linear in their coefficients [um].
 For the subset search (one linear solve from the baseline) the extra poles are represented to first
