@@ -64,6 +64,28 @@ def test_the_sample_checks_name_non_finite_implausible_and_frozen_samples():
         SampleCheck(FaultLimits(stuck_time_s=0.0))
 
 
+def test_a_noise_free_valve_stepped_again_and_again_never_trips_the_frozen_check():
+    """A noise-free valve (its reading still while it holds) stepped between 2 and 8 V every 0.6 s, each step on the
+    last sample of a read of 10, its reading answering a sample later and moving for exactly two reads (each ending
+    on a live reading), then still: the frozen-sensor timer starts again at every live reading, so no step ever
+    trips it (a timer left running from the first step tripped the second)."""
+    check = SampleCheck(FaultLimits())
+    dt, move = 1e-3, 20
+    k = np.arange(int(4.0 / dt))
+    steps = np.arange(609, k.size, 600)                               # the last sample of a read
+    command = np.where(np.searchsorted(steps, k, side="right") % 2 == 0, 2.0, 8.0)
+    target = 14e-6 * command - 60e-6
+    position = np.full(k.size, target[0])
+    for s in steps:                                                   # a ramp over the next 20 samples, then still
+        position[s + 1:] = target[s] if s + 1 + move >= k.size else position[s + 1:]
+        ramp = np.linspace(position[s], target[s], move + 1)[1:]
+        position[s + 1:s + 1 + move] = ramp[:max(0, min(move, k.size - s - 1))]
+        position[s + 1 + move:] = target[s]
+    rows = rows_of(k * dt, command, position)
+    for start in range(0, k.size, 10):
+        assert check.check(rows[start:start + 10]) is None, start
+
+
 def test_a_healthy_valve_never_trips_the_checks_even_noise_free_or_at_a_rail():
     """The simulated valve (every effect, and again without noise) through a minute of the paper's training
     signal, steps to both rails and holds: no check trips."""
@@ -224,11 +246,31 @@ def test_a_fault_is_latched_safe_named_and_left_only_on_reset(rig, fault, kind, 
     assert rig.hw.fault is None and rig.daq.writes[-1] == pytest.approx(sine(99))
 
 
-def test_a_transient_read_error_is_retried_within_the_period(rig):
+def test_a_daq_glitch_is_retried_within_the_period_said_and_counted_and_a_burst_latches(rig):
+    """One read or write that raises is retried at once: no fault, but one WARN line naming the exception and a count
+    on /diagnostics (the last minute's, WARN while there are any); a read that raises twice in a row latches."""
+    said = []
+
+    class Logger:   # what the node says from here on
+        def __getattr__(self, level):
+            return lambda text, **_: said.append((level, text))
     rig.run(50, sine)
+    rig.hw.get_logger = lambda: Logger()
     rig.daq.inject("read_raises_once")
     rig.run(50, sine)
-    assert rig.hw.fault is None and rig.health()[0] != b"\x02"   # (WARN: the test ticks faster than the wall clock)
+    assert rig.hw.fault is None and rig.hw.glitches == 1
+    glitch = [text for level, text in said if level == "warning" and text.startswith("DAQ glitch: read_samples raised")]
+    assert len(glitch) == 1 and "injected: DAQ glitch" in glitch[0] and "1 in the last minute" in glitch[0], said
+    level, message = rig.health()
+    assert level == b"\x01" and "1 DAQ glitch(es) in the last minute" in message, message
+    values = {kv.key: kv.value for kv in rig.hw.diagnostics.publish().status[0].values}
+    assert values["daq_glitches_last_minute"] == "1" and values["daq_glitches"] == "1", values
+    rig.daq.inject("write_raises_once")
+    rig.run(50, sine)
+    assert rig.hw.fault is None and rig.hw.glitches == 2 and rig.daq.writes[-1] == pytest.approx(sine(49))
+    rig.daq.inject("read_raises")   # a burst: twice in a row latches, as before
+    rig.run(1, sine)
+    assert rig.hw.fault is not None and rig.hw.fault.kind == "read_failed" and "twice in a row" in rig.hw.fault.detail
 
 
 def test_the_controller_holds_while_the_hardware_is_in_fault_and_starts_afresh_after(ros_context):

@@ -353,6 +353,26 @@ def test_asymmetric_inverse_is_exact_streaming_and_batch(model):
     assert ahead == pytest.approx(probe.step(v_next), abs=1e-12)
 
 
+def test_the_per_step_inverse_never_leaves_the_drive_range_whatever_the_demand():
+    """A demand beyond what the model reaches gives the end of the input range, never beyond it: every input the
+    per-step inverse returns, by its closed form or its general solve, on every model and from every state, lies in
+    0..10 V (the other tests skip samples at the ends)."""
+    from piezo_valve_ros.core.model.hysteresis import MonotoneInverseGPIM, inverse_gpim
+    from piezo_valve_ros.core.model.rate_dependence import RateDependentInverseGPIM
+    rng = np.random.default_rng(11)
+    models = (asymmetric(0.95 / 0.9647, 0.2 - 0.1014), asymmetric(1.06, -0.35, -0.0005))
+    for model in models:
+        lo, hi = model.output_range()
+        for inv in (inverse_gpim(model, v0=5.0),
+                    RateDependentInverseGPIM(model, (0.5, 0.0, 0.2, 0.0, 0.0, 0.0, 0.3, 0.0, 0.0), 1e-3, v0=5.0)):
+            assert isinstance(inv, MonotoneInverseGPIM)
+            demands = np.concatenate([rng.uniform(lo - 60.0, hi + 60.0, 3000), np.full(50, hi + 40.0),
+                                      np.full(50, lo - 40.0), np.linspace(lo, hi + 80.0, 400)])
+            v = np.array([inv.step(y) for y in demands])
+            assert np.all((v >= 0.0) & (v <= 10.0)), (float(v.min()), float(v.max()))
+            assert np.any(v == 10.0) and np.any(v == 0.0)
+
+
 def test_envelopes_that_cross_are_inverted_exactly_step_by_step():
     """Issue 11.2: a descending envelope below the ascending one on part of the range has no closed-form
     inverse (InverseGPIM refuses it, saying where), but the per-step solve inverts it to rounding over long

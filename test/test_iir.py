@@ -226,23 +226,39 @@ def test_processes_that_start_together_on_a_cold_cache_compile_a_kernel_once(tmp
 def test_each_kernel_compiles_once_whatever_the_banks_size_or_the_thresholds_flags():
     """A kernel's arguments reach it with one layout and one writability, so numba compiles (or loads) one
     specialisation per kernel: a state array passed as it came (a bank of one row is C-contiguous, of several
-    Fortran) or thresholds read-only in one caller and writable in another each cost a second compile on a cold
-    cache (about 0.5 s of CPU each, in every process that starts on one)."""
-    from piezo_valve_ros.core.model import hysteresis
+    Fortran) or thresholds or weights read-only in one caller and writable in another each cost a second compile on
+    a cold cache (about 0.5 s of CPU each, in every process that starts on one; in a test worker that had run the
+    GPIM's read-only weights first, this test failed).  It runs in a process of its own, so what the worker ran
+    before cannot hide a second layout, nor add one."""
+    import json
+    import subprocess
+    import sys
     b, a = FILTERS["second order (G at 2 kHz)"]
-    rng = np.random.default_rng(3)
-    for k in (1, 3):
-        rows = rng.normal(size=(k, 500))
-        iir.filter_rows(b, a, rows, np.zeros((k, 2)))
-        iir.filter_columns(b, a, np.ascontiguousarray(rows.T), np.zeros(k), np.zeros((k, 2)))
-    v = np.cumsum(rng.normal(size=30_000))
-    for writable in (True, False):
-        r = np.linspace(0.0, 2.0, 4)
-        r.flags.writeable = writable
-        states, _ = hysteresis.play_batch(v, v, r, np.zeros(4), compiled=True)
-        hysteresis.last_contact(states, v, v, r, compiled=True)
-    kernels = [iir._kernels(), hysteresis._kernels()]
-    used = {name: len(f.signatures) for module in kernels for name, f in vars(module).items()
-            if hasattr(f, "signatures") and f.signatures}
-    assert {"rows_3", "columns_3", "play_rows", "last_contacts"} <= set(used), used
+    code = f"""
+import json
+import numpy as np
+from piezo_valve_ros.core.model import iir, hysteresis
+b, a = np.array({list(map(float, b))}), np.array({list(map(float, a))})
+rng = np.random.default_rng(3)
+for k in (1, 3):
+    rows = rng.normal(size=(k, 500))
+    iir.filter_rows(b, a, rows, np.zeros((k, 2)))
+    iir.filter_columns(b, a, np.ascontiguousarray(rows.T), np.zeros(k), np.zeros((k, 2)))
+v = np.cumsum(rng.normal(size=30_000))
+for writable in (True, False):
+    r = np.linspace(0.0, 2.0, 4)
+    r.flags.writeable = writable
+    states, _ = hysteresis.play_batch(v, v, r, np.zeros(4), compiled=True)
+    side, index = hysteresis.last_contact(states, v, v, r, compiled=True)
+    weights = np.ones(4)   # a GPIM's are read-only, a caller's may not be
+    weights.flags.writeable = writable
+    hysteresis.contact_sensitivity(side, index, weights, np.ones(v.size), "both", compiled=True)
+kernels = [iir._kernels(), hysteresis._kernels()]
+print(json.dumps({{name: len(f.signatures) for module in kernels for name, f in vars(module).items()
+                  if hasattr(f, "signatures") and f.signatures}}))
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    used = json.loads(done.stdout.strip().splitlines()[-1])
+    assert {"rows_3", "columns_3", "play_rows", "last_contacts", "contact_sums"} <= set(used), used
     assert all(count == 1 for count in used.values()), used

@@ -366,6 +366,36 @@ def test_control_comes_back_when_the_node_that_took_over_falls_silent(controller
         assert ctl.controller.last_command_v == pytest.approx(5.0 if hardware_timed_out else 7.6)
 
 
+def test_control_comes_back_with_the_valves_memory_of_what_was_applied_meanwhile(controller):
+    """An identification drives the valve through wide swings and dies; the controller takes over under OL HC (no
+    feedback to take an error away).  It resumes with its inverses' operators where the voltages applied meanwhile
+    (the hardware's samples) left them, from the state it left them in: its open-loop commands then put the valve,
+    which went through the same swings, on the reference.  Resumed from a synchronised state at the last voltage, as
+    it once did, it stayed off by most of the loop's width (22 um from outside, in 2 runs of 3)."""
+    ctl = controller(gain_set="", strategy="ol_hc")
+    ctl.controller.reset(5.0)
+    gpim = ctl.controller.model
+    valve = gpim.stream(ctl.controller.ff_inverse.forward_state(), 5.0)      # the valve, as the model has it
+    assert set_one(ctl, "enabled", False).successful
+    t = np.arange(4000) * 1e-3
+    swings = 5.0 + 4.5 * np.sin(2 * np.pi * 2.0 * t) * np.exp(-t / 3.0) + 0.3 * np.sin(2 * np.pi * 7.0 * t)
+    swings = np.concatenate([swings, np.full(50, 3.2)])                    # the identification stops at 3.2 V
+    for k in range(0, swings.size, 100):                                     # the hardware's samples, in batches
+        rows = np.column_stack([t[:1].repeat(min(100, swings.size - k)), swings[k:k + 100], np.zeros(min(100, swings.size - k))])
+        ctl._on_samples(samples_message(rows))
+        for v in swings[k:k + 100]:
+            valve.step(float(v))
+    assert set_one(ctl, "enabled", True).successful
+    assert np.allclose(ctl.controller.ff_inverse.forward_state(), valve.state)
+    synchronised = gpim.virgin_state(3.2)
+    assert np.max(np.abs(gpim.output_from_state(synchronised) - gpim.output_from_state(valve.state))) > 5.0
+    reference_um = gpim.output_from_state(valve.state) + 10.0
+    for _ in range(200):
+        v = ctl.controller.step(reference_um * 1e-6, gpim.output_from_state(valve.state) * 1e-6)
+        y = valve.step(v)
+    assert y == pytest.approx(reference_um, abs=0.5)
+
+
 def test_a_controller_follows_voltage_command_only_while_disabled(controller):
     """Enabled, the commands on voltage_command are the controller's own: it takes none back (one message less
     every period); disabled, it follows another node's (to resume from the applied voltage and to notice when

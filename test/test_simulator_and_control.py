@@ -400,6 +400,35 @@ def test_the_guards_both_rails_window_is_twenty_ms_at_any_period(dt):
         assert ctl.guard_trips == trips, (dt, gap_s, ctl.guard_trips)
 
 
+def test_the_guards_hold_doubles_while_the_oscillation_recurs_up_to_its_limit_and_starts_afresh_after():
+    """A P controller kept swinging rail to rail (the measurement far below, then far above): each trip holds the
+    loop on its feedforward; one that recurs within two holds of the last holds twice as long, up to
+    GUARD_MAX_HOLD_S; after a quiet spell the hold starts again at GUARD_HOLD_S."""
+    from piezo_valve_ros.core.control.strategies import GUARD_HOLD_S, GUARD_MAX_HOLD_S
+    dt = 1e-3
+    ctl = ValveController(ControllerConfig(strategy="pid", gains=PIDGains(50.0, 0.0, 0.0), dt=dt))
+    ctl.reset()
+    holds, k = [], 0
+
+    def swing_until_trip():
+        nonlocal k
+        trips = ctl.guard_trips
+        while ctl.guard_trips == trips:
+            ctl.step(0.0, (-60e-6 if k % 2 else 60e-6))
+            k += 1
+        holds.append(ctl.guard_hold_s)
+        while ctl.in_fallback:
+            ctl.step(0.0, 0.0)
+    for _ in range(7):
+        swing_until_trip()
+    expected = [min(GUARD_HOLD_S * 2 ** n, GUARD_MAX_HOLD_S) for n in range(7)]
+    assert holds == pytest.approx(expected), holds
+    for _ in range(int(round(3 * GUARD_MAX_HOLD_S / dt))):   # quiet for longer than two holds
+        ctl.step(0.0, 0.0)
+    swing_until_trip()
+    assert holds[-1] == pytest.approx(GUARD_HOLD_S)
+
+
 def test_the_pids_derivative_opposes_a_measurement_that_rises_towards_the_demand():
     """PID with only a derivative gain, demand held at 10 um: a measurement rising towards it (the error
     falling) pulls the command below the centre voltage, one falling away pushes it above."""

@@ -145,6 +145,31 @@ def test_two_steps_sent_close_together_are_each_moved_to_their_own_reaction():
     assert flat[1] == pytest.approx(received[1])
 
 
+def test_a_sine_sent_as_many_small_changes_keeps_its_times_and_its_tracking_figures():
+    """The bring-up's 40 um, 1 Hz sine, sent every 20 ms (2.5 um changes, each above the 1 um a step needs, none
+    held): no change is a step, none is moved (each was moved to a "reaction" up to a second away, and valve_plot
+    said RMS 22.5 um and fit 19 % on a valve that tracked within 2 um); the figures valve_plot gives are those of the
+    position against the reference in force at each sample."""
+    from piezo_valve_ros.cli.plot import summary_lines
+    from piezo_valve_ros.core.runs import align_jumps, reference_on_samples
+    dt = 1e-3
+    t = np.arange(8000) * dt
+    received = np.arange(0.5, 7.5, 0.02)
+    values = 40e-6 * np.sin(2 * np.pi * 1.0 * (received - 0.5))
+    in_force = reference_on_samples(t, received, values)
+    position = np.where(np.isfinite(in_force), np.roll(np.nan_to_num(in_force), 3), 0.0)  # tracks 3 ms late
+    command = 5.0 + position / 14.8e-6
+    aligned = align_jumps(t, command, received, values)
+    assert np.array_equal(aligned, received)
+    rows = np.column_stack((t, command, position))
+    line = next(x for x in summary_lines(rows, reference_on_samples(t, aligned, values), "/samples")
+                if "tracking" in x and "RMS" in x)
+    known = np.isfinite(in_force)
+    direct = float(np.sqrt(np.mean((position[known] - in_force[known]) ** 2))) * 1e6
+    assert f"RMS {direct:.3f} um" in line or f"RMS {direct:.2f} um" in line, (line, direct)
+    assert direct < 2.0      # (the staircase the 20 ms messages make, 3 ms late)
+
+
 def test_parameter_assignments_read_as_yaml():
     assert parse_assignment("kp:=1.5") == ("kp", 1.5)
     assert parse_assignment("samples_batch:=10") == ("samples_batch", 10)

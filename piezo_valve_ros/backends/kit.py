@@ -26,7 +26,7 @@ from .base import ValveBackend
 
 __all__ = ["check_backend", "FaultInjectingBackend", "INJECTABLE_FAULTS"]
 
-INJECTABLE_FAULTS = ("read_raises", "read_raises_once", "nan", "write_raises", "stuck", "silent")
+INJECTABLE_FAULTS = ("read_raises", "read_raises_once", "nan", "write_raises", "write_raises_once", "stuck", "silent")
 TIME_TOLERANCE = 0.01   # sample instants within 1 % of a sample period of the grid
 
 
@@ -103,7 +103,8 @@ def _shape_problem(rows) -> Optional[str]:
 class FaultInjectingBackend(ValveBackend):
     """``inner`` with the faults of INJECTABLE_FAULTS switched on by ``inject(kind)`` (None: healthy):
     ``read_raises`` (every read raises OSError), ``read_raises_once`` (the next read only), ``nan`` (positions
-    NaN), ``write_raises``, ``stuck`` (the position frozen at its last value), ``silent`` (no samples).  Every
+    NaN), ``write_raises``, ``write_raises_once`` (the next write only), ``stuck`` (the position frozen at its last
+    value), ``silent`` (no samples).  Every
     voltage written is kept in ``writes``."""
 
     def __init__(self, inner: ValveBackend):
@@ -125,6 +126,9 @@ class FaultInjectingBackend(ValveBackend):
     def write_voltage(self, voltage_v: float) -> None:
         if self.fault == "write_raises":
             raise OSError("injected: DAQ write timed out")
+        if self.fault == "write_raises_once":
+            self.fault = None
+            raise OSError("injected: DAQ write glitch")
         self.writes.append(float(voltage_v))
         self.inner.write_voltage(voltage_v)
 

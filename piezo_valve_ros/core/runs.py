@@ -107,7 +107,9 @@ def receive_to_sample_time(stamps_s: np.ndarray, sample_times_s: np.ndarray):
 
 def align_jumps(time_s: np.ndarray, command_v: np.ndarray, ref_time_s: np.ndarray, ref_m: np.ndarray,
                 min_jump_m: float = STEP_MIN_JUMP_M, window_s: float = ALIGN_WINDOW_S) -> np.ndarray:
-    """Reference times [s] with each jump of the reference (a change of at least ``min_jump_m``) moved to the sample
+    """Reference times [s] with each jump of the reference (a change of at least ``min_jump_m`` held, as a step is,
+    at least ``STEP_MIN_HOLD_S`` before and after it: a sine or a ramp sent as many small changes has none, and
+    moving each of its changes to a "reaction" turned a tracked sine into a staircase) moved to the sample
     where the command reacted to it: within ``window_s`` of its time and after the sample the jump before it was
     moved to, the first sample whose command change in the jump's direction is at least half the largest such
     change there and ``ALIGN_MIN_RATIO`` times the window's median change; the references after it that came in the
@@ -124,7 +126,11 @@ def align_jumps(time_s: np.ndarray, command_v: np.ndarray, ref_time_s: np.ndarra
     signed = np.diff(v, prepend=v[:1])
     change = np.abs(signed)
     steps = np.diff(values, prepend=np.nan)
-    jumps = np.flatnonzero(np.abs(steps) >= min_jump_m)
+    changed = np.flatnonzero(steps != 0)                 # (the first reference counts as a change: NaN before it)
+    since = np.diff(received[changed], prepend=-np.inf)  # held before each change, and after it until the next
+    until = np.append(np.diff(received[changed]), np.inf)
+    held = changed[(since >= STEP_MIN_HOLD_S) & (until >= STEP_MIN_HOLD_S)]
+    jumps = held[np.abs(steps[held]) >= min_jump_m]
     shift = np.zeros(received.size)
     after = 0   # the first sample a jump's reaction may be at: after the reaction the jump before it was moved to
     for j, end in zip(jumps, np.append(jumps[1:], received.size)):

@@ -28,6 +28,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64, Float64MultiArray, String
 
 from ..core.control.compensation import MODEL_PARAMETERS, CompensationModel
+from ..core.control.handover import AppliedPath
 from ..core.model.rate_dependence import describe_inverse, solved_each_step
 from ..core.sim.signals import ReferenceRamp
 from ..core.control.strategies import (GUARD_WINDOW_S, has_feedback, SAFE_PERIOD_S, STRATEGIES, TABLE1_GAINS, ControllerConfig,
@@ -142,6 +143,7 @@ class ValveControllerNode(Node):
         self._guarding = False
         self._said_no_listener = False
         self._applied_v: Optional[float] = None       # while disabled: the voltage last applied, as far as we know
+        self._applied_path: Optional[AppliedPath] = None   # while disabled: every voltage applied (the samples)
         self._foreign_command_at: Optional[float] = None  # while disabled: monotonic time of the last foreign command
         self._samples_sub = self._command_watch = None   # while disabled: what others command, the hardware applies
         self.command_pub = self.create_publisher(Float64, "voltage_command", COMMAND_QOS)
@@ -330,6 +332,10 @@ class ValveControllerNode(Node):
         except ValueError:
             return
         if rows.shape[0]:
+            if self._applied_path is None and not self.enabled and math.isfinite(rows[0, 1]):
+                self._applied_path = AppliedPath(float(rows[0, 1]))   # started disabled: from where the samples begin
+            if self._applied_path is not None:
+                self._applied_path.extend(rows[:, 1])
             v = float(rows[-1, 1])
             if math.isfinite(v):
                 self._applied_v = v
@@ -368,15 +374,24 @@ class ValveControllerNode(Node):
             ctl = self.controller
             v = ctl.last_command_v if self._applied_v is None else self._applied_v
             v = min(max(v, ctl.config.command_min_v), ctl.config.command_max_v)
-            ctl.reset(v, self._last_position_m)
+            path = self._applied_path
+            # the operators where the voltages applied meanwhile left them (the hardware's samples), from the state
+            # the controller left them in: an identification's wide swings leave the valve up to the loop's width
+            # from a synchronised state at the last voltage, which OL HC would keep as its error
+            state = path.state(ctl.model) if path is not None and len(path.points()) > 1 else None
+            ctl.reset(v, self._last_position_m, state)
             if self._last_position_m is not None:
                 self.ramp.hold(self._last_position_m)
             self._watch_applied_voltage(False)
             self._foreign_command_at = None
-            self.get_logger().info(f"enabled: resuming from the applied {v:.4g} V (operators in the state of a "
-                                   f"synchronised valve at that voltage)")
+            self._applied_path = None
+            self.get_logger().info(f"enabled: resuming from the applied {v:.4g} V" + (
+                f" (operators where the {len(path.points()) - 1} turning point(s) applied since left them)"
+                if state is not None else " (operators in the state of a synchronised valve at that voltage)"))
         else:
-            self._applied_v = self.controller.last_command_v
+            ctl = self.controller
+            self._applied_v = ctl.last_command_v
+            self._applied_path = AppliedPath(ctl.last_command_v, ctl.ff_inverse.forward_state())
             self._foreign_command_at = None
             self._watch_applied_voltage(True)
             self.get_logger().info("disabled: publishing no commands")

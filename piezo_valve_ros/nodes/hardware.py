@@ -18,6 +18,7 @@ leaves it, once the backend writes and reads sound samples again.
 """
 from __future__ import annotations
 
+import collections
 import math
 import sys
 import time
@@ -85,6 +86,7 @@ HARDWARE_PARAMETERS: tuple[ParameterSpec, ...] = (
     DIAGNOSTICS_PERIOD,
 )
 SPECS = {s.name: s for s in HARDWARE_PARAMETERS}
+GLITCH_WINDOW_S = 60.0       # /diagnostics counts the DAQ glitches of this last stretch (WARN while there are any)
 IN_TIME_WARN_SHARE = 0.99   # /diagnostics: WARN when fewer commands than this share came within their period
 
 
@@ -107,6 +109,9 @@ class ValveHardwareNode(Node):
         # the per-command warnings, each at most this often (their counts say how many there were)
         self._say_rejected, self._say_clamped = Throttle(1.0), Throttle(1.0)
         self._say_refused_in_fault, self._say_late = Throttle(2.0), Throttle(5.0)
+        self._say_glitch = Throttle(1.0)
+        self.glitches, self._unsaid_glitches = 0, 0   # backend calls that raised once and succeeded when retried
+        self._glitch_times: collections.deque = collections.deque()
         declare_all(self, HARDWARE_PARAMETERS)
         backend_name = str(self.get_parameter("backend").value)
         backend_type = type(backend) if backend is not None else backend_class(backend_name)
@@ -264,7 +269,9 @@ class ValveHardwareNode(Node):
         values = {"clock": self.clock_mode, "control_period_s": self.control_period_s, "periods": t.periods,
                   "commands_in_time_share": round(share, 4) if periods else "no periods since the last report",
                   "commands_clamped": self.clamped, "commands_rejected": self.rejected,
-                  "late_commands": self.late_commands, "watchdog": watchdog, "safe_voltage_v": self.safe_voltage}
+                  "late_commands": self.late_commands, "watchdog": watchdog, "safe_voltage_v": self.safe_voltage,
+                  "daq_glitches_last_minute": self._glitches_in_last_minute(time.monotonic()),
+                  "daq_glitches": self.glitches}
         if self.fault is not None:
             values.update({"fault": self.fault.kind, "fault_detail": self.fault.detail,
                            "commands_refused_in_fault": self.refused_in_fault,
@@ -275,8 +282,14 @@ class ValveHardwareNode(Node):
                              f"~/reset (valve_command reset) once the cause is gone"), values
         if self._timed_out:
             return "ERROR", f"watchdog: no valid command for {self.command_timeout_s} s, safe voltage applied", values
+        warnings = []
         if self._armed and self.clock_mode == "realtime" and periods and share < IN_TIME_WARN_SHARE:
-            return "WARN", f"{100 * share:.1f} % of the commands came within their period", values
+            warnings.append(f"{100 * share:.1f} % of the commands came within their period")
+        if values["daq_glitches_last_minute"]:
+            warnings.append(f"{values['daq_glitches_last_minute']} DAQ glitch(es) in the last minute (a backend call "
+                            f"raised once and succeeded when retried; {self.glitches} in all)")
+        if warnings:
+            return "WARN", "; ".join(warnings), values
         return "OK", f"watchdog {watchdog}", values
 
     # ------------------------------------------------------------------ commands
@@ -455,26 +468,53 @@ class ValveHardwareNode(Node):
 
     # ------------------------------------------------------------------ faults
     def _write(self, v: float) -> bool:
-        """Write ``v`` [V] to the backend; a failure latches the fault (False)."""
+        """Write ``v`` [V] to the backend; a write that raises is retried once at once (a glitch: said and counted),
+        a second failure latches the fault (False)."""
         try:
             self.backend.write_voltage(v)
             return True
-        except Exception as exc:  # a backend's failure, whatever its type: the fault names it
-            self._enter_fault("write_failed", f"write_voltage({v:.4g} V) raised {exc!r}")
-            return False
+        except Exception as first:  # a backend's failure, whatever its type
+            try:
+                self.backend.write_voltage(v)
+            except Exception as exc:  # the fault names it
+                self._enter_fault("write_failed", f"write_voltage({v:.4g} V) raised {exc!r} twice in a row")
+                return False
+            self._glitch(f"write_voltage({v:.4g} V)", first)
+            return True
 
     def _read(self) -> Optional[np.ndarray]:
-        """The backend's new rows; a read that raises is retried once at once (a transient error), a second
+        """The backend's new rows; a read that raises is retried once at once (a glitch: said and counted), a second
         failure latches the fault (None)."""
         try:
             return self.backend.read_samples()
-        except Exception:
-            pass
-        try:
-            return self.backend.read_samples()
-        except Exception as exc:
-            self._enter_fault("read_failed", f"read_samples raised {exc!r} twice in a row")
-            return None
+        except Exception as first:
+            try:
+                rows = self.backend.read_samples()
+            except Exception as exc:
+                self._enter_fault("read_failed", f"read_samples raised {exc!r} twice in a row")
+                return None
+            self._glitch("read_samples", first)
+            return rows
+
+    def _glitch(self, what: str, exc: BaseException) -> None:
+        """A backend call that raised and succeeded when retried at once: counted (``/diagnostics`` gives the last
+        minute's and the total, WARN while there are any in the last minute) and said at WARN, at most once a second
+        (with the count since the last line): a DAQ that glitches every few seconds must not look healthy."""
+        now = time.monotonic()
+        self.glitches += 1
+        self._glitch_times.append(now)
+        self._unsaid_glitches += 1
+        if self._say_glitch.due():
+            more = f" ({self._unsaid_glitches} since the last line)" if self._unsaid_glitches > 1 else ""
+            self.get_logger().warning(f"DAQ glitch: {what} raised {exc!r}, retried at once and done{more}; "
+                                      f"{self._glitches_in_last_minute(now)} in the last minute, {self.glitches} in all "
+                                      f"(two in a row latch a fault)")
+            self._unsaid_glitches = 0
+
+    def _glitches_in_last_minute(self, now: float) -> int:
+        while self._glitch_times and self._glitch_times[0] < now - GLITCH_WINDOW_S:
+            self._glitch_times.popleft()
+        return len(self._glitch_times)
 
     def _sound(self, rows: np.ndarray) -> bool:
         """Whether a read's rows may be published: finite, plausible, not frozen; samples arriving at all on the

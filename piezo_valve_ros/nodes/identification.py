@@ -64,6 +64,7 @@ from ..rig.client import get_parameter_values, wait_future, wait_until_answering
 from ..rig.recording import RigRecorder
 from ..runtime.memory import keep_freed_memory
 from .common import (CONTROL_PERIOD, COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, ParameterSpec, as_float, declare_all,
+                     refuse_undeclared,
                      parameter_values, run_node)
 from ..core.model.drive import CENTRE_VOLTAGE_V
 
@@ -97,6 +98,9 @@ class _Player:
 
 
 VALIDATION_LEAD_S = 0.5    # the validation demand is eased in from 0 over this long [s]
+VALIDATION_RESTORES = ("strategy", "kp", "ki", "kd", "gain_set")   # the controller's, put back after a validation
+RIG_WAIT_SAY_S = 10.0      # with no rig in the domain, say what the plan waits for this often [s]
+RIG_ANSWER_S = 60.0        # ... and give up after this long
 
 # the plan's settings: start-up only
 IDENTIFICATION_PARAMETERS: tuple[ParameterSpec, ...] = (CONTROL_PERIOD,) + tuple(
@@ -113,6 +117,8 @@ IDENTIFICATION_PARAMETERS: tuple[ParameterSpec, ...] = (CONTROL_PERIOD,) + tuple
         ("storage", BAG_STORAGE, "bag storage"),
         ("params_out", "", "parameters file written by refit (default: <bag_dir>/fitted.yaml)"),
         ("push", True, "push refitted parameters to the controller"),
+        ("keep_worse_refit", "", "a refit whose validation tracks worse than the one before it is taken back, unless "
+                                 "this gives the reason to keep it (said in the log)"),
         ("controller", "valve_controller", "name of the controller node (relative to this namespace)"),
         ("hardware", "valve_hardware", "name of the hardware node (relative to this namespace): a free-running "
                                        "lockstep rig is paused while no experiment runs"),
@@ -128,6 +134,9 @@ class ValveIdentificationNode(Node):
     def __init__(self, **kwargs):
         super().__init__("valve_identification", **kwargs)
         declare_all(self, IDENTIFICATION_PARAMETERS)
+        # before the plan's thread starts: a misspelt ``plan`` would run the default plan (it drives the valve and
+        # pushes a model); this node has its process to itself, so every name its command line gives is its own
+        refuse_undeclared([self], "valve_identification")
         p = parameter_values(self)
         self.plan = [s.strip() for s in str(p["plan"]).split(",") if s.strip()]
         unknown = [s for s in self.plan if s not in STEPS]
@@ -159,7 +168,12 @@ class ValveIdentificationNode(Node):
         self.storage = SPECS["storage"].checked(p["storage"])
         self.params_out = Path(str(p["params_out"]) or self.bag_dir / "fitted.yaml")
         self.push = bool(p["push"])
+        self.keep_worse_refit = str(p["keep_worse_refit"]).strip()
         self.exit_when_done = bool(p["exit_when_done"])
+        self.step_now: Optional[str] = None          # the step running (what Ctrl-C cuts short)
+        self.interrupted = False
+        self._last_validation: Optional[float] = None   # the last validation's tracking RMS [um]
+        self._before_refit: Optional[tuple[dict, Optional[bytes]]] = None   # what a pushed refit replaced
 
         self.command_pub = self.create_publisher(Float64, "voltage_command", COMMAND_QOS)
         self.reference_pub = self.create_publisher(Float64, "position_reference", REFERENCE_QOS)
@@ -196,7 +210,17 @@ class ValveIdentificationNode(Node):
         return self.recorder.stop()
 
     def stop(self) -> None:
-        """When the node stops (Ctrl-C, SIGTERM, the plan's end): the open bag closed, a paused rig released."""
+        """When the node stops (Ctrl-C, SIGTERM, the plan's end): what was cut short said, the open bag closed, a
+        paused rig released."""
+        if not self.finished.is_set():
+            self.interrupted = True
+            done = ", ".join(s["step"] for s in self.summary) or "nothing"
+            self.get_logger().warning(
+                f"interrupted: step {self.step_now or '(waiting for the rig)'} cut short (done: {done}); its bag is "
+                f"closed as it stands" + ("; the controller, disabled for training, takes control back after its "
+                                          "handback_timeout_s" if (self.step_now or "").startswith("train") else "")
+                + ("; the controller still runs the validation strategy until it is set back"
+                   if (self.step_now or "").startswith("validate") else ""))
         self._stop_recording()
         self.release_rig()
 
@@ -348,8 +372,18 @@ class ValveIdentificationNode(Node):
         write_atomically(Path(str(bag)) / "report.json", report_json(analysis))
         for name, why in comp.refused.items():
             self.get_logger().warning(f"refit: {why}")
-        pushed, reason = (self._set_controller(controller_parameters(comp), atomically=True) if self.push
-                          else (False, "push disabled"))
+        values = controller_parameters(comp)
+        before = None
+        if self.push:   # what the push replaces: a validation that tracks worse after it takes it back
+            try:
+                before = (self._controller_values(list(values)),
+                          self.params_out.read_bytes() if self.params_out.exists() else None)
+            except (RuntimeError, TimeoutError) as exc:
+                self.get_logger().warning(f"refit: the controller's model before the push could not be read ({exc}): "
+                                          f"a worse validation after it cannot take it back")
+        pushed, reason = self._set_controller(values, atomically=True) if self.push else (False, "push disabled")
+        if pushed:
+            self._before_refit = before
         if pushed or not self.push:
             write_atomically(self.params_out, controller_parameters_yaml(comp, str(bag), report))
             self.last_refit = (comp, str(bag), report)  # what a tune step tunes on
@@ -402,11 +436,60 @@ class ValveIdentificationNode(Node):
                 "model_overshoot_pct": s.worst_overshoot_pct, "pushed": pushed, "reason": reason}
 
     def _step_validate(self) -> dict:
+        # the controller's settings, put back after the validation: the rig is left as the plan found it
+        settings = self._controller_values(list(VALIDATION_RESTORES))
         # one atomic request: an active gain_set refuses a strategy unless the same update clears it
         ok, reason = self._set_controller({"enabled": True, "strategy": self.validation_strategy, "gain_set": ""},
                                           atomically=True)
         if not ok:
             raise RuntimeError(f"cannot set the controller up for validation: {reason}")
+        try:
+            result = self._validate()
+        finally:
+            self._restore_controller(settings)
+        return self._judge_refit(result)
+
+    def _restore_controller(self, settings: dict) -> None:
+        """The strategy and gains the controller had before a validation (a gain set as a gain set), in one request."""
+        back = ({"gain_set": settings["gain_set"]} if settings["gain_set"] else
+                {"gain_set": "", **{k: settings[k] for k in ("strategy", "kp", "ki", "kd")}})
+        ok, reason = self._set_controller(back, atomically=True)
+        said = (f"gain set {settings['gain_set']}" if settings["gain_set"] else
+                f"strategy {settings['strategy']}, kp {settings['kp']:g}, ki {settings['ki']:g}, kd {settings['kd']:g}")
+        if ok:
+            self.get_logger().info(f"validate: the controller back on {said}, as before the validation")
+        else:
+            self.get_logger().error(f"validate: the controller could not be put back on {said} ({reason}): it runs "
+                                    f"{self.validation_strategy}")
+
+    def _judge_refit(self, result: dict) -> dict:
+        """A validation after a pushed refit that tracks worse than the one before it: the model the refit replaced
+        pushed back (and its parameters file), unless ``keep_worse_refit`` gives the reason to keep it."""
+        before, now = self._last_validation, result["rms_um"]
+        self._last_validation = now
+        replaced, self._before_refit = self._before_refit, None
+        if replaced is None or before is None:
+            return result
+        if now <= before:
+            self.get_logger().info(f"validate: the refit cut the tracking error RMS {before:.3f} -> {now:.3f} um")
+            return {**result, "refit_judged": "better"}
+        if self.keep_worse_refit:
+            self.get_logger().warning(f"validate: the refit made tracking worse ({before:.3f} -> {now:.3f} um RMS); "
+                                      f"kept as told: {self.keep_worse_refit}")
+            return {**result, "refit_judged": "worse, kept: " + self.keep_worse_refit}
+        values, file_bytes = replaced
+        ok, reason = self._set_controller(values, atomically=True)
+        if ok and file_bytes is not None:
+            write_atomically(self.params_out, file_bytes.decode())
+        self.get_logger().warning(
+            f"validate: the refit made tracking worse ({before:.3f} -> {now:.3f} um RMS): " +
+            ("the model before it pushed back" + (" and its parameters file restored" if file_bytes is not None else "")
+             if ok else f"the model before it could NOT be pushed back ({reason})")
+            + " (keep_worse_refit:=<reason> keeps such a refit)")
+        self._last_validation = before if ok else now
+        return {**result, "refit_judged": "worse, taken back" if ok else "worse, could not be taken back"}
+
+    def _validate(self) -> dict:
         ref = validation_reference_m(self.period_s / self.time_scale, self.validation_s, self.validation_amplitude_m * 1e6)
         lead = max(int(VALIDATION_LEAD_S / self.period_s), 1)  # ease in from 0 (the validation demand starts off 0)
         ref = np.concatenate((ref[0] * np.linspace(0.0, 1.0, lead), ref))
@@ -431,6 +514,27 @@ class ValveIdentificationNode(Node):
         return {"step": "validate", "strategy": self.validation_strategy, "bag": str(bag),
                 **{k: float(v) for k, v in vars(figures).items()}}
 
+    def _wait_for_the_rig(self) -> None:
+        """Until the controller answers and a hardware node listens to voltage_command, saying every
+        RIG_WAIT_SAY_S what the plan waits for (a rig in another ROS_DOMAIN_ID is not there)."""
+        import os
+        domain = os.environ.get("ROS_DOMAIN_ID", "0")
+        started = said = time.monotonic()
+        while rclpy.ok() and not self.controller.wait_for_services(timeout_sec=1.0):
+            if time.monotonic() - said >= RIG_WAIT_SAY_S:
+                said = time.monotonic()
+                self.get_logger().warning(f"waiting {said - started:.0f} s for the controller {self.controller_name!r} "
+                                          f"to answer in ROS_DOMAIN_ID {domain} (is the rig up, in this domain?)")
+            if time.monotonic() - started > RIG_ANSWER_S:
+                raise RuntimeError(f"no controller answers (parameter services of {self.controller_name!r} not found "
+                                   f"in ROS_DOMAIN_ID {domain} within {RIG_ANSWER_S:.0f} s)")
+        while self.count_subscribers("voltage_command") == 0 and rclpy.ok():
+            time.sleep(0.05)  # the hardware is not up yet
+            if time.monotonic() - said >= RIG_WAIT_SAY_S:
+                said = time.monotonic()
+                self.get_logger().warning(f"waiting {said - started:.0f} s for a hardware node to listen to "
+                                          f"voltage_command in ROS_DOMAIN_ID {domain}")
+
     def _run_plan(self) -> None:
         if not self.plan:
             self.get_logger().info("empty plan: nothing to do")
@@ -439,17 +543,15 @@ class ValveIdentificationNode(Node):
                 self.context.try_shutdown()
             return
         try:
-            if not self.controller.wait_for_services(timeout_sec=30.0):
-                raise RuntimeError("no controller answers (parameter services of "
-                                   f"{self.controller_name!r} not found)")
-            while self.count_subscribers("voltage_command") == 0 and rclpy.ok():
-                time.sleep(0.05)  # the hardware is not up yet
+            self._wait_for_the_rig()
             self._take_lockstep_pacing()
             self.get_logger().info(self._plan_length())
-            for step in self.plan:
+            for k, step in enumerate(self.plan):
+                self.step_now = f"{step} ({k + 1} of {len(self.plan)})"
                 result = getattr(self, f"_step_{step}")()
                 self.summary.append(result)
                 write_atomically(self.bag_dir / "summary.json", summary_json(self.summary))
+            self.step_now = None
             self.get_logger().info("plan done")
         except Exception as exc:
             self.failed = True
@@ -468,7 +570,7 @@ class ValveIdentificationNode(Node):
 
 
 def main(args=None) -> int:
-    """Exit code 1 when the plan stopped on an error."""
+    """Exit code 1 when the plan stopped on an error, 130 when a signal cut it short."""
     keep_freed_memory()   # its refits' arrays (runtime.memory); before ROS starts its threads
     made = []
 
@@ -477,7 +579,11 @@ def main(args=None) -> int:
         return made[0]
     code = run_node(factory, "valve_identification", args, on_exit_of=lambda n: n.stop,
                     specs=IDENTIFICATION_PARAMETERS)
-    return code or (1 if made and made[0].failed else 0)
+    if code:
+        return code
+    if made and made[0].interrupted:
+        return 130
+    return 1 if made and made[0].failed else 0
 
 
 if __name__ == "__main__":

@@ -276,15 +276,23 @@ class ValveController:
         return StaticInverse(comp.creep, comp.output_map, self.config.dt, h0,
                              (self._demand_min_um, self._demand_max_um))
 
-    def reset(self, voltage_v: Optional[float] = None, reference_m: Optional[float] = None) -> None:
-        """Start afresh: inverses in the virgin state at ``voltage_v`` (default centre), integrator 0."""
+    def reset(self, voltage_v: Optional[float] = None, reference_m: Optional[float] = None,
+              forward_state=None) -> None:
+        """Start afresh: inverses in the virgin state at ``voltage_v`` (default centre), or in the forward model's
+        operator states ``forward_state`` reached at that voltage (the valve's memory, where it is known: see
+        ``handover.AppliedPath``), integrator 0."""
         c = self.config
         v0 = c.centre_voltage_v if voltage_v is None else float(voltage_v)
         # feedforward inverse, driven by the demand every period whatever the strategy
         self.ff_inverse = self._inverse(v0)
         # in-loop inverse of pid_hc, driven by the PID output (with the feedforward's rate widening)
         self.loop_inverse = self._inverse(v0, follow=self.ff_inverse)
-        y0 = self.model.output_from_state(self.model.virgin_state(v0))
+        state = self.model.virgin_state(v0)
+        if forward_state is not None and len(forward_state) == len(state):
+            state = forward_state
+            self.ff_inverse.set_forward_state(state, v0)
+            self.loop_inverse.set_forward_state(state, v0)
+        y0 = self.model.output_from_state(state)
         # creep and saturation inverse of the feedforward path (None when neither is modelled)
         self._static = self._static_inverse(y0)
         s0 = self._static.forward(y0) if self._static is not None else y0

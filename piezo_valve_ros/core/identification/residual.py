@@ -696,12 +696,12 @@ class _Loop:
                  f"the effects chosen again on {best.label}")
         baseline = fit_model(self.fit, best.model, poles="baseline", cache=self.cache)
         # the story's effects confirmed on it (each must still earn its place: one that stood in for operators does
-        # not); the other effects were judged on the first size already, and the report's first-order figures
-        # (the subset search) stay the first size's, the baseline's
+        # not), then the others checked exactly on top there; the report's first-order figures (the subset search)
+        # stay the first size's, the baseline's
         choice = _EffectChoice(self, baseline, best.label, search=False)
         choice.search, choice.table, choice.chosen_set = story.choice.search, story.choice.table, frozenset(story.added)
         choice.exact_checks = dict(story.choice.exact_checks)   # the checks that refused the others, as they decided
-        second = choice.story(story.added, extend=False)
+        second = choice.story(story.added)
         after, names = self.held_out(second.final).rms, ", ".join(second.added) or "nothing"
         if after <= (1 + CAPACITY_TOLERANCE) * before:
             self.log(f"capacity: {names} on {best.label} (held-out RMS {after:.4f} um) against {effects} on "
@@ -994,10 +994,17 @@ class _Loop:
         self.leave_out_start_in_motion(start)
         self.check_held_out_range()
         capacity = self.choose_capacity(start)
-        story = _EffectChoice(self, capacity.baseline, capacity.label).story()
-        capacity, story = self.revisit_placement(start, capacity, story)
-        capacity, story = self.revisit_capacity(capacity, story)
-        capacity, story = self.rechoose_capacity(start, capacity, story)
+        choice = _EffectChoice(self, capacity.baseline, capacity.label)
+        # the search's effects confirmed, the size chosen again with them in, and only then the effects the search
+        # underrated checked exactly on top (on the size they will be fitted on: checks on too small a size let an
+        # effect stand in for operators, and cost most of an analysis)
+        confirmed = choice.story(extend=False)
+        capacity, story = self.rechoose_capacity(start, capacity, confirmed)
+        if story is confirmed:
+            story = choice.story()   # (its confirmation's refits are cached)
+        if capacity.effects_grid is None:   # (a size chosen again with the effects in has settled the grid)
+            capacity, story = self.revisit_placement(start, capacity, story)
+            capacity, story = self.revisit_capacity(capacity, story)
         remains = self.what_remains(story)
         report = self.report(start, capacity, story, remains)
         return Analysis(report, capacity.baseline, story.final, self.split, story.drop_one, self.sessions)

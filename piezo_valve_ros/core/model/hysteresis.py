@@ -400,7 +400,9 @@ def contact_sensitivity(side: np.ndarray, index: np.ndarray, weights: np.ndarray
     out = np.empty((n_rows, columns.shape[0]))
     w = np.asarray(weights, float)
     if compiled and index.size >= KERNEL_MIN_WORK and n <= _kernels().PAIRWISE_BLOCK:
-        _kernels().contact_sums(np.ascontiguousarray(side), np.ascontiguousarray(index), np.ascontiguousarray(w),
+        # the weights as a writable copy: a GPIM's are read-only, a caller's may not be, and the kernel would compile
+        # once for each layout (a test worker that ran both saw two specialisations)
+        _kernels().contact_sums(np.ascontiguousarray(side), np.ascontiguousarray(index), np.array(w, dtype=float),
                                 CONTACT_BOUNDS[bounds], columns, out)
         return out[:, 0] if c.ndim == 1 else out
     which = {"lower": lambda s: (s < 0) * w, "upper": lambda s: (s > 0) * w, "both": lambda s: s * w}[bounds]
