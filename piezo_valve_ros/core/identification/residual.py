@@ -1002,6 +1002,8 @@ class _Loop:
         capacity, story = self.rechoose_capacity(start, capacity, confirmed)
         if story is confirmed:
             story = choice.story()   # (its confirmation's refits are cached)
+            if story.added != confirmed.added:   # effects the exact checks found: the size again with them in
+                capacity, story = self.rechoose_capacity(start, capacity, story)
         if capacity.effects_grid is None:   # (a size chosen again with the effects in has settled the grid)
             capacity, story = self.revisit_placement(start, capacity, story)
             capacity, story = self.revisit_capacity(capacity, story)
@@ -1024,6 +1026,7 @@ class _EffectChoice:
         self.held_out, self.session, self.polishes = loop.held_out, loop.session, loop.polishes
         self.error, self.range_val = loop.error, loop.range_val
         self.confirm_log: list[ConfirmRound] = []
+        self._confirmed: Optional[tuple] = None   # the search's set as confirmed (story), once
         H_fit = baseline.context(self.fit).H
         self.effects: list[Effect] = [e for e in (cls.prepare(self.fit, H_fit) for cls in CATALOGUE) if e is not None]
         self.by_name: dict[str, Effect] = {e.name: e for e in self.effects}
@@ -1355,8 +1358,9 @@ class _EffectChoice:
         again); then G_v's poles again through the effects found.  The final model is never worse on held-out data
         than the baseline (by the one score every decision used: ``held_out``)."""
         if start is None:
-            final, drop_one, verdicts, current = self.untrusted_or_confirmed(
-                [n for n in self.names if n in self.chosen_set])
+            if self._confirmed is None:   # once per choice: a story told again goes on from the same set
+                self._confirmed = self.untrusted_or_confirmed([n for n in self.names if n in self.chosen_set])
+            final, drop_one, verdicts, current = self._confirmed
         else:
             final, drop_one, verdicts, current = self.confirm([n for n in self.names if n in start])
         tried: set[frozenset] = set()   # sets already put to confirm: each once (an effect added here and dropped
