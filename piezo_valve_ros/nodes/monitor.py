@@ -19,6 +19,8 @@ valve is OK again.  Anything else needs a designed experiment: it logs the ident
 from __future__ import annotations
 
 import math
+import queue
+import threading
 from typing import Optional
 
 import numpy as np
@@ -87,6 +89,13 @@ class ValveMonitorNode(Node):
         self._latest_sample_s: Optional[float] = None
         self.controller_state: dict[str, float] = {}
         self.refits = RefitPolicy(self.refit_at, self.limits.window_s)
+        # the windows are judged on a thread of their own: a judgement (its resemblance search) takes a second or two,
+        # which would hold up the 1 Hz diagnostics and every other callback of the executor (valve_command status
+        # then missed the monitor); samples and model changes reach it in order through one queue
+        self._work: queue.SimpleQueue = queue.SimpleQueue()
+        self._stopping = threading.Event()
+        self._judge = threading.Thread(target=self._judge_loop, name="valve_monitor_judge", daemon=True)
+        self._judge.start()
         self.create_subscription(Float64MultiArray, "samples", self._on_samples, SAMPLES_QOS)
         self.create_subscription(Float64MultiArray, f"{self.controller_name}/controller_state", self._on_state, 10)
         self.create_subscription(ParameterEvent, "/parameter_events", self._on_parameter_event, 10)
@@ -128,8 +137,7 @@ class ValveMonitorNode(Node):
             return
         first = self.model is None
         self.model, self.command_range_v, self._model_values = model, command_range, (values, command_range)
-        if self.monitor is not None:
-            self.monitor.set_model(model)
+        self._work.put(("model", model))
         self.get_logger().info(("model in force taken from " if first else "the model in force changed; judged "
                                 "afresh from now on: ") + f"{self.controller_name} ({model.gpim.n} operators, "
                                f"commands {command_range[0]:g}..{command_range[1]:g} V)")
@@ -143,14 +151,42 @@ class ValveMonitorNode(Node):
             return
         if self.model is None or not len(rows):
             return
-        if self.monitor is None:
+        if self._first_sample_s is None:
             dt = float(np.median(np.diff(rows[:, 0]))) if len(rows) > 1 else math.nan
             if not (math.isfinite(dt) and dt > 0):
                 self.get_logger().warning("rejected samples message: its times do not give a sample period")
                 return
-            self.monitor = HealthMonitor(self.model, dt, self.limits, self.command_range_v)
             self._first_sample_s = float(rows[0, 0])
+            self._work.put(("start", (self.model, dt, self.command_range_v)))
         self._latest_sample_s = float(rows[-1, 0])
+        self._work.put(("rows", rows))
+
+    def _judge_loop(self) -> None:
+        """The judging thread: the monitor started, its model changed and its windows judged, in the order the
+        executor's callbacks handed them over."""
+        while not self._stopping.is_set():
+            try:
+                kind, item = self._work.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            try:
+                if kind == "start":
+                    model, dt, command_range = item
+                    self.monitor = HealthMonitor(model, dt, self.limits, command_range)
+                elif kind == "model":
+                    if self.monitor is not None:
+                        self.monitor.set_model(item)
+                elif self.monitor is not None:
+                    self._judge_rows(item)
+            except Exception as exc:   # a window that cannot be judged: said, and the next one judged
+                self.get_logger().error(f"a window could not be judged: {exc!r}")
+
+    def stop(self) -> None:
+        """The judging thread ended (the node stops)."""
+        self._stopping.set()
+        self._judge.join(timeout=5.0)
+
+    def _judge_rows(self, rows: np.ndarray) -> None:
         for health in self.monitor.add(rows):
             self.latest, self.verdicts = health, self.verdicts + 1
             self.health_pub.publish(samples_message(np.array([[
@@ -204,7 +240,7 @@ class ValveMonitorNode(Node):
 
 def main(args=None) -> int:
     keep_freed_memory()   # its windows' analyses (runtime.memory); before ROS starts its threads
-    return run_node(ValveMonitorNode, "valve_monitor", args, specs=MONITOR_PARAMETERS)
+    return run_node(ValveMonitorNode, "valve_monitor", args, on_exit_of=lambda n: n.stop, specs=MONITOR_PARAMETERS)
 
 
 if __name__ == "__main__":

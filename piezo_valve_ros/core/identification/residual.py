@@ -682,7 +682,12 @@ class _Loop:
             return capacity, story
 
         def refit(c: CapacityFit) -> tuple[CapacityFit, float]:   # a job on the pool: refit, not refit_many
-            return c, _EffectChoice(self, c.model, c.label, search=False).refit(story.added, story.final)[1].rms
+            choice = _EffectChoice(self, c.model, c.label, search=False)
+            result = choice.refit(story.added, story.final)
+            choice.refits[frozenset(story.added)] = result   # the story goes on from it where this size is taken
+            choices[c.label] = choice
+            return c, result[1].rms
+        choices: dict[str, _EffectChoice] = {}
         tried = self.each([lambda c=c: refit(c) for c in others])
         effects = ", ".join(story.added)
         text = ", ".join(f"{c.label} {r:.4f}" for c, r in tried)
@@ -694,11 +699,11 @@ class _Loop:
         best = min(better)[2]
         self.log(f"capacity with {effects}: {capacity.label} {before:.4f} um held-out RMS, the other sizes {text}: "
                  f"the effects chosen again on {best.label}")
-        baseline = fit_model(self.fit, best.model, poles="baseline", cache=self.cache)
         # the story's effects confirmed on it (each must still earn its place: one that stood in for operators does
-        # not), then the others checked exactly on top there; the report's first-order figures (the subset search)
-        # stay the first size's, the baseline's
-        choice = _EffectChoice(self, baseline, best.label, search=False)
+        # not), then the others checked exactly on top there; on the size's own fit (G_v as the chosen start fitted
+        # it), from the refit that chose it; the report's first-order figures (the subset search) stay the first
+        # size's, the baseline's
+        choice = choices[best.label]
         choice.search, choice.table, choice.chosen_set = story.choice.search, story.choice.table, frozenset(story.added)
         choice.exact_checks = dict(story.choice.exact_checks)   # the checks that refused the others, as they decided
         second = choice.story(story.added)
@@ -1081,9 +1086,11 @@ class _EffectChoice:
         effects = [chosen.get(n, self.by_name[n]) for n in subset]
         m = fit_model(self.fit, self.baseline, effects, try_forms={n for n in subset if n not in chosen},
                       cache=self.cache, warm=like, each=self.each_form)
-        # nested forms are chosen on held-out data again in every set: a form chosen beside one effect (a drift's
-        # slow form beside creep) need not be the best without it
-        return self.held_out_form(m, subset)
+        # nested forms are chosen on held-out data for the effects new to the set, and again for all of them where
+        # the set is one the model it starts from had less an effect (a drop-one refit: a form chosen beside one
+        # effect, a drift's slow form beside creep, need not be the best without it)
+        dropped = like is not None and set(subset) < set(chosen)
+        return self.held_out_form(m, subset if dropped else [n for n in subset if n not in chosen])
 
     def held_out_form(self, model: ValveModel, free: list[str]) -> tuple[ValveModel, Score]:
         """``model`` with each effect of ``free`` that has nested forms (``Effect.held_out_forms``) in the one

@@ -32,6 +32,8 @@ FAST_TIME_SCALES = (0.03, 0.1)          # ... and those of the "fast" and "wande
 HEATING_TIME_CONSTANTS_S = (10.0, 40.0)
 WANDER_TERMS = 3                        # half-cosines cos(pi k t / T) - 1, k = 1..3, of the "wander" form
 FORMS = ("linear", "all", "fast", "wander")   # see Drift.held_out_forms: the simplest first, each in the next
+_SLOW: dict = {}       # (record, t0, form, T, rate) -> (the record's times, its slow functions): see slow_functions
+_SLOW_KEPT = 16
 
 
 @dataclass(frozen=True)
@@ -57,6 +59,20 @@ class Drift(Effect):
         return [replace(self, form=f) for f in FORMS]
 
     def slow_functions(self, ctx) -> np.ndarray:
+        """(N, k) functions of time and activity this form multiplies offset and gain by: the same for every model
+        on the record, so kept (``_SLOW_KEPT`` of them) for the refits that build them again and again."""
+        key = (id(ctx.record.time_s), len(ctx.record), float(ctx.t0), self.form, self.duration_s, self.mean_rate_v_s)
+        kept = _SLOW.get(key)
+        if kept is not None and kept[0] is ctx.record.time_s:
+            return kept[1]
+        out = self._slow_functions(ctx)
+        out.setflags(write=False)
+        while len(_SLOW) >= _SLOW_KEPT:
+            _SLOW.pop(next(iter(_SLOW)), None)
+        _SLOW[key] = (ctx.record.time_s, out)
+        return out
+
+    def _slow_functions(self, ctx) -> np.ndarray:
         t, T = ctx.t, self.duration_s
         if self.form == "linear":
             return (t / T)[:, None]
