@@ -658,15 +658,16 @@ class _Loop:
                  f"{capacity.label} kept")
         return capacity, story
 
-    def rechoose_capacity(self, start: StartChoice, capacity: CapacityChoice, story: Story
+    def rechoose_capacity(self, start: StartChoice, capacity: CapacityChoice, story: Story, extend: bool = True
                           ) -> tuple[CapacityChoice, Story]:
         """The GPIM's size chosen again with ``story``'s effects in the model (capacity and effects are chosen
         together: an effect must not stand in for operators the baseline's choice left out, nor a size win only
         because an effect it lacks swamped what the sizes differ in).  Each larger size of the capacity choice gets
         the story's effects refitted on it (from the story's structures); where one leaves a held-out RMS lower by
         more than CAPACITY_TOLERANCE, the effects are confirmed again on it (each must earn its place there), and
-        that story replaces the first where it explains at least as much.  Skipped for a story of one effect that
-        leaves no room for another (``search.room_for_an_effect``): near the noise no size shows more."""
+        that story replaces the first where it explains at least as much (``extend``: and the other effects checked
+        exactly on top there, where ``story``'s were not).  Skipped for a story of one effect that leaves no room
+        for another (``search.room_for_an_effect``): near the noise no size shows more."""
         if not story.added:
             return capacity, story
         final_score = self.held_out(story.final)
@@ -706,7 +707,7 @@ class _Loop:
         choice = choices[best.label]
         choice.search, choice.table, choice.chosen_set = story.choice.search, story.choice.table, frozenset(story.added)
         choice.exact_checks = dict(story.choice.exact_checks)   # the checks that refused the others, as they decided
-        second = choice.story(story.added)
+        second = choice.story(story.added, extend=extend)
         after, names = self.held_out(second.final).rms, ", ".join(second.added) or "nothing"
         if after <= (1 + CAPACITY_TOLERANCE) * before:
             self.log(f"capacity: {names} on {best.label} (held-out RMS {after:.4f} um) against {effects} on "
@@ -1007,8 +1008,8 @@ class _Loop:
         capacity, story = self.rechoose_capacity(start, capacity, confirmed)
         if story is confirmed:
             story = choice.story()   # (its confirmation's refits are cached)
-            if story.added != confirmed.added:   # effects the exact checks found: the size again with them in
-                capacity, story = self.rechoose_capacity(start, capacity, story)
+            if story.added != confirmed.added:   # effects the exact checks found: the size again with them in (the
+                capacity, story = self.rechoose_capacity(start, capacity, story, extend=False)   # others checked)
         if capacity.effects_grid is None:   # (a size chosen again with the effects in has settled the grid)
             capacity, story = self.revisit_placement(start, capacity, story)
             capacity, story = self.revisit_capacity(capacity, story)
