@@ -354,7 +354,7 @@ def test_an_out_of_tree_backend_runs_the_rig(tmp_path):
     misspelt = subprocess.run([hw_exe, "--ros-args", "-p", "backend:=loopback", "-p", "loopback.gain_m_per_vv:=1e-5"],
                               env=plugin_env(), capture_output=True, text=True, timeout=60)
     assert misspelt.returncode == 2, misspelt
-    assert misspelt.stderr.strip().startswith("valve_hardware: unknown parameter(s) loopback.gain_m_per_vv (the "
+    assert misspelt.stderr.strip().startswith("valve_hardware: unknown parameter(s) loopback.gain_m_per_vv (did you mean loopback.gain_m_per_v?) (the "
                                               "loopback backend's own: loopback.gain_m_per_v,"), misspelt.stderr
 
     ns = f"/daq{os.getpid()}"
@@ -398,12 +398,37 @@ def test_valve_rig_with_a_backend_that_is_not_installed_ends_at_once_with_the_ha
 def test_a_misspelt_parameter_of_the_sim_backend_or_of_the_hardware_is_refused_where_it_was_given():
     """valve_hardware refuses every name its command line gives it that it does not declare; valve_composed, whose
     unprefixed names go to both nodes, refuses a backend's misspelt one and leaves the controller's to it."""
-    for args, says in [(["-p", "sim.sed:=3"], "unknown parameter(s) sim.sed (the sim backend's own: sim.seed,"),
+    for args, says in [(["-p", "sim.sed:=3"], "unknown parameter(s) sim.sed (did you mean sim.seed?) (the sim backend's own: sim.seed,"),
                        (["-p", "clok:=lockstep"], "unknown parameter(s) clok ")]:
         out = tool("valve_hardware", "--ros-args", *args)
         assert out.returncode == 2 and says in out.stderr, (args, out.stderr)
     out = tool("valve_composed", "--ros-args", "-p", "sim.sed:=3")
     assert out.returncode == 2 and "unknown parameter(s) sim.sed" in out.stderr, out.stderr
+
+
+@pytest.mark.parametrize("node, typo, meant", [
+    ("valve_controller", "gain_sett:=pid_1", "gain_set"),
+    ("valve_monitor", "windw_s:=10.0", "window_s"),
+    ("valve_identification", "plann:=train", "plan"),
+    ("valve_composed", "gain_sett:=pid_1", "gain_set"),
+    ("valve_hardware", "safe_voltag:=5.0", "safe_voltage"),
+])
+def test_every_node_refuses_a_misspelt_parameter_naming_the_one_meant(node, typo, meant, tmp_path):
+    """A misspelt parameter (rclpy would ignore it, leaving the default in force: a misspelt ``plan`` would run the
+    default plan and drive the valve) ends the node at start-up with exit 2, naming the parameter and the nearest
+    declared one, before anything is driven; the same typo in a rig file's section for the node too."""
+    name = typo.partition(":=")[0]
+    out = tool(node, "--ros-args", "-p", typo, timeout_s=60)
+    assert out.returncode == 2, (node, out.stdout, out.stderr)
+    assert f"{name} (did you mean {meant}?)" in out.stderr and "unknown parameter(s)" in out.stderr, (node, out.stderr)
+    assert f"{node} up" not in out.stdout + out.stderr and "valve_controller up" not in out.stdout + out.stderr
+    # (refused before the node said it was up, let alone drove; composed, its hardware is up at the safe voltage)
+    section = "/**/" + {"valve_composed": "valve_controller"}.get(node, node)   # as config/rig.yaml writes them
+    rig_file = tmp_path / "rig.yaml"
+    value = typo.partition(":=")[2]
+    rig_file.write_text(f"{section}:\n  ros__parameters:\n    {name}: {value}\n")
+    out = tool(node, "--ros-args", "--params-file", str(rig_file), timeout_s=60)
+    assert out.returncode == 2 and name in out.stderr and "unknown parameter(s)" in out.stderr, (node, out.stderr)
 
 
 def test_valve_rig_stops_when_its_identification_plan_ends(tmp_path):

@@ -14,7 +14,7 @@ from __future__ import annotations
 import sys
 
 from ..core.validation import same_period
-from .common import close, print_help, refuse_undeclared, spin, start_node_process, wants_help
+from .common import close, print_help, spin, start_node_process, wants_help
 from .controller import CONTROLLER_PARAMETERS, ValveControllerNode
 from .hardware import ValveHardwareNode, hardware_parameters_with_backends
 
@@ -27,7 +27,7 @@ def build(hardware_overrides=(), controller_overrides=(), **node_kwargs) -> tupl
     hardware = ValveHardwareNode(parameter_overrides=list(hardware_overrides), **node_kwargs)
     controller = None
     try:
-        controller = ValveControllerNode(parameter_overrides=list(controller_overrides), **node_kwargs)
+        controller = ValveControllerNode(siblings=[hardware], parameter_overrides=list(controller_overrides), **node_kwargs)
         dt = controller.controller.config.dt
         if not same_period(dt, hardware.control_period_s):
             raise ValueError(f"control_period_s differs: hardware {hardware.control_period_s} s, controller {dt} s")
@@ -53,15 +53,6 @@ def main(args=None) -> int:
         hardware, controller = build()
     except Exception as exc:
         print(f"valve_composed: {exc}", file=sys.stderr)
-        close()
-        return 2
-    try:
-        refuse_undeclared([hardware, controller], "valve_composed")
-    except ValueError as exc:
-        print(f"valve_composed: {exc}", file=sys.stderr)
-        hardware.shutdown_safely()
-        hardware.destroy_node()
-        controller.destroy_node()
         close()
         return 2
     return spin([hardware, controller], on_exit=hardware.shutdown_safely)

@@ -19,7 +19,7 @@ import math
 from dataclasses import replace
 import sys
 import time
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
@@ -35,7 +35,7 @@ from ..core.control.strategies import (GUARD_WINDOW_S, has_feedback, SAFE_PERIOD
                                        PIDGains, ValveController, default_gain_set, gain_set, loop_settings)
 from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, LATEST_SENSOR_QOS, SAMPLES_QOS, STATE_QOS, Diagnostics, period_parameter,
                      ParameterSpec, SamplesBuffer, as_float, declare_all,
-                     parameter_values, realtime_settings, realtime_specs, refuse, run_node, samples_from_message,
+                     parameter_values, realtime_settings, realtime_specs, refuse, refuse_undeclared, run_node, samples_from_message,
                      Throttle)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
@@ -121,10 +121,13 @@ CONTROLLER_STATE_COLUMNS = ("time_s", "reference_m", "measured_m", "error_m", "c
 
 
 class ValveControllerNode(Node):
-    def __init__(self, **kwargs):
+    def __init__(self, siblings: Sequence[Node] = (), **kwargs):
+        """``siblings``: the other nodes of its process (a name the command line gives that none of them declares
+        is refused here, before anything runs: rclpy would ignore it, leaving its default in force)."""
         super().__init__("valve_controller", **kwargs)
         self._say_non_finite = Throttle(1.0)   # a per-measurement warning, at most this often
         declare_all(self, CONTROLLER_PARAMETERS)
+        refuse_undeclared([*siblings, self], "valve_controller" if not siblings else "valve_composed")
         name = str(self.get_parameter("gain_set").value or "")
         if name:  # the set's values are what runs: the parameters say so
             self.set_parameters([Parameter(k, value=v) for k, v in gain_set_values(name).items()])

@@ -37,7 +37,7 @@ from ..core.monitoring.refits import REFIT_LEVELS, RefitDecision, RefitPolicy
 from ..io.samples import SamplesLayoutError
 from ..runtime.memory import keep_freed_memory
 from .common import DIAGNOSTICS_PERIOD, SAMPLES_QOS, Diagnostics, ParameterSpec, as_float, declare_all, \
-    parameter_values, run_node, samples_from_message, samples_message
+    parameter_values, refuse_undeclared, run_node, samples_from_message, samples_message
 
 HEALTH_COLUMNS = ("end_s", "level", "ratio_to_noise", "structured_rms_um", "residual_mean_um", "noise_um",
                   "voltage_span_v")
@@ -65,6 +65,7 @@ class ValveMonitorNode(Node):
     def __init__(self, **kwargs):
         super().__init__("valve_monitor", **kwargs)
         declare_all(self, MONITOR_PARAMETERS)
+        refuse_undeclared([self], "valve_monitor")   # before anything runs (a misspelt name would leave its default)
         p = parameter_values(self)
         self.limits = HealthLimits(*(as_float(k, p[k]) for k in ("window_s", "step_s", "warn_ratio", "error_ratio",
                                                                  "min_span_v")))
