@@ -170,6 +170,20 @@ def test_a_sine_sent_as_many_small_changes_keeps_its_times_and_its_tracking_figu
     assert direct < 2.0      # (the staircase the 20 ms messages make, 3 ms late)
 
 
+def test_valve_plots_summary_of_a_stretch_says_it_is_a_stretch_and_why_it_has_no_reference():
+    """--from/--to: the extent is the stretch's, said as such; no reference sent by its end is not 'none in the bag'."""
+    from piezo_valve_ros.cli.plot import summary_lines
+    from piezo_valve_ros.core.runs import TimeWindow
+    t = 600.0 + np.arange(6001) * 1e-2
+    rows = np.column_stack((t, 5.0 + np.sin(t), 13e-6 * (5.0 + np.sin(t))))
+    none = np.full(t.size, np.nan)
+    stretch = summary_lines(rows, none, "/samples", TimeWindow(600.0, 660.0))
+    assert "over 60.00 s, the stretch 600 to 660 s from the record's first sample (not the whole record)" in stretch[0]
+    assert stretch[1] == "no position_reference sent by the stretch's end: no tracking error, no steps"
+    assert summary_lines(rows, none, "/samples")[1] == "no position_reference in the bag: no tracking error, no steps"
+    assert "over 60.00 s;" in summary_lines(rows, none, "/samples")[0]
+
+
 def test_parameter_assignments_read_as_yaml():
     assert parse_assignment("kp:=1.5") == ("kp", 1.5)
     assert parse_assignment("samples_batch:=10") == ("samples_batch", 10)
@@ -177,7 +191,8 @@ def test_parameter_assignments_read_as_yaml():
     assert parse_assignment("strategy=ol_hc") == ("strategy", "ol_hc")
     assert parse_assignment("creep.gains:=[0.1, 0.2]") == ("creep.gains", [0.1, 0.2])
     assert parse_assignment("gain_set:=''") == ("gain_set", "")
-    for bad in ("kp", ":=1", "kp:="):
+    assert parse_assignment("gain_set:=") == ("gain_set", "")   # what a shell leaves of gain_set:=''
+    for bad in ("kp", ":=1", "kp:=~"):
         with pytest.raises(ValueError):
             parse_assignment(bad)
 

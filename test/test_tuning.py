@@ -198,6 +198,10 @@ def test_valve_tune_fails_with_one_line_and_writes_nothing(tmp_path, capsys):
     other.write_text("/**/valve_hardware:\n  ros__parameters:\n    backend: sim\n")
     assert valve_tune([str(other), "--params-out", str(out)]) == 2
     assert "no section for valve_controller" in capsys.readouterr().err
+    gains_only = _write(tmp_path / "gains.yaml", "/**/valve_controller:\n  ros__parameters:\n    kp: 1.0\n")
+    assert valve_tune([str(gains_only), "--params-out", str(out)]) == 2   # not the paper's model in silence
+    assert "no model in the valve_controller section (no gpim.* parameters)" in capsys.readouterr().err
+    assert not out.exists()
     # read as ROS reads it: the /** section first, then the node's own sections, later ones winning
     both = _write(tmp_path / "both.yaml", "/**:\n  ros__parameters:\n    control_period_s: 0.002\n    kp: 1.0\n"
                   "valve_controller:\n  ros__parameters:\n    kp: 2.0\n/rig/valve_controller:\n  ros__parameters:\n"

@@ -73,7 +73,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("node")
     p.add_argument("names", nargs="*")
     p = sub.add_parser("set", help="set parameters of a node (NAME:=VALUE ...; several go in one atomic update, "
-                                   "all applied or none, e.g. strategy:=pid gain_set:='')")
+                                   "all applied or none, e.g. strategy:=pid gain_set:= (nothing after := is the empty string)")
     p.add_argument("node")
     p.add_argument("assignments", nargs="+", metavar="NAME:=VALUE")
     p = sub.add_parser("load", help="load a ROS parameters file into a running node in one atomic update (all "
@@ -89,13 +89,14 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def parse_assignment(text: str) -> tuple[str, object]:
-    """``name:=value`` (or ``name=value``) with the value read as YAML; ValueError when malformed."""
+    """``name:=value`` (or ``name=value``) with the value read as YAML; ``name:=`` (nothing after it, as a shell
+    leaves ``name:=''``) is the empty string; ValueError when malformed."""
     sep = ":=" if ":=" in text else "="
     name, found, value = text.partition(sep)
     if not found or not name.strip():
         raise ValueError(f"expected NAME:=VALUE, got {text!r}")
     if not value.strip():
-        raise ValueError(f"{name}: a value is needed (an empty string is written '')")
+        return name.strip(), ""   # a parameter that is not a string refuses it by its type, with its reason
     try:
         parsed = load_yaml(value)
     except YAMLError as exc:

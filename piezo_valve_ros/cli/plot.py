@@ -21,7 +21,8 @@ import numpy as np
 
 from ..io.bags import BagError, read_run
 from ..core.metrics import error_figures
-from ..core.runs import STEP_MIN_HOLD_S, STEP_MIN_JUMP_M, align_jumps, find_steps, reference_on_samples
+from ..core.runs import (STEP_MIN_HOLD_S, STEP_MIN_JUMP_M, WHOLE_RECORD, TimeWindow, align_jumps, find_steps,
+                         reference_on_samples)
 from .tool import add_window_arguments, window_from
 
 __all__ = ["main"]
@@ -32,11 +33,14 @@ def reference_moves(reference_m: np.ndarray) -> bool:
     return bool(np.ptp(reference_m) > 0)
 
 
-def summary_lines(rows: np.ndarray, reference_m: np.ndarray, topic: str) -> list[str]:
-    """The run's extent and, where a reference is known, its tracking error."""
+def summary_lines(rows: np.ndarray, reference_m: np.ndarray, topic: str,
+                  window: TimeWindow = WHOLE_RECORD) -> list[str]:
+    """The run's extent (the stretch's, for a window) and, where a reference is known, its tracking error."""
     t, v, y = rows[:, 0], rows[:, 1], rows[:, 2]
     rate = 1.0 / float(np.median(np.diff(t))) if t.size > 1 else float("nan")
-    out = [f"{topic}: {t.size} samples at {rate:.0f} Hz over {t[-1] - t[0]:.2f} s; command {v.min():.2f} .. "
+    extent = (f"over {t[-1] - t[0]:.2f} s" if window.whole
+              else f"over {t[-1] - t[0]:.2f} s, the stretch {window.describe()} (not the whole record)")
+    out = [f"{topic}: {t.size} samples at {rate:.0f} Hz {extent}; command {v.min():.2f} .. "
            f"{v.max():.2f} V, position {y.min() * 1e6:.2f} .. {y.max() * 1e6:.2f} um"]
     known = np.isfinite(reference_m)
     if known.any():
@@ -45,8 +49,10 @@ def summary_lines(rows: np.ndarray, reference_m: np.ndarray, topic: str) -> list
                else "no fit figure (the reference is constant: nothing to fit)")
         out.append(f"tracking error over {known.mean() * 100:.0f} % of the run (where a reference was in force): "
                    f"RMS {f.rms_um:.3f} um, peak {f.peak_um:.3f} um, {fit}")
-    else:
+    elif window.whole:
         out.append("no position_reference in the bag: no tracking error, no steps")
+    else:   # (a reference sent before the stretch counts: it is in force in it)
+        out.append("no position_reference sent by the stretch's end: no tracking error, no steps")
     return out
 
 
@@ -102,9 +108,10 @@ def main(argv=None) -> int:
                                 title=f"{Path(args.bag).name} ({topic})")
         except RuntimeError:  # no matplotlib: the numbers without figures
             written = []
-        print(json.dumps({**run_figures(rows, reference, topic, steps), "figures": written}))
+        print(json.dumps({**run_figures(rows, reference, topic, steps), "window": window.as_dict(),
+                          "figures": written}))
         return 0
-    for line in summary_lines(rows, reference, topic):
+    for line in summary_lines(rows, reference, topic, window):
         print(line)
     if steps:
         print(f"steps (a change >= {STEP_MIN_JUMP_M * 1e6:g} um held >= {STEP_MIN_HOLD_S * 1e3:g} ms; "

@@ -65,6 +65,10 @@ def main(argv=None) -> int:
 
     def work() -> list[str]:
         params = read_parameters_file(args.params_file)
+        if not any(name.startswith("gpim.") for name in params):   # else the controller's default (the paper's)
+            raise ParametersFileError(f"{args.params_file}: no model in the valve_controller section (no gpim.* "
+                                      "parameters): valve_tune tunes an identified model (valve_identify "
+                                      "--params-out), or config/paper_model.yaml for the paper's")
         config = loop_settings(params, args.strategy, dt=args.control_period_s, default_dt=CONTROL_PERIOD_S)
         dt, v_min, v_max = config.dt, config.command_min_v, config.command_max_v
         try:  # the command range and period are checked by tune(), with the limits

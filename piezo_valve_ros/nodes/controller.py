@@ -65,7 +65,7 @@ def settings_from_parameters(p: dict[str, Any]) -> tuple[ControllerConfig, Compe
         differ = [k for k in GAIN_SET_KEYS if p[k] != wanted[k]]
         if differ:
             raise ValueError(f"gain_set {name!r} is active and decides {', '.join(GAIN_SET_KEYS)}: to set "
-                             f"{', '.join(differ)}, clear it in the same request (gain_set: '')")
+                             f"{', '.join(differ)}, clear it in the same request (gain_set:= with nothing after it, or gain_set: '' in a file)")
     config = loop_settings(p, strategy, gains)
     problems = config.problems()
     lo, hi = DERIVATIVE_FILTER_RANGE_S
