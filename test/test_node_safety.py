@@ -937,3 +937,33 @@ def test_one_rule_says_whether_a_time_is_a_whole_number_of_periods():
     assert whole_periods(1.5e-4, 1e-4) is None and whole_periods(1.0005e-3, 1e-4) is None
     assert whole_periods(float("nan"), 1e-4) is None and whole_periods(float("inf"), 1e-4) is None
     assert same_period(1e-4, 1e-4 * (1 + 1e-9)) and not same_period(1e-4, 1.0001e-4)
+
+
+def test_a_node_whose_shutdown_hangs_dumps_its_stacks_and_exits_by_its_deadline():
+    """After the first Ctrl-C/SIGTERM a node process has SHUTDOWN_DEADLINE_S to end; one whose shutdown hangs (here a
+    loop that never looks at the stop request, as a thread spinning on a lock would) writes every thread's stack to
+    stderr, naming where it hung, and exits 1 instead of holding the valve and a CPU for ever."""
+    from piezo_valve_ros.nodes.common import SHUTDOWN_DEADLINE_S
+    script = ("import os, signal, time\n"
+              "from piezo_valve_ros.nodes.common import init_ros\n"
+              "init_ros(['hung_node'])\n"
+              "def stuck_in_shutdown():\n"
+              "    while True:\n"
+              "        time.sleep(0.01)\n"
+              "print('up', flush=True)\n"
+              "stuck_in_shutdown()\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], env=ros_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "up"
+        sent = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=SHUTDOWN_DEADLINE_S + 30)
+        took = time.monotonic() - sent
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 1, (proc.returncode, err)
+    assert took >= SHUTDOWN_DEADLINE_S - 0.1, took
+    assert "Timeout" in err and "stuck_in_shutdown" in err and "most recent call first" in err, err

@@ -4,6 +4,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from typing import Optional
 
 import numpy as np
@@ -13,6 +14,7 @@ import yaml
 from ros_helpers import ros_env, start, wait_for_text
 
 from piezo_valve_ros.io.bags import read_samples
+from piezo_valve_ros.nodes.common import SHUTDOWN_DEADLINE_S
 from piezo_valve_ros.runtime.processes import ProcessGroup, node_command
 
 PERIOD = 1e-3  # 1 kHz control, 10 kHz sampling
@@ -60,6 +62,11 @@ def test_identification_refits_pushes_and_cuts_the_ol_hc_error(tmp_path):
     assert after["peak_um"] < 0.5 * before["peak_um"]
     refit = summary[2]
     assert refit["ok"] and refit["pushed"], refit
+    # each validation puts the controller back as it found it (the rig's gain set; then the tuned gains), and the
+    # validation after the refit judges it against the one before it
+    assert "validate: the controller back on gain set pid_hc_2, as before the validation" in log, log
+    assert "validate: the controller back on strategy pid_hc, kp " in log, log
+    assert after["refit_judged"] == "better" and "validate: the refit cut the tracking error RMS" in log
     # the experiment is compressed 4x on a 1 kHz lockstep rig: which effects show in 10 s of it depends on that
     # (a 5 V ramp falls into one control period and meets the amplifier's slew limit); the point here is that
     # the refitted model reaches the controller and cuts its error, and that summary, report and log agree
@@ -116,8 +123,12 @@ def test_an_identification_node_stopped_during_a_refit_leaves_the_lockstep_rig_r
         log = tmp_path / "identification.log"
         wait_for_text(log, "refit: analysing", timeout_s=120)
         proc.send_signal(signal.SIGINT)                         # Ctrl-C while it analyses (the rig paused)
-        proc.wait(60)
+        signalled = time.monotonic()
+        code = proc.wait(60)
         said = open(log).read()
+        assert code == 130, (code, said)                           # cut short by a signal: not 0, not a hang's 1
+        assert time.monotonic() - signalled < SHUTDOWN_DEADLINE_S, said   # (no stack dump: it ended by itself)
+        assert "interrupted: step refit (2 of 3) cut short (done: train)" in said, said
         assert "lockstep rig: paused while no experiment runs" in said, said
         assert "plan done" not in said                             # it stopped in the middle of the plan
         assert _step_budget(ns) == "lockstep.step_budget: -1", open(log).read()
@@ -176,3 +187,66 @@ def test_a_standalone_identification_node_whose_plan_fails_exits_1(tmp_path):
     finally:
         group.stop()
     assert "plan stopped: cannot set the controller up for validation" in open(tmp_path / "identification.log").read()
+
+
+class _PlanStub:
+    """What ``ValveIdentificationNode._judge_refit`` uses of its node: the last validation, what the refit replaced,
+    the keep_worse_refit reason, the parameters file, the controller's set requests and a logger."""
+
+    def __init__(self, tmp_path, keep_worse_refit=""):
+        self._last_validation = 0.5
+        self._before_refit = ({"gpim.rho": 5.8}, b"# the model before the refit\n")
+        self.keep_worse_refit = keep_worse_refit
+        self.params_out = tmp_path / "fitted.yaml"
+        self.params_out.write_text("# the refit's model\n")
+        self.sent, self.said = [], []
+
+    def _set_controller(self, values, atomically):
+        self.sent.append(values)
+        return True, ""
+
+    def get_logger(self):
+        said = self.said
+        return type("Logger", (), {"info": lambda _, s: said.append(("info", s)),
+                                   "warning": lambda _, s: said.append(("warning", s))})()
+
+
+def test_a_refit_that_tracks_worse_is_taken_back_unless_a_reason_keeps_it(tmp_path):
+    """The validation after a pushed refit tracks worse (0.5 -> 0.7 um RMS): the model before it goes back to the
+    controller and its parameters file is restored, said at WARN; with keep_worse_refit the refit stays, with the
+    reason in the log.  A better validation keeps the refit."""
+    from piezo_valve_ros.nodes.identification import ValveIdentificationNode
+    judge = ValveIdentificationNode._judge_refit
+    plan = _PlanStub(tmp_path)
+    out = judge(plan, {"step": "validate", "rms_um": 0.7})
+    assert out["refit_judged"] == "worse, taken back" and plan.sent == [{"gpim.rho": 5.8}]
+    assert plan.params_out.read_text() == "# the model before the refit\n"
+    assert plan.said[-1][0] == "warning" and "made tracking worse (0.500 -> 0.700 um RMS)" in plan.said[-1][1]
+    assert plan._last_validation == 0.5   # the next refit is judged against the model in force
+    kept = _PlanStub(tmp_path, keep_worse_refit="the valve was re-shimmed")
+    out = judge(kept, {"step": "validate", "rms_um": 0.7})
+    assert out["refit_judged"] == "worse, kept: the valve was re-shimmed" and kept.sent == []
+    assert kept.params_out.read_text() == "# the refit's model\n" and "kept as told" in kept.said[-1][1]
+    better = _PlanStub(tmp_path)
+    assert judge(better, {"step": "validate", "rms_um": 0.4})["refit_judged"] == "better" and better.sent == []
+
+
+@pytest.mark.slow
+@pytest.mark.wall_clock(seconds=12)
+def test_an_identification_plan_with_no_rig_says_what_it_waits_for_and_ctrl_c_ends_it_with_130(tmp_path):
+    """No rig in the domain: the plan says every RIG_WAIT_SAY_S what it waits for and in which ROS_DOMAIN_ID; Ctrl-C
+    then says what was cut short and exits 130."""
+    from piezo_valve_ros.nodes.identification import RIG_WAIT_SAY_S
+    ns = f"/norig{os.getpid()}"
+    group = ProcessGroup()
+    try:
+        proc = start(group, "identification", node_command("valve_identification", {"plan": "validate"}, ns),
+                     str(tmp_path))
+        log = tmp_path / "identification.log"
+        wait_for_text(log, "s for the controller 'valve_controller' to answer in ROS_DOMAIN_ID "
+                      f"{ros_env()['ROS_DOMAIN_ID']} (is the rig up, in this domain?)", timeout_s=RIG_WAIT_SAY_S + 30)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 130, open(log).read()
+    finally:
+        group.stop()
+    assert "interrupted: step (waiting for the rig) cut short (done: nothing)" in open(log).read()

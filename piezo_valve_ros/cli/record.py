@@ -92,7 +92,7 @@ def main(argv=None) -> int:
     if out.exists():
         print(f"valve_record: {out} exists already; every recording gets a new bag directory", file=sys.stderr)
         return 2
-    init_ros(["valve_record"] + ros_args)
+    init_ros(["valve_record"] + ros_args, shutdown_deadline_s=None)   # (its bag is closed whole, however long)
     # no parameter services: the recorder has no parameters to serve, and each service is waited on in every
     # executor round (a recorder reads three messages a period from a lockstep rig)
     node = rclpy.create_node("valve_record", namespace=args.namespace or None, start_parameter_services=False)

@@ -313,10 +313,29 @@ class _StopRequest:
     death brings two SIGTERMs, the kernel's and the parent watcher's), and a handler that takes a lock
     (``threading.Event.set`` does) then waits for itself for ever: the node hung before its safe shutdown."""
     requested = False
+    deadline_s: Optional[float] = None   # init_ros's shutdown_deadline_s
 
     @classmethod
     def set(cls, *_signal_args) -> None:
-        cls.requested = True
+        if not cls.requested:
+            cls.requested = True
+            _arm_shutdown_deadline(cls.deadline_s)
+
+
+SHUTDOWN_DEADLINE_S = 4.5   # a node still alive this long after the first Ctrl-C/SIGTERM dumps its stacks and exits
+# (a node's shutdown takes well under a second; below a ProcessGroup's SIGKILL, two STOP_GRACE_S after its Ctrl-C)
+
+
+def _arm_shutdown_deadline(deadline_s: Optional[float]) -> None:
+    """From the stop signal's handler: every thread back on the normal scheduler (a shutdown is not time-critical,
+    and a thread at one FIFO priority that waits for another by spinning starves it for good), then faulthandler's
+    own timer (a thread of C that needs no GIL, started here on the normal scheduler): if the process has not ended
+    ``deadline_s`` later (None: no deadline) it writes every thread's stack to stderr and exits 1, so a hung
+    shutdown says where it hung and never holds the valve or a CPU.  Takes no Python lock (a handler may run inside
+    itself)."""
+    leave_realtime()
+    if deadline_s is not None:
+        faulthandler.dump_traceback_later(deadline_s, exit=True)
 
 
 _STOP_REQUESTED = _StopRequest
@@ -360,16 +379,19 @@ def given_parameter_names(node_name: str, argv=None) -> tuple[set[str], set[str]
     return own, shared
 
 
-def init_ros(args=None) -> None:
+def init_ros(args=None, shutdown_deadline_s: Optional[float] = SHUTDOWN_DEADLINE_S) -> None:
     """``rclpy.init`` for a node process, with signal handling of our own: Ctrl-C/SIGTERM only ask the spin
     loop to stop (within its 0.1 s wait), so no callback is interrupted half-way (rclpy's handler raises
     into whatever callback runs, which the executor reports as a FATAL exception) and the shutdown path
-    (safe voltage, flushing the samples) runs with the ROS context still valid."""
+    (safe voltage, flushing the samples) runs with the ROS context still valid.  A process still alive
+    ``shutdown_deadline_s`` after the first of them dumps every thread's stack and exits 1 (None: a process whose
+    shutdown may take long, a recorder closing a large bag)."""
     import signal
     import sys
     _ROS_ARGV[:] = list(sys.argv if args is None else args)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     _STOP_REQUESTED.requested = False
+    _STOP_REQUESTED.deadline_s = shutdown_deadline_s
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, _STOP_REQUESTED.set)
