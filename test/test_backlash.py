@@ -117,3 +117,26 @@ def test_the_simulated_backend_takes_a_clearance_and_refuses_a_negative_one():
     y, y0 = valve.run(np.concatenate((up, down))) * 1e6, ideal.run(np.concatenate((up, down))) * 1e6
     assert abs(y[399] - (y0[399] - 1.0)) < 1e-9                             # rising: a clearance behind
     assert np.ptp(y[400:]) < 1e-9 < np.ptp(y0[400:])                         # a small reversal: held
+
+
+def test_a_backlash_model_swapped_in_mid_run_keeps_the_references_direction():
+    """A new clearance loaded while the reference rests after a rise: the play inverse goes on adding it on the side
+    the reference came from (upwards), as a controller that had the new clearance from the start does; forgetting
+    the direction would drop the clearance (the spool ~width short of the reference until the next move)."""
+    t = np.arange(int(1.0 / DT)) * DT
+    ref = np.concatenate((10e-6 * t, np.full(int(2.0 / DT), 10e-6)))   # a rise over 1 s, then held for 2 s
+    config = ControllerConfig(strategy="ol_hc", gains=PIDGains(0, 0), dt=DT)
+    swapped = ValveController(config, replace(CompensationModel(), backlash=BacklashModel(0.3)))
+    fresh = ValveController(config, replace(CompensationModel(), backlash=BacklashModel(1.2)))
+    plain = ValveController(config, CompensationModel())
+    commands = {}
+    for name, ctl in (("swapped", swapped), ("fresh", fresh), ("plain", plain)):
+        ctl.reset(5.0)
+        out = []
+        for k, r in enumerate(ref):
+            if name == "swapped" and k == int(1.5 / DT):    # mid-run, the reference at rest after its rise
+                ctl.set_model(replace(CompensationModel(), backlash=BacklashModel(1.2)))
+            out.append(ctl.step(r, 0.0))
+        commands[name] = np.array(out)
+    assert abs(commands["swapped"][-1] - commands["fresh"][-1]) < 1e-6, (commands["swapped"][-1], commands["fresh"][-1])
+    assert commands["fresh"][-1] - commands["plain"][-1] > 0.01   # (the clearance moves the command: the check bites)

@@ -233,6 +233,11 @@ def test_a_fault_is_latched_safe_named_and_left_only_on_reset(rig, fault, kind, 
         assert again.success and "the next period's are checked" in again.message, again.message
         rig.run(1)
         assert rig.hw.fault is not None and rig.hw.fault.kind == kind
+        rig.now += 3 * PERIOD_S   # samples waiting at the reset, still non-finite: checked by it, and refused
+        kept = rig.reset()
+        assert not kept.success and kept.message.startswith("fault non_finite_sample kept: non_finite_sample"), \
+            kept.message
+        assert rig.hw.fault is not None and rig.hw.fault.kind == kind
     rig.daq.inject(None)
     rig.run(20)
     assert rig.hw.fault is not None and rig.health()[0] == b"\x02"         # no silent clearing

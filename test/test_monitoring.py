@@ -1,5 +1,6 @@
 """The health monitor's core (core/monitoring/health.py): the controller's model run on the applied voltage
 of closed-loop operation, judged on sliding windows against the sensor noise; seeded simulations."""
+import copy
 from dataclasses import replace
 
 import numpy as np
@@ -91,11 +92,22 @@ def test_a_drift_that_sets_in_is_warned_within_ten_seconds_named_and_cleared_by_
     assert all(h.level is Level.ERROR for h in after if h.end_s >= first_error.end_s)
     assert after[-1].resembles.startswith("drift: an offset of +1.4") or after[-1].resembles.startswith("drift: an offset of +1.5"), after[-1].resembles
     assert after[-1].residual_mean_um == pytest.approx(1.5, abs=0.1)
+    # the push the policy decides on that verdict: the offset moved up by the window's mean residual
+    from piezo_valve_ros.core.monitoring.refits import RefitPolicy
+    decision = RefitPolicy(Level.WARN, window_s=4.0).decide(after[-1], ENABLED)
     g = CompensationModel().gpim
-    refit = CompensationModel(GPIM(g.thresholds, g.weights, g.a0, g.a1, g.offset_um + 1.5))
+    assert decision.offset_after(g.offset_um) == pytest.approx(g.offset_um + after[-1].residual_mean_um)
+    refit = CompensationModel(GPIM(g.thresholds, g.weights, g.a0, g.a1, decision.offset_after(g.offset_um)))
+    # a refit that takes a third of it in: the rest must still show (the offset the monitor measured when it started
+    # is kept across a model swap, not measured again on the new model, which would take the rest in as its own)
+    partial = copy.deepcopy(monitor)
+    partial.set_model(CompensationModel(GPIM(g.thresholds, g.weights, g.a0, g.a1, g.offset_um + 0.5)))
     monitor.set_model(refit)
     cleared = verdicts(monitor, rows[split:])
     assert cleared and all(h.level is Level.OK for h in cleared), [(h.end_s, h.level, h.ratio) for h in cleared]
+    left = verdicts(partial, rows[split:split + int(round(30.0 / DT))])
+    assert left and all(h.level is not Level.OK for h in left), [(h.end_s, h.level, h.ratio) for h in left]
+    assert left[-1].residual_mean_um == pytest.approx(1.0, abs=0.15), left[-1].residual_mean_um
 
 
 def test_a_valve_held_still_is_not_judged():

@@ -211,7 +211,7 @@ class ValveMonitorNode(Node):
             self.get_logger().info(f"refit not pushed: {decision.not_now}")
         else:
             moved = decision.offset_change_um
-            offset = float(self.model.gpim.offset_um) + moved
+            offset = decision.offset_after(self.model.gpim.offset_um)
             future = self.client.set_parameters([Parameter("gpim.offset_um", value=offset)])
             future.add_done_callback(lambda f: self._pushed(f, offset, moved))
 

@@ -29,6 +29,13 @@ class RefitDecision:
     not_now: str = ""
     advice: str = ""
 
+    def offset_after(self, model_offset_um: float) -> float:
+        """The model's ``gpim.offset_um`` [um] once the push is applied: the valve reads ``offset_change_um`` above
+        what the model predicts (the window's mean residual, measured less predicted), so the offset moves up by it."""
+        if self.offset_change_um is None:
+            raise ValueError("this decision pushes no offset")
+        return float(model_offset_um) + self.offset_change_um
+
 
 class RefitPolicy:
     """The refit decisions of one monitor: ``refit_at`` the level that asks for one (None: never), ``window_s`` [s]
