@@ -73,31 +73,6 @@ def identified_10khz(bags_10khz):
 
 
 @pytest.mark.slow
-def test_an_effect_that_stands_in_for_operators_is_dropped_when_the_size_is_chosen_with_the_effects(bags_10khz,
-                                                                                                    monkeypatch):
-    """The default simulated valve is symmetric (creep and a loop-end flattening besides its GPIM).  Its effects
-    chosen by exact refits alone (as a short record's are: every record counts as short here), on the 18 operators
-    the baseline chose, asymmetry joins creep and saturation: a descending shift cuts the held-out RMS by 28 % on a
-    grid half a spacing off the valve's thresholds.  With the effects in, the sizes are compared again: 60 operators
-    leave a third less, and there the asymmetry's exact drop-one refit removes nothing; it is dropped, and creep and
-    saturation alone are named."""
-    from piezo_valve_ros.core.identification import residual
-    from piezo_valve_ros.identify import identify_bags
-    monkeypatch.setattr(residual, "EXACT_ALL_ROWS", 10 ** 9)
-    lines: list[str] = []
-    analysis, _ = identify_bags(bags_10khz / "train", bags_10khz / "validate", log=lines.append)
-    report = analysis.report.to_json()
-    assert check_report(report) == []
-    assert report["effects_added"] == ["creep", "saturation"], lines
-    assert any(line.startswith("exact selection: asymmetry cuts the held-out RMS") for line in lines), lines
-    assert any(line.startswith("capacity with creep, asymmetry, saturation: 18 operators") and
-               "the effects chosen again on 60 operators" in line for line in lines), lines
-    assert any(line.startswith("confirm: asymmetry not supported by the exact refit") for line in lines), lines
-    assert "the effects are fitted on 60 operators" in report["baseline_fits"]["chosen_on"]
-    assert report["final"]["validate"]["rms_um"] < 0.06
-
-
-@pytest.mark.slow
 def test_report_parameters_and_plots_from_10khz_bags(identified_10khz):
     tmp_path, out = identified_10khz
     assert out.returncode == 0, out.stderr
