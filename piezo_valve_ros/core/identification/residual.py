@@ -1444,14 +1444,17 @@ def _alternatives(added: list[str], names: list[str], verdicts: dict, search: "S
     put in a's place, explains at least SEPARATION_SHARE of what a explains (its held-out RMS cut from the
     final model without a), by the linear search and then by an exact refit.  The loop names the better of
     the two; the report says that the other would do nearly as well (a closed-loop record whose voltage
-    follows the output, or an excitation too narrow to separate their signatures)."""
+    follows the output, or an excitation too narrow to separate their signatures).  Where the linear search gives a
+    no cut of its own (it underrated a: the exact checks found it), it cannot screen the others either: every
+    effect outside the set is refitted in a's place."""
     found = []
     for a in added:
         rest = frozenset(added) - {a}
         cut_a_linear = 1.0 - search.score(rest | {a}).rms / max(search.score(rest).rms, 1e-30)
         options = [b for b in names if b not in added
-                   and 1.0 - search.score(rest | {b}).rms / max(search.score(rest).rms, 1e-30)
-                   >= SEPARATION_SHARE * cut_a_linear]
+                   and (cut_a_linear <= 0.0
+                        or 1.0 - search.score(rest | {b}).rms / max(search.score(rest).rms, 1e-30)
+                        >= SEPARATION_SHARE * cut_a_linear)]
         if not options:
             continue
         without, with_ = verdicts[a].without_um, verdicts[a].with_um
