@@ -520,8 +520,13 @@ def undeclared_parameters(nodes: Sequence[Node], argv=None) -> list[str]:
         unknown += [f"{node.get_name()}:{n}" if len(nodes) > 1 else n for n in sorted(own) if not node.has_parameter(n)]
         shared_names |= shared
     unknown += sorted(n for n in shared_names if not any(node.has_parameter(n) for node in nodes))
-    return [u + (f" (did you mean {near}?)" if (near := nearest_parameter(u.rpartition(":")[2], nodes)) else "")
-            for u in unknown]
+    return [named_with_nearest(u, nodes) for u in unknown]
+
+
+def named_with_nearest(name: str, nodes: Sequence[Node]) -> str:
+    """``name`` (``NODE:NAME`` or ``NAME``) with the nearest declared parameter of ``nodes``, if any, as a hint."""
+    near = nearest_parameter(name.rpartition(":")[2], nodes)
+    return name + (f" (did you mean {near}?)" if near else "")
 
 
 def refuse_undeclared(nodes: Sequence[Node], tool: str, argv=None) -> None:

@@ -37,7 +37,7 @@ from ..backends.faults import Fault, FaultLimits, SampleCheck
 from ..runtime.loop_timing import LoopTiming
 from .common import (COMMAND_QOS, CONTROL_PERIOD, DIAGNOSTICS_PERIOD, MAX_CONTROL_PERIOD_S, SAMPLES_QOS, SENSOR_QOS,
                      STATE_QOS, Diagnostics, Pacing, ParameterSpec, as_float, declare_all, given_parameter_names,
-                     parameter_values, period_parameter, nearest_parameter, realtime_settings, realtime_specs, refuse, run_node,
+                     named_with_nearest, parameter_values, period_parameter, realtime_settings, realtime_specs, refuse, run_node,
                      SamplesBuffer, samples_message, tighten_timer_slack, Throttle)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 from ..core.validation import as_int, whole_periods
@@ -139,7 +139,7 @@ class ValveHardwareNode(Node):
         unknown = sorted(n for n in given if not self.has_parameter(n))
         if unknown:
             own = ", ".join(f"{backend_name}.{prm.name}" for prm in backend_type.PARAMETERS) or "none"
-            unknown = [n + (f" (did you mean {near}?)" if (near := nearest_parameter(n, [self])) else "") for n in unknown]
+            unknown = [named_with_nearest(n, [self]) for n in unknown]
             raise ValueError(f"unknown parameter(s) {', '.join(unknown)} (the {backend_name} backend's own: {own}; "
                              "every parameter: valve_hardware --help)")
 
