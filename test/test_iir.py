@@ -262,3 +262,24 @@ print(json.dumps({{name: len(f.signatures) for module in kernels for name, f in 
     used = json.loads(done.stdout.strip().splitlines()[-1])
     assert {"rows_3", "columns_3", "play_rows", "last_contacts", "contact_sums"} <= set(used), used
     assert all(count == 1 for count in used.values()), used
+
+
+def test_an_output_decaying_at_rest_is_flushed_to_zero_where_lfilters_sticks_in_subnormals():
+    """A slow lag whose input rests at zero: lfilter's output decays into the subnormal range and stays there (the
+    last bit's rounding holds it), where every product costs tens of times a normal one (an identification's solves
+    ran 20x slower on such rows).  The kernels flush a subnormal output to zero and give lfilter's bits everywhere
+    else: the rows, columns and first-order bank kernels alike."""
+    tiny = np.finfo(float).tiny
+    pole = 0.999
+    b, a = [0.0, 1.0 - pole], [1.0, -pole]
+    x = np.zeros(800_000)
+    x[:100] = 1.0
+    expected = signal.lfilter(b, a, x)
+    subnormal = (np.abs(expected) < tiny) & (expected != 0.0)
+    assert subnormal.sum() > 50_000 and subnormal[-1]       # lfilter's: stuck, to the record's end
+    rows = iir.filter_rows(b, a, np.vstack((x, 2 * x)), np.zeros((2, 1)))
+    columns = iir.filter_columns(b, a, np.column_stack((x, 2 * x)), np.zeros(2), np.zeros((2, 1)))
+    bank = iir.first_order_bank(x, np.array([pole]), np.array([1.0 - pole]), 0.0)[:, 0]
+    for got in (rows[0], columns[0], bank):
+        assert not np.any((np.abs(got) < tiny) & (got != 0.0))
+        assert np.array_equal(got[~subnormal], expected[~subnormal]) and np.all(got[subnormal] == 0.0)

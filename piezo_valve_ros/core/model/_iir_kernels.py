@@ -8,11 +8,16 @@ Each is lfilter's transposed direct form II, operation by operation,
 on several rows at each sample (each output waits for the one before it; the rows' independent recursions
 overlap), their states and the coefficients locals, then the rows left over one at a time; or (``columns_*``) on
 every column of a sample-major array at each sample, in one loop over the columns.  No fast-math: the operations
-and their order are lfilter's, so are the bits."""
+and their order are lfilter's, so are the bits, except that a subnormal output (below TINY in magnitude) is
+flushed to zero, as a CPU's flush-to-zero mode does: lfilter's recursion, its input at rest, decays into the
+subnormal range and can cycle there, and arithmetic on subnormals is tens of times slower (here and in every
+product of the rows filtered)."""
 from __future__ import annotations
 
 import numba
 import numpy as np
+
+TINY = np.finfo(np.float64).tiny   # the smallest normal float: outputs below it in magnitude are flushed to zero
 
 
 @numba.njit(nogil=True, cache=True)
@@ -34,18 +39,22 @@ def rows_2(b, a, x, z, out):
         for n in range(n_samples):
             u = x0[n]
             y = s0_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s0_0 = u * b1 - y * a1
             o0[n] = y
             u = x1[n]
             y = s1_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s1_0 = u * b1 - y * a1
             o1[n] = y
             u = x2[n]
             y = s2_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s2_0 = u * b1 - y * a1
             o2[n] = y
             u = x3[n]
             y = s3_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s3_0 = u * b1 - y * a1
             o3[n] = y
         z[0, g + 0] = s0_0
@@ -59,6 +68,7 @@ def rows_2(b, a, x, z, out):
         for n in range(n_samples):
             u = x0[n]
             y = s0_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s0_0 = u * b1 - y * a1
             o0[n] = y
         z[0, g + 0] = s0_0
@@ -88,21 +98,25 @@ def rows_3(b, a, x, z, out):
         for n in range(n_samples):
             u = x0[n]
             y = s0_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s0_0 = s0_1 + u * b1 - y * a1
             s0_1 = u * b2 - y * a2
             o0[n] = y
             u = x1[n]
             y = s1_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s1_0 = s1_1 + u * b1 - y * a1
             s1_1 = u * b2 - y * a2
             o1[n] = y
             u = x2[n]
             y = s2_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s2_0 = s2_1 + u * b1 - y * a1
             s2_1 = u * b2 - y * a2
             o2[n] = y
             u = x3[n]
             y = s3_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s3_0 = s3_1 + u * b1 - y * a1
             s3_1 = u * b2 - y * a2
             o3[n] = y
@@ -122,6 +136,7 @@ def rows_3(b, a, x, z, out):
         for n in range(n_samples):
             u = x0[n]
             y = s0_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s0_0 = s0_1 + u * b1 - y * a1
             s0_1 = u * b2 - y * a2
             o0[n] = y
@@ -157,24 +172,28 @@ def rows_4(b, a, x, z, out):
         for n in range(n_samples):
             u = x0[n]
             y = s0_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s0_0 = s0_1 + u * b1 - y * a1
             s0_1 = s0_2 + u * b2 - y * a2
             s0_2 = u * b3 - y * a3
             o0[n] = y
             u = x1[n]
             y = s1_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s1_0 = s1_1 + u * b1 - y * a1
             s1_1 = s1_2 + u * b2 - y * a2
             s1_2 = u * b3 - y * a3
             o1[n] = y
             u = x2[n]
             y = s2_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s2_0 = s2_1 + u * b1 - y * a1
             s2_1 = s2_2 + u * b2 - y * a2
             s2_2 = u * b3 - y * a3
             o2[n] = y
             u = x3[n]
             y = s3_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s3_0 = s3_1 + u * b1 - y * a1
             s3_1 = s3_2 + u * b2 - y * a2
             s3_2 = u * b3 - y * a3
@@ -200,6 +219,7 @@ def rows_4(b, a, x, z, out):
         for n in range(n_samples):
             u = x0[n]
             y = s0_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s0_0 = s0_1 + u * b1 - y * a1
             s0_1 = s0_2 + u * b2 - y * a2
             s0_2 = u * b3 - y * a3
@@ -231,6 +251,7 @@ def rows_5(b, a, x, z, out):
         for n in range(n_samples):
             u = x0[n]
             y = s0_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s0_0 = s0_1 + u * b1 - y * a1
             s0_1 = s0_2 + u * b2 - y * a2
             s0_2 = s0_3 + u * b3 - y * a3
@@ -238,6 +259,7 @@ def rows_5(b, a, x, z, out):
             o0[n] = y
             u = x1[n]
             y = s1_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s1_0 = s1_1 + u * b1 - y * a1
             s1_1 = s1_2 + u * b2 - y * a2
             s1_2 = s1_3 + u * b3 - y * a3
@@ -261,6 +283,7 @@ def rows_5(b, a, x, z, out):
         for n in range(n_samples):
             u = x0[n]
             y = s0_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s0_0 = s0_1 + u * b1 - y * a1
             s0_1 = s0_2 + u * b2 - y * a2
             s0_2 = s0_3 + u * b3 - y * a3
@@ -296,6 +319,7 @@ def rows_6(b, a, x, z, out):
         for n in range(n_samples):
             u = x0[n]
             y = s0_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s0_0 = s0_1 + u * b1 - y * a1
             s0_1 = s0_2 + u * b2 - y * a2
             s0_2 = s0_3 + u * b3 - y * a3
@@ -304,6 +328,7 @@ def rows_6(b, a, x, z, out):
             o0[n] = y
             u = x1[n]
             y = s1_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s1_0 = s1_1 + u * b1 - y * a1
             s1_1 = s1_2 + u * b2 - y * a2
             s1_2 = s1_3 + u * b3 - y * a3
@@ -331,6 +356,7 @@ def rows_6(b, a, x, z, out):
         for n in range(n_samples):
             u = x0[n]
             y = s0_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s0_0 = s0_1 + u * b1 - y * a1
             s0_1 = s0_2 + u * b2 - y * a2
             s0_2 = s0_3 + u * b3 - y * a3
@@ -370,6 +396,7 @@ def rows_7(b, a, x, z, out):
         for n in range(n_samples):
             u = x0[n]
             y = s0_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s0_0 = s0_1 + u * b1 - y * a1
             s0_1 = s0_2 + u * b2 - y * a2
             s0_2 = s0_3 + u * b3 - y * a3
@@ -379,6 +406,7 @@ def rows_7(b, a, x, z, out):
             o0[n] = y
             u = x1[n]
             y = s1_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s1_0 = s1_1 + u * b1 - y * a1
             s1_1 = s1_2 + u * b2 - y * a2
             s1_2 = s1_3 + u * b3 - y * a3
@@ -410,6 +438,7 @@ def rows_7(b, a, x, z, out):
         for n in range(n_samples):
             u = x0[n]
             y = s0_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s0_0 = s0_1 + u * b1 - y * a1
             s0_1 = s0_2 + u * b2 - y * a2
             s0_2 = s0_3 + u * b3 - y * a3
@@ -453,6 +482,7 @@ def rows_8(b, a, x, z, out):
         for n in range(n_samples):
             u = x0[n]
             y = s0_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s0_0 = s0_1 + u * b1 - y * a1
             s0_1 = s0_2 + u * b2 - y * a2
             s0_2 = s0_3 + u * b3 - y * a3
@@ -463,6 +493,7 @@ def rows_8(b, a, x, z, out):
             o0[n] = y
             u = x1[n]
             y = s1_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s1_0 = s1_1 + u * b1 - y * a1
             s1_1 = s1_2 + u * b2 - y * a2
             s1_2 = s1_3 + u * b3 - y * a3
@@ -498,6 +529,7 @@ def rows_8(b, a, x, z, out):
         for n in range(n_samples):
             u = x0[n]
             y = s0_0 + b0 * u
+            if -TINY < y < TINY: y = 0.0
             s0_0 = s0_1 + u * b1 - y * a1
             s0_1 = s0_2 + u * b2 - y * a2
             s0_2 = s0_3 + u * b3 - y * a3
@@ -535,6 +567,7 @@ def columns_2(b, a, x, first, z, out):
             for j in range(k):
                 u = xi[j] - first[j]
                 y = s0[j] + b0 * u
+                if -TINY < y < TINY: y = 0.0
                 s0[j] = u * b1 - y * a1
                 yi[j] = y
         for j in range(k):
@@ -561,6 +594,7 @@ def columns_3(b, a, x, first, z, out):
             for j in range(k):
                 u = xi[j] - first[j]
                 y = s0[j] + b0 * u
+                if -TINY < y < TINY: y = 0.0
                 s0[j] = s1[j] + u * b1 - y * a1
                 s1[j] = u * b2 - y * a2
                 yi[j] = y
@@ -590,6 +624,7 @@ def columns_4(b, a, x, first, z, out):
             for j in range(k):
                 u = xi[j] - first[j]
                 y = s0[j] + b0 * u
+                if -TINY < y < TINY: y = 0.0
                 s0[j] = s1[j] + u * b1 - y * a1
                 s1[j] = s2[j] + u * b2 - y * a2
                 s2[j] = u * b3 - y * a3
@@ -622,6 +657,7 @@ def columns_5(b, a, x, first, z, out):
             for j in range(k):
                 u = xi[j] - first[j]
                 y = s0[j] + b0 * u
+                if -TINY < y < TINY: y = 0.0
                 s0[j] = s1[j] + u * b1 - y * a1
                 s1[j] = s2[j] + u * b2 - y * a2
                 s2[j] = s3[j] + u * b3 - y * a3
@@ -657,6 +693,7 @@ def columns_6(b, a, x, first, z, out):
             for j in range(k):
                 u = xi[j] - first[j]
                 y = s0[j] + b0 * u
+                if -TINY < y < TINY: y = 0.0
                 s0[j] = s1[j] + u * b1 - y * a1
                 s1[j] = s2[j] + u * b2 - y * a2
                 s2[j] = s3[j] + u * b3 - y * a3
@@ -695,6 +732,7 @@ def columns_7(b, a, x, first, z, out):
             for j in range(k):
                 u = xi[j] - first[j]
                 y = s0[j] + b0 * u
+                if -TINY < y < TINY: y = 0.0
                 s0[j] = s1[j] + u * b1 - y * a1
                 s1[j] = s2[j] + u * b2 - y * a2
                 s2[j] = s3[j] + u * b3 - y * a3
@@ -736,6 +774,7 @@ def columns_8(b, a, x, first, z, out):
             for j in range(k):
                 u = xi[j] - first[j]
                 y = s0[j] + b0 * u
+                if -TINY < y < TINY: y = 0.0
                 s0[j] = s1[j] + u * b1 - y * a1
                 s1[j] = s2[j] + u * b2 - y * a2
                 s2[j] = s3[j] + u * b3 - y * a3
@@ -778,15 +817,19 @@ def first_order_bank(x, b0, b1, a1, z, out):
         for n in range(x.size):
             u = x[n]
             y = p0 + c0 * u
+            if -TINY < y < TINY: y = 0.0
             p0 = u * d0 - y * e0
             o0[n] = y
             y = p1 + c1 * u
+            if -TINY < y < TINY: y = 0.0
             p1 = u * d1 - y * e1
             o1[n] = y
             y = p2 + c2 * u
+            if -TINY < y < TINY: y = 0.0
             p2 = u * d2 - y * e2
             o2[n] = y
             y = p3 + c3 * u
+            if -TINY < y < TINY: y = 0.0
             p3 = u * d3 - y * e3
             o3[n] = y
         z[g + 0] = p0
@@ -799,6 +842,7 @@ def first_order_bank(x, b0, b1, a1, z, out):
         for n in range(x.size):
             u = x[n]
             y = p0 + c0 * u
+            if -TINY < y < TINY: y = 0.0
             p0 = u * d0 - y * e0
             o0[n] = y
         z[g] = p0

@@ -5,8 +5,11 @@ An identification filters the same records thousands of times (the design's rows
 model output).  ``scipy.signal.lfilter`` runs one row at a time, and each output waits for the one before it.  The
 kernels here advance several rows of a bank at each sample, so their recursions overlap: the same arithmetic as
 lfilter's transposed direct form II, operation by operation (the same bits: ``test_iir``), several times faster
-on a bank (bench/core_speed.py measures both).  They are compiled by numba on first use (cached on disk), so
-importing this module costs nothing until a bank is filtered.  Nothing here imports ROS.
+on a bank (bench/core_speed.py measures both), except that a subnormal output is flushed to zero, as a CPU's
+flush-to-zero mode does (lfilter's recursion at rest decays into the subnormal range and can stay there, where
+each operation, and each product of the filtered rows later, costs tens of times a normal one).  They are
+compiled by numba on first use (cached on disk), so importing this module costs nothing until a bank is filtered.
+Nothing here imports ROS.
 """
 from __future__ import annotations
 
