@@ -107,3 +107,39 @@ def test_the_venvs_packages_are_compiled_to_bytecode():
     for name in ("numpy", "numpy.linalg._linalg", "scipy.signal", "rclpy.node", "rosbags.rosbag2", "yaml"):
         source = importlib.util.find_spec(name).origin
         assert os.path.exists(importlib.util.cache_from_source(source)), f"{name}: {source} has no bytecode"
+
+
+def test_colcon_builds_the_package_as_a_ros_workspace_does(tmp_path):
+    """``colcon build`` (colcon from pip, as on a Jazzy machine) of the package copied into a fresh workspace's src:
+    the install space has every node's executable in lib/piezo_valve_ros (where ``ros2 run`` looks), the ament
+    index marker (``ros2 pkg list``), package.xml, the launch file and the configs in share/, and the installed
+    ``valve_rig --help`` runs after ``source install/setup.bash`` (from the install space, not this checkout)."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    colcon = shutil.which("colcon", path=str(Path(sys.executable).parent))
+    assert colcon, "colcon is in requirements.txt: scripts/setup_venv.sh installs it into the venv"
+    source = tmp_path / "src" / "piezo_valve_ros"
+    shutil.copytree(ROOT, source, ignore=shutil.ignore_patterns(".git", ".venv*", "build", "install", "log",
+                                                                "__pycache__", "*.egg-info", ".pytest_cache"))
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "AMENT_PREFIX_PATH")}
+    env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
+    built = subprocess.run([colcon, "build", "--base-paths", "src", "--event-handlers", "console_direct-"],
+                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=240)
+    assert built.returncode == 0, built.stdout[-3000:] + built.stderr[-3000:]
+    prefix = tmp_path / "install" / "piezo_valve_ros"
+    installed = {p.name for p in (prefix / "lib" / "piezo_valve_ros").iterdir()}
+    assert set(NODE_MODULES) | {"valve_rig", "valve_identify", "valve_command", "valve_plot"} <= installed, installed
+    share = prefix / "share"
+    assert (share / "ament_index" / "resource_index" / "packages" / "piezo_valve_ros").is_file()
+    assert (share / "piezo_valve_ros" / "package.xml").is_file()
+    assert (share / "piezo_valve_ros" / "launch" / "rig.launch.py").is_file()
+    assert {p.name for p in (share / "piezo_valve_ros" / "config").iterdir()} == \
+        {p.name for p in (ROOT / "config").glob("*.yaml")}
+    run = subprocess.run(["bash", "-c", "source install/setup.bash && cd / && valve_rig --help && python -c "
+                          "'import piezo_valve_ros, sys; print(piezo_valve_ros.__file__)'"],
+                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+    assert "usage: valve_rig" in run.stdout
+    assert run.stdout.strip().splitlines()[-1].startswith(str(prefix))   # the installed package, not this checkout
