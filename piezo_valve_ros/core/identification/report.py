@@ -253,19 +253,9 @@ class IdentificationReport(_Node):
                                        "used (train_window: from_s, to_s, axis, first_sample_s, last_sample_s, "
                                        "samples)")
 
-    # report.json keys that repeat a field under an earlier report's name (keys are never removed): key ->
-    # (the field it repeats, the key it follows in the file)
-    ALIASES: typing.ClassVar[dict[str, tuple[str, str]]] = {"rounds": ("confirm", "confirm")}
-
     def to_json(self) -> dict:
-        """report.json's content (without the schema block unless set), the aliases included."""
-        out = {}
-        for key, value in _fields_json(self).items():
-            out[key] = value
-            for alias, (of, after) in self.ALIASES.items():
-                if after == key:
-                    out[alias] = value if of == key else to_json(getattr(self, of))
-        return out
+        """report.json's content (without the schema block unless set)."""
+        return _fields_json(self)
 
 
 # --------------------------------------------------------------------------- checking a report read as JSON
@@ -286,12 +276,9 @@ def _python_type(t) -> tuple:
 
 
 def _keys(typed: type) -> dict[str, tuple[object, bool]]:
-    """key -> (annotation, optional) of ``typed`` as JSON has it (aliases included)."""
+    """key -> (annotation, optional) of ``typed`` as JSON has it."""
     hints = typing.get_type_hints(typed)
-    keys = {f.name: (hints[f.name], bool(f.metadata.get("optional"))) for f in fields(typed)}
-    for alias, (of, _) in getattr(typed, "ALIASES", {}).items():
-        keys[alias] = keys[of]
-    return keys
+    return {f.name: (hints[f.name], bool(f.metadata.get("optional"))) for f in fields(typed)}
 
 
 def _item_type(t):
@@ -348,9 +335,6 @@ def schema_tables(typed: type = IdentificationReport) -> list[tuple[str, list[tu
         rows = []
         for f in own:
             rows.append((f.name, _type_name(hints[f.name]), f.metadata.get("doc", "")))
-            for alias, (of, _) in getattr(cls, "ALIASES", {}).items():
-                if of == f.name:
-                    rows.append((alias, _type_name(hints[f.name]), f"the same as {of} (earlier reports' name)"))
         rows += [(f.name, _type_name(hints[f.name]).replace(" or null", "").replace("null or ", ""),
                   f.metadata.get("doc", "")) for f in fields(cls) if f.metadata.get("optional")][::-1]
         for f in fields(cls):
