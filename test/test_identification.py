@@ -1114,7 +1114,7 @@ def test_the_bounded_solve_is_the_unique_minimiser_with_free_coefficients_and_bo
 def test_a_transport_delay_in_fractional_samples_shifts_the_prediction_by_that_much():
     """discretise_for's delay: whole samples, then the fraction by linear interpolation; a model with delay_s
     predicts its undelayed prediction that much later (a ramp: exactly)."""
-    from piezo_valve_ros.core.identification.valve_model import delay_taps
+    from piezo_valve_ros.core.model.at_rest import delay_taps
     assert list(delay_taps(0.0)) == [1.0, 0.0] and list(delay_taps(2.25)) == [0.0, 0.0, 0.75, 0.25]
     train, _ = records("nominal")
     model = analysis_of("nominal").baseline

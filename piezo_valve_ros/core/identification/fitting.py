@@ -25,9 +25,9 @@ from scipy import linalg, optimize
 from .effects.base import Effect
 from ..model.hysteresis import GPIM, GPIMParams
 from .records import Record, analysis_record
+from ..model.at_rest import filter_at_rest, filter_rows_at_rest, filter_state_columns_at_rest
 from ..model.dynamics import PAPER_SECTION, unity_dc_poles
-from .valve_model import (REST, Context, InitialState, ValveModel, discretise_for, filter_at_rest, filter_rows_at_rest,
-                          filter_state_columns_at_rest)
+from .valve_model import REST, Context, InitialState, ValveModel, discretise_for
 
 __all__ = ["uniform_thresholds", "partial_sum_basis", "solve_bounded", "solve_gram", "solve_standardised", "gpim_lower_bounds", "position_slope", "fit_model", "fit_dynamics", "refit_poles_with_effects", "BASIS_RIDGE",
            "fit_paper_gpim", "PaperFit", "DynamicsFit", "FitCache", "PARTIAL_SUM_FLOOR", "DYNAMICS_CONDITION_LIMIT", "POLE_STEP_LIMIT"]

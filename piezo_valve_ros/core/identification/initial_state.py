@@ -13,7 +13,8 @@ from ..metrics import rms
 from ..model.hysteresis import play_batch, play_bounds
 from .records import Record, analysis_record
 from .split import SessionStart, first_rows
-from .valve_model import REST, InitialState, ValveModel, filter_rows_at_rest
+from ..model.at_rest import filter_rows_at_rest
+from .valve_model import REST, InitialState, ValveModel
 
 __all__ = ["estimate_state", "session_start", "SessionStart", "WIPE_STATE_GAIN", "ESTIMATE_STATE_GAIN",
            "ESTIMATE_ROUNDS"]

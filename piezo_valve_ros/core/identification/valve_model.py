@@ -11,21 +11,21 @@ block means (first-order hold plus the source's half-sample delay).  Nothing her
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
-from functools import cached_property, lru_cache
+from functools import cached_property
 from typing import Optional, Protocol, Sequence
 
 import numpy as np
 
-from ..model.dynamics import (PAPER_SECTION, ContinuousTF, describe_dynamics, discretise, scipy_signal,
+from ..model.dynamics import (PAPER_SECTION, ContinuousTF, describe_dynamics, scipy_signal,
                               steady_state, unity_dc_poles)
-from ..model.iir import filter_columns, filter_rows
+from ..model.at_rest import discretised, filter_at_rest, filter_rows_at_rest
+from ..model.iir import filter_columns
 from ..model.hysteresis import GPIM, contact_sensitivity, last_contact, play_batch
 from ..model.rate_dependence import rate_terms
 from .records import Record
 
-__all__ = ["ValveModel", "Context", "ModelTerm", "discretise_for", "filter_at_rest", "filter_rows_at_rest", "INITIAL_STATES",
+__all__ = ["ValveModel", "Context", "ModelTerm", "discretise_for", "INITIAL_STATES",
            "InitialState", "REST"]
 
 class ModelTerm(Protocol):
@@ -404,57 +404,5 @@ def discretise_for(tf: ContinuousTF, record: Record, delay_s: float = 0.0) -> tu
     to 0.004 um RMS at 2 kHz block means of a 10 kHz record.  A transport delay ``delay_s`` [s] >= 0 follows
     as whole samples and a linear interpolation between two for the fraction (``delay_taps``).  The arrays are
     shared (read-only): an analysis asks for the same few G on a record thousands of times."""
-    return _discretised(tf, float(record.dt), record.block == 1, 0.5 * float(record.source_dt or 0.0),
-                        float(delay_s))
-
-
-@lru_cache(maxsize=4096)
-def _discretised(tf: ContinuousTF, dt: float, raw: bool, hold_delay_s: float, delay_s: float
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    b, a = discretise(tf, dt, "zoh") if raw else discretise(tf, dt, "foh", hold_delay_s)
-    if delay_s > 0.0:
-        b = np.convolve(b, delay_taps(delay_s / dt))
-    b.flags.writeable = a.flags.writeable = False
-    return b, a
-
-
-def delay_taps(samples: float) -> np.ndarray:
-    """FIR taps of a delay of ``samples`` (>= 0, fractional): whole samples, then the fraction by linear
-    interpolation between the two samples around it."""
-    whole = int(math.floor(samples))
-    fraction = samples - whole
-    taps = np.zeros(whole + 2)
-    taps[whole], taps[whole + 1] = 1.0 - fraction, fraction
-    return taps
-
-
-def filter_at_rest(b: np.ndarray, a: np.ndarray, x: np.ndarray, rest=None) -> np.ndarray:
-    """lfilter of x (N,) or each column of x (N, k), started at rest at the first sample, or at rest at ``rest``
-    (a value, or one per column) before it.  Columns are filtered as contiguous rows of the transpose."""
-    x = np.asarray(x, float)
-    if x.ndim == 1:
-        start = x[:1] if rest is None else np.asarray(rest, float).reshape(-1)[:1]
-        return filter_rows_at_rest(b, a, x[None, :], start)[0]
-    if rest is not None:
-        rest = np.broadcast_to(np.asarray(rest, float), (x.shape[1],))
-    return filter_rows_at_rest(b, a, np.ascontiguousarray(x.T), rest).T
-
-
-def filter_state_columns_at_rest(b: np.ndarray, a: np.ndarray, states: np.ndarray,
-                                 rest: Optional[np.ndarray] = None) -> np.ndarray:
-    """``filter_rows_at_rest(b, a, (states - states[0]).T, rest)``, bit for bit, from the operator states (N, n) as
-    they are (``iir.filter_columns``: no transposed copy of them): the GPIM's columns through G, one row per
-    operator (n, N), each at rest at its first sample (zero) or at ``rest`` (n,) before it."""
-    first = states[0]
-    start = (first - first) if rest is None else np.asarray(rest, float).reshape(-1)
-    return filter_columns(b, a, states, first, start[:, None] * steady_state(b, a)[None, :])
-
-
-def filter_rows_at_rest(b: np.ndarray, a: np.ndarray, rows: np.ndarray, rest: Optional[np.ndarray] = None,
-                        out: Optional[np.ndarray] = None) -> np.ndarray:
-    """lfilter of each row of ``rows`` (k, N), started at rest at its first sample, or at rest at ``rest`` (k,)
-    before it (the same as adding ``(rest - first) x`` G's free response: G is linear); (k, N), in ``out`` where
-    given.  The rows are advanced together (``iir.filter_rows``)."""
-    zi = steady_state(b, a)
-    start = rows[:, :1] if rest is None else np.asarray(rest, float).reshape(-1, 1)
-    return filter_rows(b, a, rows, start * zi[None, :], out)
+    return discretised(tf, float(record.dt), record.block == 1, 0.5 * float(record.source_dt or 0.0),
+                       float(delay_s))

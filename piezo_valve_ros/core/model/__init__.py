@@ -14,5 +14,7 @@ __all__, __getattr__ = lazy_exports(__name__, {
     "ContinuousTF": "dynamics",
     "PAPER_VALVE_MODEL": "dynamics",
     "filter_rows": "iir",
+    "filter_rows_at_rest": "at_rest",
+    "discretised": "at_rest",
     "first_order_bank": "iir",
 })
