@@ -265,7 +265,8 @@ def write_outputs(outputs: dict[str, str]) -> list[str]:
 
 
 REPORT_SCHEMA = "piezo_valve_ros/identification-report"
-REPORT_SCHEMA_VERSION = 2   # 1: the keys before the schema block; 2: adds schema, fit_pct, indistinguishable
+REPORT_SCHEMA_VERSION = 3   # 1: the keys before the schema block; 2: adds schema, fit_pct, indistinguishable;
+                            # 3: 'rounds' retired (it repeated 'confirm' under an earlier name)
 
 
 def package_version() -> str:

@@ -289,7 +289,8 @@ def test_recorder_survives_being_killed(tmp_path):
 
 
 # every key path of the reports written before the residual loop was rebuilt (CONTRACT.md: keys may be
-# added, never removed); final_model's sub-keys depend on the effects found and are not listed
+# added, and removed only with the schema version raised: RETIRED_REPORT_KEYS); final_model's sub-keys depend on the
+# effects found and are not listed
 EARLIER_REPORT_KEYS = """range_um baseline baseline.model baseline.fit baseline.train.rms_um baseline.train.peak_um
 baseline.train.peak_pct baseline.validate.rms_um baseline.validate.peak_um baseline.validate.peak_pct effects_added
 diagnosis diagnosis.[].effect diagnosis.[].added diagnosis.[].statistic diagnosis.[].threshold
@@ -301,9 +302,10 @@ baseline_fits.paper_nls.condition_number baseline_fits.paper_nls.evaluations bas
 baseline_fits.paper_nls.params.a1 baseline_fits.paper_nls.params.alpha baseline_fits.paper_nls.params.rho
 baseline_fits.paper_nls.params.tau baseline_fits.paper_nls.params.n baseline_fits.paper_nls.params.offset_um
 validation validate_range_um analysis_rate_hz noise_floor_um thresholds.signature thresholds.held_out_gain
-thresholds.unexplained_pct rounds final_model.model final_model.gpim.thresholds final_model.gpim.weights
+thresholds.unexplained_pct final_model.model final_model.gpim.thresholds final_model.gpim.weights
 final_model.gpim.a0 final_model.gpim.a1 final_model.gpim.offset_um seconds source.train_bag source.validate_bag
 source.topic""".split()
+RETIRED_REPORT_KEYS = {"rounds": 3}   # key -> the schema version that retired it (the alias of "confirm")
 
 
 def test_report_keeps_every_key_earlier_reports_had(identified_10khz):
@@ -317,6 +319,8 @@ def test_report_keeps_every_key_earlier_reports_had(identified_10khz):
     from piezo_valve_ros.identify import REPORT_SCHEMA, REPORT_SCHEMA_VERSION
     schema = report["schema"]   # what the file is, for readers that come later
     assert (schema["name"], schema["version"]) == (REPORT_SCHEMA, REPORT_SCHEMA_VERSION)
+    for key, version in RETIRED_REPORT_KEYS.items():   # a key is retired only with the version raised past it
+        assert key not in report and schema["version"] >= version
     assert schema["package_version"] != "" and schema["created_utc"].endswith("+00:00")
     assert 0.0 < report["final"]["validate"]["fit_pct"] <= 100.0
 
