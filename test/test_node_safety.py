@@ -967,3 +967,31 @@ def test_a_node_whose_shutdown_hangs_dumps_its_stacks_and_exits_by_its_deadline(
     assert proc.returncode == 1, (proc.returncode, err)
     assert took >= SHUTDOWN_DEADLINE_S - 0.1, took
     assert "Timeout" in err and "stuck_in_shutdown" in err and "most recent call first" in err, err
+
+
+def test_settings_checks_are_declared_on_their_fields_and_checked_by_one_function():
+    """HealthLimits, TuningLimits and ControllerConfig declare each field's rule beside its default (``ruled``);
+    ``field_problems`` checks them all (no hand loop over names that can miss a field): every ruled field of each
+    refuses nan and a negative value, and a positive one refuses zero, one line naming it."""
+    import dataclasses
+    import math
+    from piezo_valve_ros.core.control.strategies import ControllerConfig
+    from piezo_valve_ros.core.monitoring.health import HealthLimits
+    from piezo_valve_ros.core.tuning.tuner import TuningLimits
+    from piezo_valve_ros.core.validation import POSITIVE, field_problems, ruled
+    checked = 0
+    for settings in (HealthLimits(), TuningLimits(), ControllerConfig()):
+        assert settings.problems() == []
+        for f in dataclasses.fields(settings):
+            rule = f.metadata.get("rule")
+            if rule is None:
+                continue
+            checked += 1
+            bad = [math.nan, -1.0] + ([0.0] if rule == POSITIVE else [])
+            for value in bad:
+                problems = field_problems(dataclasses.replace(settings, **{f.name: value}))
+                assert len(problems) == 1 and problems[0].startswith(f.name + " must be"), (f.name, value, problems)
+                assert problems[0] in dataclasses.replace(settings, **{f.name: value}).problems()
+    assert checked == 5 + 5 + 3
+    with pytest.raises(ValueError, match="unknown rule"):
+        ruled(1.0, "odd")

@@ -3,11 +3,11 @@ ValueError naming the parameter and what was wrong."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, Optional
 
 __all__ = ["as_float", "as_int", "as_float_list", "as_bool", "PERIOD_TOLERANCE", "whole_periods", "same_period",
-           "ParameterSpec"]
+           "ParameterSpec", "POSITIVE", "NON_NEGATIVE", "ruled", "field_problems"]
 
 PERIOD_TOLERANCE = 1e-6   # times [s] closer than this share of the longer one are equal (rounding, not a choice)
 
@@ -55,6 +55,34 @@ def whole_periods(span_s: float, period_s: float) -> int | None:
         return None
     k = round(ratio)
     return int(k) if abs(k * period_s - span_s) <= PERIOD_TOLERANCE * max(abs(span_s), period_s) else None
+
+
+POSITIVE = "positive"          # a field's rule (``ruled``): a finite number > 0
+NON_NEGATIVE = "non-negative"  # ... a finite number >= 0
+
+
+def ruled(default: Any, rule: str) -> Any:
+    """A dataclass field with ``default`` and its rule (POSITIVE or NON_NEGATIVE), declared once beside it:
+    ``field_problems`` checks every such field, so a settings class lists its cross-field checks alone."""
+    if rule not in (POSITIVE, NON_NEGATIVE):
+        raise ValueError(f"unknown rule {rule!r}")
+    return field(default=default, metadata={"rule": rule})
+
+
+def field_problems(settings: Any) -> list[str]:
+    """One line for each field of the dataclass ``settings`` declared with a rule (``ruled``) that its value breaks,
+    in the order of the fields."""
+    out = []
+    for f in fields(settings):
+        rule, x = f.metadata.get("rule"), getattr(settings, f.name)
+        if rule is None:
+            continue
+        number = isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+        if rule == POSITIVE and not (number and x > 0):
+            out.append(f"{f.name} must be > 0, got {x!r}")
+        elif rule == NON_NEGATIVE and not (number and x >= 0):
+            out.append(f"{f.name} must be a finite number >= 0, got {x!r}")
+    return out
 
 
 def same_period(a_s: float, b_s: float) -> bool:

@@ -51,6 +51,7 @@ from .terms.backlash import PlayInverse
 from ..model.hysteresis import GPIM, NotInvertibleError
 from ..model.rate_dependence import hysteresis_inverse, swap_inverse, take_over_state
 from ..model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
+from ..validation import POSITIVE, field_problems, ruled
 
 __all__ = ["STRATEGIES", "REGISTRY", "Strategy", "NO_INVERSE", "FEEDFORWARD_INVERSE", "IN_LOOP_INVERSE", "PIDGains", "ControllerConfig", "ValveController", "TABLE1_GAINS", "gain_set",
            "SAFE_PERIOD_S", "default_gain_set", "NO_SAFE_SET_STRATEGY",
@@ -176,23 +177,20 @@ class ControllerConfig:
 
     strategy: str = "pid_hc"
     gains: PIDGains = PIDGains(1.6879, 748.6437, 0.0)
-    dt: float = PAPER_CONTROL_PERIOD_S   # the paper's loop; a rig's default is defaults.CONTROL_PERIOD_S
+    dt: float = ruled(PAPER_CONTROL_PERIOD_S, POSITIVE)   # the paper's loop; a rig's: defaults.CONTROL_PERIOD_S
     command_min_v: float = COMMAND_MIN_V
     command_max_v: float = COMMAND_MAX_V
     centre_voltage_v: float = CENTRE_VOLTAGE_V
     static_gain_um_per_v: Optional[float] = None  # None: derived from the GPIM's major loop
-    derivative_filter_s: float = 5e-4
-    bump_time_constant_s: float = 0.01
+    derivative_filter_s: float = ruled(5e-4, POSITIVE)
+    bump_time_constant_s: float = ruled(0.01, POSITIVE)
 
     def problems(self) -> list[str]:
         out = []
         if self.strategy not in REGISTRY:
             out.append(f"unknown strategy {self.strategy!r}; choose one of {', '.join(REGISTRY)}")
         out += self.gains.problems()
-        for name in ("dt", "derivative_filter_s", "bump_time_constant_s"):
-            x = getattr(self, name)
-            if not (math.isfinite(x) and x > 0):
-                out.append(f"{name} must be > 0, got {x}")
+        out += field_problems(self)
         if not (math.isfinite(self.command_min_v) and math.isfinite(self.command_max_v)
                 and self.command_min_v < self.command_max_v):
             out.append("command range must be finite with command_min_v < command_max_v")

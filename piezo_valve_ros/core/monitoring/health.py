@@ -45,6 +45,7 @@ from ..model.hysteresis import dominant_turning_points
 from ..metrics import rms
 from ..model.drive import COMMAND_MAX_V, COMMAND_MIN_V
 from ..model.dynamics import sections
+from ..validation import NON_NEGATIVE, POSITIVE, field_problems, ruled
 
 __all__ = ["Level", "HealthLimits", "Health", "HealthMonitor", "WINDOW_S", "WARN_RATIO", "ERROR_RATIO",
            "MIN_SPAN_V", "RESEMBLANCE_GAIN", "REFIT_SHARE", "GAIN_SHARE", "SEARCH_RATE_HZ"]
@@ -74,11 +75,11 @@ class Level(IntEnum):
 
 @dataclass(frozen=True)
 class HealthLimits:
-    window_s: float = WINDOW_S
-    step_s: float = STEP_S
-    warn_ratio: float = WARN_RATIO
-    error_ratio: float = ERROR_RATIO
-    min_span_v: float = MIN_SPAN_V
+    window_s: float = ruled(WINDOW_S, POSITIVE)
+    step_s: float = ruled(STEP_S, POSITIVE)
+    warn_ratio: float = ruled(WARN_RATIO, POSITIVE)
+    error_ratio: float = ruled(ERROR_RATIO, POSITIVE)
+    min_span_v: float = ruled(MIN_SPAN_V, NON_NEGATIVE)
 
     @property
     def first_verdict_s(self) -> float:
@@ -87,17 +88,11 @@ class HealthLimits:
         return self.step_s * (1 + math.ceil(self.window_s / self.step_s - 1e-9))
 
     def problems(self) -> list[str]:
-        out = []
-        for name in ("window_s", "step_s", "warn_ratio", "error_ratio"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                out.append(f"{name} must be > 0, got {value}")
+        out = field_problems(self)
         if not out and self.step_s > self.window_s:
             out.append(f"step_s ({self.step_s} s) must not exceed window_s ({self.window_s} s)")
         if not out and self.error_ratio <= self.warn_ratio:
             out.append(f"error_ratio ({self.error_ratio}) must exceed warn_ratio ({self.warn_ratio})")
-        if not (math.isfinite(self.min_span_v) and self.min_span_v >= 0):
-            out.append(f"min_span_v must be >= 0, got {self.min_span_v}")
         return out
 
 

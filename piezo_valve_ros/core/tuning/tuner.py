@@ -60,6 +60,7 @@ from ..model.dynamics import ContinuousTF, first_order_lag, scipy_signal
 from ..sim.experiments import responses, run_closed_loop
 from ..metrics import StepMetrics, step_metrics
 from ..sim.signals import PAPER_STEPS_UM, step_reference_m
+from ..validation import NON_NEGATIVE, field_problems, ruled
 from ..control.strategies import (FEEDBACK_STRATEGIES, FEEDFORWARD_INVERSE, IN_LOOP_INVERSE, REGISTRY, TABLE1_GAINS,
                                   ControllerConfig, PIDGains, ValveController, nominal_static_gain)
 
@@ -107,19 +108,14 @@ class TuningError(PiezoValveError, ValueError):
 class TuningLimits:
     """The tuner's constraints (defaults: the module's named constants)."""
 
-    max_overshoot_pct: float = OVERSHOOT_LIMIT_PCT
-    min_gain_margin_db: float = MIN_GAIN_MARGIN_DB
-    min_phase_margin_deg: float = MIN_PHASE_MARGIN_DEG
-    max_noise_gain: float = MAX_NOISE_GAIN
-    min_crossover_hz: float = MIN_CROSSOVER_HZ
+    max_overshoot_pct: float = ruled(OVERSHOOT_LIMIT_PCT, NON_NEGATIVE)
+    min_gain_margin_db: float = ruled(MIN_GAIN_MARGIN_DB, NON_NEGATIVE)
+    min_phase_margin_deg: float = ruled(MIN_PHASE_MARGIN_DEG, NON_NEGATIVE)
+    max_noise_gain: float = ruled(MAX_NOISE_GAIN, NON_NEGATIVE)
+    min_crossover_hz: float = ruled(MIN_CROSSOVER_HZ, NON_NEGATIVE)
 
     def problems(self) -> list[str]:
-        out = []
-        for name in ("max_overshoot_pct", "min_gain_margin_db", "min_phase_margin_deg", "max_noise_gain",
-                     "min_crossover_hz"):
-            x = getattr(self, name)
-            if not (isinstance(x, (int, float)) and math.isfinite(x) and x >= 0):
-                out.append(f"{name} must be a finite number >= 0, got {x!r}")
+        out = field_problems(self)
         if not out and self.min_phase_margin_deg >= 90:
             out.append("min_phase_margin_deg must be < 90")
         if not out and self.max_noise_gain == 0:
