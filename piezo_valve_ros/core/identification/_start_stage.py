@@ -217,5 +217,6 @@ class StartStage:
         self.floor = floor
         self.warnings[:] = [w for w in self.warnings if not w.startswith("the records offer no evidence")]
         self.noise = max(floor.rms_um, RESOLUTION_SHARE * self.range_um)
-        self.levels = NoiseLevels(self.noise, self.noise * self.levels.analysis_um / self.levels.record_um)
+        self.levels = NoiseLevels(self.noise, self.noise * self.levels.analysis_um / self.levels.record_um,
+                                  known=True)
         self.log(f"sensor noise: {floor.describe()}")

@@ -177,7 +177,7 @@ class _Loop(StartStage, CapacityStage, ReportStage):
         else:
             self.noise = self.floor.rms_um
         block = split.score.block / max(split.score_full.block, 1)   # block means: the noise's share at that rate
-        self.levels = NoiseLevels(self.noise, self.noise / math.sqrt(block))
+        self.levels = NoiseLevels(self.noise, self.noise / math.sqrt(block), known=self.floor.known)
         self.range_val = (float(np.ptp(split.score_full.position_um[split.start_full:])) if not split.held_out
                           else self.range_um)
         held_out_text = ('last ' + format(100 * HELD_OUT_FRACTION, '.0f') + ' %' if split.held_out

@@ -164,10 +164,12 @@ def consistency(with_: Score, without: Score) -> Consistency:
 class NoiseLevels:
     """The sensor noise floor [um RMS] at the record's rate (what an effect must explain a share of) and at the
     analysis rate the held-out scores are taken at (block means: the noise's share there; what the structured
-    residual is measured above)."""
+    residual is measured above); ``known``: whether the records gave evidence for it (False: a stand-in of the
+    record's resolution, and every residual counts as structure)."""
 
     record_um: float
     analysis_um: float
+    known: bool = True
 
     @classmethod
     def same(cls, noise_um: float) -> "NoiseLevels":
@@ -208,7 +210,9 @@ def support(with_: Score, without: Score, noise: NoiseLevels) -> Support:
     model extrapolates is the extrapolation's, not the effect's), and either
 
     * removes GAIN_THRESHOLD of the structured residual (its RMS above the noise floor) and loses, in the held-out
-      stretches it does worse in, at most MAX_LOSS_RATIO of what it gains in the others ("share"), or
+      stretches it does worse in, at most MAX_LOSS_RATIO of what it gains in the others ("share"); where the noise
+      is not known (``NoiseLevels.known``: every residual counts as structure, a closed-loop record's wandering
+      too), it must also do better in STRONG_SHARE of the stretches, or
     * removes at least SMALL_SHARE of a large structured residual (LARGE_RESIDUAL_RATIO times the noise or more),
       doing better in STRONG_SHARE of the stretches, losing at most STRONG_LOSS_RATIO, with a paired t of STRONG_T
       ("small but consistent": a small but real effect on a residual much of which stays unexplained)."""
@@ -220,12 +224,18 @@ def support(with_: Score, without: Score, noise: NoiseLevels) -> Support:
     admissible = (explained >= MIN_EFFECT_NOISE_RATIO * noise.record_um and with_.peak <= PEAK_TOLERANCE * without.peak
                   and not _worse_where_known(with_, without))
     by = ""
-    if admissible and share >= GAIN_THRESHOLD and c.loss_ratio <= MAX_LOSS_RATIO:
+    if admissible and share >= GAIN_THRESHOLD and c.loss_ratio <= MAX_LOSS_RATIO and _consistent_enough(c, noise):
         by = "share"
     elif (admissible and share >= SMALL_SHARE and before >= LARGE_RESIDUAL_RATIO * noise.analysis_um
           and c.better_share >= STRONG_SHARE and c.loss_ratio <= STRONG_LOSS_RATIO and c.t >= STRONG_T):
         by = "small but consistent"
     return Support(cut, share, explained, c, bool(by), by)
+
+
+def _consistent_enough(c: Consistency, noise: NoiseLevels) -> bool:
+    """Whether the "share" rule's consistency holds: any where the noise is known; better in STRONG_SHARE of the
+    held-out stretches where it is not (a share of a residual that is all called structure is no evidence alone)."""
+    return noise.known or c.better_share >= STRONG_SHARE
 
 
 def unsupported_because(with_: Score, without: Score, noise: NoiseLevels) -> str:
@@ -235,7 +245,11 @@ def unsupported_because(with_: Score, without: Score, noise: NoiseLevels) -> str
         return ""
     why = []
     c = s.consistency
-    if s.share < GAIN_THRESHOLD or c.loss_ratio > MAX_LOSS_RATIO:
+    if s.share >= GAIN_THRESHOLD and c.loss_ratio <= MAX_LOSS_RATIO and not _consistent_enough(c, noise):
+        why.append(f"removes {percent(s.share)} % of the structured residual, but the records give no evidence for "
+                   f"the noise (all of the residual counts as structure) and it does better in only "
+                   f"{100 * c.better_share:.0f} % of the held-out stretches (needs {100 * STRONG_SHARE:.0f} % there)")
+    elif s.share < GAIN_THRESHOLD or c.loss_ratio > MAX_LOSS_RATIO:
         why.append(f"removes {percent(s.share)} % of the structured residual (threshold {100 * GAIN_THRESHOLD:.0f} %), "
                    f"losing {percent(min(c.loss_ratio, 9.99))} % of that gain in the held-out stretches it does worse "
                    f"in (threshold {100 * MAX_LOSS_RATIO:.0f} %; better in {100 * c.better_share:.0f} % of them, "
