@@ -224,12 +224,17 @@ def support(with_: Score, without: Score, noise: NoiseLevels) -> Support:
     admissible = (explained >= MIN_EFFECT_NOISE_RATIO * noise.record_um and with_.peak <= PEAK_TOLERANCE * without.peak
                   and not _worse_where_known(with_, without))
     by = ""
-    if admissible and share >= GAIN_THRESHOLD and c.loss_ratio <= MAX_LOSS_RATIO and _consistent_enough(c, noise):
+    if admissible and _share_holds(share, c) and _consistent_enough(c, noise):
         by = "share"
     elif (admissible and share >= SMALL_SHARE and before >= LARGE_RESIDUAL_RATIO * noise.analysis_um
           and c.better_share >= STRONG_SHARE and c.loss_ratio <= STRONG_LOSS_RATIO and c.t >= STRONG_T):
         by = "small but consistent"
     return Support(cut, share, explained, c, bool(by), by)
+
+
+def _share_holds(share: float, c: Consistency) -> bool:
+    """The "share" rule's own figures: GAIN_THRESHOLD of the structured residual, at most MAX_LOSS_RATIO paid back."""
+    return share >= GAIN_THRESHOLD and c.loss_ratio <= MAX_LOSS_RATIO
 
 
 def _consistent_enough(c: Consistency, noise: NoiseLevels) -> bool:
@@ -245,11 +250,11 @@ def unsupported_because(with_: Score, without: Score, noise: NoiseLevels) -> str
         return ""
     why = []
     c = s.consistency
-    if s.share >= GAIN_THRESHOLD and c.loss_ratio <= MAX_LOSS_RATIO and not _consistent_enough(c, noise):
+    if _share_holds(s.share, c) and not _consistent_enough(c, noise):
         why.append(f"removes {percent(s.share)} % of the structured residual, but the records give no evidence for "
                    f"the noise (all of the residual counts as structure) and it does better in only "
                    f"{100 * c.better_share:.0f} % of the held-out stretches (needs {100 * STRONG_SHARE:.0f} % there)")
-    elif s.share < GAIN_THRESHOLD or c.loss_ratio > MAX_LOSS_RATIO:
+    elif not _share_holds(s.share, c):
         why.append(f"removes {percent(s.share)} % of the structured residual (threshold {100 * GAIN_THRESHOLD:.0f} %), "
                    f"losing {percent(min(c.loss_ratio, 9.99))} % of that gain in the held-out stretches it does worse "
                    f"in (threshold {100 * MAX_LOSS_RATIO:.0f} %; better in {100 * c.better_share:.0f} % of them, "
