@@ -48,21 +48,26 @@ class Creep(Effect):
     def shaped(self) -> tuple[float, ...]:
         return tuple(t for t in self.time_constants_s if t <= SHAPED_UP_TO_S)
 
-    def columns(self, ctx) -> np.ndarray:
+    def design_rows(self, ctx) -> np.ndarray:
+        """The terms as rows (k, N): plain, then rising minus falling, then times the level (``columns``)."""
         H, before = ctx.H, ctx.H_before
-        plain = lag_bank(H, self.time_constants_s, ctx.dt, before) - H[:, None]
-        k = len(self.shaped)
+        k, n = len(self.shaped), len(self.time_constants_s)
+        rows = np.empty((n + 2 * k, H.size))
+        np.subtract(lag_bank(H, self.time_constants_s, ctx.dt, before).T, H[None, :], out=rows[:n])
         if not k:
-            return plain
+            return rows
         # creep follows the slow motion, not fast cycling
         slow = lag_bank(H, (self.time_constants_s[0],), ctx.dt, before)[:, 0]
         dH = np.diff(slow, prepend=before)
         rising = np.cumsum(np.maximum(dH, 0.0))
         falling = np.cumsum(np.minimum(dH, 0.0))
-        direction = ((lag_bank(rising, self.shaped, ctx.dt) - rising[:, None])
-                     - (lag_bank(falling, self.shaped, ctx.dt) - falling[:, None]))
-        level = plain[:, :k] * normalised(H, self.centre_um, self.half_range_um)[:, None]
-        return np.column_stack((plain, direction, level))
+        np.subtract(lag_bank(rising, self.shaped, ctx.dt).T, rising[None, :], out=rows[n:n + k])
+        rows[n:n + k] -= lag_bank(falling, self.shaped, ctx.dt).T - falling[None, :]
+        np.multiply(rows[:k], normalised(H, self.centre_um, self.half_range_um)[None, :], out=rows[n + k:])
+        return rows
+
+    def columns(self, ctx) -> np.ndarray:
+        return self.design_rows(ctx).T
 
     def rest_columns(self, ctx, columns) -> np.ndarray:
         """Every term is a lag of H minus H (or that times the level): zero once the valve has rested."""

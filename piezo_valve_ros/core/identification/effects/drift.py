@@ -32,7 +32,7 @@ FAST_TIME_SCALES = (0.03, 0.1)          # ... and those of the "fast" and "wande
 HEATING_TIME_CONSTANTS_S = (10.0, 40.0)
 WANDER_TERMS = 3                        # half-cosines cos(pi k t / T) - 1, k = 1..3, of the "wander" form
 FORMS = ("linear", "all", "fast", "wander")   # see Drift.held_out_forms: the simplest first, each in the next
-_SLOW: dict = {}       # (record, t0, form, T, rate) -> (the record's times, its slow functions): see slow_functions
+_SLOW: dict = {}       # (record, t0, form, T, rate) -> (the record's times, its slow functions): see slow_rows
 _SLOW_KEPT = 16
 
 
@@ -58,42 +58,47 @@ class Drift(Effect):
     def held_out_forms(self) -> list["Drift"]:
         return [replace(self, form=f) for f in FORMS]
 
-    def slow_functions(self, ctx) -> np.ndarray:
-        """(N, k) functions of time and activity this form multiplies offset and gain by: the same for every model
-        on the record, so kept (``_SLOW_KEPT`` of them) for the refits that build them again and again."""
+    def slow_rows(self, ctx) -> np.ndarray:
+        """(k, N) functions of time and activity this form multiplies offset and gain by, one per row: the same for
+        every model on the record, so kept (``_SLOW_KEPT`` of them) for the refits that build them again and again."""
         key = (id(ctx.record.time_s), len(ctx.record), float(ctx.t0), self.form, self.duration_s, self.mean_rate_v_s)
         kept = _SLOW.get(key)
         if kept is not None and kept[0] is ctx.record.time_s:
             return kept[1]
-        out = self._slow_functions(ctx)
+        out = self._slow_rows(ctx)
         out.setflags(write=False)
         while len(_SLOW) >= _SLOW_KEPT:
             _SLOW.pop(next(iter(_SLOW)), None)
         _SLOW[key] = (ctx.record.time_s, out)
         return out
 
-    def _slow_functions(self, ctx) -> np.ndarray:
+    def _slow_rows(self, ctx) -> np.ndarray:
         t, T = ctx.t, self.duration_s
         if self.form == "linear":
-            return (t / T)[:, None]
+            return (t / T)[None, :]
         activity = np.abs(np.gradient(ctx.v, ctx.dt)) / self.mean_rate_v_s
-        heating = lag_bank(activity, HEATING_TIME_CONSTANTS_S, ctx.dt)
-        heating -= heating[0]
-        columns = [t / T] + [1.0 - np.exp(-t / (f * T)) for f in self.time_scales] + [heating]
+        heating = lag_bank(activity, HEATING_TIME_CONSTANTS_S, ctx.dt).T   # (k, N), contiguous
+        heating -= heating[:, :1]
+        rows = [t / T] + [1.0 - np.exp(-t / (f * T)) for f in self.time_scales] + list(heating)
         if self.form == "wander":
             held = np.minimum(t / T, 1.0)
-            columns += [np.cos(np.pi * k * held) - 1.0 for k in range(1, WANDER_TERMS + 1)]
-        return np.column_stack(columns)
+            rows += [np.cos(np.pi * k * held) - 1.0 for k in range(1, WANDER_TERMS + 1)]
+        return np.stack(rows)
 
     @property
     def time_scales(self) -> tuple[float, ...]:
         """The exponential approaches of this form, as shares of the training record's length."""
         return TIME_SCALES + (FAST_TIME_SCALES if self.form in ("fast", "wander") else ())
 
+    def design_rows(self, ctx) -> np.ndarray:
+        k = self.slow_rows(ctx)
+        rows = np.empty((2 * k.shape[0], k.shape[1]))
+        rows[:k.shape[0]] = k
+        np.multiply(k, normalised(ctx.H, self.centre_um, self.half_range_um)[None, :], out=rows[k.shape[0]:])
+        return rows
+
     def columns(self, ctx) -> np.ndarray:
-        k = self.slow_functions(ctx)
-        h = normalised(ctx.H, self.centre_um, self.half_range_um)
-        return np.column_stack((k, k * h[:, None]))
+        return self.design_rows(ctx).T
 
     def describe(self, model, coefs) -> dict:
         names = ["t/T"] + ([] if self.form == "linear" else [f"1-exp(-t/({f}T))" for f in self.time_scales]
