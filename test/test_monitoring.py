@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from piezo_valve_ros.core.control.compensation import CompensationModel
-from piezo_valve_ros.core.control.strategies import ControllerConfig, PIDGains, ValveController
+from piezo_valve_ros.core.control.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController
 from piezo_valve_ros.core.monitoring.health import HealthLimits, HealthMonitor, Level
 from piezo_valve_ros.core.model.hysteresis import GPIM
 from piezo_valve_ros.core.sim.experiments import run_closed_loop
@@ -94,9 +94,10 @@ def test_a_drift_that_sets_in_is_warned_within_ten_seconds_named_and_cleared_by_
     assert after[-1].residual_mean_um == pytest.approx(1.5, abs=0.1)
     # the push the policy decides on that verdict: the offset moved up by the window's mean residual
     from piezo_valve_ros.core.monitoring.refits import RefitPolicy
-    decision = RefitPolicy(Level.WARN, window_s=4.0).decide(after[-1], ENABLED)
+    decision = RefitPolicy(Level.WARN, window_s=4.0).decide(after[-1], ENABLED, MODEL)
     g = CompensationModel().gpim
     assert decision.offset_after(g.offset_um) == pytest.approx(g.offset_um + after[-1].residual_mean_um)
+    assert decision.model.gpim.offset_um == pytest.approx(decision.offset_after(g.offset_um))
     refit = CompensationModel(GPIM(g.thresholds, g.weights, g.a0, g.a1, decision.offset_after(g.offset_um)))
     # a refit that takes a third of it in: the rest must still show (the offset the monitor measured when it started
     # is kept across a model swap, not measured again on the new model, which would take the rest in as its own)
@@ -181,6 +182,9 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
     probe.create_subscription(DiagnosticArray, "/diagnostics", lambda m: seen.extend(
         (time.monotonic(), s) for s in m.status if s.name == f"{ns}/valve_monitor"), 10)
     probe.create_subscription(Float64MultiArray, f"{ns}/valve_monitor/health", lambda m: rows.append(list(m.data)), 10)
+    pushes = []
+    probe.create_subscription(Float64MultiArray, f"{ns}/valve_monitor/pushes",
+                              lambda m: pushes.append((m.layout.dim[1].label, list(m.data))), 10)
 
     def spin_until(done, timeout_s):
         deadline = time.monotonic() + timeout_s
@@ -233,8 +237,15 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
         log = (tmp_path / "rig.log").read_text()
         assert "windows of 4 s every 1 s" in log                     # the file's valve_monitor section
         assert "the model in force changed" in log and "health ERROR" in log, log[-3000:]
-        assert "pushed a refit from the operating data" in log, log[-3000:]
+        assert "pushed an offset change of +" in log and "the offset a drift moved" in log, log[-3000:]
         assert ok_before and rows and len(rows[-1]) == 7
+        # each push announced on ~/pushes (a labelled row a bag keeps) and on /diagnostics
+        from piezo_valve_ros.nodes.monitor import PUSH_COLUMNS
+        assert pushes and all(label == ",".join(PUSH_COLUMNS) for label, _ in pushes), pushes
+        first = dict(zip(PUSH_COLUMNS, pushes[0][1]))
+        assert first["kind"] == 1.0 and 1.0 < first["offset_um_after"] - first["offset_um_before"] < 3.2, first
+        assert any("pushed an offset change" in v.get("last_push", "") for _, _, v in levels_since(opened)), \
+            levels_since(opened)[-1]
     finally:
         executor.remove_node(probe)
         probe.destroy_node()
@@ -277,7 +288,8 @@ def _verdict(level: Level, end_s: float, resembles: str = "", mean_um: float = 0
     return Health(level, end_s - 4.0, end_s, abs(mean_um), mean_um, 0.1, 0.05, 2.0, 3.0, 0.0, resembles, 0.3, "")
 
 
-ENABLED = {"enabled": 1.0, "guard_active": 0.0}
+ENABLED = {"enabled": 1.0, "guard_active": 0.0, "strategy_index": float(STRATEGIES.index("pid_hc"))}
+MODEL = CompensationModel()
 
 
 def test_a_push_that_leaves_part_of_a_settling_drift_at_warn_is_followed_up_until_ok():
@@ -287,15 +299,15 @@ def test_a_push_that_leaves_part_of_a_settling_drift_at_warn_is_followed_up_unti
     from piezo_valve_ros.core.monitoring.health import OFFSET_PREFIX
     policy = RefitPolicy(Level.ERROR, window_s=4.0)
     offset = f"{OFFSET_PREFIX} of +1.000 um the model lacks"
-    assert policy.decide(_verdict(Level.WARN, 28.0, offset, 0.5), ENABLED) is None     # below refit_when
-    assert policy.decide(_verdict(Level.ERROR, 30.0, offset, 2.0), ENABLED).offset_change_um == 2.0
-    assert policy.decide(_verdict(Level.ERROR, 31.0, offset, 0.8), ENABLED).not_now == \
+    assert policy.decide(_verdict(Level.WARN, 28.0, offset, 0.5), ENABLED, MODEL) is None     # below refit_when
+    assert policy.decide(_verdict(Level.ERROR, 30.0, offset, 2.0), ENABLED, MODEL).offset_change_um == 2.0
+    assert policy.decide(_verdict(Level.ERROR, 31.0, offset, 0.8), ENABLED, MODEL).not_now == \
         "a refit was pushed less than a window ago"
-    assert policy.decide(_verdict(Level.WARN, 35.0, offset, 0.16), ENABLED).offset_change_um == 0.16  # the rest
-    assert policy.decide(_verdict(Level.WARN, 36.0, "dynamics: a lag", 0.0), ENABLED) is None  # no offset: waits
-    assert policy.decide(_verdict(Level.OK, 40.0), ENABLED) is None
-    assert policy.decide(_verdict(Level.WARN, 50.0, offset, 0.3), ENABLED) is None      # not following up now
-    assert policy.decide(_verdict(Level.ERROR, 51.0, offset, 1.9), ENABLED).offset_change_um == 1.9
+    assert policy.decide(_verdict(Level.WARN, 35.0, offset, 0.16), ENABLED, MODEL).offset_change_um == 0.16  # the rest
+    assert policy.decide(_verdict(Level.WARN, 36.0, "dynamics: a lag", 0.0), ENABLED, MODEL) is None  # no offset: waits
+    assert policy.decide(_verdict(Level.OK, 40.0), ENABLED, MODEL) is None
+    assert policy.decide(_verdict(Level.WARN, 50.0, offset, 0.3), ENABLED, MODEL) is None      # not following up now
+    assert policy.decide(_verdict(Level.ERROR, 51.0, offset, 1.9), ENABLED, MODEL).offset_change_um == 1.9
 
 
 def test_a_refit_is_pushed_only_to_an_enabled_controller_without_its_guard_and_anything_else_is_advised_once():
@@ -304,14 +316,17 @@ def test_a_refit_is_pushed_only_to_an_enabled_controller_without_its_guard_and_a
     offset = f"{OFFSET_PREFIX} of +1.000 um the model lacks"
     for state, why in (({}, "the controller's state is not known (~/controller_state)"),
                        ({"enabled": 0.0, "guard_active": 0.0}, "the controller is disabled"),
-                       ({"enabled": 1.0, "guard_active": 1.0}, "the controller's oscillation guard is active")):
-        decision = RefitPolicy(Level.WARN, 4.0).decide(_verdict(Level.WARN, 30.0, offset, 1.0), state)
-        assert decision.offset_change_um is None and decision.not_now == why
+                       ({"enabled": 1.0, "guard_active": 1.0}, "the controller's oscillation guard is active"),
+                       ({**ENABLED, "strategy_index": float(STRATEGIES.index("pid"))},
+                        "the controller runs PID, which does not use the model: a push cannot help"),
+                       ({**ENABLED, "strategy_index": 17.0}, "the controller's strategy is not known")):
+        decision = RefitPolicy(Level.WARN, 4.0).decide(_verdict(Level.WARN, 30.0, offset, 1.0), state, MODEL)
+        assert decision.offset_change_um is None and not decision.pushes and decision.not_now.startswith(why)
     policy = RefitPolicy(Level.WARN, 4.0)
     gain = "drift: a gain change of -4.0 % (the valve's output scaled by 0.9600) the model lacks"
-    assert "plan:=validate,train,refit,validate" in policy.decide(_verdict(Level.ERROR, 30.0, gain), ENABLED).advice
-    assert policy.decide(_verdict(Level.ERROR, 31.0, gain), ENABLED) is None             # said once
-    assert RefitPolicy(None, 4.0).decide(_verdict(Level.ERROR, 30.0, offset, 1.0), ENABLED) is None   # never
+    assert "plan:=validate,train,refit,validate" in policy.decide(_verdict(Level.ERROR, 30.0, gain), ENABLED, MODEL).advice
+    assert policy.decide(_verdict(Level.ERROR, 31.0, gain), ENABLED, MODEL) is None             # said once
+    assert RefitPolicy(None, 4.0).decide(_verdict(Level.ERROR, 30.0, offset, 1.0), ENABLED, MODEL) is None   # never
 
 
 @pytest.mark.parametrize("override, says", [("refit_when:=sometimes", "refit_when must be one of never, warn, error"),
@@ -404,3 +419,108 @@ def test_valve_monitor_reports_every_second_before_and_between_its_verdicts(tmp_
         probe.destroy_node()
         executor.shutdown()
         rclpy.try_shutdown(context=context)
+
+
+GAIN_LOSS = DriftParams(True, offset_um=0.0, gain_change=-0.04, time_constant_s=5.0, start_s=ONSET_S)
+
+
+def test_a_gain_change_the_window_determines_is_pushed_checked_on_the_next_window_and_clears_the_warning():
+    """A 4 % gain loss sets in at 60 s under PID HC.  A verdict that names it carries a correction fitted on the
+    window's first 70 % and scored on its held-out 30 %: refused while the gain still changes within the window,
+    pushed once it takes most of the held-out RMS (the whole model, weights scaled), the rest pushed on a later
+    window; each push checked on the next window against the model it replaced (run beside it) and kept; the valve
+    is OK again with the pushes' gains adding up to the loss."""
+    from piezo_valve_ros.core.monitoring.refits import GAIN, RefitPolicy
+    rows = operating_rows(replace(PLAIN, drift=GAIN_LOSS), 150.0)
+    monitor, policy = HealthMonitor(MODEL, DT), RefitPolicy(Level.WARN, window_s=20.0)
+    step = int(round(1.0 / DT))
+    pushes, kept, refused, verdicts_seen = [], [], [], []
+    for k in range(0, len(rows), step):
+        for health in monitor.add(rows[k:k + step]):
+            verdicts_seen.append(health)
+            decision = policy.decide(health, ENABLED, monitor.model)
+            if decision is None:
+                continue
+            refused += [decision.not_now] if decision.not_now else []
+            kept += [decision.kept] if decision.kept else []
+            if decision.pushes:
+                assert decision.kind == GAIN and not health.correction.refused and health.correction.cut >= 0.5
+                assert np.allclose(decision.model.gpim.weights, monitor.model.gpim.weights * (1 + decision.gain_change))
+                pushes.append(decision.gain_change)
+                monitor.set_model(decision.model)
+                policy.pushed(True)
+    assert refused and all(r.startswith("the gain change is not pushed: it cuts the held-out RMS") for r in refused)
+    assert 1 <= len(pushes) <= 3 and len(kept) == len(pushes), (pushes, kept)
+    assert all("push kept" in k for k in kept)
+    assert -0.05 < np.prod(1 + np.array(pushes)) - 1 < -0.03, pushes
+    assert verdicts_seen[-1].level is Level.OK, [(h.end_s, h.level.name, round(h.ratio, 2)) for h in verdicts_seen]
+    first_after = next(h for h in verdicts_seen if h.previous_model_rms_um is not None)
+    assert first_after.previous_model_rms_um > 2.0 * first_after.residual_rms_um, first_after
+
+
+def _window(predicted: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    t = np.arange(predicted.size) * DT
+    return np.column_stack((t, np.zeros_like(t), measured, predicted))
+
+
+def test_a_gain_change_the_held_out_part_does_not_support_is_refused_with_the_reason():
+    """The correction is fitted on a window's first 70 % and pushed only where it cuts the rest: a gain seen only in
+    the first part, a prediction that spans too little of the output range, a gain no drift makes, an offset that
+    needs no gain, a gain still changing within the window: each refused, and the policy says why instead of
+    pushing."""
+    from piezo_valve_ros.core.monitoring.refits import RefitPolicy
+    from piezo_valve_ros.core.monitoring.health import GAIN_PREFIX, Health
+    monitor = HealthMonitor(MODEL, DT)
+    lo, hi = MODEL.gpim.output_range(*monitor.command_range_v)
+    t = np.arange(20000) * DT
+    swing = 0.5 * (lo + hi) + 0.4 * (hi - lo) * np.sin(2 * np.pi * 0.5 * t)
+    noise = np.random.default_rng(3).normal(0.0, 0.02, t.size)
+    cut_at = int(0.7 * t.size)
+    first_only = np.where(np.arange(t.size) < cut_at, 0.96 * swing, swing) + noise
+    supported = monitor.gain_correction(_window(swing, 0.96 * swing + noise))
+    assert not supported.refused and supported.gain == pytest.approx(-0.04, abs=0.002) and supported.cut > 0.8
+    refused = monitor.gain_correction(_window(swing, first_only))
+    assert refused.refused.startswith("it cuts the held-out RMS by") and refused.cut < 0.5, refused
+    small = 0.5 * (lo + hi) + 0.05 * (hi - lo) * np.sin(2 * np.pi * 0.5 * t)
+    assert "spans 10 % of the output range" in monitor.gain_correction(_window(small, 0.96 * small + noise)).refused
+    assert "is not a drift" in monitor.gain_correction(_window(swing, 0.3 * swing + noise)).refused
+    offset_only = monitor.gain_correction(_window(swing, swing + 0.5 + noise))
+    assert offset_only.refused.startswith("an offset alone does nearly as well"), offset_only
+    changing = np.where(np.arange(t.size) < cut_at, 0.96, 0.935) * swing + noise   # still changing: -4 %, then -6.5 %
+    assert "the held-out part's own gain -6.5" in monitor.gain_correction(_window(swing, changing)).refused
+    verdict = replace(_verdict(Level.ERROR, 30.0, f"{GAIN_PREFIX} of -4.0 %", 0.3), correction=refused)
+    assert isinstance(verdict, Health)
+    decision = RefitPolicy(Level.WARN, 4.0).decide(verdict, ENABLED, MODEL)
+    assert not decision.pushes and decision.not_now.startswith("the gain change is not pushed: it cuts the held-out")
+
+
+def test_a_push_that_leaves_the_next_window_worse_is_undone_and_a_good_one_kept():
+    """A 1 um offset drift: the policy decides its push; applied wrongly (the opposite sign, as a controller that
+    took another model would run) the next window is worse than the model it replaced would have left, and the
+    policy pushes the replaced model back; the right push is kept."""
+    from piezo_valve_ros.core.monitoring.refits import UNDO, RefitPolicy
+    drift = DriftParams(True, offset_um=1.0, gain_change=0.0, time_constant_s=2.0, start_s=20.0)
+    rows = operating_rows(replace(PLAIN, drift=drift), 90.0)
+    outcomes = {}
+    for wrong in (True, False):
+        monitor, policy = HealthMonitor(MODEL, DT), RefitPolicy(Level.WARN, window_s=20.0)
+        step, pushed, outcome = int(round(1.0 / DT)), False, None
+        for k in range(0, len(rows), step):
+            for health in monitor.add(rows[k:k + step]):
+                decision = policy.decide(health, ENABLED, monitor.model)
+                if decision is None:
+                    continue
+                if decision.pushes and not pushed:
+                    pushed = True
+                    g = decision.model.gpim
+                    applied = replace(decision.model, gpim=replace(g, offset_um=2 * MODEL.gpim.offset_um - g.offset_um)) \
+                        if wrong else decision.model
+                    monitor.set_model(applied)
+                    policy.pushed(True)
+                elif pushed and outcome is None and (decision.kept or decision.kind == UNDO):
+                    outcome = decision
+        outcomes[wrong] = outcome
+    undo = outcomes[True]
+    assert undo is not None and undo.kind == UNDO and undo.model == MODEL, undo
+    assert "the offset push made things worse" in undo.evidence
+    assert outcomes[False] is not None and outcomes[False].kept.startswith("the offset push kept"), outcomes[False]

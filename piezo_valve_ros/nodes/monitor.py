@@ -8,11 +8,13 @@ labelled row: HEALTH_COLUMNS); a change of level is logged in one line.  When th
 (a refit pushed), the monitor follows it.  A separate process: it costs the control loop nothing.
 
 ``refit_when`` (never, warn, error; default never): at that level it asks for a refit.  What the operating
-data determine, an offset the model lacks (a drift), it pushes itself: the controller's ``gpim.offset_um``
-moved by the window's mean residual, only while the controller is enabled with its oscillation guard off
-(read on ``~/controller_state``) and at most once a window; what a push leaves is followed up at WARN until the
-valve is OK again.  Anything else needs a designed experiment: it logs the identification plan to run
-(``core/monitoring/refits.py``).
+data determine it pushes itself (``core/monitoring/refits.py``): an offset the model lacks (a drift), and a gain
+change where the window's excitation tells it from an offset and its held-out part confirms it; only while the
+controller is enabled with its oscillation guard off, under a strategy that runs the model (read on
+``~/controller_state``), and at most once a window.  Each push sets the controller's whole model in one atomic
+parameter change, is logged with its evidence, announced on ``/diagnostics`` and on ``~/pushes`` (one labelled
+row: PUSH_COLUMNS, for the day's bag), and checked on the next window: one that leaves it worse than the model
+it replaced is undone.  Anything else needs a designed experiment: it logs the identification plan to run.
 
     valve_monitor [--ros-args -p window_s:=20.0 -p controller:=valve_controller -r __ns:=/valve1]
 """
@@ -33,7 +35,7 @@ from std_msgs.msg import Float64MultiArray
 from ..core.control.compensation import MODEL_PARAMETERS, CompensationModel
 from ..core.monitoring.health import (ERROR_RATIO, MIN_SPAN_V, STEP_S, WARN_RATIO, WINDOW_S, Health, HealthLimits,
                                       HealthMonitor)
-from ..core.monitoring.refits import REFIT_LEVELS, RefitDecision, RefitPolicy
+from ..core.monitoring.refits import GAIN, PUSH_KINDS, REFIT_LEVELS, UNDO, RefitDecision, RefitPolicy
 from ..io.samples import SamplesLayoutError
 from ..runtime.memory import keep_freed_memory
 from .common import DIAGNOSTICS_PERIOD, SAMPLES_QOS, Diagnostics, ParameterSpec, as_float, declare_all, \
@@ -41,6 +43,10 @@ from .common import DIAGNOSTICS_PERIOD, SAMPLES_QOS, Diagnostics, ParameterSpec,
 
 HEALTH_COLUMNS = ("end_s", "level", "ratio_to_noise", "structured_rms_um", "residual_mean_um", "noise_um",
                   "voltage_span_v")
+PUSH_COLUMNS = ("end_s", "kind", "gain_change", "offset_um_before", "offset_um_after", "evidence_rms_before_um",
+                "evidence_rms_after_um")   # ~/pushes: kind 1 offset, 2 gain, 3 undo (PUSH_KINDS); the evidence's
+# RMS [um] without and with the push: the window's residual and its rest less the mean (offset), the held-out part's
+# (gain), the next window's with the push and with the model it replaced (undo)
 MODEL_FETCH_PERIOD_S = 1.0   # the controller's model is asked for this often until it answers (and after changes)
 
 MONITOR_PARAMETERS: tuple[ParameterSpec, ...] = (
@@ -56,8 +62,9 @@ MONITOR_PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("min_span_v", MIN_SPAN_V, "a window whose voltage spans less [V] is not judged (STALE)",
                   read_only=True, low=0.0, high=1000.0),
     ParameterSpec("refit_when", "never", "never, warn or error: at that level push what the operating data "
-                  "determine (an offset the model lacks) to the controller, and what a push leaves at WARN until "
-                  "OK; else log the identification plan to run", read_only=True),
+                  "determine (an offset the model lacks, a gain change its held-out part confirms) to the controller, "
+                  "and what an offset push leaves at WARN until OK, each push checked on the next window and undone "
+                  "where that is worse; else log the identification plan to run", read_only=True),
 )
 
 
@@ -101,6 +108,8 @@ class ValveMonitorNode(Node):
         self.create_subscription(Float64MultiArray, f"{self.controller_name}/controller_state", self._on_state, 10)
         self.create_subscription(ParameterEvent, "/parameter_events", self._on_parameter_event, 10)
         self.health_pub = self.create_publisher(Float64MultiArray, "~/health", 10)
+        self.pushes_pub = self.create_publisher(Float64MultiArray, "~/pushes", 10)
+        self.last_push = ""   # the latest push, as /diagnostics says it
         # with every verdict, and the latest every second as the other nodes report (valve_command status waits
         # for every node of the rig: a monitor heard only at its verdicts, every step_s, could miss its listening)
         self.diagnostics = Diagnostics(self, DIAGNOSTICS_PERIOD.default, self._status)
@@ -194,38 +203,64 @@ class ValveMonitorNode(Node):
                 health.end_s, float(health.level), health.ratio, health.structured_rms_um, health.residual_mean_um,
                 health.noise_um, health.voltage_span_v]]), ",".join(HEALTH_COLUMNS)))
             self.diagnostics.publish()
-            self._act_on(self.refits.decide(health, self.controller_state))
+            self._act_on(health, self.refits.decide(health, self.controller_state, self.model), self.model)
 
     # ------------------------------------------------------------------ refits
     def _on_state(self, msg: Float64MultiArray) -> None:
         if len(msg.layout.dim) == 2:
             self.controller_state = dict(zip(msg.layout.dim[1].label.split(","), msg.data))
 
-    def _act_on(self, decision: Optional[RefitDecision]) -> None:
-        """Push the offset a drift moved, or say why not now, or which experiment would refit."""
+    def _act_on(self, health: Health, decision: Optional[RefitDecision], model: CompensationModel) -> None:
+        """Push what the verdict determines (what it changes of the model, in one atomic change), or say why not
+        now, that a push was kept, or which experiment would refit."""
         if decision is None:
             return
         if decision.advice:
             self.get_logger().warning(decision.advice)
         elif decision.not_now:
             self.get_logger().info(f"refit not pushed: {decision.not_now}")
-        else:
-            moved = decision.offset_change_um
-            offset = decision.offset_after(self.model.gpim.offset_um)
-            future = self.client.set_parameters([Parameter("gpim.offset_um", value=offset)])
-            future.add_done_callback(lambda f: self._pushed(f, offset, moved))
+        elif decision.kept:
+            self.get_logger().info(decision.kept)
+        elif decision.pushes:
+            row = self._push_row(health, decision, model)
+            before, after = model.to_parameters(), decision.model.to_parameters()
+            future = self.client.set_parameters_atomically(   # what the push changes, in one atomic change
+                [Parameter(k, value=v) for k, v in after.items() if v != before.get(k)])
+            future.add_done_callback(lambda f: self._pushed(f, decision, row))
 
-    def _pushed(self, future, offset: float, moved: float) -> None:
+    @staticmethod
+    def _push_row(health: Health, decision: RefitDecision, before: CompensationModel) -> list[float]:
+        """One PUSH_COLUMNS row for ``decision`` on ``health``."""
+        if decision.kind == GAIN:
+            evidence = (health.correction.held_out_rms_in_force_um, health.correction.held_out_rms_corrected_um)
+        elif decision.kind == UNDO:
+            evidence = (health.residual_rms_um, health.previous_model_rms_um)
+        else:
+            evidence = (health.residual_rms_um,
+                        math.sqrt(max(health.residual_rms_um ** 2 - health.residual_mean_um ** 2, 0.0)))
+        return [health.end_s, float(PUSH_KINDS.index(decision.kind) + 1), decision.gain_change or 0.0,
+                before.gpim.offset_um, decision.model.gpim.offset_um, *evidence]
+
+    def _pushed(self, future, decision: RefitDecision, row: list[float]) -> None:
+        """The controller's answer to a push (a future's done callback: nothing may raise out of it)."""
         try:
-            result = future.result().results[0]
+            result = future.result().result
         except Exception as exc:
             self.get_logger().warning(f"refit not pushed: {exc}")
+            self.refits.pushed(False)
             return
-        if result.successful:
-            self.get_logger().info(f"pushed a refit from the operating data: {self.controller_name} gpim.offset_um "
-                                   f":= {offset:.4f} um ({moved:+.4f} um, the offset a drift moved)")
-        else:
+        self.refits.pushed(result.successful)
+        if not result.successful:
             self.get_logger().warning(f"refit refused by {self.controller_name}: {result.reason}")
+            return
+        what = ("undid the last push" if decision.kind == UNDO else
+                f"pushed a gain change of {100 * decision.gain_change:+.2f} %" if decision.kind == GAIN else
+                f"pushed an offset change of {decision.offset_change_um:+.4f} um")
+        self.last_push = (f"{what} at {row[0]:.1f} s: gpim.offset_um {row[3]:.4f} -> {row[4]:.4f} um; "
+                          f"{decision.evidence}")
+        self.get_logger().info(f"{self.controller_name}: {self.last_push}")
+        self.pushes_pub.publish(samples_message(np.array([row]), ",".join(PUSH_COLUMNS)))
+        self.diagnostics.publish()
 
     def _status(self) -> tuple[str, str, dict]:
         if self.latest is None:
@@ -236,7 +271,8 @@ class ValveMonitorNode(Node):
             return "STALE", (f"waiting for its first window: {have:.1f} of {lim.first_verdict_s:g} s of the rig's "
                              f"time so far (its prediction settles for step_s {lim.step_s:g} s, then a window of "
                              f"window_s {lim.window_s:g} s; a lockstep rig's time runs at its own pace)"), {}
-        return self.latest.level.name, self.latest.message, self.latest.values()
+        return self.latest.level.name, self.latest.message, {**self.latest.values(),
+                                                             **({"last_push": self.last_push} if self.last_push else {})}
 
 
 def main(args=None) -> int:

@@ -20,14 +20,21 @@ residual against the measured position is judged against the sensor noise measur
   ``REFIT_SHARE``: drift), the model's own parameters (the residual
   loop's subset search, ``identification.search.SubsetSearch``, refits the GPIM on the window's first 70 %
   and that takes ``REFIT_SHARE``), a catalogue effect that cuts the refit's held-out RMS by
-  ``RESEMBLANCE_GAIN`` more, or none of them.
+  ``RESEMBLANCE_GAIN`` more, or none of them;
+* where it names a gain change, the correction a push would make (:class:`GainCorrection`) is fitted on the
+  window's first ``GAIN_FIT_SHARE`` and scored on the rest, where the prediction must span ``GAIN_SPAN_SHARE`` of
+  the model's output range (else a gain cannot be told from an offset), the correction must cut the held-out
+  RMS by ``PUSH_CUT``, do better there than an offset alone and agree with the held-out part's own gain;
+* the first window after a model change is also predicted by the model before it, from the same state: the
+  verdict carries that model's residual RMS on the same rows (``previous_model_rms_um``), which says whether the
+  change made things worse.
 
 Nothing here imports ROS: the ``valve_monitor`` node and ``valve_identify --monitor`` are thin faces over it.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import IntEnum
 from typing import Optional
 
@@ -48,7 +55,8 @@ from ..model.dynamics import sections
 from ..validation import NON_NEGATIVE, POSITIVE, field_problems, ruled
 
 __all__ = ["Level", "HealthLimits", "Health", "HealthMonitor", "WINDOW_S", "WARN_RATIO", "ERROR_RATIO",
-           "MIN_SPAN_V", "RESEMBLANCE_GAIN", "REFIT_SHARE", "GAIN_SHARE", "SEARCH_RATE_HZ"]
+           "MIN_SPAN_V", "RESEMBLANCE_GAIN", "REFIT_SHARE", "GAIN_SHARE", "SEARCH_RATE_HZ", "GainCorrection",
+           "GAIN_FIT_SHARE", "GAIN_SPAN_SHARE", "GAIN_AGREEMENT", "PUSH_CUT", "OFFSET_PREFIX", "GAIN_PREFIX"]
 
 WINDOW_S = 20.0           # judged windows are this long [s] ...
 STEP_S = 5.0              # ... and one is judged this often [s]
@@ -63,6 +71,12 @@ GAIN_CHANGE_MAX = 0.5     # ... and changes the gain by at most this share: more
 SEARCH_RATE_HZ = 500.0    # the window's subset search runs on block means at most this rate [Hz]
 START_ROWS_S = 2.0        # the operators' state at the first sample is estimated on this much of the first rows [s]
 OFFSET_PREFIX = "drift: an offset"   # how a residual a constant explains is named (what refit_when can push)
+GAIN_PREFIX = "drift: a gain change"   # ... and one a gain and an offset explain
+GAIN_FIT_SHARE = 0.7      # a gain correction is fitted on a window's first this share and scored on the rest ...
+GAIN_SPAN_SHARE = 0.25    # ... where the prediction spans this share of the model's output range in both parts ...
+GAIN_AGREEMENT = 0.3      # ... and the held-out part's own gain must agree with it to this share of the larger
+PUSH_CUT = 0.5            # ... and it must take this share of the held-out RMS to be pushed (a gain still changing
+                          # within the window is fitted at its mean and leaves more: pushed on a later window)
 
 
 class Level(IntEnum):
@@ -97,6 +111,44 @@ class HealthLimits:
 
 
 @dataclass(frozen=True)
+class GainCorrection:
+    """The gain change a window determines: the prediction's swing about ``about_um`` scaled by ``1 + gain`` and
+    moved by ``level_um`` [um], fitted on the window's first ``GAIN_FIT_SHARE``; the residual RMS [um] of its
+    held-out rest with the model in force and with the correction; ``span_share`` the prediction's span in the
+    poorer part as a share of the model's output range; ``refused`` why the window does not support a push ("":
+    it does)."""
+
+    gain: float
+    level_um: float
+    about_um: float
+    held_out_rms_in_force_um: float
+    held_out_rms_corrected_um: float
+    span_share: float
+    refused: str
+
+    @property
+    def cut(self) -> float:
+        """The share of the held-out RMS the correction takes."""
+        return 1.0 - self.held_out_rms_corrected_um / max(self.held_out_rms_in_force_um, 1e-30)
+
+    def applied_to(self, model: CompensationModel) -> CompensationModel:
+        """``model`` with the correction in: its GPIM weights scaled by ``1 + gain`` (what the model's output swings
+        scales with them: the GPIM, creep's lags of it, G_v), its offset set so the prediction moves as fitted
+        (``(1 + g) p + level - g about`` for a prediction p; exact where the model is linear in the GPIM's output,
+        to first order through an output map: the next window's check catches the rest)."""
+        g = model.gpim
+        gpim = replace(g, weights=g.weights * (1.0 + self.gain),
+                       offset_um=(1.0 + self.gain) * g.offset_um + self.level_um - self.gain * self.about_um)
+        return replace(model, gpim=gpim)
+
+    def describe(self) -> str:
+        return (f"gain {100.0 * self.gain:+.2f} % about {self.about_um:.2f} um and {self.level_um:+.3f} um, fitted on "
+                f"the window's first {100 * GAIN_FIT_SHARE:.0f} %: held-out RMS {self.held_out_rms_in_force_um:.4f} "
+                f"-> {self.held_out_rms_corrected_um:.4f} um ({100.0 * self.cut:.0f} % cut), the prediction spanning "
+                f"{100.0 * self.span_share:.0f} % of the output range")
+
+
+@dataclass(frozen=True)
 class Health:
     """One window's verdict.  Positions [um], voltages [V], times [s] (the record's)."""
 
@@ -113,6 +165,8 @@ class Health:
     resembles: str                # "" below WARN
     resembles_cut: float          # the held-out RMS cut that named it (0 when nothing did)
     message: str
+    correction: Optional[GainCorrection] = None   # where a gain change is named: the push it would make
+    previous_model_rms_um: Optional[float] = None  # the first window after a model change: the model before it
 
     def values(self) -> dict[str, str]:
         """Key-value pairs for a diagnostics status."""
@@ -120,14 +174,21 @@ class Health:
                 "residual_mean_um": f"{self.residual_mean_um:.4f}", "structured_rms_um": f"{self.structured_rms_um:.4f}",
                 "noise_um": f"{self.noise_um:.4f}", "ratio_to_noise": f"{self.ratio:.2f}",
                 "voltage_span_v": f"{self.voltage_span_v:.3f}", "reference_offset_um": f"{self.reference_offset_um:.4f}",
-                "resembles": self.resembles, "resembles_cut": f"{self.resembles_cut:.3f}"}
+                "resembles": self.resembles, "resembles_cut": f"{self.resembles_cut:.3f}",
+                **({"gain_correction": self.correction.describe() + (f"; not pushed: {self.correction.refused}"
+                                                                     if self.correction.refused else "")}
+                   if self.correction is not None else {}),
+                **({"previous_model_rms_um": f"{self.previous_model_rms_um:.4f}"}
+                   if self.previous_model_rms_um is not None else {})}
 
     def as_dict(self) -> dict:
         return {"level": self.level.name, "start_s": self.start_s, "end_s": self.end_s,
                 "residual_rms_um": self.residual_rms_um, "residual_mean_um": self.residual_mean_um,
                 "structured_rms_um": self.structured_rms_um, "noise_um": self.noise_um, "ratio": self.ratio,
                 "voltage_span_v": self.voltage_span_v, "reference_offset_um": self.reference_offset_um,
-                "resembles": self.resembles, "resembles_cut": self.resembles_cut, "message": self.message}
+                "resembles": self.resembles, "resembles_cut": self.resembles_cut, "message": self.message,
+                "correction": None if self.correction is None else self.correction.__dict__.copy(),
+                "previous_model_rms_um": self.previous_model_rms_um}
 
 
 class HealthMonitor:
@@ -146,11 +207,14 @@ class HealthMonitor:
         self.limits, self.dt, self.command_range_v = limits, float(dt), tuple(float(x) for x in command_range_v)
         self._window = max(int(round(limits.window_s / dt)), 10)
         self._step = max(int(round(limits.step_s / dt)), 1)
-        self._rows = np.empty((self._window + self._step, 4))   # time, voltage, measured [um], predicted [um]
+        # time, voltage, measured [um], predicted [um], predicted by the model before the last change [um]
+        self._rows = np.empty((self._window + self._step, 5))
         self._count = 0            # rows held
         self._since_judged = 0
         self._history: tuple[float, ...] = ()   # turning points [V] of the voltage before the rows held
         self._valve: Optional[ModelValve] = None
+        self._previous: Optional[CompensationModel] = None   # the model before the last change, until a verdict
+        self._previous_valve: Optional[ModelValve] = None    # ... run beside the model in force from the same state
         self._offset: Optional[float] = None
         self._warm_up = self._step   # rows after a (re)start that settle the prediction and are not judged
         self._pending: list[np.ndarray] = []   # the first rows, until the state before them is estimated
@@ -166,10 +230,13 @@ class HealthMonitor:
     def set_model(self, model: CompensationModel) -> None:
         """The model in force from the next row on: the rows held so far (predicted by the old one) are
         dropped, remembering where their voltage turned.  The reference offset stays: it is what the state
-        before the monitor started left, not part of a model, and a refit that leaves an offset must show."""
+        before the monitor started left, not part of a model, and a refit that leaves an offset must show.  Until the
+        next verdict the model before it runs beside it from the same state: that verdict carries its residual
+        RMS on the same rows (``Health.previous_model_rms_um``)."""
         self._history = self._before(self._count)
         self._count = self._since_judged = 0
-        self.model, self._valve, self._warm_up = model, None, self._step
+        self._previous = self.model
+        self.model, self._valve, self._previous_valve, self._warm_up = model, None, None, self._step
 
     def _before(self, row: int) -> tuple[float, ...]:
         """Turning points [V] of the voltage before held row ``row``."""
@@ -177,11 +244,13 @@ class HealthMonitor:
             return self._history
         return dominant_turning_points(np.concatenate([self._history, self._rows[:row, 1]]))
 
-    def _valve_for(self, v0: float) -> ModelValve:
-        """The model's forward run, its operators in the state the voltage so far leaves."""
+    def _valve_for(self, v0: float, model: Optional[CompensationModel] = None) -> ModelValve:
+        """``model``'s (default: the model in force) forward run, its operators in the state the voltage so far
+        leaves."""
+        model = self.model if model is None else model
         history = self._before(self._count)
-        state = self.model.gpim.state_after(dominant_turning_points(np.asarray(history + (v0,))))
-        return ModelValve(self.model, self.dt, v0, state)
+        state = model.gpim.state_after(dominant_turning_points(np.asarray(history + (v0,))))
+        return ModelValve(model, self.dt, v0, state)
 
     def _first_valve(self, rows: np.ndarray) -> ModelValve:
         """The forward run from the first rows: the state before them estimated as the residual loop does
@@ -217,12 +286,16 @@ class HealthMonitor:
             part, rows = rows[:room], rows[room:]
             if self._valve is None:
                 self._valve = self._valve_for(float(part[0, 1]))
+                if self._previous is not None:
+                    self._previous_valve = self._valve_for(float(part[0, 1]), self._previous)
             predicted = self._valve.run(part[:, 1]) * 1e6
+            previous = self._previous_valve.run(part[:, 1]) * 1e6 if self._previous_valve is not None \
+                else np.full(len(part), np.nan)
             if self._warm_up:   # the prediction settles from the assumed start: not judged
                 self._warm_up = max(self._warm_up - len(part), 0)
                 self._history = dominant_turning_points(np.concatenate([self._history, part[:, 1]]))
                 continue
-            self._append(np.column_stack([part[:, 0], part[:, 1], part[:, 2] * 1e6, predicted]))
+            self._append(np.column_stack([part[:, 0], part[:, 1], part[:, 2] * 1e6, predicted, previous]))
             self._since_judged += len(part)
             if self._since_judged >= self._step:
                 self._since_judged = 0
@@ -243,7 +316,7 @@ class HealthMonitor:
     def judge(self) -> Health:
         """The verdict on the latest window."""
         first = max(self._count - self._window, 0)
-        w = self._rows[first:self._count]
+        w = self._rows[first:self._count, :4]
         t, v, y, predicted = w[:, 0], w[:, 1], w[:, 2], w[:, 3]
         noise = noise_floor_um(y)
         span = float(np.ptp(v))
@@ -253,11 +326,15 @@ class HealthMonitor:
         offset = 0.0 if self._offset is None else self._offset
         e = e - offset
         total = rms(e)
+        previous_rms = None
+        if self._previous_valve is not None:   # the first verdict since the model changed: the one before, beside it
+            previous_rms = rms(y - self._rows[first:self._count, 4] - offset)
+            self._previous = self._previous_valve = None
         structured = math.sqrt(max(total * total - noise * noise, 0.0))
         ratio = structured / noise if noise > 0 else math.inf
         base = dict(start_s=float(t[0]), end_s=float(t[-1]), residual_rms_um=total, residual_mean_um=float(np.mean(e)),
                     structured_rms_um=structured, noise_um=noise, ratio=ratio, voltage_span_v=span,
-                    reference_offset_um=offset)
+                    reference_offset_um=offset, previous_model_rms_um=previous_rms)
         if span < self.limits.min_span_v:
             return Health(Level.STALE, resembles="", resembles_cut=0.0,
                           message=f"not enough excitation to judge: the voltage spans {span:.3g} V "
@@ -268,9 +345,50 @@ class HealthMonitor:
                                   f"noise (WARN at {self.limits.warn_ratio:g}x)", **base)
         level = Level.ERROR if ratio >= self.limits.error_ratio else Level.WARN
         resembles, cut = self.resemblance(w, self._before(first))
-        return Health(level, resembles=resembles, resembles_cut=cut,
+        correction = self.gain_correction(w) if resembles.startswith(GAIN_PREFIX) else None
+        return Health(level, resembles=resembles, resembles_cut=cut, correction=correction,
                       message=f"the valve no longer matches its model: structured residual {structured:.3f} um, "
                               f"{ratio:.1f}x the noise (mean {np.mean(e):+.3f} um); resembles {resembles}", **base)
+
+    def gain_correction(self, window: np.ndarray) -> GainCorrection:
+        """The gain change ``window`` (rows of time [s], voltage [V], measured and predicted position [um])
+        determines, fitted on its first GAIN_FIT_SHARE (the residual less the reference offset regressed on a
+        constant and the prediction's swing) and scored on the rest.  Refused where the prediction spans less than
+        GAIN_SPAN_SHARE of the model's output range in either part, the gain exceeds GAIN_CHANGE_MAX, the held-out
+        RMS is cut by less than PUSH_CUT, the gain does not take GAIN_SHARE of what an offset alone (fitted on the
+        same rows) leaves there, or the held-out part's own gain differs from it by more than GAIN_AGREEMENT of
+        the larger (a drift still setting in within the window, which a swing-proportional term follows by
+        chance)."""
+        y, predicted = window[:, 2], window[:, 3]
+        e = y - predicted - (self._offset or 0.0)
+        cut_at = int(round(GAIN_FIT_SHARE * len(e)))
+
+        def fitted(rows: slice) -> tuple[float, float, float]:
+            about = float(np.mean(predicted[rows]))
+            design = np.column_stack((np.ones(predicted[rows].size), predicted[rows] - about))
+            (level, gain), *_ = np.linalg.lstsq(design, e[rows], rcond=None)
+            return float(level), float(gain), about
+
+        level, gain, about = fitted(slice(0, cut_at))
+        _, held_gain, _ = fitted(slice(cut_at, None))
+        held = e[cut_at:]
+        corrected = held - level - gain * (predicted[cut_at:] - about)
+        offset_alone = rms(held - float(np.mean(e[:cut_at])))
+        lo, hi = self.model.gpim.output_range(*self.command_range_v)
+        share = min(float(np.ptp(predicted[:cut_at])), float(np.ptp(predicted[cut_at:]))) / max(hi - lo, 1e-12)
+        correction = GainCorrection(gain, level, about, rms(held), rms(corrected), share, "")
+        refused = (f"the prediction spans {100 * share:.0f} % of the output range (needs {100 * GAIN_SPAN_SHARE:.0f} %"
+                   " in both parts of the window): a gain cannot be told from an offset" if share < GAIN_SPAN_SHARE
+                   else f"a gain change of {100 * gain:+.0f} % is not a drift (at most {100 * GAIN_CHANGE_MAX:.0f} %)"
+                   if abs(gain) > GAIN_CHANGE_MAX
+                   else f"it cuts the held-out RMS by {100 * correction.cut:.0f} % (needs {100 * PUSH_CUT:.0f} %)"
+                   if correction.cut < PUSH_CUT
+                   else f"an offset alone does nearly as well there ({offset_alone:.4f} um against "
+                        f"{correction.held_out_rms_corrected_um:.4f} um)"
+                   if correction.held_out_rms_corrected_um > (1.0 - GAIN_SHARE) * offset_alone
+                   else f"the held-out part's own gain {100 * held_gain:+.2f} % differs (the gain is still changing)"
+                   if abs(held_gain - gain) > GAIN_AGREEMENT * max(abs(gain), abs(held_gain)) else "")
+        return replace(correction, refused=refused)
 
     def resemblance(self, window: np.ndarray, before: tuple[float, ...] = ()) -> tuple[str, float]:
         """What the window's residual resembles, by the residual loop's subset search on the window (fit on
@@ -296,7 +414,7 @@ class HealthMonitor:
         if in_force > 0 and 1.0 - gain_rms / in_force >= REFIT_SHARE \
                 and 1.0 - gain_rms / max(offset_rms, 1e-30) >= GAIN_SHARE \
                 and abs(gain) <= GAIN_CHANGE_MAX:
-            return (f"drift: a gain change of {100.0 * gain:+.1f} % (the swing about {np.mean(swing):.1f} um "
+            return (f"{GAIN_PREFIX} of {100.0 * gain:+.1f} % (the swing about {np.mean(swing):.1f} um "
                     f"scaled by {1.0 + gain:.4f}) and an offset of {level_um:+.3f} um the model lacks",
                     1.0 - gain_rms / in_force)
         if in_force > 0 and 1.0 - offset_rms / in_force >= REFIT_SHARE:
