@@ -1,0 +1,170 @@
+"""A day on the rig: a valve that drifts over 20 min of everyday operation, with the monitor off and on.
+
+    python bench/day_on_the_rig.py [--minutes 20] [--out docs/results/day_on_the_rig]
+
+The simulated valve (the paper's GPIM and G_v, LVDT noise) loses 8 % of its gain and its offset rises by 2 um over
+the run, smoothly (an exponential approach from the start, 95 % of it by the end), while the controller follows
+levels and slow sines (a new stretch every minute).  Under OL HC and under PID HC, each twice:
+
+* monitor off: the controller keeps the model it started with;
+* monitor on: ``HealthMonitor`` judges the applied voltage against the model in force (20 s windows every 5 s) and
+  ``RefitPolicy`` (``refit_when: warn``) pushes what the operating data determine (an offset; a gain change the
+  window's held-out part confirms) to the controller, each push checked on the next window and undone where worse.
+  A push takes effect at the end of the 5 s chunk its verdict closes (the node's latency is well under that).
+
+It runs the core in lockstep (controller and valve stepped together, faster than real time: no ROS) and prints
+and writes (``--out``/monitor_day.md, monitor_day.png where matplotlib is there) the tracking RMS [um] of the first
+and the last two minutes, their ratio, and every push with its evidence.
+"""
+import argparse
+import math
+import os
+import sys
+import time
+from dataclasses import replace
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(HERE, "..", "test"))
+
+from valve_battery import staircase_and_sines_um  # noqa: E402  (test helpers: the operating reference)
+from piezo_valve_ros.core.control.compensation import CompensationModel  # noqa: E402
+from piezo_valve_ros.core.control.strategies import (STRATEGIES, ControllerConfig, PIDGains,  # noqa: E402
+                                                     ValveController)
+from piezo_valve_ros.core.monitoring.health import HealthLimits, HealthMonitor, Level  # noqa: E402
+from piezo_valve_ros.core.monitoring.refits import UNDO, RefitPolicy  # noqa: E402
+from piezo_valve_ros.core.sim.experiments import run_closed_loop  # noqa: E402
+from piezo_valve_ros.core.sim.simulator import DriftParams, SensorParams, SimulatedValve, ValveSimConfig  # noqa: E402
+
+DT = 1e-3
+CHUNK_S = 5.0                  # the loop runs this long between the monitor's looks (its step)
+GAIN_LOSS = 0.08               # over the run ...
+OFFSET_RISE_UM = 2.0           # ... and this offset rise
+APPROACH = 3.0                 # the run lasts this many time constants of the exponential approach (95 %)
+EDGE_S = 120.0                 # tracking is compared over the first and the last this long
+PID_HC = PIDGains(0.4823, 213.8982, 0.0)
+STRATEGY_GAINS = {"ol_hc": None, "pid_hc": PID_HC}
+
+
+def drift_for(seconds: float) -> DriftParams:
+    """The day's drift: GAIN_LOSS and OFFSET_RISE_UM reached at the end of ``seconds`` of an exponential approach."""
+    reached = 1.0 - math.exp(-APPROACH)
+    return DriftParams(True, offset_um=OFFSET_RISE_UM / reached, gain_change=-GAIN_LOSS / reached,
+                       time_constant_s=seconds / APPROACH, start_s=0.0)
+
+
+def day(strategy: str, monitor_on: bool, seconds: float, seed: int = 11) -> dict:
+    """One run: the tracking error [um] per sample, the pushes and the verdicts."""
+    config = replace(ValveSimConfig(dt=DT).ideal(), dynamics_enabled=True, sensor=SensorParams(),
+                     drift=drift_for(seconds), seed=seed)
+    valve = SimulatedValve(config)
+    model = CompensationModel()
+    controller = ValveController(ControllerConfig(strategy=strategy, gains=STRATEGY_GAINS[strategy] or PID_HC, dt=DT),
+                                 model)
+    controller.reset(5.0)
+    monitor = HealthMonitor(model, DT, HealthLimits(step_s=CHUNK_S)) if monitor_on else None
+    policy = RefitPolicy(Level.WARN, HealthLimits().window_s)
+    state = {"enabled": 1.0, "guard_active": 0.0, "strategy_index": float(STRATEGIES.index(strategy))}
+    reference = np.concatenate([staircase_and_sines_um(seed + k, DT, 60.0)
+                                for k in range(int(math.ceil(seconds / 60.0)))])[:int(round(seconds / DT))]
+    chunk = int(round(CHUNK_S / DT))
+    errors, pushes, verdicts, position = [], [], [], None
+    for start in range(0, reference.size, chunk):
+        ref_um = reference[start:start + chunk]
+        rec = run_closed_loop(valve, controller, ref_um * 1e-6,
+                              **({} if position is None else {"first_position_m": position}))
+        position = valve.step(rec.command_v[-1])   # the answer to the chunk's last command
+        measured = np.append(rec.position_m[1:], position)
+        errors.append(ref_um - measured * 1e6)
+        if monitor is None:
+            continue
+        t = (start + np.arange(ref_um.size)) * DT
+        for health in monitor.add(np.column_stack((t, rec.command_v, measured))):
+            verdicts.append(health)
+            decision = policy.decide(health, state, monitor.model)
+            if decision is None:
+                continue
+            if decision.kept:
+                pushes[-1]["checked"] = decision.kept
+            if decision.pushes:
+                if decision.kind == UNDO and pushes:
+                    pushes[-1]["checked"] = "undone: " + decision.evidence
+                pushes.append({"t_s": health.end_s, "kind": decision.kind, "gain_change": decision.gain_change,
+                               "offset_change_um": decision.offset_change_um, "evidence": decision.evidence,
+                               "checked": ""})
+                controller.set_model(decision.model)
+                monitor.set_model(decision.model)
+                policy.pushed(True)
+    return {"error_um": np.concatenate(errors), "pushes": pushes, "verdicts": verdicts}
+
+
+def rms(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(x))))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--minutes", type=float, default=20.0, help="length of the day [min] (default 20)")
+    ap.add_argument("--out", default=os.path.join(HERE, "..", "docs", "results", "day_on_the_rig"))
+    args = ap.parse_args()
+    seconds = 60.0 * args.minutes
+    edge = int(round(EDGE_S / DT))
+    lines = [f"Output of `python bench/day_on_the_rig.py --minutes {args.minutes:g}` (the core in lockstep, "
+             f"{1 / DT:.0f} Hz; the valve loses {100 * GAIN_LOSS:.0f} % of its gain and its offset rises "
+             f"{OFFSET_RISE_UM:g} um over the run):", "", "```",
+             f"{'strategy':8s} {'monitor':8s} {'first 2 min':>12s} {'last 2 min':>11s} {'last/first':>10s} "
+             f"{'pushes':>6s} {'undone':>6s} {'run s':>6s}"]
+    runs = {}
+    for strategy in STRATEGY_GAINS:
+        for monitor_on in (False, True):
+            t0 = time.perf_counter()
+            run = day(strategy, monitor_on, seconds)
+            took = time.perf_counter() - t0
+            runs[(strategy, monitor_on)] = run
+            first, last = rms(run["error_um"][:edge]), rms(run["error_um"][-edge:])
+            undone = sum(1 for p in run["pushes"] if p["kind"] == UNDO)
+            lines.append(f"{strategy:8s} {'on' if monitor_on else 'off':8s} {first:10.3f} um {last:8.3f} um "
+                         f"{last / first:9.2f}x {len(run['pushes']):6d} {undone:6d} {took:6.0f}")
+            print(lines[-1], flush=True)
+    lines += ["```", "", "Pushes (monitor on):", "", "```"]
+    for (strategy, monitor_on), run in runs.items():
+        for p in run["pushes"]:
+            lines.append(f"{strategy:6s} {p['t_s']:7.1f} s {p['kind']:6s} "
+                         + (f"gain {100 * p['gain_change']:+.2f} %: " if p["gain_change"] is not None else
+                            f"offset {p['offset_change_um']:+.3f} um: " if p["offset_change_um"] is not None else "")
+                         + p["evidence"] + (f"; then: {p['checked']}" if p["checked"] else "; then: not checked "
+                                            "(the run ended first, or a newer push replaced it)"))
+    lines.append("```")
+    bad = [(s, p) for (s, on), run in runs.items() for p in run["pushes"]
+           if "made things worse" in p["checked"] and not p["checked"].startswith("undone")]
+    lines += ["", f"Pushes whose next window was worse and that were not undone: {len(bad)}."]
+    os.makedirs(args.out, exist_ok=True)
+    with open(os.path.join(args.out, "monitor_day.md"), "w") as f:
+        f.write("\n".join(lines) + "\n")
+    print("\n".join(lines[lines.index("Pushes (monitor on):"):]))
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return 0
+    fig, axes = plt.subplots(len(STRATEGY_GAINS), 1, figsize=(10, 6), sharex=True)
+    for ax, strategy in zip(axes, STRATEGY_GAINS):
+        for monitor_on in (False, True):
+            e = runs[(strategy, monitor_on)]["error_um"]
+            n = int(round(5.0 / DT))
+            windowed = np.sqrt(np.mean(np.square(e[:e.size // n * n].reshape(-1, n)), axis=1))
+            ax.plot(np.arange(windowed.size) * 5.0 / 60.0, windowed, label=f"monitor {'on' if monitor_on else 'off'}")
+        for p in runs[(strategy, True)]["pushes"]:
+            ax.axvline(p["t_s"] / 60.0, color="grey", lw=0.5)
+        ax.set_ylabel(f"{strategy}: tracking RMS [um]")
+        ax.legend()
+    axes[-1].set_xlabel("time [min] (5 s RMS; grey: pushes)")
+    fig.tight_layout()
+    fig.savefig(os.path.join(args.out, "monitor_day.png"), dpi=100)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
