@@ -51,8 +51,7 @@ import rclpy.node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
 
-from piezo_valve_ros.nodes.common import (COMMAND_QOS, SENSOR_QOS, claim_pacing, make_executor,
-                                          spin_loop)
+from piezo_valve_ros.ros import COMMAND_QOS, SENSOR_QOS, claim_pacing, make_executor, spin_loop
 from piezo_valve_ros.runtime.processes import ProcessGroup, node_command
 from harness import Lines
 from loop_trace import LoopTrace, attribute_misses
@@ -63,7 +62,7 @@ ECHO = """
 import sys, rclpy
 from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import Float64
-from piezo_valve_ros.nodes.common import COMMAND_QOS, SENSOR_QOS, make_executor
+from piezo_valve_ros.ros import COMMAND_QOS, SENSOR_QOS, make_executor
 rclpy.init()
 node = rclpy.create_node("bench_echo")
 pub = node.create_publisher(Float64, "voltage_command", COMMAND_QOS)
@@ -88,7 +87,7 @@ def env() -> dict:
 
 
 def spin_for(executor, seconds: float, until=None, pacing=None) -> None:
-    """The nodes' own spin loop (common.spin_loop), for ``seconds`` or until ``until()``."""
+    """The nodes' own spin loop (ros.spin.spin_loop), for ``seconds`` or until ``until()``."""
     end = time.monotonic() + seconds
     spin_loop(executor, lambda: time.monotonic() < end and rclpy.ok() and not (until is not None and until()),
               pacing)
@@ -105,7 +104,7 @@ def context_switches() -> dict:
 
 def wake_up_lateness(sleep_s: float = 8e-5, seconds: float = 2.0) -> dict:
     """How late a thread wakes from a short sleep, with the 1 us timer slack the hardware node sets."""
-    from piezo_valve_ros.nodes.common import tighten_timer_slack
+    from piezo_valve_ros.ros import tighten_timer_slack
     tighten_timer_slack()
     late = []
     end = time.perf_counter() + seconds

@@ -23,15 +23,16 @@ MAY_IMPORT = {
     "core.runs": set(),
 }
 # what each folder outside the core may import from the package besides the core and itself (the layout's
-# layers: io, runtime and backends on the core; nodes.common the ROS plumbing; rig on it; the nodes; the tools)
+# layers: io, runtime and backends on the core; ros the ROS plumbing; rig on it; the nodes; the tools)
 FOLDER_MAY_IMPORT = {
     "io": set(),
     "runtime": {"io"},
     "backends": set(),
-    "rig": {"io", "runtime", "nodes.common"},
-    "nodes": {"io", "runtime", "backends", "rig", "identify"},
+    "ros": {"io", "runtime"},
+    "rig": {"io", "runtime", "ros"},
+    "nodes": {"io", "runtime", "backends", "ros", "rig", "identify"},
     "identify": {"io"},
-    "cli": {"io", "runtime", "backends", "rig", "nodes", "identify"},
+    "cli": {"io", "runtime", "backends", "ros", "rig", "nodes", "identify"},
 }
 TOP_LEVEL = {"__init__.py", "identify.py"}   # the package's own modules: the library face of identification
 
@@ -131,19 +132,19 @@ def test_the_core_is_ros_free_and_points_one_way(module):
 
 
 def _folder(module: str) -> str:
-    """The folder outside the core a module belongs to (``nodes.common`` stands apart: the ROS plumbing)."""
-    short = _short(module)
-    return "nodes.common" if short == "nodes.common" else short.split(".")[0]
+    """The folder outside the core a module belongs to."""
+    return _short(module).split(".")[0]
 
 
 def test_the_layout_explains_itself():
     """Folders by kind: the top level holds the library face only; nodes/ the nodes (each a ROS process with a
-    ``main``) and their plumbing; cli/ every other command-line tool (each with a ``main``) and what they share."""
+    ``main``); ros/ the ROS plumbing they, the rig client and the tools share; cli/ every other command-line tool
+    (each with a ``main``) and what they share."""
     assert {p.name for p in ROOT.glob("*.py")} == TOP_LEVEL
     folders = {p.name for p in ROOT.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
-    assert folders == {"core", "io", "runtime", "backends", "rig", "nodes", "cli"}, folders
+    assert folders == {"core", "io", "runtime", "backends", "ros", "rig", "nodes", "cli"}, folders
     for path in sorted((ROOT / "nodes").glob("*.py")):
-        if path.stem in ("__init__", "common"):
+        if path.stem == "__init__":
             continue
         text = path.read_text()
         assert "def main(" in text and re.search(r"Node\b", text), path.name
@@ -161,12 +162,12 @@ def test_the_layout_explains_itself():
 def test_each_folder_imports_only_the_layers_below_it(module):
     """Nothing imports a command-line tool but a tool; no library imports a node."""
     folder = _folder(module)
-    allowed = ({"io", "runtime"} if folder == "nodes.common" else FOLDER_MAY_IMPORT[folder]) | {folder}
+    allowed = FOLDER_MAY_IMPORT[folder] | {folder}
     for target in EDGES[module]:
         other = _folder(target)
         if other == "core" or other == folder:
             continue
-        assert (other in allowed or "nodes" in allowed) if other == "nodes.common" else other in allowed, \
+        assert other in allowed, \
             f"{_short(module)} ({folder}) imports {_short(target)} ({other})"
 
 

@@ -48,14 +48,14 @@ def test_one_blas_thread_while_a_block_runs_and_for_the_rest_of_a_process_also_f
 
 @pytest.mark.parametrize("entry", ["run_node", "valve_composed", "valve_rig"])
 def test_a_node_process_runs_blas_on_one_thread(entry):
-    """Every node's process (``nodes.common.run_node``, ``valve_composed``'s own main, and ``valve_rig``, which hosts
+    """Every node's process (``ros.spin.run_node``, ``valve_composed``'s own main, and ``valve_rig``, which hosts
     the nodes with --composed) sets one BLAS thread before it builds its nodes: seen where they would be built, for
     numpy's BLAS and scipy's loaded after."""
     build = ("def build():\n"
              "    import scipy.linalg\n"
              "    print(json.dumps(threads()), flush=True)\n"
              "    raise RuntimeError('built no node')\n")
-    run = {"run_node": "from piezo_valve_ros.nodes.common import run_node\n"
+    run = {"run_node": "from piezo_valve_ros.ros import run_node\n"
                        "code = run_node(build, 'probe', args=[])\n",
            "valve_composed": "from piezo_valve_ros.nodes import composed\n"
                              "composed.build = build\n"

@@ -22,7 +22,7 @@ from piezo_valve_ros.backends.kit import FaultInjectingBackend, check_backend
 from piezo_valve_ros.backends import SimBackend
 from piezo_valve_ros.core.sim.simulator import ValveSimConfig
 from piezo_valve_ros.backends.faults import FaultLimits, SampleCheck
-from piezo_valve_ros.nodes.common import COMMAND_QOS, SENSOR_QOS, STATE_QOS, make_executor
+from piezo_valve_ros.ros import COMMAND_QOS, SENSOR_QOS, STATE_QOS, make_executor
 from piezo_valve_ros.nodes.controller import ValveControllerNode
 from piezo_valve_ros.nodes.hardware import ValveHardwareNode
 

@@ -21,7 +21,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64, Float64MultiArray
 
 from piezo_valve_ros.core.control.strategies import ControllerConfig, ValveController, gain_set
-from piezo_valve_ros.nodes.common import COMMAND_QOS, SAMPLES_QOS, make_executor, samples_message
+from piezo_valve_ros.ros import COMMAND_QOS, SAMPLES_QOS, make_executor, samples_message
 from piezo_valve_ros.nodes.controller import ValveControllerNode
 from piezo_valve_ros.nodes.hardware import ValveHardwareNode
 from piezo_valve_ros.nodes.identification import ValveIdentificationNode
@@ -772,7 +772,7 @@ def test_the_composed_process_lists_both_nodes_parameters_under_their_names():
 
 
 def test_every_node_shares_the_one_control_period_declaration():
-    from piezo_valve_ros.nodes.common import CONTROL_PERIOD
+    from piezo_valve_ros.ros import CONTROL_PERIOD
     from piezo_valve_ros.nodes.controller import CONTROLLER_PARAMETERS
     from piezo_valve_ros.nodes.hardware import HARDWARE_PARAMETERS
     from piezo_valve_ros.nodes.identification import IDENTIFICATION_PARAMETERS
@@ -785,7 +785,7 @@ def test_a_reference_the_valve_cannot_reach_is_refused_and_never_drives_the_comm
     """position_reference 20 (um meant), -1, 1e-3 (mm meant) and NaN, through ROS to a running PID HC
     controller: each refused (counted, one log line), the last good reference kept, the command never on a
     rail; a reference just beyond the reachable range is clamped to it instead."""
-    from piezo_valve_ros.nodes.common import REFERENCE_QOS, SENSOR_QOS
+    from piezo_valve_ros.ros import REFERENCE_QOS, SENSOR_QOS
     ctl = controller(gain_set="pid_hc_5")
     lo, hi = ctl.controller.reachable_m
     commands = []
@@ -876,7 +876,7 @@ def test_controller_state_and_diagnostics_say_what_the_controller_is_doing(contr
     enabled (a labelled row); /diagnostics: the node's health (OK in control, the model in force, refused
     references), both at a low rate on their own timers."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-    from piezo_valve_ros.nodes.common import REFERENCE_QOS, SENSOR_QOS
+    from piezo_valve_ros.ros import REFERENCE_QOS, SENSOR_QOS
     from piezo_valve_ros.nodes.controller import CONTROLLER_STATE_COLUMNS
     ctl = controller(gain_set="pid_hc_5", state_period_s=0.05, diagnostics_period_s=0.2)
     states, health = [], []
@@ -943,9 +943,9 @@ def test_a_node_whose_shutdown_hangs_dumps_its_stacks_and_exits_by_its_deadline(
     """After the first Ctrl-C/SIGTERM a node process has SHUTDOWN_DEADLINE_S to end; one whose shutdown hangs (here a
     loop that never looks at the stop request, as a thread spinning on a lock would) writes every thread's stack to
     stderr, naming where it hung, and exits 1 instead of holding the valve and a CPU for ever."""
-    from piezo_valve_ros.nodes.common import SHUTDOWN_DEADLINE_S
+    from piezo_valve_ros.ros import SHUTDOWN_DEADLINE_S
     script = ("import os, signal, time\n"
-              "from piezo_valve_ros.nodes.common import init_ros\n"
+              "from piezo_valve_ros.ros import init_ros\n"
               "init_ros(['hung_node'])\n"
               "def stuck_in_shutdown():\n"
               "    while True:\n"

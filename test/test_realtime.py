@@ -18,8 +18,8 @@ from std_msgs.msg import Float64, Float64MultiArray
 from piezo_valve_ros.backends import SimBackend
 from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
 from piezo_valve_ros.runtime.loop_timing import LoopTiming
-from piezo_valve_ros.nodes.common import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, Pacing, claim_pacing,
-                                          make_executor, samples_from_message, spin_loop)
+from piezo_valve_ros.ros import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, claim_pacing, make_executor, Pacing,
+                                 samples_from_message, spin_loop)
 from piezo_valve_ros.runtime.processes import ProcessGroup, node_command
 
 
@@ -121,7 +121,7 @@ def test_the_batch_path_is_ready_before_a_realtime_loop_and_its_warm_up_leaves_t
 
 def test_a_throttled_warning_is_decided_before_the_logger_is_called():
     """The first time due, then at most once per period (rclpy's own throttle costs a source-file lookup per call)."""
-    from piezo_valve_ros.nodes.common import Throttle
+    from piezo_valve_ros.ros import Throttle
     now = [100.0]
     say = Throttle(5.0, clock=lambda: now[0])
     seen = []
@@ -422,7 +422,7 @@ def test_controller_steps_only_when_its_command_can_arrive(ros_context):
 SIGNAL_BURST_SCRIPT = """
 import sys, time
 import rclpy
-from piezo_valve_ros.nodes.common import init_ros, spin
+from piezo_valve_ros.ros import init_ros, spin
 init_ros([])
 node = rclpy.create_node('signal_burst')
 node.create_timer(0.001, lambda: None)
@@ -490,10 +490,10 @@ def test_a_traced_loops_late_ticks_are_given_to_what_filled_them():
 
 
 def test_a_samples_buffer_refilled_in_place_is_the_message_made_anew():
-    """nodes.common.SamplesBuffer (what the hardware's full batches and the controller's state go out in): after
+    """ros.messages.SamplesBuffer (what the hardware's full batches and the controller's state go out in): after
     each refill its message equals ``samples_message`` of the same rows, layout and label included, and reads back
     as those rows."""
-    from piezo_valve_ros.nodes.common import SamplesBuffer, samples_from_message, samples_message
+    from piezo_valve_ros.ros import samples_from_message, samples_message, SamplesBuffer
     rng = np.random.default_rng(3)
     buffer = SamplesBuffer(4, 3)
     for _ in range(2):

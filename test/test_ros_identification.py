@@ -14,7 +14,7 @@ import yaml
 from ros_helpers import ros_env, start, wait_for_text
 
 from piezo_valve_ros.io.bags import read_samples
-from piezo_valve_ros.nodes.common import SHUTDOWN_DEADLINE_S
+from piezo_valve_ros.ros import SHUTDOWN_DEADLINE_S
 from piezo_valve_ros.runtime.processes import ProcessGroup, node_command
 
 PERIOD = 1e-3  # 1 kHz control, 10 kHz sampling

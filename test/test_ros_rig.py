@@ -19,7 +19,7 @@ from piezo_valve_ros.core.metrics import step_metrics
 from piezo_valve_ros.core.sim.signals import step_reference_m
 from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
 from piezo_valve_ros.core.control.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set
-from piezo_valve_ros.nodes.common import COMMAND_QOS
+from piezo_valve_ros.ros import COMMAND_QOS
 from piezo_valve_ros.nodes.hardware import MAX_COMMAND_TIMEOUT_S
 from piezo_valve_ros.rig.client import RigClient, run_in_background
 from piezo_valve_ros.runtime.processes import ProcessGroup, node_command

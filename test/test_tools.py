@@ -604,7 +604,7 @@ def test_valve_record_reads_references_only_once_it_records_samples(tmp_path):
     late discovery matches the samples topic on a loaded computer."""
     from std_msgs.msg import Float64, Float64MultiArray
     from piezo_valve_ros.io.bags import read_run
-    from piezo_valve_ros.nodes.common import REFERENCE_QOS, SAMPLES_QOS, samples_message
+    from piezo_valve_ros.ros import REFERENCE_QOS, SAMPLES_QOS, samples_message
     from piezo_valve_ros.rig.recording import RigRecorder
     ns = f"/deferred{os.getpid()}"
     with recorder_and_rig_nodes(ns) as (recorder_node, rig, executor):

@@ -31,7 +31,7 @@ from ..runtime.dds import use_fast_acknowledgements
 from ..io.params_yaml import YAMLError, load as load_yaml, node_section
 from ..core.sim.signals import load_profile, ramp_profile, sine_profile
 from ..rig.client import RIG_NODES, RigClient, run_in_background
-from ..nodes.common import close, init_ros, split_ros_args, stop_requested
+from ..ros import close, init_ros, split_ros_args, stop_requested
 
 MAX_REFERENCE_M = 5e-4     # refused before sending: beyond any piezo ring bender's travel (a unit mistake)
 PROFILE_HISTORY = 10_000   # references kept for readers that fall behind (the nodes keep 10)

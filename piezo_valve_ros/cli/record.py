@@ -28,7 +28,7 @@ from rclpy.executors import SingleThreadedExecutor
 
 from ..core.defaults import BAG_STORAGE
 from ..io.bags import STORAGES, BagError, read_samples
-from ..nodes.common import close, init_ros, spin_loop, split_ros_args, stop_requested
+from ..ros import close, init_ros, spin_loop, split_ros_args, stop_requested
 from ..rig.recording import RigRecorder
 
 NO_RIG_WARNING_S = 5.0   # warn when nothing publishes the rig's topics this long after start

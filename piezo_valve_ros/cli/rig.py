@@ -32,7 +32,7 @@ from ..core.control.strategies import NO_SAFE_SET_STRATEGY, default_gain_set
 from ..core.sim.simulator import ValveSimConfig
 from ..runtime.processes import ProcessGroup, node_command
 from ..rig.client import RigClient, run_in_background
-from ..nodes.common import close
+from ..ros import close
 
 
 # ---------------------------------------------------------------------------- demo

@@ -14,7 +14,7 @@ from __future__ import annotations
 import sys
 
 from ..core.validation import same_period
-from .common import close, print_help, spin, start_node_process, wants_help
+from ..ros import close, print_help, spin, start_node_process, wants_help
 from .controller import CONTROLLER_PARAMETERS, ValveControllerNode
 from .hardware import ValveHardwareNode, hardware_parameters_with_backends
 

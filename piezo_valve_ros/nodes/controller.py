@@ -33,10 +33,10 @@ from ..core.model.rate_dependence import describe_inverse, solved_each_step
 from ..core.sim.signals import ReferenceRamp
 from ..core.control.strategies import (GUARD_WINDOW_S, has_feedback, SAFE_PERIOD_S, STRATEGIES, TABLE1_GAINS, ControllerConfig,
                                        PIDGains, ValveController, default_gain_set, gain_set, loop_settings)
-from .common import (CONTROL_PERIOD, COMMAND_QOS, DIAGNOSTICS_PERIOD, LATEST_SENSOR_QOS, SAMPLES_QOS, STATE_QOS, Diagnostics, period_parameter,
-                     ParameterSpec, SamplesBuffer, as_float, declare_all,
-                     parameter_values, realtime_settings, realtime_specs, refuse, refuse_undeclared, run_node, samples_from_message,
-                     Throttle)
+from ..ros import (COMMAND_QOS, CONTROL_PERIOD, DIAGNOSTICS_PERIOD, LATEST_SENSOR_QOS, SAMPLES_QOS, STATE_QOS,
+                   declare_all, Diagnostics, parameter_values, period_parameter, realtime_settings, realtime_specs,
+                   refuse, refuse_undeclared, run_node, samples_from_message, SamplesBuffer, Throttle)
+from ..core.validation import ParameterSpec, as_float
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 GAIN_SET_KEYS = ("strategy", "kp", "ki", "kd")   # what an active gain_set decides
@@ -246,7 +246,7 @@ class ValveControllerNode(Node):
         """One row of CONTROLLER_STATE_COLUMNS on ~/controller_state (the latest period)."""
         y = self._last_position_m if self._last_position_m is not None else float("nan")
         ctl = self.controller
-        row = self._state.rows[0]   # the message's own data, refilled in place (nodes.common.SamplesBuffer)
+        row = self._state.rows[0]   # the message's own data, refilled in place (ros.messages.SamplesBuffer)
         clock = self.get_clock()   # ROS time: simulated where /clock drives it, else the system clock, read directly
         row[0] = clock.now().nanoseconds * 1e-9 if clock.ros_time_is_active else time.time()
         row[1], row[2], row[3], row[4] = self._last_reference_m, y, self._last_reference_m - y, self._last_command_v

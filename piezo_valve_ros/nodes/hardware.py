@@ -35,12 +35,12 @@ from std_srvs.srv import Trigger
 from ..backends.base import ValveBackend, available_backends, backend_class, backend_parameters
 from ..backends.faults import Fault, FaultLimits, SampleCheck
 from ..runtime.loop_timing import LoopTiming
-from .common import (COMMAND_QOS, CONTROL_PERIOD, DIAGNOSTICS_PERIOD, MAX_CONTROL_PERIOD_S, SAMPLES_QOS, SENSOR_QOS,
-                     STATE_QOS, Diagnostics, Pacing, ParameterSpec, as_float, declare_all, given_parameter_names,
-                     named_with_nearest, parameter_values, period_parameter, realtime_settings, realtime_specs, refuse, run_node,
-                     SamplesBuffer, samples_message, tighten_timer_slack, Throttle)
+from ..ros import (COMMAND_QOS, CONTROL_PERIOD, DIAGNOSTICS_PERIOD, MAX_CONTROL_PERIOD_S, SAMPLES_QOS, SENSOR_QOS,
+                   STATE_QOS, declare_all, Diagnostics, given_parameter_names, named_with_nearest, Pacing,
+                   parameter_values, period_parameter, realtime_settings, realtime_specs, refuse, run_node,
+                   samples_message, SamplesBuffer, Throttle, tighten_timer_slack)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
-from ..core.validation import as_int, whole_periods
+from ..core.validation import ParameterSpec, as_float, as_int, whole_periods
 
 
 MAX_COMMAND_TIMEOUT_S = 10.0    # the watchdog may not be stretched beyond this
@@ -310,7 +310,7 @@ class ValveHardwareNode(Node):
         return v
 
     def claim_pacing(self) -> Optional[Pacing]:
-        """Real-time clock: the spin loop runs the period tick itself (common.spin_loop: more precise
+        """Real-time clock: the spin loop runs the period tick itself (ros.spin.spin_loop: more precise
         and cheaper than an rclpy timer at kHz rates); this node's own timer stops.  None in lockstep."""
         if self.clock_mode != "realtime" or self._tick_timer is None:
             return None

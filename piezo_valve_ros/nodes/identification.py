@@ -63,9 +63,9 @@ from ..identify import (summary_json, compensation, controller_parameters, contr
 from ..rig.client import get_parameter_values, wait_future, wait_until_answering
 from ..rig.recording import RigRecorder
 from ..runtime.memory import keep_freed_memory
-from .common import (CONTROL_PERIOD, COMMAND_QOS, REFERENCE_QOS, SENSOR_QOS, ParameterSpec, as_float, declare_all,
-                     refuse_undeclared,
-                     parameter_values, run_node)
+from ..ros import (COMMAND_QOS, CONTROL_PERIOD, REFERENCE_QOS, SENSOR_QOS, declare_all, parameter_values,
+                   refuse_undeclared, run_node)
+from ..core.validation import ParameterSpec, as_float
 from ..core.model.drive import CENTRE_VOLTAGE_V
 
 STEPS = ("train", "refit", "tune", "validate")

@@ -38,8 +38,9 @@ from ..core.monitoring.health import (ERROR_RATIO, MIN_SPAN_V, STEP_S, WARN_RATI
 from ..core.monitoring.refits import GAIN, PUSH_KINDS, REFIT_LEVELS, UNDO, RefitDecision, RefitPolicy
 from ..io.samples import SamplesLayoutError
 from ..runtime.memory import keep_freed_memory
-from .common import DIAGNOSTICS_PERIOD, SAMPLES_QOS, Diagnostics, ParameterSpec, as_float, declare_all, \
-    parameter_values, refuse_undeclared, run_node, samples_from_message, samples_message
+from ..core.validation import ParameterSpec, as_float
+from ..ros import (DIAGNOSTICS_PERIOD, SAMPLES_QOS, declare_all, Diagnostics, parameter_values, refuse_undeclared,
+                   run_node, samples_from_message, samples_message)
 
 HEALTH_COLUMNS = ("end_s", "level", "ratio_to_noise", "structured_rms_um", "residual_mean_um", "noise_um",
                   "voltage_span_v")

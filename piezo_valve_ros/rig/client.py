@@ -17,7 +17,7 @@ from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import QoSProfile
 from std_msgs.msg import Float64, Float64MultiArray
 
-from ..nodes.common import REFERENCE_QOS, SAMPLES_QOS, claim_pacing, make_executor, samples_from_message, spin_loop
+from ..ros import REFERENCE_QOS, SAMPLES_QOS, claim_pacing, make_executor, samples_from_message, spin_loop
 
 
 RIG_NODES = ("hardware", "controller", "identification")

@@ -20,7 +20,7 @@ from std_msgs.msg import Float64, Float64MultiArray
 
 from ..core.defaults import BAG_STORAGE
 from ..io.bags import CLOCK_TYPE, FLOAT64_TYPE, SAMPLES_TYPE, BagRecorder, qos_profile
-from ..nodes.common import COMMAND_QOS, REFERENCE_QOS, SAMPLES_QOS, SENSOR_QOS
+from ..ros import COMMAND_QOS, REFERENCE_QOS, SAMPLES_QOS, SENSOR_QOS
 
 # topic (relative to the rig's namespace) -> (message type, QoS it is offered with, reliable)
 RIG_TOPICS = {"samples": (SAMPLES_TYPE, SAMPLES_QOS, True),

@@ -1,6 +1,6 @@
 """How a real-time process asks the operating system for its time: CPython's GIL switch interval, the CPUs
 it may run on, a real-time scheduling priority, and how long an idle CPU may take to wake.  No ROS import (the
-nodes declare the parameters, ``nodes.common.realtime_specs``).
+nodes declare the parameters, ``ros.parameters.realtime_specs``).
 
 Measured on the 2-core development machine (``python bench/realtime_loop.py --only-conditions``, README):
 pinning the hardware and the controller to their own CPUs raises the share of 2 kHz commands in time on a
