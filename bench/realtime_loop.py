@@ -137,7 +137,7 @@ def per_period_costs(n: int = 5000) -> dict:
         out[f"hardware_realtime_tick_{int(1 / period)}hz_us"] = (time.perf_counter() - t0) / (n // 5) * 1e6
     flush = []
     for _ in range(50):
-        hw._collect(np.zeros((hw.samples_batch - 1, 3)))
+        hw._collect(np.zeros((hw.settings.samples_batch - 1, 3)))
         t0 = time.perf_counter()
         hw._collect(np.zeros((1, 3)))  # completes the batch: one samples message of 1000 rows goes out
         flush.append(time.perf_counter() - t0)

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field, fields, replace
 from typing import Any, Optional
 
 __all__ = ["as_float", "as_int", "as_float_list", "as_bool", "PERIOD_TOLERANCE", "whole_periods", "same_period",
-           "ParameterSpec", "POSITIVE", "NON_NEGATIVE", "ruled", "field_problems"]
+           "ParameterSpec", "POSITIVE", "NON_NEGATIVE", "ruled", "field_problems", "Settings", "from_parameter"]
 
 PERIOD_TOLERANCE = 1e-6   # times [s] closer than this share of the longer one are equal (rounding, not a choice)
 
@@ -166,3 +166,38 @@ class ParameterSpec:
         """This parameter named ``prefix`` + its name (a backend's under ``<backend>.``, a composed process's node's
         under ``<node>:``)."""
         return replace(self, name=prefix + self.name, read_only=self.read_only if read_only is None else read_only)
+
+
+def from_parameter(name: str) -> Any:
+    """A field of a :class:`Settings` dataclass read from the parameter ``name`` (default: the field's own name;
+    e.g. ``max_speed: float = from_parameter("lockstep.max_speed")``)."""
+    return field(metadata={"parameter": name})
+
+
+class Settings:
+    """A node's (or backend's) start-up settings as one frozen dataclass, read from its ``ParameterSpec`` s: each
+    field the checked value of the parameter of its name (or ``from_parameter``'s), the cross-field checks in
+    ``problems``.  A subclass is a frozen dataclass; ``from_specs`` builds it or raises one ValueError with every
+    reason."""
+
+    @classmethod
+    def from_specs(cls, specs: Any, values: Any):
+        """The settings from parameter ``values`` (name -> value) checked by ``specs`` (name -> ParameterSpec)."""
+        kwargs, problems = {}, []
+        for f in fields(cls):
+            name = f.metadata.get("parameter", f.name)
+            try:
+                kwargs[f.name] = specs[name].checked(values[name])
+            except ValueError as exc:
+                problems.append(str(exc))
+        if problems:
+            raise ValueError("; ".join(problems))
+        out = cls(**kwargs)
+        problems = out.problems()
+        if problems:
+            raise ValueError("; ".join(problems))
+        return out
+
+    def problems(self) -> list[str]:
+        """Cross-field checks: one line for each rule the values break together (empty: fine)."""
+        return []

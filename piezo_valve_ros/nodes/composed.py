@@ -37,7 +37,7 @@ def build(hardware_overrides=(), controller_overrides=(), **node_kwargs) -> tupl
         if controller is not None:
             controller.destroy_node()
         raise
-    if hardware.clock_mode == "realtime":
+    if hardware.settings.clock == "realtime":
         hardware.attach_controller(controller.direct_link())
     return hardware, controller
 

@@ -22,6 +22,7 @@ import collections
 import math
 import sys
 import time
+from dataclasses import dataclass
 from typing import Callable, Optional
 
 import numpy as np
@@ -40,7 +41,7 @@ from ..ros import (COMMAND_QOS, CONTROL_PERIOD, DIAGNOSTICS_PERIOD, MAX_CONTROL_
                    parameter_values, period_parameter, realtime_settings, realtime_specs, refuse, run_node,
                    samples_message, SamplesBuffer, Throttle, tighten_timer_slack)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
-from ..core.validation import ParameterSpec, as_float, as_int, whole_periods
+from ..core.validation import ParameterSpec, Settings, as_float, as_int, from_parameter, whole_periods
 
 
 MAX_COMMAND_TIMEOUT_S = 10.0    # the watchdog may not be stretched beyond this
@@ -70,7 +71,8 @@ HARDWARE_PARAMETERS: tuple[ParameterSpec, ...] = (
                   "as the wall clock (0 = as fast as commands come, which keeps two cores busy; 1 = never ahead of "
                   "the wall clock)", read_only=True, low=0.0),
     ParameterSpec("realtime.busy_poll_s", 0.0, "realtime clock: poll for messages instead of sleeping this long "
-                  "before each tick [s] (costs a core; >= control_period_s polls all the time)", read_only=True),
+                  "before each tick [s] (costs a core; >= control_period_s polls all the time)", read_only=True,
+                  low=0.0),
     *realtime_specs(),
     ParameterSpec("fault.position_limit_m", FaultLimits.position_limit_m, "a position beyond +- this is implausible: "
                   "fault [m]", read_only=True, low=1e-5, high=1.0),
@@ -82,10 +84,44 @@ HARDWARE_PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("fault.missing_samples_s", FaultLimits.missing_samples_s, "realtime clock: no samples from the "
                   "backend for this long: fault [s]", read_only=True, low=0.05, high=10.0),
     ParameterSpec("loop_stats_period_s", 0.0, "log the loop timing (rate, commands in time, latency) this often [s]; "
-                  "0: only at shutdown", read_only=True),
+                  "0: only at shutdown", read_only=True, low=0.0),
     DIAGNOSTICS_PERIOD,
 )
 SPECS = {s.name: s for s in HARDWARE_PARAMETERS}
+
+
+@dataclass(frozen=True)
+class HardwareSettings(Settings):
+    """The hardware node's start-up settings that do not depend on the backend (``Settings.from_specs`` reads them
+    from HARDWARE_PARAMETERS); the live ones (``command_timeout_s``, ``lockstep.step_budget``) stay the node's."""
+
+    clock: str
+    safe_voltage: float                  # [V]
+    command_min_v: float                 # [V]
+    command_max_v: float                 # [V]
+    samples_batch: int
+    max_speed: float = from_parameter("lockstep.max_speed")
+    busy_poll_s: float = from_parameter("realtime.busy_poll_s")   # [s]
+    loop_stats_period_s: float = from_parameter("loop_stats_period_s")   # [s]
+    position_limit_m: float = from_parameter("fault.position_limit_m")
+    stuck_time_s: float = from_parameter("fault.stuck_time_s")
+    stuck_command_span_v: float = from_parameter("fault.stuck_command_span_v")
+    missing_samples_s: float = from_parameter("fault.missing_samples_s")
+
+    @property
+    def fault_limits(self) -> FaultLimits:
+        return FaultLimits(self.position_limit_m, self.stuck_time_s, self.stuck_command_span_v, self.missing_samples_s)
+
+    def problems(self) -> list[str]:
+        if not self.command_min_v < self.command_max_v:
+            return [f"command_min_v ({self.command_min_v} V) must be below command_max_v ({self.command_max_v} V)"]
+        out = []
+        if not self.command_min_v <= self.safe_voltage <= self.command_max_v:
+            out.append("safe_voltage must lie within [command_min_v, command_max_v]")
+        if self.max_speed and self.clock != "lockstep":
+            out.append("lockstep.max_speed applies only to clock lockstep (the real-time clock runs at the wall "
+                       "clock's pace)")
+        return out + self.fault_limits.problems()
 GLITCH_WINDOW_S = 60.0       # /diagnostics counts the DAQ glitches of this last stretch (WARN while there are any)
 IN_TIME_WARN_SHARE = 0.99   # /diagnostics: WARN when fewer commands than this share came within their period
 
@@ -121,7 +157,7 @@ class ValveHardwareNode(Node):
         stats_period = self._read_settings(p)
         if backend is None:
             values = {prm.name: p[f"{backend_name}.{prm.name}"] for prm in backend_type.PARAMETERS}
-            backend = backend_type.from_parameters(values, self.safe_voltage)
+            backend = backend_type.from_parameters(values, self.settings.safe_voltage)
         self._bind_backend(backend, p)
         self._create_interfaces()
         self._reset_counters()
@@ -144,40 +180,16 @@ class ValveHardwareNode(Node):
                              "every parameter: valve_hardware --help)")
 
     def _read_settings(self, p: dict) -> float:
-        """The start-up parameters that do not depend on the backend, checked (ValueError with the reason);
+        """The start-up parameters that do not depend on the backend, checked (ValueError with every reason);
         returns loop_stats_period_s."""
-        self.clock_mode = SPECS["clock"].checked(p["clock"])
-        self.safe_voltage = as_float("safe_voltage", p["safe_voltage"])
-        self.command_min_v = as_float("command_min_v", p["command_min_v"])
-        self.command_max_v = as_float("command_max_v", p["command_max_v"])
-        if not self.command_min_v < self.command_max_v:
-            raise ValueError(f"command_min_v ({self.command_min_v} V) must be below command_max_v "
-                             f"({self.command_max_v} V)")
-        if not self.command_min_v <= self.safe_voltage <= self.command_max_v:
-            raise ValueError("safe_voltage must lie within [command_min_v, command_max_v]")
-        self.samples_batch = SPECS["samples_batch"].checked(p["samples_batch"])
+        self.settings = HardwareSettings.from_specs(SPECS, p)
         self.step_budget = self._step_budget(p["lockstep.step_budget"])
-        self.max_speed = SPECS["lockstep.max_speed"].checked(p["lockstep.max_speed"])
-        if self.max_speed and self.clock_mode != "lockstep":
-            raise ValueError("lockstep.max_speed applies only to clock lockstep (the real-time clock runs at the "
-                             "wall clock's pace)")
-        stats_period = as_float("loop_stats_period_s", p["loop_stats_period_s"])
-        if stats_period < 0:
-            raise ValueError("loop_stats_period_s must be >= 0")
-        self.busy_poll_s = as_float("realtime.busy_poll_s", p["realtime.busy_poll_s"])
-        if self.busy_poll_s < 0:
-            raise ValueError("realtime.busy_poll_s must be >= 0")
-        self.fault_limits = FaultLimits(*(as_float(f"fault.{k}", p[f"fault.{k}"]) for k in (
-            "position_limit_m", "stuck_time_s", "stuck_command_span_v", "missing_samples_s")))
-        problems = self.fault_limits.problems()
-        if problems:
-            raise ValueError("; ".join(problems))
-        return stats_period
+        return self.settings.loop_stats_period_s
 
     def _bind_backend(self, backend: ValveBackend, p: dict) -> None:
         """The backend and what follows from its sample period: the control period in whole samples, the
         watchdog's timeout; the real-time settings applied on the real-time clock."""
-        if self.clock_mode == "lockstep" and not backend.supports_lockstep:
+        if self.settings.clock == "lockstep" and not backend.supports_lockstep:
             raise ValueError(f"backend {p['backend']!r} cannot run in lockstep")
         self.samples_per_period = samples_per_period(as_float("control_period_s", p["control_period_s"]),
                                                      backend.sample_period_s)
@@ -185,18 +197,18 @@ class ValveHardwareNode(Node):
         self.control_period_s = self.samples_per_period * backend.sample_period_s
         self.command_timeout_s = self._command_timeout(p["command_timeout_s"])
         self.realtime = realtime_settings(p)
-        if self.realtime.priority and self.busy_poll_s > 0:
+        if self.realtime.priority and self.settings.busy_poll_s > 0:
             raise ValueError("realtime.priority with realtime.busy_poll_s > 0: a polling thread at real-time "
                              "priority starves every other thread of its CPU, DDS's included; sleep "
                              "(realtime.busy_poll_s 0) or use priority 0")
-        if self.clock_mode == "realtime":
+        if self.settings.clock == "realtime":
             from ..runtime.realtime import apply
             apply(self.realtime)
 
     def _create_interfaces(self) -> None:
         self.position_pub = self.create_publisher(Float64, "spool_position", SENSOR_QOS)
         self.samples_pub = self.create_publisher(Float64MultiArray, "samples", SAMPLES_QOS)
-        self.clock_pub = self.create_publisher(Clock, "/clock", 10) if self.clock_mode == "lockstep" else None
+        self.clock_pub = self.create_publisher(Clock, "/clock", 10) if self.settings.clock == "lockstep" else None
         self._clock_msg = Clock(clock=Time())
         self.loop_timing = LoopTiming(self.control_period_s)
         self._command_sub = self.create_subscription(Float64, "voltage_command", self._on_command, COMMAND_QOS)
@@ -208,9 +220,9 @@ class ValveHardwareNode(Node):
         """The loop's state before the first period: no command held, the watchdog not armed, nothing counted."""
         self._tick_timer = None
         self._linked_controller: Optional[Callable[[float], Optional[float]]] = None
-        self._batch = np.empty((self.samples_batch + self.samples_per_period, 3))  # rows awaiting `samples`
+        self._batch = np.empty((self.settings.samples_batch + self.samples_per_period, 3))  # rows awaiting `samples`
         # a batch fills a period at a time: it goes out at the first whole number of periods >= samples_batch
-        full = -(-self.samples_batch // self.samples_per_period) * self.samples_per_period
+        full = -(-self.settings.samples_batch // self.samples_per_period) * self.samples_per_period
         self._full_batch = SamplesBuffer(full, 3)
         self._batch_rows = 0
         self._held_command: Optional[float] = None
@@ -229,16 +241,16 @@ class ValveHardwareNode(Node):
         self._health_mark = (0, 0)
         self.fault: Optional[Fault] = None
         self._safe_written = True          # while in fault: whether the safe voltage was written
-        self._sample_check = SampleCheck(self.fault_limits)
+        self._sample_check = SampleCheck(self.settings.fault_limits)
         self._last_rows_wall = time.monotonic()
         self.refused_in_fault = 0
 
     def _start(self, p: dict, stats_period: float) -> None:
         """Open the backend at the safe voltage and start the clock's timers and the reports."""
         self.backend.open()
-        self.backend.write_voltage(self.safe_voltage)
+        self.backend.write_voltage(self.settings.safe_voltage)
         self.state_pub.publish(String(data="ok"))
-        if self.clock_mode == "lockstep":
+        if self.settings.clock == "lockstep":
             # y_0 (at the initial voltage) goes out once a commander is matched both ways and settled
             # (_lockstep_idle), or before the first command that arrives earlier
             self._matched_since: Optional[float] = None
@@ -253,9 +265,9 @@ class ValveHardwareNode(Node):
             self.create_timer(stats_period, lambda: self.get_logger().info(self._loop_line()))
         self.diagnostics = Diagnostics(self, period_parameter(DIAGNOSTICS_PERIOD, p["diagnostics_period_s"]), self._health)
         self.get_logger().info(
-            f"valve_hardware up: backend={p['backend']} clock={self.clock_mode} "
+            f"valve_hardware up: backend={p['backend']} clock={self.settings.clock} "
             f"period={self.control_period_s * 1e3:.3f} ms ({self.samples_per_period} samples)"
-            + (f"; {self.realtime.describe()}" if self.clock_mode == "realtime" else ""))
+            + (f"; {self.realtime.describe()}" if self.settings.clock == "realtime" else ""))
 
     # ------------------------------------------------------------------ health
     def _health(self) -> tuple[str, str, dict]:
@@ -267,10 +279,10 @@ class ValveHardwareNode(Node):
         share = in_time / periods if periods else float("nan")
         watchdog = ("fired: safe voltage applied" if self._timed_out else
                     "armed" if self._armed else "waiting for the first command (safe voltage applied)")
-        values = {"clock": self.clock_mode, "control_period_s": self.control_period_s, "periods": t.periods,
+        values = {"clock": self.settings.clock, "control_period_s": self.control_period_s, "periods": t.periods,
                   "commands_in_time_share": round(share, 4) if periods else "no periods since the last report",
                   "commands_clamped": self.clamped, "commands_rejected": self.rejected,
-                  "late_commands": self.late_commands, "watchdog": watchdog, "safe_voltage_v": self.safe_voltage,
+                  "late_commands": self.late_commands, "watchdog": watchdog, "safe_voltage_v": self.settings.safe_voltage,
                   "daq_glitches_last_minute": self._glitches_in_last_minute(time.monotonic()),
                   "daq_glitches": self.glitches}
         if self.fault is not None:
@@ -284,7 +296,7 @@ class ValveHardwareNode(Node):
         if self._timed_out:
             return "ERROR", f"watchdog: no valid command for {self.command_timeout_s} s, safe voltage applied", values
         warnings = []
-        if self._armed and self.clock_mode == "realtime" and periods and share < IN_TIME_WARN_SHARE:
+        if self._armed and self.settings.clock == "realtime" and periods and share < IN_TIME_WARN_SHARE:
             warnings.append(f"{100 * share:.1f} % of the commands came within their period")
         if values["daq_glitches_last_minute"]:
             warnings.append(f"{values['daq_glitches_last_minute']} DAQ glitch(es) in the last minute (a backend call "
@@ -300,9 +312,9 @@ class ValveHardwareNode(Node):
             if self._say_rejected.due():
                 self.get_logger().warning(f"rejected non-finite voltage command {v!r} ({self.rejected} so far)")
             return None
-        if v < self.command_min_v or v > self.command_max_v:
+        if v < self.settings.command_min_v or v > self.settings.command_max_v:
             self.clamped += 1
-            clamped = min(max(v, self.command_min_v), self.command_max_v)
+            clamped = min(max(v, self.settings.command_min_v), self.settings.command_max_v)
             if self._say_clamped.due():
                 self.get_logger().warning(f"clamped voltage command {v:.4g} V to {clamped:.4g} V "
                                           f"({self.clamped} so far)")
@@ -312,19 +324,19 @@ class ValveHardwareNode(Node):
     def claim_pacing(self) -> Optional[Pacing]:
         """Real-time clock: the spin loop runs the period tick itself (ros.spin.spin_loop: more precise
         and cheaper than an rclpy timer at kHz rates); this node's own timer stops.  None in lockstep."""
-        if self.clock_mode != "realtime" or self._tick_timer is None:
+        if self.settings.clock != "realtime" or self._tick_timer is None:
             return None
         self._tick_timer.cancel()
         self.destroy_timer(self._tick_timer)
         self._tick_timer = None
-        return Pacing(self.control_period_s, self._realtime_tick, self.busy_poll_s)
+        return Pacing(self.control_period_s, self._realtime_tick, self.settings.busy_poll_s)
 
     def attach_controller(self, on_measurement: Callable[[float], Optional[float]]) -> None:
         """Composed mode, real-time clock: hand each position [m] to ``on_measurement`` by function call
         and apply the command [V] it returns (None: no command) at once, as rclcpp's intra-process
         communication would; ``spool_position`` and ``samples`` are still published and
         ``voltage_command`` from other nodes is still applied.  In lockstep the loop stays on topics."""
-        if self.clock_mode != "realtime":
+        if self.settings.clock != "realtime":
             raise ValueError("a direct controller link needs clock realtime (lockstep runs on topics)")
         self._linked_controller = on_measurement
 
@@ -341,7 +353,7 @@ class ValveHardwareNode(Node):
         v = self._validate(v)
         if v is None:
             return
-        if self.loop_timing.commanded() is False and self.clock_mode == "realtime" and self.periods > 1:
+        if self.loop_timing.commanded() is False and self.settings.clock == "realtime" and self.periods > 1:
             self.late_commands += 1
             if self._say_late.due():
                 self.get_logger().warning(f"command arrived more than a period after its measurement "
@@ -352,7 +364,7 @@ class ValveHardwareNode(Node):
         if self._timed_out:
             self._timed_out = False
             self.get_logger().info("valid command received: resuming")
-        if self.clock_mode == "realtime":
+        if self.settings.clock == "realtime":
             self._write(v)
             return
         if self.periods == 0:
@@ -365,7 +377,7 @@ class ValveHardwareNode(Node):
     def _apply_lockstep(self, v: float) -> None:
         if not self._write(v):
             return
-        if self.max_speed:
+        if self.settings.max_speed:
             self._keep_pace()
         self._advance_and_publish()
         if self.step_budget > 0:
@@ -378,7 +390,7 @@ class ValveHardwareNode(Node):
         """lockstep.max_speed: wait until the next period may start (at most a period of the valve's time over
         max_speed: this runs in the command's callback).  A loop more than PACE_SLACK_S behind its pace (paused,
         or slower than it) starts afresh from now instead of running flat out to catch up."""
-        step = self.control_period_s / self.max_speed
+        step = self.control_period_s / self.settings.max_speed
         now = time.monotonic()
         if self._pace_due is None or now - self._pace_due > PACE_SLACK_S:
             self._pace_due = now
@@ -431,7 +443,7 @@ class ValveHardwareNode(Node):
                 return
         self._batch[n:n + k] = rows
         self._batch_rows = n + k
-        if self._batch_rows >= self.samples_batch:
+        if self._batch_rows >= self.settings.samples_batch:
             self._flush_samples()
 
     def _flush_samples(self) -> None:
@@ -453,8 +465,8 @@ class ValveHardwareNode(Node):
             return False
         self._timed_out = True
         self.get_logger().warning(f"no valid command for {silent:.3f} s (timeout {self.command_timeout_s} s): "
-                                  f"applying safe_voltage {self.safe_voltage} V")
-        self._write(self.safe_voltage)
+                                  f"applying safe_voltage {self.settings.safe_voltage} V")
+        self._write(self.settings.safe_voltage)
         return True
 
     def _realtime_tick(self) -> None:
@@ -523,7 +535,7 @@ class ValveHardwareNode(Node):
         now = time.monotonic()
         if rows.shape[0] == 0:
             silent = now - self._last_rows_wall
-            if self.clock_mode == "realtime" and self.periods and silent >= self.fault_limits.missing_samples_s:
+            if self.settings.clock == "realtime" and self.periods and silent >= self.settings.missing_samples_s:
                 self._enter_fault("no_samples", f"no samples from the backend for {silent:.2f} s")
             return False
         self._last_rows_wall = now
@@ -541,8 +553,8 @@ class ValveHardwareNode(Node):
         self.fault = Fault(kind, detail, time.monotonic())
         self._flush_samples()
         self._safe_written = self._try_safe_voltage()
-        held = (f"safe voltage {self.safe_voltage} V applied" if self._safe_written else
-                f"the safe voltage {self.safe_voltage} V could NOT be written: retrying every period")
+        held = (f"safe voltage {self.settings.safe_voltage} V applied" if self._safe_written else
+                f"the safe voltage {self.settings.safe_voltage} V could NOT be written: retrying every period")
         self.get_logger().error(f"fault {kind}: {detail}; {held}; commands refused until ~/reset")
         self.state_pub.publish(String(data=f"fault: {kind}: {detail}"))
         if hasattr(self, "diagnostics"):
@@ -550,7 +562,7 @@ class ValveHardwareNode(Node):
 
     def _try_safe_voltage(self) -> bool:
         try:
-            self.backend.write_voltage(self.safe_voltage)
+            self.backend.write_voltage(self.settings.safe_voltage)
             return True
         except Exception:
             return False
@@ -558,7 +570,7 @@ class ValveHardwareNode(Node):
     def _retry_safe_voltage(self) -> None:
         if not self._safe_written and self._try_safe_voltage():
             self._safe_written = True
-            self.get_logger().error(f"in fault {self.fault.kind}: safe voltage {self.safe_voltage} V applied at last")
+            self.get_logger().error(f"in fault {self.fault.kind}: safe voltage {self.settings.safe_voltage} V applied at last")
 
     def _while_in_fault(self) -> None:
         """Each period in fault: the safe voltage again until a write succeeds; the backend drained."""
@@ -575,14 +587,14 @@ class ValveHardwareNode(Node):
             return response
         fault = self.fault
         try:
-            self.backend.write_voltage(self.safe_voltage)
-            rows = self.backend.read_samples() if self.clock_mode == "realtime" else np.zeros((0, 3))
+            self.backend.write_voltage(self.settings.safe_voltage)
+            rows = self.backend.read_samples() if self.settings.clock == "realtime" else np.zeros((0, 3))
         except Exception as exc:
             response.success = False
             response.message = f"fault {fault.kind} kept: the backend still fails ({exc!r})"
             self.get_logger().error(f"~/reset refused: {response.message}")
             return response
-        problem = SampleCheck(self.fault_limits).check(rows)
+        problem = SampleCheck(self.settings.fault_limits).check(rows)
         if problem is not None:
             response.success = False
             response.message = f"fault {fault.kind} kept: {problem[0]}: {problem[1]}"
@@ -643,7 +655,7 @@ class ValveHardwareNode(Node):
         budget = as_int("lockstep.step_budget", value)
         if budget < -1:
             raise ValueError(f"lockstep.step_budget must be -1 (no pause) or >= 0, got {budget}")
-        if budget != -1 and self.clock_mode != "lockstep":
+        if budget != -1 and self.settings.clock != "lockstep":
             raise ValueError("lockstep.step_budget applies only to clock lockstep (on the real-time clock a "
                              "paused loop would stop the watchdog)")
         return budget
@@ -687,7 +699,7 @@ class ValveHardwareNode(Node):
 
     def _loop_line(self) -> str:
         summary = self.loop_timing.summary()
-        return summary.lockstep_line() if self.clock_mode == "lockstep" else f"loop: {summary.line()}"
+        return summary.lockstep_line() if self.settings.clock == "lockstep" else f"loop: {summary.line()}"
 
     # ------------------------------------------------------------------ shutdown
     def shutdown_safely(self) -> None:
@@ -704,8 +716,8 @@ class ValveHardwareNode(Node):
                 self.backend.close()
             except Exception as exc:
                 print(f"[ERROR] [valve_hardware]: closing the backend raised {exc!r}", file=sys.stderr, flush=True)
-            held = (f"safe_voltage {self.safe_voltage} V applied" if written else
-                    f"the safe voltage {self.safe_voltage} V could NOT be written: the DAQ holds its last value")
+            held = (f"safe_voltage {self.settings.safe_voltage} V applied" if written else
+                    f"the safe voltage {self.settings.safe_voltage} V could NOT be written: the DAQ holds its last value")
             line = f"valve_hardware stopped: {held}; {self._loop_line()}"
             if self.context.ok():
                 self.get_logger().info(line)
