@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 import queue
 import threading
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
@@ -38,7 +39,7 @@ from ..core.monitoring.health import (ERROR_RATIO, MIN_SPAN_V, STEP_S, WARN_RATI
 from ..core.monitoring.refits import GAIN, PUSH_KINDS, REFIT_LEVELS, UNDO, RefitDecision, RefitPolicy
 from ..io.samples import SamplesLayoutError
 from ..runtime.memory import keep_freed_memory
-from ..core.validation import ParameterSpec, as_float
+from ..core.validation import ParameterSpec, Settings
 from ..ros import (DIAGNOSTICS_PERIOD, SAMPLES_QOS, declare_all, Diagnostics, parameter_values, refuse_undeclared,
                    run_node, samples_from_message, samples_message)
 
@@ -65,8 +66,32 @@ MONITOR_PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("refit_when", "never", "never, warn or error: at that level push what the operating data "
                   "determine (an offset the model lacks, a gain change its held-out part confirms) to the controller, "
                   "and what an offset push leaves at WARN until OK, each push checked on the next window and undone "
-                  "where that is worse; else log the identification plan to run", read_only=True),
+                  "where that is worse; else log the identification plan to run", read_only=True,
+                  choices=tuple(REFIT_LEVELS)),
 )
+
+
+SPECS = {s.name: s for s in MONITOR_PARAMETERS}
+
+
+@dataclass(frozen=True)
+class MonitorSettings(Settings):
+    """``valve_monitor``'s settings (all read-only), read from MONITOR_PARAMETERS by ``Settings.from_specs``."""
+
+    controller: str
+    window_s: float
+    step_s: float
+    warn_ratio: float
+    error_ratio: float
+    min_span_v: float
+    refit_when: str
+
+    @property
+    def limits(self) -> HealthLimits:
+        return HealthLimits(self.window_s, self.step_s, self.warn_ratio, self.error_ratio, self.min_span_v)
+
+    def problems(self) -> list[str]:
+        return self.limits.problems()
 
 
 class ValveMonitorNode(Node):
@@ -74,16 +99,9 @@ class ValveMonitorNode(Node):
         super().__init__("valve_monitor", **kwargs)
         declare_all(self, MONITOR_PARAMETERS)
         refuse_undeclared([self], "valve_monitor")   # before anything runs (a misspelt name would leave its default)
-        p = parameter_values(self)
-        self.limits = HealthLimits(*(as_float(k, p[k]) for k in ("window_s", "step_s", "warn_ratio", "error_ratio",
-                                                                 "min_span_v")))
-        problems = self.limits.problems()
-        if problems:
-            raise ValueError("; ".join(problems))
-        self.refit_at = REFIT_LEVELS.get(str(p["refit_when"]), "bad")
-        if self.refit_at == "bad":
-            raise ValueError(f"refit_when must be one of {', '.join(REFIT_LEVELS)}, got {p['refit_when']!r}")
-        name = str(p["controller"])
+        settings = MonitorSettings.from_specs(SPECS, parameter_values(self))
+        self.limits, self.refit_at = settings.limits, REFIT_LEVELS[settings.refit_when]
+        name = settings.controller
         ns = self.get_namespace().rstrip("/")
         self.controller_name = name if name.startswith("/") else f"{ns}/{name}"
         self.client = AsyncParameterClient(self, self.controller_name)
