@@ -240,6 +240,8 @@ def _apply(model: ValveModel, x: np.ndarray, layout: _Layout, z_first: np.ndarra
 
 SETTLE_ROUNDS = 10         # linear solves at most until the weights agree with the effects' columns they made ...
 SETTLE_TOLERANCE = 1e-3    # ... i.e. until a solve moves the GPIM weights by less than this share of their norm
+SETTLE_CONTRACTION = 0.5   # a solve that moves the weights back by more than this share of the one before (an
+                           # oscillating iteration) takes its columns from the midpoint of the last two
 
 
 def _settled(train: Record, model: ValveModel, cache: FitCache) -> tuple[ValveModel, float]:
@@ -251,18 +253,36 @@ def _settled(train: Record, model: ValveModel, cache: FitCache) -> tuple[ValveMo
     Creep's lags of H and the weights trade almost freely on a training record: on the direction-dependent
     creep battery valve a creep-only refit after one solve has over 3x the settled fit's held-out RMS at
     nearly the same training SSE (``test_an_effects_refit_is_settled_not_one_solve_deep``); the fixed point,
-    not the number of solves, is the fit an effect is judged by."""
+    not the number of solves, is the fit an effect is judged by.  Where the iteration oscillates instead of
+    settling (creep alone on a drifting valve: each solve moves the weights by their whole norm, back and forth,
+    and 10 solves ended wherever the swing was), a solve that turns back by more than SETTLE_CONTRACTION of the
+    step before gives the next solve its columns from the midpoint of its GPIM and the one before (a damped step:
+    that iteration then settles to SETTLE_TOLERANCE within the 10; not with an output map, whose contacts it
+    could not mix)."""
     none = np.zeros(2 * len(model.sections), bool)
     model, sse, _ = _linear_solve(train, model, steps=False, free=none, cache=cache)
+    source, last_step = model, None
     for _ in range(SETTLE_ROUNDS - 1 if model.effects else 0):
-        before = _settling(model)
-        trial, trial_sse, _ = _linear_solve(train, model, steps=False, free=none, cache=cache)
+        before = _settling(source)
+        trial, trial_sse, _ = _linear_solve(train, source, steps=False, free=none, cache=cache)
         if model.output_maps and trial_sse > sse:   # an output map's contacts flip between two patterns: the better
             break
-        model, sse = trial, trial_sse
-        if np.linalg.norm(_settling(model) - before) <= SETTLE_TOLERANCE * np.linalg.norm(before):
+        step = _settling(trial) - before
+        previous, model, sse = model, trial, trial_sse
+        if np.linalg.norm(step) <= SETTLE_TOLERANCE * np.linalg.norm(before):
             break
+        turned = last_step is not None and float(step @ last_step) < 0.0 \
+            and np.linalg.norm(step) > SETTLE_CONTRACTION * np.linalg.norm(last_step)
+        source = _midpoint(previous, trial) if turned and not model.output_maps else trial
+        last_step = _settling(source) - before
     return model, sse
+
+
+def _midpoint(a: ValveModel, b: ValveModel) -> ValveModel:
+    """``b`` with the GPIM halfway between ``a``'s and ``b``'s (weights and offset): the columns of a damped step
+    (within the weights' bounds: both ends are)."""
+    g, h = a.gpim, b.gpim
+    return replace(b, gpim=replace(h, weights=0.5 * (g.weights + h.weights), offset_um=0.5 * (g.offset_um + h.offset_um)))
 
 
 def _settling(model: ValveModel) -> np.ndarray:
