@@ -301,6 +301,16 @@ def test_direct_link_needs_the_realtime_clock(ros_context):
         with pytest.raises(ValueError, match="busy_poll_s must be >= 0"):
             ValveHardwareNode(namespace=f"/ls{os.getpid()}", parameter_overrides=[
                 Parameter("clock", value="realtime"), Parameter("realtime.busy_poll_s", value=-1.0)])
+        with pytest.raises(ValueError, match="loop_stats_period_s must be >= 0"):
+            ValveHardwareNode(namespace=f"/ls{os.getpid()}",
+                              parameter_overrides=[Parameter("loop_stats_period_s", value=-0.5)])
+        with pytest.raises(ValueError, match="loop_stats_period_s must be finite"):
+            ValveHardwareNode(namespace=f"/ls{os.getpid()}",
+                              parameter_overrides=[Parameter("loop_stats_period_s", value=float("nan"))])
+        # several bad values at start-up: every reason in the one refusal (HardwareSettings.from_specs)
+        with pytest.raises(ValueError, match=r"samples_batch must be >= 1.*; loop_stats_period_s must be >= 0"):
+            ValveHardwareNode(namespace=f"/ls{os.getpid()}", parameter_overrides=[
+                Parameter("samples_batch", value=0), Parameter("loop_stats_period_s", value=-1.0)])
         assert hw.claim_pacing() is None
     finally:
         hw.destroy_node()

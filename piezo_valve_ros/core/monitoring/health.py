@@ -110,6 +110,15 @@ class HealthLimits:
         return out
 
 
+def _gain_fit(residual_um: np.ndarray, predicted_um: np.ndarray) -> tuple[float, float, float]:
+    """(level [um], gain, about [um]): the residual regressed on a constant and the prediction's swing about its mean
+    ``about`` (a gain change, with an offset)."""
+    about = float(np.mean(predicted_um))
+    design = np.column_stack((np.ones(predicted_um.size), predicted_um - about))
+    (level, gain), *_ = np.linalg.lstsq(design, residual_um, rcond=None)
+    return float(level), float(gain), about
+
+
 @dataclass(frozen=True)
 class GainCorrection:
     """The gain change a window determines: the prediction's swing about ``about_um`` scaled by ``1 + gain`` and
@@ -363,14 +372,8 @@ class HealthMonitor:
         e = y - predicted - (self._offset or 0.0)
         cut_at = int(round(GAIN_FIT_SHARE * len(e)))
 
-        def fitted(rows: slice) -> tuple[float, float, float]:
-            about = float(np.mean(predicted[rows]))
-            design = np.column_stack((np.ones(predicted[rows].size), predicted[rows] - about))
-            (level, gain), *_ = np.linalg.lstsq(design, e[rows], rcond=None)
-            return float(level), float(gain), about
-
-        level, gain, about = fitted(slice(0, cut_at))
-        _, held_gain, _ = fitted(slice(cut_at, None))
+        level, gain, about = _gain_fit(e[:cut_at], predicted[:cut_at])
+        _, held_gain, _ = _gain_fit(e[cut_at:], predicted[cut_at:])
         held = e[cut_at:]
         corrected = held - level - gain * (predicted[cut_at:] - about)
         offset_alone = rms(held - float(np.mean(e[:cut_at])))
@@ -408,13 +411,12 @@ class HealthMonitor:
         offset_rms = rms(held_out - shift)
         # a gain change: the residual in proportion to the prediction's swing, about its mean (with an offset)
         swing = analysis_record(Record(t, v, predicted), SEARCH_RATE_HZ).position_um[split.start:]
-        design = np.column_stack((np.ones(swing.size), swing - np.mean(swing)))
-        (level_um, gain), *_ = np.linalg.lstsq(design, held_out, rcond=None)
-        gain_rms = rms(held_out - design @ np.array([level_um, gain]))
+        level_um, gain, about = _gain_fit(held_out, swing)
+        gain_rms = rms(held_out - level_um - gain * (swing - about))
         if in_force > 0 and 1.0 - gain_rms / in_force >= REFIT_SHARE \
                 and 1.0 - gain_rms / max(offset_rms, 1e-30) >= GAIN_SHARE \
                 and abs(gain) <= GAIN_CHANGE_MAX:
-            return (f"{GAIN_PREFIX} of {100.0 * gain:+.1f} % (the swing about {np.mean(swing):.1f} um "
+            return (f"{GAIN_PREFIX} of {100.0 * gain:+.1f} % (the swing about {about:.1f} um "
                     f"scaled by {1.0 + gain:.4f}) and an offset of {level_um:+.3f} um the model lacks",
                     1.0 - gain_rms / in_force)
         if in_force > 0 and 1.0 - offset_rms / in_force >= REFIT_SHARE:
