@@ -25,6 +25,7 @@ from .core.monitoring.health import Health, HealthLimits, HealthMonitor, Level
 from .io.params_yaml import node_section, yaml_value
 from .core.identification.records import MAX_ANALYSED_S, Record, read_csv
 from .core.identification.report import IdentificationReport
+from .core.identification.whole_record import BlockMeans
 from .core.runs import WHOLE_RECORD, TimeWindow, WindowError
 from .core.identification.residual import Analysis, analyse
 from .core.identification.to_controller import (Compensation, base_parameters, baseline_compensation, compensation,
@@ -43,10 +44,11 @@ class ParametersFileError(PiezoValveError, ValueError):
 
 def read_record(path, topic: Optional[str] = None, log: Callable[[str], None] = print,
                 warnings: Optional[list[str]] = None, window: TimeWindow = WHOLE_RECORD,
-                longest_s: Optional[float] = None) -> tuple[Record, Optional[str]]:
+                longest_s: Optional[float] = None, whole: Optional[BlockMeans] = None) -> tuple[Record, Optional[str]]:
     """A record from a bag directory (its samples topic) or from a ``.csv`` file (``records.read_csv``), the
     stretch ``window`` of it (no window: its first ``longest_s`` [s] where given, said in ``warnings`` when that is
-    not all of it); returns (record, topic name or None).  Storage files of a damaged bag that had to be
+    not all of it; ``whole`` then receives all of the bag as it is read, reduced to the analysis rate); returns
+    (record, topic name or None).  Storage files of a damaged bag that had to be
     left out are logged and appended to ``warnings``.  Raises BagError or WindowError (the window holds no samples
     or is malformed) with a one-line reason."""
     if window.problems():
@@ -64,12 +66,15 @@ def read_record(path, topic: Optional[str] = None, log: Callable[[str], None] = 
     skipped: list[str] = []
     extent: dict = {}
     capped = window.whole and longest_s is not None
-    rows, name = read_samples(path, topic, skipped, TimeWindow(to_s=longest_s) if capped else window, extent)
+    rows, name = read_samples(path, topic, skipped, TimeWindow(to_s=longest_s) if capped else window, extent,
+                              each_block=whole.add if capped and whole is not None else None)
     record = Record.from_rows(rows)
     log(f"{path}: {rows.shape[0]} samples on {name}{_window_note(record, window)}")
     if capped and extent["last_s"] > record.time_s[-1]:
         text = (f"{path}: the record runs {extent['last_s'] - extent['first_s']:.0f} s; its first {longest_s:g} s were "
-                f"read and analysed (the loop analyses no more: MAX_ANALYSED_S; --from/--to choose another stretch)")
+                f"read at its own rate (the loop fits the fast parts on no more: MAX_ANALYSED_S; --from/--to choose "
+                f"another stretch)" + (", and all of it reduced to the analysis rate (a slow trend is judged on the "
+                                       "whole record)" if whole is not None else ""))
         log(f"warning: {text}")
         if warnings is not None:
             warnings.append(text)
@@ -97,10 +102,17 @@ def identify_bags(train_bag, validate_bag=None, topic: Optional[str] = None,
     with a one-line reason."""
     damaged: list[str] = []
     # no more than the loop analyses is read: an hour-long bag costs what its first minutes do
-    train, name = read_record(train_bag, topic, log, damaged, window, longest_s=MAX_ANALYSED_S)
+    # (a long training bag: all of it streamed to the analysis rate as it is read, for the slow trend)
+    reduced = BlockMeans()
+    train, name = read_record(train_bag, topic, log, damaged, window, longest_s=MAX_ANALYSED_S, whole=reduced)
+    whole = reduced.record() if reduced.rows > len(train) else None
+    if whole is not None and reduced.dropped:
+        damaged.append(f"{train_bag}: {reduced.dropped} rows out of time order or delivered twice were left out of the "
+                       f"whole record's reduction")
+        log("warning: " + damaged[-1])
     validate = (None if validate_bag is None
                 else read_record(validate_bag, topic, log, damaged, longest_s=MAX_ANALYSED_S)[0])
-    analysis = analyse(train, validate, log=log)
+    analysis = analyse(train, validate, log=log, whole=whole)
     source = {"train_bag": str(train_bag), "validate_bag": None if validate_bag is None else str(validate_bag),
               "topic": name, "train_window": {**window.as_dict(), "first_sample_s": float(train.time_s[0]),
                                               "last_sample_s": float(train.time_s[-1]), "samples": len(train)}}

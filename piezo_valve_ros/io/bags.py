@@ -289,7 +289,8 @@ def _in_window(path: Path, rows: np.ndarray, window: TimeWindow, first_s: float,
 
 
 def _damaged(path: Path, topic: Optional[str], skipped: Optional[list[str]], reason: str,
-             window: TimeWindow = WHOLE_RECORD, extent: Optional[dict] = None) -> tuple[np.ndarray, str]:
+             window: TimeWindow = WHOLE_RECORD, extent: Optional[dict] = None,
+             each_block: Optional[Callable[[np.ndarray], None]] = None) -> tuple[np.ndarray, str]:
     """The whole-bag read failed: what the intact files hold (in ``window``), or the one-line error."""
     skips: list[str] = []
     parts, name = _read_file_by_file(path, topic, skips)
@@ -298,13 +299,16 @@ def _damaged(path: Path, topic: Optional[str], skipped: Optional[list[str]], rea
     if skipped is not None:
         skipped += skips
     rows = _time_ordered(parts)
+    if each_block is not None:
+        each_block(rows)
     if extent is not None:
         extent.update(first_s=float(rows[0, 0]), last_s=float(rows[-1, 0]))
     return _in_window(path, window.rows(rows, rows[0, 0]), window, rows[0, 0], rows[-1, 0]), name
 
 
 def read_samples(path, topic: Optional[str] = None, skipped: Optional[list[str]] = None,
-                 window: TimeWindow = WHOLE_RECORD, extent: Optional[dict] = None) -> tuple[np.ndarray, str]:
+                 window: TimeWindow = WHOLE_RECORD, extent: Optional[dict] = None,
+                 each_block: Optional[Callable[[np.ndarray], None]] = None) -> tuple[np.ndarray, str]:
     """Rows (time [s], voltage [V], position [m]) of the bag's ``samples`` topic, time-ordered; and its name.
 
     Any namespace is accepted (a topic whose last name is ``samples``); ``topic`` picks one explicitly.
@@ -313,7 +317,10 @@ def read_samples(path, topic: Optional[str] = None, skipped: Optional[list[str]]
     whole record's first and last sample times (``first_s``, ``last_s`` [s]: the messages past the window are
     skipped undecoded but the last).  A multi-file bag with
     damaged storage files is read file by file: the intact ones are used and each file left out is appended
-    to ``skipped`` (name and reason).  Raises BagError with a one-line reason when nothing is readable or the
+    to ``skipped`` (name and reason).  ``each_block`` receives every block of rows of the whole bag as it is decoded
+    (in the bag's order; after a damaged read, all the intact files hold in one block: a receiver that drops rows
+    at or before the last it took, as ``BlockMeans`` does, continues where it was), so the part past ``window`` is
+    streamed through it instead of skipped (``core.identification.whole_record.BlockMeans`` reduces a long record so).  Raises BagError with a one-line reason when nothing is readable or the
     window holds no samples.
     """
     path = Path(path)
@@ -324,7 +331,7 @@ def read_samples(path, topic: Optional[str] = None, skipped: Optional[list[str]]
         reader.open()
     except Exception as exc:  # rosbags raises several types; the message is what matters
         if (path / "metadata.yaml").exists():
-            return _damaged(path, topic, skipped, _first_line(exc), window, extent)
+            return _damaged(path, topic, skipped, _first_line(exc), window, extent, each_block)
         raise BagError(f"cannot read bag {path}: {_first_line(exc)}") from None
     try:
         conns = [c for c in reader.connections if c.msgtype == SAMPLES_TYPE]
@@ -355,11 +362,15 @@ def read_samples(path, topic: Optional[str] = None, skipped: Optional[list[str]]
                 block = decode(raw, conn.msgtype)
                 if block.shape[0] == 0:
                     continue
+                if each_block is not None:
+                    each_block(block)
                 if math.isnan(first_s):
                     first_s = float(block[0, 0])
                     hi = window.bounds(first_s)[1]
                 last_s = max(float(block[-1, 0]), last_s) if not math.isnan(last_s) else float(block[-1, 0])
                 if block[0, 0] > hi:   # messages come in time order: the rest lies past the window
+                    if each_block is not None:
+                        continue
                     if extent is None:
                         break
                     past = (raw, conn.msgtype)
@@ -371,7 +382,7 @@ def read_samples(path, topic: Optional[str] = None, skipped: Optional[list[str]]
         except BagError:
             raise
         except Exception as exc:
-            return _damaged(path, topic, skipped, _first_line(exc), window, extent)
+            return _damaged(path, topic, skipped, _first_line(exc), window, extent, each_block)
         if math.isnan(first_s):
             raise BagError(f"bag {path}: topic {name} holds no messages")
         if extent is not None:

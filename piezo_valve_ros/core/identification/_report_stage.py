@@ -97,7 +97,10 @@ class ReportStage:
         checked, refits = story.choice.exact_checks.get(final_set, {}), story.choice.refits
         for n in names:
             exact = n in story.verdicts and n in added
-            if exact:
+            if n == "drift" and self.trend is not None:   # a long record's: judged on its whole length (stage 3b)
+                verdict = Verdict(self.trend.support, self.trend.without_um, self.trend.with_um)
+                how = self.whole_record_evidence()
+            elif exact:
                 verdict = story.verdicts[n]
                 how = "exact refit without it"
             else:   # the exact refit on top of the final set where there was one: the figure the decision used
@@ -129,7 +132,8 @@ class ReportStage:
         figured = {id(m): f for m, f in zip(unique, self.each([lambda m=m: self.figures(m) for m in unique]))}  # once each
         diagnosis = self.diagnosis(story)
         choice = story.choice
-        alternatives = _alternatives(story.added, choice.names, story.verdicts, choice.search, choice.refit_many,
+        on_stretch = [a for a in story.added if not (a == "drift" and self.trend is not None)]   # (3b's: its own)
+        alternatives = _alternatives(on_stretch, choice.names, story.verdicts, choice.search, choice.refit_many,
                                      choice.by_name)
         for a in alternatives:
             self.log(f"cannot tell apart: {a.effect} and {a.alternative}: {a.why}")
@@ -170,6 +174,7 @@ class ReportStage:
             held_out_fraction=HELD_OUT_FRACTION if split.held_out else None,
             held_out_samples=len(split.score_full) - split.start_full,
             analysed=self.analysed,
+            figures_from=self.figures_from(),
             validate_range_um=round(self.range_val, 4),
             sample_rate_hz=round(self.full.rate_hz, 3),
             analysis_rate_hz=round(self.fit.rate_hz, 3),
@@ -193,10 +198,30 @@ class ReportStage:
             warnings=tuple(self.warnings),
             final_model=final.describe(),
             seconds=round(time.monotonic() - self.started, 3),
+            whole_record=self.whole_record_report(),
         )
         report = replace(report, summary=_summary_line(report, self.floor))
         self.log(f"{report.summary} ({report.seconds:.1f} s)")
         return report
+
+    def figures_from(self) -> dict[str, str]:
+        """Which stretch of which record each of the report's figures comes from, in words."""
+        split, a = self.split, self.analysed["train"]
+        train = f"the training record's {a['from_s']:.3f}..{a['to_s']:.3f} s"
+        held = (f"its last {100 * HELD_OUT_FRACTION:.0f} % held out" if split.held_out
+                else "held out: the validation record's "
+                + f"{self.analysed['validate']['from_s']:.3f}..{self.analysed['validate']['to_s']:.3f} s")
+        stretch = f"fitted on {train}, {held}"
+        out = {"baseline": stretch, "final": stretch + ("; its drift fitted on the whole record"
+                                                        if self.trend is not None and self.trend.supported else ""),
+               "diagnosis": stretch + ("; drift's on the whole record" if self.trend is not None else ""),
+               "residual_structure": f"the final model's held-out error ({held} of {train})" if split.held_out
+               else f"the final model's held-out error ({held})"}
+        if self.whole is not None:
+            out["whole_record"] = (f"the stretch's model run over the whole training record "
+                                   f"({self.whole.time_s[0]:.3f}..{self.whole.time_s[-1]:.3f} s) at "
+                                   f"{self.whole.rate_hz:.0f} Hz, its residual in block means searched for a trend")
+        return out
 
     def sessions_report(self, start: StartChoice, final: ValveModel) -> tuple[list[Session], dict]:
         """Each record as a session of its own, for the final model (``Session`` in the report's schema), and how

@@ -16,7 +16,7 @@ from typing import Optional, Union
 from ..metrics import ErrorFigures
 
 __all__ = ["IdentificationReport", "Figures", "Baseline", "Final", "Decision", "Indistinguishable",
-           "ResidualStructure", "NoiseEstimate", "NoiseFloorReport", "Capacity", "SearchRow", "ConfirmRound", "Session", "BaselineFits", "ErrorFigures",
+           "ResidualStructure", "NoiseEstimate", "WholeRecordReport", "NoiseFloorReport", "Capacity", "SearchRow", "ConfirmRound", "Session", "BaselineFits", "ErrorFigures",
            "check_report", "schema_tables", "to_json"]
 
 
@@ -181,6 +181,27 @@ class Session(_Node):
 
 
 @dataclass(frozen=True)
+class WholeRecordReport(_Node):
+    from_s: float = _item("the whole record's (or its window's) first sample time [s]")
+    to_s: float = _item("its last sample time [s]")
+    rows: int = _item("rows at the analysis rate the stretch's model ran over")
+    rate_hz: float = _item("their rate [Hz]")
+    block_s: float = _item("the residual's block means the trend is fitted to [s]")
+    segment_s: float = _item("cross-validation: alternate stretches this long fit and score each other [s]")
+    resolution_s: float = _item("the trend's spline intervals span at least this long [s]")
+    trend_terms: int = _item("the best trend's cubic spline intervals over the record")
+    tried: dict = _item("cross-validated block RMS [um] by number of spline intervals tried")
+    held_out_rms_um: dict = _item("the cross-validated block RMS without and with the best trend [um]")
+    drift_added: bool = _item("whether the trend is supported (search.support): drift over the whole record")
+    decided_by: str = _item("the rule that supported it, or empty")
+    evidence: str = _item("the decision in words")
+    peak_to_peak_um: float = _item("the fitted trend's size [um]")
+    onset_s: float = _item("the first time it departs from its start by a tenth of its size [s]")
+    stretches: tuple[dict, ...] = _item("the residual's block RMS by tenth of the record, without and with the trend "
+                                        "(from_s, to_s, rms_um, rms_with_trend_um)")
+
+
+@dataclass(frozen=True)
 class BaselineFits(_Node):
     capacity: tuple[Capacity, ...] = _item("")
     chosen: str = _item("")
@@ -228,7 +249,10 @@ class IdentificationReport(_Node):
     held_out_samples: int = _item("held-out samples at the record's rate")
     analysed: dict = _item("what of each record the loop analysed: train (and validate) with from_s, to_s (sample "
                            "times), samples, of_samples and record_duration_s; a record longer than MAX_ANALYSED_S "
-                           "(100 s) is analysed on its first 100 s, and a warning says so")
+                           "(100 s) is analysed on its first 100 s, its whole length (the training record's) for a "
+                           "slow trend (whole_record), and a warning says so")
+    figures_from: dict = _item("which stretch of which record each figure comes from, in words: baseline, final, "
+                               "diagnosis, residual_structure, and whole_record where there is one")
     validate_range_um: float = _item("range of the held-out position [um]")
     sample_rate_hz: float = _item("the record's sampling rate [Hz]")
     analysis_rate_hz: float = _item("the rate fits and decisions run at (block means) [Hz]")
@@ -249,6 +273,9 @@ class IdentificationReport(_Node):
                                       "out)")
     final_model: dict = _item("the final model: GPIM, G_v, initial state and one entry per added effect")
     seconds: float = _item("wall time of the analysis [s]")
+    whole_record: Optional[WholeRecordReport] = _optional(
+        "a training record longer than MAX_ANALYSED_S: the stretch's model run over all of it, and the slow trend "
+        "searched there (present only then)")
     source: Optional[dict] = _optional("the bags (or CSV) and topic read, and the stretch of the training record "
                                        "used (train_window: from_s, to_s, axis, first_sample_s, last_sample_s, "
                                        "samples)")

@@ -64,7 +64,7 @@ from ..model.hysteresis import GPIM
 from .noise import estimate_noise_floor
 from .initial_state import session_start
 from .report import IdentificationReport
-from .records import ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, MAX_ANALYSED_S, SUPPORTED_RATE_HZ, Record
+from .records import ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, MAX_ANALYSED_S, SUPPORTED_RATE_HZ, Record, analysis_record
 from .search import GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, NoiseLevels, Score  # noqa: F401
 from .split import SessionStart, Split, split_records
 from ..blas import one_blas_thread
@@ -78,6 +78,7 @@ from ._capacity_stage import CapacityStage
 from ._effect_choice import _EffectChoice
 from ._report_stage import ReportStage
 from ._start_stage import StartStage
+from ._whole_record_stage import WholeRecordStage
 
 __all__ = ["analyse", "Analysis", "Split", "GAIN_THRESHOLD", "MIN_EFFECT_NOISE_RATIO", "UNEXPLAINED_NOISE_RATIO",
            "CAPACITY_OPERATORS", "CAPACITY_EXTENSION", "HELD_OUT_FRACTION", "MID_CAPACITY"]
@@ -111,8 +112,14 @@ class Analysis:
 
 
 def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_rate_hz: float = ANALYSIS_RATE_HZ,
-            log: Callable[[str], None] = lambda s: None, threads: Optional[int] = None) -> Analysis:
+            log: Callable[[str], None] = lambda s: None, threads: Optional[int] = None,
+            whole: Optional[Record] = None, analysed_s: float = MAX_ANALYSED_S) -> Analysis:
     """Fit, diagnose and extend; ``validate_full`` None holds out the last ``HELD_OUT_FRACTION`` of the record.
+
+    A training record longer than ``analysed_s`` [s] is analysed on its first ``analysed_s``, and its whole length at
+    the analysis rate judges a slow trend (``whole_record``): ``whole`` is that whole record already reduced to the
+    analysis rate (``whole_record.BlockMeans``, as ``identify_bags`` streams a bag), where ``train_full`` holds only
+    its first stretch; None reduces ``train_full`` itself.
 
     Independent refits run on ``threads`` threads (the result does not depend on how many; None:
     ``defaults.analysis_threads()``, which PIEZO_ANALYSIS_THREADS sets).  BLAS runs on
@@ -127,10 +134,10 @@ def analyse(train_full: Record, validate_full: Optional[Record] = None, *, max_r
     with one_blas_thread(), \
             ThreadPoolExecutor(threads, thread_name_prefix="refit") as pool, \
             ThreadPoolExecutor(threads, thread_name_prefix="form") as forms_pool:
-        return _Loop(train_full, validate_full, max_rate_hz, log, pool, forms_pool).run()
+        return _Loop(train_full, validate_full, max_rate_hz, log, pool, forms_pool, whole, analysed_s).run()
 
 
-class _Loop(StartStage, CapacityStage, ReportStage):
+class _Loop(StartStage, CapacityStage, WholeRecordStage, ReportStage):
     """One run of the residual loop on one pair of records; ``run`` takes the stages of the module's
     docstring in order and returns the :class:`Analysis`.  Each stage returns what it found (``StartChoice``,
     ``CapacityChoice``, ``Story``, ``Remains``) to the stages after it; the instance holds what they all share:
@@ -138,14 +145,24 @@ class _Loop(StartStage, CapacityStage, ReportStage):
     the wipe), the noise, the caches and the warnings."""
 
     def __init__(self, train_full: Record, validate_full: Optional[Record], max_rate_hz: float,
-                 log: Callable[[str], None], pool: ThreadPoolExecutor, forms_pool: ThreadPoolExecutor):
+                 log: Callable[[str], None], pool: ThreadPoolExecutor, forms_pool: ThreadPoolExecutor,
+                 whole: Optional[Record] = None, analysed_s: float = MAX_ANALYSED_S):
         self.started = time.monotonic()
+        self.analysed_s = analysed_s
         self.log, self.pool, self.forms_pool = log, pool, forms_pool
         self.warnings: list[str] = []
         self.known_rows: Optional[int] = None   # held-out rows before the input first leaves the fit part's range
         self.start_left_out: Optional[dict] = None   # a validation session's first rows left out (in motion)
         self.analysed: dict = {}   # what of each record the loop analysed (the report's "analysed")
-        train_full = self.representative_part(train_full, "train", "training record")
+        whole_rows = len(train_full) if whole is None else None
+        part = self.representative_part(train_full, "train", "training record", whole)
+        if part is not train_full or (whole is not None and whole.time_s[-1] > part.time_s[-1]):
+            self.whole = analysis_record(train_full, max_rate_hz) if whole is None else whole
+            self.analysed["train"]["whole_record"] = {
+                "from_s": float(self.whole.time_s[0]), "to_s": float(self.whole.time_s[-1]),
+                "rows": len(self.whole), "rate_hz": round(self.whole.rate_hz, 3),
+                **({"samples": whole_rows} if whole_rows is not None else {})}
+        train_full = part
         if validate_full is not None:
             validate_full = self.representative_part(validate_full, "validate", "validation record")
         self.split = split_records(train_full, validate_full, max_rate_hz)
@@ -191,18 +208,29 @@ class _Loop(StartStage, CapacityStage, ReportStage):
         self.session_bounds: dict = {}   # the operators' clamp bounds there, per hysteresis structure
 
     # ------------------------------------------------------------------ helpers
-    def representative_part(self, record: Record, key: str, what: str) -> Record:
-        """The part of ``record`` the loop analyses: its first MAX_ANALYSED_S (a record of repeated experiments
-        shows its valve in its first minutes as well as in hours; the loop's memory grows with what it analyses);
-        kept in ``analysed[key]`` and said in a warning where that is not all of it."""
-        part = record.first(MAX_ANALYSED_S)
+    def representative_part(self, record: Record, key: str, what: str, whole: Optional[Record] = None) -> Record:
+        """The part of ``record`` the loop analyses: its first ``analysed_s`` (MAX_ANALYSED_S: a record of repeated
+        experiments shows its valve's fast parts in its first minutes as well as in hours; the loop's memory grows
+        with what it analyses); kept in ``analysed[key]`` and said in a warning where that is not all of it.  The
+        training record's whole length (``whole``: already reduced, where ``record`` is only its start) is searched
+        for a slow trend (stage 3b)."""
+        part = record.first(self.analysed_s)
+        duration = record.duration_s if whole is None else float(whole.time_s[-1] - record.time_s[0] + record.dt)
+        of = len(record) if whole is None else len(whole) * whole.block   # (source rows, less a partial block)
         self.analysed[key] = {"from_s": float(part.time_s[0]), "to_s": float(part.time_s[-1]),
-                              "samples": len(part), "of_samples": len(record),
-                              "record_duration_s": record.duration_s}
-        if part is not record:
-            self.warnings.append(f"the {what} is {record.duration_s:.0f} s long: its first {part.duration_s:.0f} s "
-                                 f"({len(part)} of {len(record)} samples) were analysed (MAX_ANALYSED_S; the "
-                                 f"loop's memory and time grow with what it analyses)")
+                              "samples": len(part), "of_samples": of,
+                              "record_duration_s": duration}
+        if part is not record or (whole is not None and duration > part.duration_s + 2 * record.dt):
+            if key == "train":
+                self.warnings.append(f"the {what} is {duration:.0f} s long: its first {part.duration_s:.0f} s were "
+                                     f"analysed for the model's fast parts (MAX_ANALYSED_S; the loop's memory and time "
+                                     f"grow with what it analyses), and all of it, at the analysis rate, for a slow "
+                                     f"trend (drift): the report's whole_record and figures_from say which figure "
+                                     f"comes from where")
+            else:
+                self.warnings.append(f"the {what} is {duration:.0f} s long: its first {part.duration_s:.0f} s "
+                                     f"({len(part)} samples) were analysed (MAX_ANALYSED_S; the loop's memory and "
+                                     f"time grow with what it analyses)")
             self.log("warning: " + self.warnings[-1])
         return part
 
@@ -279,6 +307,7 @@ class _Loop(StartStage, CapacityStage, ReportStage):
         if capacity.effects_grid is None:   # (a size chosen again with the effects in has settled the grid)
             capacity, story = self.revisit_placement(start, capacity, story)
             capacity, story = self.revisit_capacity(capacity, story)
+        story = self.whole_record_story(story)   # a long record: its whole length judges a slow trend
         remains = self.what_remains(story)
         report = self.report(start, capacity, story, remains)
         return Analysis(report, capacity.baseline, story.final, self.split, story.drop_one, self.sessions)

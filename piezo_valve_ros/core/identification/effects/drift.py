@@ -8,7 +8,8 @@ Terms: offset and gain (times the normalised output) multiplied by slow function
 * a slow wander of any shape the record resolves: half-cosines of the time over the training record's length
   (``WANDER_TERMS`` of them, held at their end beyond it).
 Four nested forms, chosen on held-out data (``held_out_forms``): "linear" (the time alone), "all" (the time, the
-slow exponentials and the heating), "fast" (and the fast exponentials) and "wander" (all of it).  A richer one always fits the training record better; where
+slow exponentials and the heating), "fast" (and the fast exponentials) and "wander" (all of it).  A fifth, "whole",
+is a long record's trend (``whole_record``): cubic B-splines on ``trend_terms`` intervals of the whole record.  A richer one always fits the training record better; where
 the drift is linear the exponentials and heating terms fit a share of the hysteresis' own slow misfit and bend the
 extrapolated slope.  So a smooth trend in time, whatever its shape, is drift, and creep (tied to the input's
 history) is not needed for it.
@@ -47,8 +48,24 @@ class Drift(Effect):
     centre_um: float = 0.0
     half_range_um: float = 1.0
     mean_rate_v_s: float = 1.0
-    form: str = "all"   # "linear" (t/T alone) or "all" (see FORMS)
+    form: str = "all"   # "linear" (t/T alone) or "all" (see FORMS), or "whole"
+    trend_terms: int = 0   # the "whole" form's spline intervals
 
+    def whole(self, duration_s: float, trend_terms: int) -> "Drift":
+        """The "whole" form over ``duration_s`` [s] in ``trend_terms`` spline intervals (a long record's trend)."""
+        return replace(self, duration_s=duration_s, form="whole", trend_terms=trend_terms)
+
+    def time_rows(self, t: np.ndarray) -> np.ndarray:
+        """(k, N) the "whole" form's functions of the time since the model's t0 [s]: cubic B-splines on
+        ``trend_terms`` equal intervals of the record's length T, less the one that is not zero at t0 (so the trend
+        starts at zero, and one that sets in late is zero until it does: each spline is zero outside four
+        intervals); held at their value at T beyond it."""
+        from scipy.interpolate import BSpline
+        k = max(int(self.trend_terms), 1)
+        knots = np.concatenate(([0.0] * 3, np.linspace(0.0, 1.0, k + 1), [1.0] * 3))
+        x = np.clip(np.asarray(t, float) / self.duration_s, 0.0, 1.0)
+        rows = BSpline.design_matrix(x, knots, 3).T.toarray()
+        return np.ascontiguousarray(rows[1:])
     @classmethod
     def prepare(cls, train: Record, H: np.ndarray) -> Optional["Drift"]:
         lo, hi = float(np.min(H)), float(np.max(H))
@@ -76,6 +93,8 @@ class Drift(Effect):
         t, T = ctx.t, self.duration_s
         if self.form == "linear":
             return (t / T)[None, :]
+        if self.form == "whole":
+            return self.time_rows(t)
         activity = np.abs(np.gradient(ctx.v, ctx.dt)) / self.mean_rate_v_s
         heating = lag_bank(activity, HEATING_TIME_CONSTANTS_S, ctx.dt).T   # (k, N), contiguous
         heating -= heating[:, :1]
@@ -101,9 +120,12 @@ class Drift(Effect):
         return self.design_rows(ctx).T
 
     def describe(self, model, coefs) -> dict:
-        names = ["t/T"] + ([] if self.form == "linear" else [f"1-exp(-t/({f}T))" for f in self.time_scales]
-                           + [f"heating_{int(t)}s" for t in HEATING_TIME_CONSTANTS_S]) + (
-            [f"cos({k} pi min(t/T, 1))-1" for k in range(1, WANDER_TERMS + 1)] if self.form == "wander" else [])
+        if self.form == "whole":
+            names = [f"spline_{j}_of_{self.trend_terms}" for j in range(1, max(self.trend_terms, 1) + 3)]
+        else:
+            names = ["t/T"] + ([] if self.form == "linear" else [f"1-exp(-t/({f}T))" for f in self.time_scales]
+                               + [f"heating_{int(t)}s" for t in HEATING_TIME_CONSTANTS_S]) + (
+                [f"cos({k} pi min(t/T, 1))-1" for k in range(1, WANDER_TERMS + 1)] if self.form == "wander" else [])
         n = len(names)
         return {"form": self.form, "functions": names, "T_s": self.duration_s, "offset_um": [float(c) for c in coefs[:n]],
                 "gain_um": [float(c) for c in coefs[n:]]}

@@ -1,0 +1,215 @@
+"""The whole of a long record: streamed to the analysis rate, and searched for a slow trend the loop's stretch
+cannot show.
+
+A record longer than ``MAX_ANALYSED_S`` is analysed in two parts.  The residual loop fits the fast parts (the GPIM's
+shape, G_v, delay, creep, the effects it finds) on its first ``MAX_ANALYSED_S`` at the analysis rate.  The whole
+record counts for what only shows over time: it is reduced to block means at the analysis rate as it is read
+(``BlockMeans``: memory of one message, not of the record), the stretch's model runs over all of it in chunks
+(``whole_residual``: each chunk after a warm-up long enough for creep's slowest lag to settle, so memory is that
+of one chunk and cost is linear in length), and the residual's block means are searched for a smooth trend in time
+of offset and gain (``trend_search``): the drift effect's "whole" form: cubic B-splines over the whole record, on intervals down
+to ``TREND_RESOLUTION_S``, each zero outside four of them, so a trend that sets in late leaves the rest untouched).  The trend is scored by two-fold cross-validation over alternate
+``TREND_SEGMENT_S`` stretches and judged by the loop's own rule (``search.support``); a trend that shows only late in
+the record (a warm-up at minute 20) is found where it happens.  Nothing here imports ROS.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import numpy as np
+
+from ..metrics import rms
+from .effects.base import normalised
+from .effects.drift import Drift
+from .records import ANALYSIS_RATE_HZ, Record
+from .search import NoiseLevels, Score, Support, support
+from .valve_model import REST, ValveModel
+
+__all__ = ["BlockMeans", "whole_residual", "WholeResidual", "trend_search", "Trend", "TREND_BLOCK_S",
+           "TREND_SEGMENT_S", "TREND_RESOLUTION_S", "TREND_TERMS", "CHUNK_S", "WARM_UP_S"]
+
+TREND_BLOCK_S = 0.25          # the residual's block means the trend is fitted to [s]
+TREND_SEGMENT_S = 20.0        # cross-validation: alternate stretches this long fit and score each other [s]
+TREND_RESOLUTION_S = 120.0    # the trend's spline intervals span at least this long [s] (coarser than a
+                              # repeated experiment's period: a trend is not the hysteresis' periodic misfit)
+TREND_TERMS = (1, 2, 4, 8, 16, 32, 64)   # spline intervals tried, up to the record's resolution
+CHUNK_S = 200.0               # the model runs over the record this long at a time [s] ...
+WARM_UP_S = 150.0             # ... after this long before it (3x creep's slowest lag: its transient < 5 %) [s]
+MIN_STREAM_ROWS = 64          # the sampling period is taken from at least this many first rows
+
+
+class BlockMeans:
+    """Rows (time [s], voltage [V], position [m]) streamed in, the record at most ``max_rate_hz`` out: block means as
+    ``records.analysis_record`` takes them (the same block length and source period), with a memory of one message.
+    Rows at or before the last one taken are dropped and counted in ``dropped`` (a batch delivered twice counts once).  ``record()`` gives the
+    reduced record so far; ``rows`` counts the source rows taken."""
+
+    def __init__(self, max_rate_hz: float = ANALYSIS_RATE_HZ):
+        self.max_rate_hz = max_rate_hz
+        self.k: Optional[int] = None           # source rows per block, once the period is known
+        self.source_dt: Optional[float] = None
+        self.pending: list[np.ndarray] = []    # rows not yet in a block
+        self.blocks: list[np.ndarray] = []     # (m, 3) block means: time, voltage, position [um]
+        self.rows = 0
+        self.dropped = 0   # rows at or before one taken already (delivered twice, or out of order)
+        self.last_s = -math.inf
+
+    def add(self, rows: np.ndarray) -> None:
+        rows = np.asarray(rows, float)
+        if rows.shape[0] == 0:
+            return
+        if not rows[0, 0] > self.last_s or np.any(np.diff(rows[:, 0]) <= 0):
+            later = np.maximum.accumulate(np.concatenate(([self.last_s], rows[:, 0])))[:-1]
+            keep = rows[:, 0] > later
+            self.dropped += int(rows.shape[0] - np.count_nonzero(keep))
+            rows = rows[keep]
+            if rows.shape[0] == 0:
+                return
+        self.last_s = float(rows[-1, 0])
+        self.rows += rows.shape[0]
+        self.pending.append(rows[:, :3])
+        if self.k is None:
+            if sum(p.shape[0] for p in self.pending) < MIN_STREAM_ROWS:
+                return
+            first = np.concatenate(self.pending)
+            self.source_dt = float(np.median(np.diff(first[:, 0])))
+            self.k = (max(int(math.floor(1.0 / (self.max_rate_hz * self.source_dt) + 1e-9)), 1)
+                      if math.isfinite(self.max_rate_hz) else 1)
+        self._reduce()
+
+    def _reduce(self) -> None:
+        rows = np.concatenate(self.pending) if len(self.pending) > 1 else self.pending[0]
+        n = rows.shape[0] // self.k * self.k
+        if n:
+            means = rows[:n].reshape(-1, self.k, 3).mean(axis=1)
+            means[:, 2] *= 1e6
+            self.blocks.append(means)
+        self.pending = [rows[n:]] if n < rows.shape[0] else []
+
+    def record(self) -> Record:
+        """The reduced record so far (a trailing partial block left out, as ``analysis_record`` does)."""
+        if self.k is None and self.pending:   # fewer rows than MIN_STREAM_ROWS: the period from what there is
+            first = np.concatenate(self.pending)
+            self.source_dt = float(np.median(np.diff(first[:, 0]))) if first.shape[0] > 1 else math.nan
+            self.k = 1
+            self._reduce()
+        rows = np.concatenate(self.blocks) if self.blocks else np.zeros((0, 3))
+        self.blocks = [rows]
+        return Record(rows[:, 0], rows[:, 1], rows[:, 2], self.k or 1, self.source_dt)
+
+
+@dataclass(frozen=True)
+class WholeResidual:
+    """A model's residual over a whole record, in TREND_BLOCK_S block means: block times [s], the residual
+    (measured - predicted) [um], the hysteresis output normalised as the drift effect's gain terms take it, and the
+    rows each block averages (at the record's analysis rate)."""
+
+    time_s: np.ndarray
+    error_um: np.ndarray
+    gain_input: np.ndarray
+    rows_per_block: int
+
+
+def whole_residual(model: ValveModel, record: Record, drift: Drift,
+                   progress: Callable[[str], None] = lambda s: None) -> WholeResidual:
+    """``model``'s residual over ``record`` (the whole record at the analysis rate) in TREND_BLOCK_S block means,
+    run CHUNK_S at a time, each chunk after WARM_UP_S of the record before it (from rest there; the first from the
+    model's own start): memory of one chunk, cost linear in length.  ``drift`` gives the gain terms' normalisation."""
+    dt = record.dt
+    per_block = max(int(round(TREND_BLOCK_S / dt)), 1)
+    chunk = max(int(round(CHUNK_S / dt)) // per_block, 1) * per_block
+    warm = int(round(WARM_UP_S / dt))
+    n = len(record) // per_block * per_block
+    times, errors, gains = [], [], []
+    for start in range(0, n, chunk):
+        stop = min(start + chunk, n)
+        first = max(start - warm, 0)
+        part = record.slice(first, stop)
+        m = model if first == 0 else _from_rest(model)
+        ctx = m.context(part)
+        static, rest = m.static_output_and_rest(ctx)
+        predicted = m.after_dynamics(ctx.through_dynamics(static, rest))
+        skip = start - first
+
+        def blocks(a: np.ndarray) -> np.ndarray:
+            return a[skip:].reshape(-1, per_block).mean(axis=1)
+        times.append(blocks(part.time_s))
+        errors.append(blocks(part.position_um - predicted))
+        gains.append(blocks(normalised(ctx.H, drift.centre_um, drift.half_range_um)))
+        progress(f"whole record: the stretch's model run to {part.time_s[-1]:.0f} s of "
+                 f"{record.time_s[-1]:.0f} s")
+    return WholeResidual(np.concatenate(times), np.concatenate(errors), np.concatenate(gains), per_block)
+
+
+def _from_rest(model: ValveModel) -> ValveModel:
+    from dataclasses import replace
+    return replace(model, history=REST)
+
+
+@dataclass(frozen=True)
+class Trend:
+    """The trend search's finding: the drift effect over the whole record (``effect``, ``coefs``: its offset then gain
+    coefficients [um]) where ``support`` supports it; the residual's cross-validated block RMS without and with it
+    [um], the trend's size (peak to peak [um]) and the first time it departs from its start by a tenth of that,
+    and what every number of spline intervals tried scored."""
+
+    effect: Drift
+    coefs: np.ndarray
+    support: Support
+    without_um: float
+    with_um: float
+    peak_to_peak_um: float
+    onset_s: float
+    tried: dict
+    stretch_rms_um: tuple[tuple[float, float, float, float], ...]   # (from_s, to_s, rms without, rms with) by tenth
+
+    @property
+    def supported(self) -> bool:
+        return self.support.supported
+
+
+def _design(residual: WholeResidual, drift: Drift, t0: float) -> np.ndarray:
+    """(blocks, 2k) the drift's offset rows and its gain rows (times the blocks' normalised output), at block means."""
+    rows = drift.time_rows(residual.time_s - t0)
+    return np.hstack((rows.T, (rows * residual.gain_input[None, :]).T))
+
+
+def trend_search(residual: WholeResidual, t0: float, duration_s: float, like: Drift, noise: NoiseLevels,
+                 log: Callable[[str], None] = lambda s: None) -> Trend:
+    """Search ``residual`` for a smooth trend in time of offset and gain (the drift effect's "whole" form over
+    ``duration_s`` [s] from ``t0``), with every number of spline intervals in TREND_TERMS the record resolves
+    (TREND_RESOLUTION_S); each scored by two-fold cross-validation over alternate TREND_SEGMENT_S stretches, the best
+    judged by ``search.support`` against no trend (``noise``: the floor at the record's rate and at these blocks)."""
+    segment = np.floor((residual.time_s - residual.time_s[0]) / TREND_SEGMENT_S).astype(int)
+    fold = segment % 2 == 0
+    e = residual.error_um
+    most = max(int(duration_s // TREND_RESOLUTION_S), 1)
+    tried, best = {}, None
+    for k in [k for k in TREND_TERMS if k <= most]:
+        effect = like.whole(duration_s, k)
+        X = _design(residual, effect, t0)
+        cv = np.empty_like(e)
+        for fit_rows in (fold, ~fold):
+            c, *_ = np.linalg.lstsq(X[fit_rows], e[fit_rows], rcond=None)
+            cv[~fit_rows] = e[~fit_rows] - X[~fit_rows] @ c
+        tried[k] = rms(cv)
+        if best is None or tried[k] < tried[best[0]]:
+            best = (k, effect, X, cv)
+    k, effect, X, cv = best
+    without, with_ = Score.of(e), Score.of(cv)
+    sup = support(with_, without, noise)
+    coefs, *_ = np.linalg.lstsq(X, e, rcond=None)
+    trend = X[:, :X.shape[1] // 2] @ coefs[:X.shape[1] // 2]   # the offset's trend (the gain's depends on the output)
+    full = X @ coefs
+    pp = float(np.ptp(full)) if full.size else 0.0
+    departs = np.flatnonzero(np.abs(full - full[0]) > 0.1 * pp) if pp > 0 else np.array([], int)
+    onset = float(residual.time_s[departs[0]]) if departs.size else float(residual.time_s[0])
+    tenths = np.array_split(np.arange(e.size), 10)
+    stretches = tuple((float(residual.time_s[i[0]]), float(residual.time_s[i[-1]]), rms(e[i]), rms(e[i] - full[i]))
+                      for i in tenths if i.size)
+    log(f"whole record: a trend on {k} spline interval(s) scores best ({', '.join(f'{n}: {r:.4f}' for n, r in tried.items())} "
+        f"um, cross-validated); offset trend {float(np.ptp(trend)):.3f} um peak to peak, in all {pp:.3f} um, from "
+        f"{onset:.0f} s")
+    return Trend(effect, coefs, sup, without.rms, with_.rms, pp, onset, tried, stretches)
