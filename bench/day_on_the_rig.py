@@ -14,12 +14,16 @@ levels and slow sines (a new stretch every minute).  Under OL HC and under PID H
 
 It runs the core in lockstep (controller and valve stepped together, faster than real time: no ROS) and prints
 and writes (``--out``/monitor_day.md, monitor_day.png where matplotlib is there) the tracking RMS [um] of the first
-and the last two minutes, their ratio, and every push with its evidence.
+and the last two minutes, their ratio, and every push with its evidence.  Then it writes the day's bag (OL HC with
+the monitor on: the samples as the hardware node publishes them, and the monitor's pushes as ``~/pushes`` rows) and
+runs ``valve_identify``'s library face on the whole bag: its first ``MAX_ANALYSED_S`` for the model's fast parts,
+all of it for the slow trend, which must be named ``drift``.
 """
 import argparse
 import math
 import os
 import sys
+import tempfile
 import time
 from dataclasses import replace
 
@@ -33,9 +37,11 @@ from piezo_valve_ros.core.control.compensation import CompensationModel  # noqa:
 from piezo_valve_ros.core.control.strategies import (STRATEGIES, ControllerConfig, PIDGains,  # noqa: E402
                                                      ValveController)
 from piezo_valve_ros.core.monitoring.health import HealthLimits, HealthMonitor, Level  # noqa: E402
-from piezo_valve_ros.core.monitoring.refits import UNDO, RefitPolicy  # noqa: E402
+from piezo_valve_ros.core.monitoring.refits import PUSH_COLUMNS, UNDO, RefitPolicy, push_row  # noqa: E402
 from piezo_valve_ros.core.sim.experiments import run_closed_loop  # noqa: E402
 from piezo_valve_ros.core.sim.simulator import DriftParams, SensorParams, SimulatedValve, ValveSimConfig  # noqa: E402
+from piezo_valve_ros.identify import identify_bags  # noqa: E402
+from piezo_valve_ros.io.bags import SAMPLES_TYPE, BagRecorder, qos_profile, serialize_samples  # noqa: E402
 
 DT = 1e-3
 CHUNK_S = 5.0                  # the loop runs this long between the monitor's looks (its step)
@@ -69,7 +75,7 @@ def day(strategy: str, monitor_on: bool, seconds: float, seed: int = 11) -> dict
     reference = np.concatenate([staircase_and_sines_um(seed + k, DT, 60.0)
                                 for k in range(int(math.ceil(seconds / 60.0)))])[:int(round(seconds / DT))]
     chunk = int(round(CHUNK_S / DT))
-    errors, pushes, verdicts, position = [], [], [], None
+    errors, pushes, verdicts, rows, position = [], [], [], [], None
     for start in range(0, reference.size, chunk):
         ref_um = reference[start:start + chunk]
         rec = run_closed_loop(valve, controller, ref_um * 1e-6,
@@ -77,9 +83,10 @@ def day(strategy: str, monitor_on: bool, seconds: float, seed: int = 11) -> dict
         position = valve.step(rec.command_v[-1])   # the answer to the chunk's last command
         measured = np.append(rec.position_m[1:], position)
         errors.append(ref_um - measured * 1e6)
+        t = (start + np.arange(ref_um.size)) * DT
+        rows.append(np.column_stack((t, rec.command_v, measured)))
         if monitor is None:
             continue
-        t = (start + np.arange(ref_um.size)) * DT
         for health in monitor.add(np.column_stack((t, rec.command_v, measured))):
             verdicts.append(health)
             decision = policy.decide(health, state, monitor.model)
@@ -91,12 +98,56 @@ def day(strategy: str, monitor_on: bool, seconds: float, seed: int = 11) -> dict
                 if decision.kind == UNDO and pushes:
                     pushes[-1]["checked"] = "undone: " + decision.evidence
                 pushes.append({"t_s": health.end_s, "kind": decision.kind, "gain_change": decision.gain_change,
+                               "row": push_row(health, decision, monitor.model),
                                "offset_change_um": decision.offset_change_um, "evidence": decision.evidence,
                                "checked": ""})
                 controller.set_model(decision.model)
                 monitor.set_model(decision.model)
                 policy.pushed(True)
-    return {"error_um": np.concatenate(errors), "pushes": pushes, "verdicts": verdicts}
+    return {"error_um": np.concatenate(errors), "pushes": pushes, "verdicts": verdicts, "rows": np.concatenate(rows)}
+
+
+def write_day_bag(path: str, run: dict) -> None:
+    """The day as a rig records it: ``samples`` (time [s], voltage [V], position [m]; 100 rows a message, as the
+    hardware node publishes at 1 kHz) and the monitor's ``~/pushes`` rows (PUSH_COLUMNS) when they were made."""
+    samples, pushes = "/valve1/samples", "/valve1/valve_monitor/pushes"
+    stamp = 1_700_000_000_000_000_000
+    rec = BagRecorder(path, {samples: (SAMPLES_TYPE, qos_profile(True, 100)),
+                             pushes: (SAMPLES_TYPE, qos_profile(True, 10))}, segment_s=float("inf"), clock=lambda: 0.0)
+    due = iter(run["pushes"])
+    nxt = next(due, None)
+    rows = run["rows"]
+    for i in range(0, rows.shape[0], 100):
+        block = rows[i:i + 100]
+        rec.write(samples, stamp + int(round(block[-1, 0] * 1e9)), serialize_samples(block))
+        while nxt is not None and nxt["t_s"] <= block[-1, 0]:
+            rec.write(pushes, stamp + int(round(nxt["t_s"] * 1e9)),
+                      serialize_samples(np.array([nxt["row"]]), ",".join(PUSH_COLUMNS)))
+            nxt = next(due, None)
+    rec.close()
+
+
+def identify_the_day(run: dict, keep: str | None) -> list[str]:
+    """Write the day's bag (to ``keep``, or a temporary directory) and identify on all of it; the lines to report."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = keep or os.path.join(tmp, "day")
+        write_day_bag(path, run)
+        t0 = time.perf_counter()
+        analysis, _ = identify_bags(path, log=lambda s: None)
+        took = time.perf_counter() - t0
+    r = analysis.report
+    w = r.whole_record
+    lines = [f"The day's bag (OL HC, monitor on; {run['rows'].shape[0]} samples at {1 / DT:.0f} Hz"
+             + (f", kept at {keep}" if keep else "") + f"), identified whole by valve_identify ({took:.0f} s):", "",
+             "```", r.summary]
+    if w is not None:
+        lines += [f"whole record {w.from_s:.0f}..{w.to_s:.0f} s at {w.rate_hz:.0f} Hz: drift "
+                  f"{'named' if w.drift_added else 'not named'} ({w.evidence}); the trend {w.peak_to_peak_um:.2f} um "
+                  f"peak to peak, departing from its start from {w.onset_s:.0f} s",
+                  "block RMS by tenth of the day, without -> with the trend [um]: "
+                  + ", ".join(f"{s['rms_um']:.3f} -> {s['rms_with_trend_um']:.3f}" for s in w.stretches)]
+    lines += [f"{key}: {text}" for key, text in r.figures_from.items()] + ["```"]
+    return lines
 
 
 def rms(x: np.ndarray) -> float:
@@ -107,6 +158,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--minutes", type=float, default=20.0, help="length of the day [min] (default 20)")
     ap.add_argument("--out", default=os.path.join(HERE, "..", "docs", "results", "day_on_the_rig"))
+    ap.add_argument("--bag", help="keep the day's bag here (default: a temporary directory, removed after)")
     args = ap.parse_args()
     seconds = 60.0 * args.minutes
     edge = int(round(EDGE_S / DT))
@@ -138,7 +190,9 @@ def main() -> int:
     lines.append("```")
     bad = [(s, p) for (s, on), run in runs.items() for p in run["pushes"]
            if "made things worse" in p["checked"] and not p["checked"].startswith("undone")]
-    lines += ["", f"Pushes whose next window was worse and that were not undone: {len(bad)}."]
+    lines += ["", f"Pushes whose next window was worse and that were not undone: {len(bad)}.", ""]
+    lines += identify_the_day(runs[("ol_hc", True)], args.bag)
+    print("\n".join(lines[-8:]))
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "monitor_day.md"), "w") as f:
         f.write("\n".join(lines) + "\n")

@@ -122,7 +122,7 @@ def main() -> None:
                          f"({r['held_out_rms_um'][0]:.3f} -> {r['held_out_rms_um'][1]:.3f} um; fast parts on "
                          f"{a['to_s'] - a['from_s']:.0f} s, {a['samples']} samples")
             w = r["whole"]
-            judgement += ("" if w is None else
+            judgement += (")" if w is None else
                           f"; whole record {w['to_s'] - w['from_s']:.0f} s: "
                           + (f"a trend of {w['peak_to_peak_um']:.2f} um from {w['onset_s']:.0f} s)" if w["drift_added"]
                              else "no trend)"))

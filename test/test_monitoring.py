@@ -240,7 +240,7 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
         assert "pushed an offset change of +" in log and "the offset a drift moved" in log, log[-3000:]
         assert ok_before and rows and len(rows[-1]) == 7
         # each push announced on ~/pushes (a labelled row a bag keeps) and on /diagnostics
-        from piezo_valve_ros.nodes.monitor import PUSH_COLUMNS
+        from piezo_valve_ros.core.monitoring.refits import PUSH_COLUMNS
         assert pushes and all(label == ",".join(PUSH_COLUMNS) for label, _ in pushes), pushes
         first, last = (dict(zip(PUSH_COLUMNS, pushes[k][1])) for k in (0, -1))
         # the first push may come while the drift still rises (the rest is followed up): an offset, up, at most it

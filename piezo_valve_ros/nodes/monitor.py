@@ -36,7 +36,7 @@ from std_msgs.msg import Float64MultiArray
 from ..core.control.compensation import MODEL_PARAMETERS, CompensationModel
 from ..core.monitoring.health import (ERROR_RATIO, MIN_SPAN_V, STEP_S, WARN_RATIO, WINDOW_S, Health, HealthLimits,
                                       HealthMonitor)
-from ..core.monitoring.refits import GAIN, PUSH_KINDS, REFIT_LEVELS, UNDO, RefitDecision, RefitPolicy
+from ..core.monitoring.refits import GAIN, PUSH_COLUMNS, REFIT_LEVELS, UNDO, RefitDecision, RefitPolicy, push_row
 from ..io.samples import SamplesLayoutError
 from ..runtime.memory import keep_freed_memory
 from ..core.validation import ParameterSpec, Settings
@@ -45,10 +45,6 @@ from ..ros import (DIAGNOSTICS_PERIOD, SAMPLES_QOS, declare_all, Diagnostics, pa
 
 HEALTH_COLUMNS = ("end_s", "level", "ratio_to_noise", "structured_rms_um", "residual_mean_um", "noise_um",
                   "voltage_span_v")
-PUSH_COLUMNS = ("end_s", "kind", "gain_change", "offset_um_before", "offset_um_after", "evidence_rms_before_um",
-                "evidence_rms_after_um")   # ~/pushes: kind 1 offset, 2 gain, 3 undo (PUSH_KINDS); the evidence's
-# RMS [um] without and with the push: the window's residual and its rest less the mean (offset), the held-out part's
-# (gain), the next window's with the push and with the model it replaced (undo)
 MODEL_FETCH_PERIOD_S = 1.0   # the controller's model is asked for this often until it answers (and after changes)
 
 MONITOR_PARAMETERS: tuple[ParameterSpec, ...] = (
@@ -241,24 +237,11 @@ class ValveMonitorNode(Node):
         elif decision.kept:
             self.get_logger().info(decision.kept)
         elif decision.pushes:
-            row = self._push_row(health, decision, model)
+            row = push_row(health, decision, model)
             before, after = model.to_parameters(), decision.model.to_parameters()
             future = self.client.set_parameters_atomically(   # what the push changes, in one atomic change
                 [Parameter(k, value=v) for k, v in after.items() if v != before.get(k)])
             future.add_done_callback(lambda f: self._pushed(f, decision, row))
-
-    @staticmethod
-    def _push_row(health: Health, decision: RefitDecision, before: CompensationModel) -> list[float]:
-        """One PUSH_COLUMNS row for ``decision`` on ``health``."""
-        if decision.kind == GAIN:
-            evidence = (health.correction.held_out_rms_in_force_um, health.correction.held_out_rms_corrected_um)
-        elif decision.kind == UNDO:
-            evidence = (health.residual_rms_um, health.previous_model_rms_um)
-        else:
-            evidence = (health.residual_rms_um,
-                        math.sqrt(max(health.residual_rms_um ** 2 - health.residual_mean_um ** 2, 0.0)))
-        return [health.end_s, float(PUSH_KINDS.index(decision.kind) + 1), decision.gain_change or 0.0,
-                before.gpim.offset_um, decision.model.gpim.offset_um, *evidence]
 
     def _pushed(self, future, decision: RefitDecision, row: list[float]) -> None:
         """The controller's answer to a push (a future's done callback: nothing may raise out of it)."""

@@ -207,7 +207,9 @@ class ReportStage:
     def figures_from(self) -> dict[str, str]:
         """Which stretch of which record each of the report's figures comes from, in words."""
         split, a = self.split, self.analysed["train"]
-        train = f"the training record's {a['from_s']:.3f}..{a['to_s']:.3f} s"
+        train = f"the training record's {split.fit_full.time_s[0]:.3f}..{a['to_s']:.3f} s" + (
+            f" (its rows before {split.wiped_at_s:.3f} s left out: the operators' state there unknown)"
+            if split.wiped_at_s is not None else "")
         held = (f"its last {100 * HELD_OUT_FRACTION:.0f} % held out" if split.held_out
                 else "held out: the validation record's "
                 + f"{self.analysed['validate']['from_s']:.3f}..{self.analysed['validate']['to_s']:.3f} s")

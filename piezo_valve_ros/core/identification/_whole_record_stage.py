@@ -6,6 +6,8 @@ import math
 from dataclasses import replace
 from typing import Optional
 
+import numpy as np
+
 from .effects.drift import Drift
 from .report import WholeRecordReport
 from .search import NoiseLevels
@@ -17,8 +19,8 @@ DRIFT = "drift"
 
 class WholeRecordStage:
     """The loop's stage 3b (a part of ``residual._Loop``): ``self.whole`` is the whole training record (or its window)
-    at the analysis rate where the loop analysed only its first MAX_ANALYSED_S, else None; ``self.trend`` what the
-    search found there."""
+    at the analysis rate where the loop analysed only its first MAX_ANALYSED_S, else None (from the fit's start on, once
+    searched); ``self.trend`` what the search found there."""
 
     whole: Optional["object"] = None
     trend: Optional[Trend] = None
@@ -32,10 +34,11 @@ class WholeRecordStage:
         had = DRIFT in story.added
         base = final.without(DRIFT) if had else final
         like = Drift.prepare(self.fit, base.context(self.fit, self.split.t0).H)
-        t0 = base.t0
-        duration = float(self.whole.time_s[-1] - t0 + self.whole.dt)
-        residual = whole_residual(base, self.whole, like, self.log)
-        source_rows = residual.rows_per_block * self.whole.block
+        t0 = base.t0   # where the fit starts (after a wipe, where the loop found the start unknown): so does this
+        whole = self.whole = self.whole.slice(int(np.searchsorted(self.whole.time_s, t0 - 0.5 * self.whole.dt)))
+        duration = float(whole.time_s[-1] - t0 + whole.dt)
+        residual = whole_residual(base, whole, like, self.log)
+        source_rows = residual.rows_per_block * whole.block
         levels = NoiseLevels(self.noise, self.noise / math.sqrt(source_rows), known=self.floor.known)
         trend = self.trend = trend_search(residual, t0, duration, like, levels, self.log)
         span = f"{self.whole.time_s[0]:.0f}..{self.whole.time_s[-1]:.0f} s"

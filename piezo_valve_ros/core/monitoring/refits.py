@@ -27,7 +27,8 @@ from ..control.compensation import CompensationModel
 from ..control.strategies import NO_INVERSE, REGISTRY, STRATEGIES
 from .health import GAIN_PREFIX, OFFSET_PREFIX, Health, Level
 
-__all__ = ["RefitPolicy", "RefitDecision", "REFIT_LEVELS", "OFFSET", "GAIN", "UNDO", "PUSH_KINDS"]
+__all__ = ["RefitPolicy", "RefitDecision", "REFIT_LEVELS", "OFFSET", "GAIN", "UNDO", "PUSH_KINDS", "PUSH_COLUMNS",
+           "push_row"]
 
 REFIT_LEVELS = {"never": None, "warn": Level.WARN, "error": Level.ERROR}
 OFFSET, GAIN, UNDO = "offset", "gain", "undo"   # what a push does
@@ -168,3 +169,21 @@ class RefitPolicy:
         self._advised = True
         return (f"{lead}a refit is needed ({health.resembles}): the operating data do not determine it; "
                 + PLAN_ADVICE)
+
+
+PUSH_COLUMNS = ("end_s", "kind", "gain_change", "offset_um_before", "offset_um_after", "evidence_rms_before_um",
+                "evidence_rms_after_um")   # valve_monitor's ~/pushes: kind 1 offset, 2 gain, 3 undo (PUSH_KINDS); the
+# evidence's RMS [um] without and with the push: the window's residual and its rest less the mean (offset), the
+# held-out part's (gain), the next window's with the push and with the model it replaced (undo)
+
+
+def push_row(health: Health, decision: RefitDecision, before: CompensationModel) -> list[float]:
+    """One PUSH_COLUMNS row for ``decision`` on ``health`` (``before``: the model it replaces)."""
+    if decision.kind == GAIN:
+        evidence = (health.correction.held_out_rms_in_force_um, health.correction.held_out_rms_corrected_um)
+    elif decision.kind == UNDO:
+        evidence = (health.residual_rms_um, health.previous_model_rms_um)
+    else:
+        evidence = (health.residual_rms_um, math.sqrt(max(health.residual_rms_um ** 2 - health.residual_mean_um ** 2, 0.0)))
+    return [health.end_s, float(PUSH_KINDS.index(decision.kind) + 1), decision.gain_change or 0.0,
+            before.gpim.offset_um, decision.model.gpim.offset_um, *evidence]
