@@ -81,7 +81,8 @@ def identify_one(bag: str) -> None:
     r = analysis.report.to_json()
     whole = r.get("whole_record")
     print(json.dumps({"whole": None if whole is None else {k: whole[k] for k in ("from_s", "to_s", "onset_s",
-                                                                              "peak_to_peak_um", "drift_added")},
+                                                                              "peak_to_peak_um", "drift_added",
+                                                                              "beyond_stretch_rms_um")},
                       "seconds": seconds, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                       "effects": r["effects_added"], "unexplained": r["unexplained"], "analysed": r["analysed"],
                       "held_out_rms_um": [r["baseline"]["validate"]["rms_um"], r["final"]["validate"]["rms_um"]]}))
@@ -124,8 +125,11 @@ def main() -> None:
             w = r["whole"]
             judgement += (")" if w is None else
                           f"; whole record {w['to_s'] - w['from_s']:.0f} s: "
-                          + (f"a trend of {w['peak_to_peak_um']:.2f} um from {w['onset_s']:.0f} s)" if w["drift_added"]
-                             else "no trend)"))
+                          + (f"a trend of {w['peak_to_peak_um']:.2f} um from {w['onset_s']:.0f} s" if w["drift_added"]
+                             else "no trend")
+                          + (f", beyond the stretch {w['beyond_stretch_rms_um']['without_trend']:.3f} -> "
+                             f"{w['beyond_stretch_rms_um']['with_trend']:.3f} um)" if w["beyond_stretch_rms_um"]
+                             else ")"))
             print(f"{label:34s} {rows:11d} {size_mb:8.0f} {written_s:8.1f} {r['seconds']:11.1f} "
                   f"{r['peak_rss_mb']:12.0f}  {judgement}")
             for f in bag.iterdir():

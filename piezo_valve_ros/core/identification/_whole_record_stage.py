@@ -40,9 +40,15 @@ class WholeRecordStage:
         residual = whole_residual(base, whole, like, self.log)
         source_rows = residual.rows_per_block * whole.block
         levels = NoiseLevels(self.noise, self.noise / math.sqrt(source_rows), known=self.floor.known)
-        trend = self.trend = trend_search(residual, t0, duration, like, levels, self.log)
+        trend = self.trend = trend_search(residual, t0, duration, like, levels, self.log,
+                                          stretch_end_s=float(self.split.score_full.time_s[-1]) if self.split.held_out
+                                          else float(self.split.fit_full.time_s[-1]))
         span = f"{self.whole.time_s[0]:.0f}..{self.whole.time_s[-1]:.0f} s"
         added, verdicts, drop_one = list(story.added), dict(story.verdicts), dict(story.drop_one)
+        self.log(f"whole record ({span}): the stretch's model leaves {trend.rms_um[0]:.4f} um RMS at the analysis "
+                 f"rate over all of it" + ("" if math.isnan(trend.beyond_rms_um[0]) else
+                                           f", {trend.beyond_rms_um[0]:.4f} um beyond the analysed stretch")
+                 + f"; {trend.rms_um[1]:.4f} um with the best trend")
         if trend.supported:
             final = replace(base, effects=base.effects + (trend.effect,), coefs=base.coefs + (trend.coefs,))
             if not had:
@@ -75,6 +81,10 @@ class WholeRecordStage:
             held_out_rms_um={"without": round(t.without_um, 6), "with": round(t.with_um, 6)},
             drift_added=t.supported, decided_by=t.support.by, evidence=t.support.describe(),
             peak_to_peak_um=round(t.peak_to_peak_um, 6), onset_s=round(t.onset_s, 3),
+            rms_um={"without_trend": round(t.rms_um[0], 6), "with_trend": round(t.rms_um[1], 6)},
+            beyond_stretch_rms_um=(None if math.isnan(t.beyond_rms_um[0]) else
+                                   {"without_trend": round(t.beyond_rms_um[0], 6),
+                                    "with_trend": round(t.beyond_rms_um[1], 6)}),
             stretches=tuple({"from_s": round(a, 3), "to_s": round(b, 3), "rms_um": round(r0, 6),
                              "rms_with_trend_um": round(r1, 6)} for a, b, r0, r1 in t.stretch_rms_um))
 

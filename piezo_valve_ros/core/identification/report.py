@@ -197,8 +197,13 @@ class WholeRecordReport(_Node):
     evidence: str = _item("the decision in words")
     peak_to_peak_um: float = _item("the fitted trend's size [um]")
     onset_s: float = _item("the first time it departs from its start by a tenth of its size [s]")
-    stretches: tuple[dict, ...] = _item("the residual's block RMS by tenth of the record, without and with the trend "
-                                        "(from_s, to_s, rms_um, rms_with_trend_um)")
+    rms_um: dict = _item("the stretch's model's error RMS at the analysis rate over the whole record, without_trend "
+                         "and with_trend [um]")
+    beyond_stretch_rms_um: Optional[dict] = _item("the same over what lies beyond the analysed stretch (never fitted "
+                                                  "or held out there: all of it out of sample) [um]; null where nothing "
+                                                  "does")
+    stretches: tuple[dict, ...] = _item("the error RMS at the analysis rate by tenth of the record, without and with "
+                                        "the trend (from_s, to_s, rms_um, rms_with_trend_um) [s, um]")
 
 
 @dataclass(frozen=True)

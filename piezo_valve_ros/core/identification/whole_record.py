@@ -32,7 +32,7 @@ __all__ = ["BlockMeans", "whole_residual", "WholeResidual", "trend_search", "Tre
 
 TREND_BLOCK_S = 0.25          # the residual's block means the trend is fitted to [s]
 TREND_SEGMENT_S = 20.0        # cross-validation: alternate stretches this long fit and score each other [s]
-TREND_RESOLUTION_S = 120.0    # the trend's spline intervals span at least this long [s] (coarser than a
+TREND_RESOLUTION_S = 60.0    # the trend's spline intervals span at least this long [s] (coarser than a
                               # repeated experiment's period: a trend is not the hysteresis' periodic misfit)
 TREND_TERMS = (1, 2, 4, 8, 16, 32, 64)   # spline intervals tried, up to the record's resolution
 CHUNK_S = 200.0               # the model runs over the record this long at a time [s] ...
@@ -104,12 +104,24 @@ class BlockMeans:
 class WholeResidual:
     """A model's residual over a whole record, in TREND_BLOCK_S block means: block times [s], the residual
     (measured - predicted) [um], the hysteresis output normalised as the drift effect's gain terms take it, and the
-    rows each block averages (at the record's analysis rate)."""
+    rows each block averages (at the record's analysis rate); ``sums``: per block, the sums over its rows of e^2,
+    e h and h^2 (e the residual, h that output), from which ``rms_with`` gives the RMS at the analysis rate with a
+    trend taken out."""
 
     time_s: np.ndarray
     error_um: np.ndarray
     gain_input: np.ndarray
     rows_per_block: int
+    sums: np.ndarray   # (blocks, 3)
+
+    def rms_with(self, offset_um: np.ndarray, gain_um: np.ndarray, rows: slice = slice(None)) -> float:
+        """The residual's RMS [um] at the analysis rate over the blocks ``rows``, less a trend of ``offset_um`` +
+        ``gain_um`` x h per block (constant within a block: TREND_BLOCK_S is far shorter than any trend's scale)."""
+        n = self.rows_per_block
+        e, h, s = self.error_um[rows] * n, self.gain_input[rows] * n, self.sums[rows]
+        a, b = offset_um[rows], gain_um[rows]
+        sse = s[:, 0] - 2 * a * e - 2 * b * s[:, 1] + n * a * a + 2 * a * b * h + b * b * s[:, 2]
+        return math.sqrt(max(float(np.sum(sse)), 0.0) / max(n * sse.size, 1))
 
 
 def whole_residual(model: ValveModel, record: Record, drift: Drift,
@@ -122,7 +134,7 @@ def whole_residual(model: ValveModel, record: Record, drift: Drift,
     chunk = max(int(round(CHUNK_S / dt)) // per_block, 1) * per_block
     warm = int(round(WARM_UP_S / dt))
     n = len(record) // per_block * per_block
-    times, errors, gains = [], [], []
+    times, errors, gains, sums = [], [], [], []
     for start in range(0, n, chunk):
         stop = min(start + chunk, n)
         first = max(start - warm, 0)
@@ -135,12 +147,17 @@ def whole_residual(model: ValveModel, record: Record, drift: Drift,
 
         def blocks(a: np.ndarray) -> np.ndarray:
             return a[skip:].reshape(-1, per_block).mean(axis=1)
+        e = (part.position_um - predicted)[skip:].reshape(-1, per_block)
+        h = normalised(ctx.H, drift.centre_um, drift.half_range_um)[skip:].reshape(-1, per_block)
         times.append(blocks(part.time_s))
-        errors.append(blocks(part.position_um - predicted))
-        gains.append(blocks(normalised(ctx.H, drift.centre_um, drift.half_range_um)))
+        errors.append(e.mean(axis=1))
+        gains.append(h.mean(axis=1))
+        sums.append(np.column_stack((np.einsum("ij,ij->i", e, e), np.einsum("ij,ij->i", e, h),
+                                     np.einsum("ij,ij->i", h, h))))
         progress(f"whole record: the stretch's model run to {part.time_s[-1]:.0f} s of "
                  f"{record.time_s[-1]:.0f} s")
-    return WholeResidual(np.concatenate(times), np.concatenate(errors), np.concatenate(gains), per_block)
+    return WholeResidual(np.concatenate(times), np.concatenate(errors), np.concatenate(gains), per_block,
+                         np.concatenate(sums))
 
 
 def _from_rest(model: ValveModel) -> ValveModel:
@@ -153,7 +170,8 @@ class Trend:
     """The trend search's finding: the drift effect over the whole record (``effect``, ``coefs``: its offset then gain
     coefficients [um]) where ``support`` supports it; the residual's cross-validated block RMS without and with it
     [um], the trend's size (peak to peak [um]) and the first time it departs from its start by a tenth of that,
-    and what every number of spline intervals tried scored."""
+    what every number of spline intervals tried scored, and the residual's RMS at the analysis rate without and with
+    the trend: by tenth of the record, over all of it, and over what lies beyond the analysed stretch."""
 
     effect: Drift
     coefs: np.ndarray
@@ -164,52 +182,82 @@ class Trend:
     onset_s: float
     tried: dict
     stretch_rms_um: tuple[tuple[float, float, float, float], ...]   # (from_s, to_s, rms without, rms with) by tenth
+    rms_um: tuple[float, float]          # the residual's RMS at the analysis rate over the record, without and with
+    beyond_rms_um: tuple[float, float]   # ... over what lies beyond the analysed stretch (never fitted)
 
     @property
     def supported(self) -> bool:
         return self.support.supported
 
 
-def _design(residual: WholeResidual, drift: Drift, t0: float) -> np.ndarray:
-    """(blocks, 2k) the drift's offset rows and its gain rows (times the blocks' normalised output), at block means."""
-    rows = drift.time_rows(residual.time_s - t0)
-    return np.hstack((rows.T, (rows * residual.gain_input[None, :]).T))
+def _normal_equations(residual: WholeResidual, F: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The least-squares normal equations of the trend (offset F c and gain F d times h, each block's F constant over
+    its rows) over the blocks ``rows``, at the analysis rate: exact from the blocks' sums."""
+    n, Fr = residual.rows_per_block, F[rows]
+    sum_e, sum_h = residual.error_um[rows] * n, residual.gain_input[rows] * n
+    sums = residual.sums[rows]
+    gram = np.block([[Fr.T @ Fr * n, Fr.T @ (Fr * sum_h[:, None])],
+                     [Fr.T @ (Fr * sum_h[:, None]), Fr.T @ (Fr * sums[:, 2:3])]])
+    return gram, np.concatenate((Fr.T @ sum_e, Fr.T @ sums[:, 1]))
+
+
+def _solve(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    scale = np.sqrt(np.maximum(np.diag(gram), 1e-300))
+    g = gram / np.outer(scale, scale)
+    g[np.diag_indices_from(g)] += 1e-10
+    return np.linalg.lstsq(g, rhs / scale, rcond=None)[0] / scale
+
+
+def _block_errors(residual: WholeResidual, offset_um: np.ndarray, gain_um: np.ndarray) -> np.ndarray:
+    """Each block's RMS error at the analysis rate less the trend (what ``search.Score`` takes as the held-out error:
+    its RMS, stretches' mean squares and peak are those of the rows, a block's peak its RMS)."""
+    n = residual.rows_per_block
+    e, h, s = residual.error_um * n, residual.gain_input * n, residual.sums
+    sse = (s[:, 0] - 2 * offset_um * e - 2 * gain_um * s[:, 1] + n * offset_um ** 2 + 2 * offset_um * gain_um * h
+           + gain_um ** 2 * s[:, 2])
+    return np.sqrt(np.maximum(sse, 0.0) / n)
 
 
 def trend_search(residual: WholeResidual, t0: float, duration_s: float, like: Drift, noise: NoiseLevels,
-                 log: Callable[[str], None] = lambda s: None) -> Trend:
+                 log: Callable[[str], None] = lambda s: None, stretch_end_s: float = -math.inf) -> Trend:
     """Search ``residual`` for a smooth trend in time of offset and gain (the drift effect's "whole" form over
     ``duration_s`` [s] from ``t0``), with every number of spline intervals in TREND_TERMS the record resolves
-    (TREND_RESOLUTION_S); each scored by two-fold cross-validation over alternate TREND_SEGMENT_S stretches, the best
-    judged by ``search.support`` against no trend (``noise``: the floor at the record's rate and at these blocks)."""
+    (TREND_RESOLUTION_S); each fitted at the analysis rate (the normal equations from the blocks' sums) and scored by
+    two-fold cross-validation over alternate TREND_SEGMENT_S stretches, the best judged by ``search.support`` against
+    no trend (``noise``: the floor at the record's and the analysis rate)."""
     segment = np.floor((residual.time_s - residual.time_s[0]) / TREND_SEGMENT_S).astype(int)
-    fold = segment % 2 == 0
-    e = residual.error_um
+    folds = (segment % 2 == 0, segment % 2 == 1)
     most = max(int(duration_s // TREND_RESOLUTION_S), 1)
+    zero = np.zeros(residual.time_s.size)
     tried, best = {}, None
     for k in [k for k in TREND_TERMS if k <= most]:
         effect = like.whole(duration_s, k)
-        X = _design(residual, effect, t0)
-        cv = np.empty_like(e)
-        for fit_rows in (fold, ~fold):
-            c, *_ = np.linalg.lstsq(X[fit_rows], e[fit_rows], rcond=None)
-            cv[~fit_rows] = e[~fit_rows] - X[~fit_rows] @ c
+        F = effect.time_rows(residual.time_s - t0).T
+        cv = np.empty_like(zero)
+        for fit_rows, score_rows in (folds, folds[::-1]):
+            c = _solve(*_normal_equations(residual, F, fit_rows))
+            cv[score_rows] = _block_errors(residual, F @ c[:F.shape[1]], F @ c[F.shape[1]:])[score_rows]
         tried[k] = rms(cv)
         if best is None or tried[k] < tried[best[0]]:
-            best = (k, effect, X, cv)
-    k, effect, X, cv = best
-    without, with_ = Score.of(e), Score.of(cv)
+            best = (k, effect, F, cv)
+    k, effect, F, cv = best
+    without, with_ = Score.of(_block_errors(residual, zero, zero)), Score.of(cv)
     sup = support(with_, without, noise)
-    coefs, *_ = np.linalg.lstsq(X, e, rcond=None)
-    trend = X[:, :X.shape[1] // 2] @ coefs[:X.shape[1] // 2]   # the offset's trend (the gain's depends on the output)
-    full = X @ coefs
+    coefs = _solve(*_normal_equations(residual, F, np.ones(zero.size, bool)))
+    offset, gain = F @ coefs[:F.shape[1]], F @ coefs[F.shape[1]:]
+    full = offset + gain * residual.gain_input   # the trend's block means
     pp = float(np.ptp(full)) if full.size else 0.0
     departs = np.flatnonzero(np.abs(full - full[0]) > 0.1 * pp) if pp > 0 else np.array([], int)
     onset = float(residual.time_s[departs[0]]) if departs.size else float(residual.time_s[0])
-    tenths = np.array_split(np.arange(e.size), 10)
-    stretches = tuple((float(residual.time_s[i[0]]), float(residual.time_s[i[-1]]), rms(e[i]), rms(e[i] - full[i]))
-                      for i in tenths if i.size)
+    tenths = [i for i in np.array_split(np.arange(zero.size), 10) if i.size]
+    stretches = tuple((float(residual.time_s[i[0]]), float(residual.time_s[i[-1]]),
+                       residual.rms_with(zero, zero, slice(i[0], i[-1] + 1)),
+                       residual.rms_with(offset, gain, slice(i[0], i[-1] + 1))) for i in tenths)
+    beyond = slice(int(np.searchsorted(residual.time_s, stretch_end_s, side="right")), None)
+    whole = (residual.rms_with(zero, zero), residual.rms_with(offset, gain))
+    past = ((residual.rms_with(zero, zero, beyond), residual.rms_with(offset, gain, beyond))
+            if residual.time_s[beyond].size else (math.nan, math.nan))
     log(f"whole record: a trend on {k} spline interval(s) scores best ({', '.join(f'{n}: {r:.4f}' for n, r in tried.items())} "
-        f"um, cross-validated); offset trend {float(np.ptp(trend)):.3f} um peak to peak, in all {pp:.3f} um, from "
-        f"{onset:.0f} s")
-    return Trend(effect, coefs, sup, without.rms, with_.rms, pp, onset, tried, stretches)
+        f"um RMS, cross-validated); offset {float(np.ptp(offset)):.3f} um and gain {float(np.ptp(gain)):.3f} um peak to "
+        f"peak, in all {pp:.3f} um, from {onset:.0f} s")
+    return Trend(effect, coefs, sup, without.rms, with_.rms, pp, onset, tried, stretches, whole, past)
