@@ -15,6 +15,16 @@ all latch a fault: the safe voltage is applied (retried every period while write
 are refused, nothing is published as a position, /diagnostics says ERROR naming the fault, and
 ``hardware_state`` says ``fault: <kind>: <what>``.  Only ``~/reset`` (std_srvs/Trigger; ``valve_command reset``)
 leaves it, once the backend writes and reads sound samples again.
+
+Lifecycle (a managed node: ``~/change_state``, ``~/get_state`` as every ROS 2 lifecycle node has them)
+  unconfigured  the backend made but not opened (nothing written)
+  configure     opens the backend at the safe voltage; nothing is driven, commands are refused
+  activate      commands are applied and positions published (started on its own, the node comes up here:
+                ``autostart``; ``autostart:=false`` leaves it unconfigured for a lifecycle manager)
+  deactivate    the safe voltage; commands refused, nothing published as a position
+  cleanup, shutdown  the safe voltage and the backend closed
+A latched fault leaves ``active`` (to ``inactive``, at the safe voltage); ``~/reset`` returns to it.  An error in a
+transition ends at the safe voltage with the backend closed (``unconfigured``).
 """
 from __future__ import annotations
 
@@ -28,7 +38,7 @@ from typing import Callable, Optional
 import numpy as np
 from builtin_interfaces.msg import Time
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64, Float64MultiArray, String
 from std_srvs.srv import Trigger
@@ -52,6 +62,8 @@ PACE_SLACK_S = 0.1            # lockstep.max_speed: a loop this far behind its p
 
 
 HARDWARE_PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec("autostart", True, "come up configured and active (false: stay unconfigured for a lifecycle "
+                  "manager, which drives ~/change_state)", read_only=True),
     ParameterSpec("backend", "sim", "valve backend: sim (default) or one installed under the entry-point group "
                   "piezo_valve_ros.backends", read_only=True),
     ParameterSpec("clock", "realtime", "realtime (wall clock) or lockstep (one period per command)", read_only=True,
@@ -95,6 +107,7 @@ class HardwareSettings(Settings):
     """The hardware node's start-up settings that do not depend on the backend (``Settings.from_specs`` reads them
     from HARDWARE_PARAMETERS); the live ones (``command_timeout_s``, ``lockstep.step_budget``) stay the node's."""
 
+    autostart: bool
     clock: str
     safe_voltage: float                  # [V]
     command_min_v: float                 # [V]
@@ -137,7 +150,10 @@ def samples_per_period(control_period_s: float, sample_period_s: float) -> int:
     return int(k)
 
 
-class ValveHardwareNode(Node):
+ACTIVE, INACTIVE, UNCONFIGURED = "active", "inactive", "unconfigured"   # the lifecycle states commands care about
+
+
+class ValveHardwareNode(LifecycleNode):
     STANDALONE = False   # the node has its process to itself (main): every name its command line gives is its own
 
     def __init__(self, backend: Optional[ValveBackend] = None, **kwargs):
@@ -161,7 +177,118 @@ class ValveHardwareNode(Node):
         self._bind_backend(backend, p)
         self._create_interfaces()
         self._reset_counters()
-        self._start(p, stats_period)
+        self._p, self._stats_period = p, stats_period
+        self._timers: list = []
+        self._opened = False
+        self._paced_by: Optional[str] = None   # who runs the real-time tick instead of the node's timer
+        self.lifecycle_state = UNCONFIGURED
+        self._transition_error = ""
+        self._deactivated_by_fault = False
+        self._autostarting = False
+        self.refused_inactive = 0
+        self._say_refused_inactive = Throttle(2.0)
+        self.diagnostics = Diagnostics(self, period_parameter(DIAGNOSTICS_PERIOD, p["diagnostics_period_s"]),
+                                       self._health)
+        if self.settings.autostart:   # (hardware_state says ok once, not inactive first)
+            self._autostarting = True
+            for name, trigger in (("configure", self.trigger_configure), ("activate", self.trigger_activate)):
+                if trigger() != TransitionCallbackReturn.SUCCESS:
+                    raise RuntimeError(f"valve_hardware could not {name}: {self._transition_error}")
+            self._autostarting = False
+        else:
+            self.get_logger().info("valve_hardware unconfigured (autostart false): waiting for ~/change_state")
+
+    # ------------------------------------------------------------------ lifecycle
+    def _transition(self, name: str, body: Callable[[], None]) -> TransitionCallbackReturn:
+        """Run a transition's ``body``; an exception is said (rclpy would swallow it) and ends at the safe voltage
+        (ERROR: on_error closes the backend)."""
+        try:
+            body()
+        except Exception as exc:  # whatever the backend raises: said, and the valve left safe
+            self._transition_error = f"{name} failed: {exc}"
+            self.get_logger().error(f"lifecycle: {self._transition_error}")
+            self._try_safe_voltage()
+            return TransitionCallbackReturn.ERROR
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Open the backend at the safe voltage and start the clock's timers; nothing is driven yet."""
+        def body():
+            if self.settings.clock == "realtime":
+                from ..runtime.realtime import apply
+                apply(self.realtime)
+            self._reset_counters()
+            self._start(self._p, self._stats_period)
+            self.lifecycle_state = INACTIVE
+            if not self._autostarting:
+                self._publish_state()
+        return self._transition("configure", body)
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Commands are applied from now on (at the safe voltage until the first valid one)."""
+        def body():
+            now = time.monotonic()
+            self._armed, self._timed_out = False, False
+            self._last_valid_command_wall = self._last_rows_wall = now
+            self.lifecycle_state = ACTIVE
+            self._publish_state()
+            self.get_logger().info("lifecycle: active, commands applied")
+        result = self._transition("activate", body)
+        return super().on_activate(state) if result == TransitionCallbackReturn.SUCCESS else result
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """The safe voltage; commands refused, nothing published as a position."""
+        def body():
+            self.lifecycle_state = INACTIVE
+            self._flush_samples()
+            written = self._try_safe_voltage()
+            self._publish_state()
+            self.get_logger().info(f"lifecycle: inactive, safe voltage {self.settings.safe_voltage} V "
+                                   + ("applied" if written else "could NOT be written") + "; commands refused")
+        result = self._transition("deactivate", body)
+        return super().on_deactivate(state) if result == TransitionCallbackReturn.SUCCESS else result
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """The safe voltage and the backend closed (configure opens it again)."""
+        return self._transition("cleanup", self._close)
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        return self._transition("shutdown", self.shutdown_safely)
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """After a failed transition: the safe voltage and the backend closed (to unconfigured)."""
+        try:
+            self._close()
+        except Exception as exc:   # nothing more to do than say it
+            self.get_logger().error(f"lifecycle: closing after an error raised {exc!r}")
+        return TransitionCallbackReturn.SUCCESS
+
+    def _close(self) -> None:
+        """Stop the timers, apply the safe voltage, flush the samples, close the backend (to unconfigured)."""
+        for timer in self._timers:
+            timer.cancel()
+            self.destroy_timer(timer)
+        self._timers = []
+        if self._tick_timer is not None:
+            self._tick_timer.cancel()
+            self.destroy_timer(self._tick_timer)
+            self._tick_timer = None
+        self.lifecycle_state = UNCONFIGURED
+        if self._opened:
+            self._opened = False
+            self._try_safe_voltage()
+            self._flush_samples()
+            self.backend.close()
+        self._publish_state()
+        self.get_logger().info("lifecycle: unconfigured, the backend closed")
+
+    def _publish_state(self) -> None:
+        """``hardware_state``: ok while active, the fault while one is latched, else the lifecycle state."""
+        if self.fault is not None:
+            text = f"fault: {self.fault.kind}: {self.fault.detail}"
+        else:
+            text = "ok" if self.lifecycle_state == ACTIVE else self.lifecycle_state
+        self.state_pub.publish(String(data=text))
 
     def _refuse_unknown(self, backend_name: str, backend_type, overrides) -> None:
         """ValueError naming every parameter the command line (or ``overrides``) gives this node that it does not
@@ -188,7 +315,7 @@ class ValveHardwareNode(Node):
 
     def _bind_backend(self, backend: ValveBackend, p: dict) -> None:
         """The backend and what follows from its sample period: the control period in whole samples, the
-        watchdog's timeout; the real-time settings applied on the real-time clock."""
+        watchdog's timeout; the real-time settings (applied at configure, on the real-time clock)."""
         if self.settings.clock == "lockstep" and not backend.supports_lockstep:
             raise ValueError(f"backend {p['backend']!r} cannot run in lockstep")
         self.samples_per_period = samples_per_period(as_float("control_period_s", p["control_period_s"]),
@@ -201,9 +328,6 @@ class ValveHardwareNode(Node):
             raise ValueError("realtime.priority with realtime.busy_poll_s > 0: a polling thread at real-time "
                              "priority starves every other thread of its CPU, DDS's included; sleep "
                              "(realtime.busy_poll_s 0) or use priority 0")
-        if self.settings.clock == "realtime":
-            from ..runtime.realtime import apply
-            apply(self.realtime)
 
     def _create_interfaces(self) -> None:
         self.position_pub = self.create_publisher(Float64, "spool_position", SENSOR_QOS)
@@ -246,24 +370,24 @@ class ValveHardwareNode(Node):
         self.refused_in_fault = 0
 
     def _start(self, p: dict, stats_period: float) -> None:
-        """Open the backend at the safe voltage and start the clock's timers and the reports."""
+        """Open the backend at the safe voltage and start the clock's timers (configure)."""
         self.backend.open()
+        self._opened = True
         self.backend.write_voltage(self.settings.safe_voltage)
-        self.state_pub.publish(String(data="ok"))
         if self.settings.clock == "lockstep":
             # y_0 (at the initial voltage) goes out once a commander is matched both ways and settled
             # (_lockstep_idle), or before the first command that arrives earlier
             self._matched_since: Optional[float] = None
-            self.create_timer(min(0.05, self.command_timeout_s / 10), self._lockstep_idle)
+            self._timers.append(self.create_timer(min(0.05, self.command_timeout_s / 10), self._lockstep_idle))
         else:
             self.backend.prepare_realtime()
             if not tighten_timer_slack():
                 self.get_logger().warning("could not reduce the timer slack: expect period jitter of ~50 us")
             # fallback when nobody claims the pacing (an executor spun elsewhere); spin_loop claims it
-            self._tick_timer = self.create_timer(self.control_period_s, self._realtime_tick)
+            if self._paced_by is None:
+                self._tick_timer = self.create_timer(self.control_period_s, self._realtime_tick)
         if stats_period > 0:
-            self.create_timer(stats_period, lambda: self.get_logger().info(self._loop_line()))
-        self.diagnostics = Diagnostics(self, period_parameter(DIAGNOSTICS_PERIOD, p["diagnostics_period_s"]), self._health)
+            self._timers.append(self.create_timer(stats_period, lambda: self.get_logger().info(self._loop_line())))
         self.get_logger().info(
             f"valve_hardware up: backend={p['backend']} clock={self.settings.clock} "
             f"period={self.control_period_s * 1e3:.3f} ms ({self.samples_per_period} samples)"
@@ -285,6 +409,7 @@ class ValveHardwareNode(Node):
                   "late_commands": self.late_commands, "watchdog": watchdog, "safe_voltage_v": self.settings.safe_voltage,
                   "daq_glitches_last_minute": self._glitches_in_last_minute(time.monotonic()),
                   "daq_glitches": self.glitches}
+        values["lifecycle_state"] = self.lifecycle_state
         if self.fault is not None:
             values.update({"fault": self.fault.kind, "fault_detail": self.fault.detail,
                            "commands_refused_in_fault": self.refused_in_fault,
@@ -293,6 +418,10 @@ class ValveHardwareNode(Node):
                     "the safe voltage could NOT be written (writes fail; retrying every period)")
             return "ERROR", (f"fault {self.fault.text(time.monotonic())}; {held}; commands refused until "
                              f"~/reset (valve_command reset) once the cause is gone"), values
+        if self.lifecycle_state != ACTIVE:
+            return "WARN", (f"{self.lifecycle_state} (lifecycle): " + (
+                "the backend is closed" if self.lifecycle_state == UNCONFIGURED else
+                "safe voltage applied") + "; commands refused until ~/change_state activates it"), values
         if self._timed_out:
             return "ERROR", f"watchdog: no valid command for {self.command_timeout_s} s, safe voltage applied", values
         warnings = []
@@ -323,12 +452,15 @@ class ValveHardwareNode(Node):
 
     def claim_pacing(self) -> Optional[Pacing]:
         """Real-time clock: the spin loop runs the period tick itself (ros.spin.spin_loop: more precise
-        and cheaper than an rclpy timer at kHz rates); this node's own timer stops.  None in lockstep."""
-        if self.settings.clock != "realtime" or self._tick_timer is None:
+        and cheaper than an rclpy timer at kHz rates); this node's own timer stops (or is never made, where the
+        node is not configured yet: the tick does nothing until it is).  None in lockstep, or when claimed."""
+        if self.settings.clock != "realtime" or self._paced_by is not None:
             return None
-        self._tick_timer.cancel()
-        self.destroy_timer(self._tick_timer)
-        self._tick_timer = None
+        self._paced_by = "the spin loop"
+        if self._tick_timer is not None:
+            self._tick_timer.cancel()
+            self.destroy_timer(self._tick_timer)
+            self._tick_timer = None
         return Pacing(self.control_period_s, self._realtime_tick, self.settings.busy_poll_s)
 
     def attach_controller(self, on_measurement: Callable[[float], Optional[float]]) -> None:
@@ -349,6 +481,12 @@ class ValveHardwareNode(Node):
             if self._say_refused_in_fault.due():
                 self.get_logger().warning(f"command refused: in fault ({self.fault.kind}; {self.refused_in_fault} "
                                           f"refused so far): valve_command reset once the cause is gone")
+            return
+        if self.lifecycle_state != ACTIVE:
+            self.refused_inactive += 1
+            if self._say_refused_inactive.due():
+                self.get_logger().warning(f"command refused: valve_hardware is {self.lifecycle_state}, not active "
+                                          f"({self.refused_inactive} refused so far): ~/change_state activate")
             return
         v = self._validate(v)
         if v is None:
@@ -473,6 +611,13 @@ class ValveHardwareNode(Node):
         if self.fault is not None:
             self._while_in_fault()
             return
+        if self.lifecycle_state != ACTIVE:   # inactive: the backend drained, nothing published
+            if self._opened:
+                try:
+                    self.backend.read_samples()
+                except Exception:   # checked again once active
+                    pass
+            return
         self._check_watchdog()
         rows = self._read()
         if rows is None or not self._sound(rows):
@@ -557,6 +702,9 @@ class ValveHardwareNode(Node):
                 f"the safe voltage {self.settings.safe_voltage} V could NOT be written: retrying every period")
         self.get_logger().error(f"fault {kind}: {detail}; {held}; commands refused until ~/reset")
         self.state_pub.publish(String(data=f"fault: {kind}: {detail}"))
+        if self.lifecycle_state == ACTIVE:   # a latched fault leaves active (~/reset returns to it)
+            self._deactivated_by_fault = True
+            self.trigger_deactivate()
         if hasattr(self, "diagnostics"):
             self.diagnostics.publish()
 
@@ -606,7 +754,11 @@ class ValveHardwareNode(Node):
         self._last_rows_wall = now
         self._armed, self._timed_out = False, False   # at the safe voltage until the next valid command
         self._last_valid_command_wall = now
-        self.state_pub.publish(String(data="ok"))
+        if self._deactivated_by_fault and self.lifecycle_state == INACTIVE:   # back to where the fault left it
+            self._deactivated_by_fault = False
+            self.trigger_activate()
+        else:
+            self._publish_state()
         response.success = True
         response.message = (f"fault {fault.kind} cleared ({fault.count} occurrence(s)); safe voltage applied, "
                             f"commands accepted" + ("" if rows.shape[0] else
@@ -621,6 +773,8 @@ class ValveHardwareNode(Node):
     def _lockstep_idle(self) -> None:
         if self.fault is not None:   # no period runs and nothing is said again until ~/reset
             self._retry_safe_voltage()
+            return
+        if self.lifecycle_state != ACTIVE:
             return
         if self.periods == 0:
             self._publish_first_sample_when_settled()
@@ -707,6 +861,12 @@ class ValveHardwareNode(Node):
         if self._closed:
             return
         self._closed = True
+        for timer in self._timers:
+            timer.cancel()
+        self.lifecycle_state = UNCONFIGURED
+        if not self._opened:   # never configured (or cleaned up): nothing to make safe
+            return
+        self._opened = False
         written = self._try_safe_voltage()
         try:
             if self.context.ok():  # after a signal the publishers are gone with the context
