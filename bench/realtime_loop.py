@@ -126,20 +126,20 @@ def per_period_costs(n: int = 5000) -> dict:
                                                 Parameter("control_period_s", value=1e-4)])
     t0 = time.perf_counter()
     for _ in range(n):
-        hw._apply_lockstep(5.0)
+        hw.loop.apply_lockstep(5.0)
     out["hardware_lockstep_period_us"] = (time.perf_counter() - t0) / n * 1e6
     hw.backend.prepare_realtime()   # as a real-time hardware node does before its loop (the batch path's import)
     for period in (2e-3, 1e-3, 5e-4, 2e-4, 1e-4):
         k = int(round(period / hw.backend.sample_period_s))
         t0 = time.perf_counter()
         for _ in range(n // 5):
-            hw._publish(hw.backend.advance(k))
+            hw.loop.publish(hw.backend.advance(k))
         out[f"hardware_realtime_tick_{int(1 / period)}hz_us"] = (time.perf_counter() - t0) / (n // 5) * 1e6
     flush = []
     for _ in range(50):
-        hw._collect(np.zeros((hw.settings.samples_batch - 1, 3)))
+        hw.loop.collect(np.zeros((hw.settings.samples_batch - 1, 3)))
         t0 = time.perf_counter()
-        hw._collect(np.zeros((1, 3)))  # completes the batch: one samples message of 1000 rows goes out
+        hw.loop.collect(np.zeros((1, 3)))  # completes the batch: one samples message of 1000 rows goes out
         flush.append(time.perf_counter() - t0)
     out["hardware_samples_flush_1000_rows_us"] = float(np.median(flush) * 1e6)
     backend = hw.backend

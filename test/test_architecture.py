@@ -26,7 +26,7 @@ MAY_IMPORT = {
 # layers: io, runtime and backends on the core; ros the ROS plumbing; rig on it; the nodes; the tools)
 FOLDER_MAY_IMPORT = {
     "io": set(),
-    "runtime": {"io"},
+    "runtime": {"io", "backends"},
     "backends": set(),
     "ros": {"io", "runtime"},
     "rig": {"io", "runtime", "ros"},
@@ -129,6 +129,14 @@ def test_the_core_is_ros_free_and_points_one_way(module):
         if other in (part, "core") or other in SHARED_LEAVES:
             continue
         assert other in MAY_IMPORT.get(part, set()), f"{_short(module)} ({part}) imports {_short(target)} ({other})"
+
+
+@pytest.mark.parametrize("module", sorted(m for m in EDGES if _short(m).split(".")[0] in ("runtime", "backends")))
+def test_the_hardware_loop_and_the_backends_are_ros_free(module):
+    """The hardware's loop (runtime.hardware_loop) and the backends run without ROS: a DAQ's loop can be tested,
+    and a backend written, with no rclpy installed."""
+    assert not EXTERNALS[module] & {"rclpy", "std_msgs", "std_srvs", "lifecycle_msgs", "diagnostic_msgs"}, \
+        (module, EXTERNALS[module])
 
 
 def _folder(module: str) -> str:

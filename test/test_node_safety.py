@@ -179,7 +179,7 @@ def test_a_lockstep_pace_slower_than_the_watchdog_never_trips_it(hardware):
     for _ in range(4):
         hw._on_command(Float64(data=6.0))   # as the subscription delivers it, answered at once
         hw._lockstep_idle()                 # the watchdog's timer, right after the position went out
-    assert not hw._timed_out and hw.periods == 5   # y_0 and one period per command
+    assert not hw.loop.timed_out and hw.periods == 5   # y_0 and one period per command
     assert time.monotonic() - t0 >= 3 * 0.25 - 0.02   # periods 2..4 each waited for the pace
 
 

@@ -28,7 +28,6 @@ transition ends at the safe voltage with the backend closed (``unconfigured``).
 """
 from __future__ import annotations
 
-import collections
 import math
 import sys
 import time
@@ -44,12 +43,12 @@ from std_msgs.msg import Float64, Float64MultiArray, String
 from std_srvs.srv import Trigger
 
 from ..backends.base import ValveBackend, available_backends, backend_class, backend_parameters
-from ..backends.faults import Fault, FaultLimits, SampleCheck
-from ..runtime.loop_timing import LoopTiming
+from ..backends.faults import Fault, FaultLimits
+from ..runtime.hardware_loop import HardwareLoop, LoopSettings
 from ..ros import (COMMAND_QOS, CONTROL_PERIOD, DIAGNOSTICS_PERIOD, MAX_CONTROL_PERIOD_S, SAMPLES_QOS, SENSOR_QOS,
                    STATE_QOS, declare_all, Diagnostics, given_parameter_names, named_with_nearest, Pacing,
                    parameter_values, period_parameter, realtime_settings, realtime_specs, refuse, run_node,
-                   samples_message, SamplesBuffer, Throttle, tighten_timer_slack)
+                   samples_message, SamplesBuffer, tighten_timer_slack)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 from ..core.validation import ParameterSpec, Settings, as_float, as_int, from_parameter, whole_periods
 
@@ -58,7 +57,6 @@ MAX_COMMAND_TIMEOUT_S = 10.0    # the watchdog may not be stretched beyond this
 MIN_TIMEOUT_PERIODS = 2         # ... nor shortened below this many control periods (it would fire between commands)
 FIRST_SAMPLE_SETTLE_S = 0.3   # lockstep: a commander matched this long before y_0 is sent (s)
 UNANSWERED_REPEAT_S = 1.0     # lockstep: an unanswered position is sent again after this long (s)
-PACE_SLACK_S = 0.1            # lockstep.max_speed: a loop this far behind its pace starts afresh (no sprint) [s]
 
 
 HARDWARE_PARAMETERS: tuple[ParameterSpec, ...] = (
@@ -135,7 +133,6 @@ class HardwareSettings(Settings):
             out.append("lockstep.max_speed applies only to clock lockstep (the real-time clock runs at the wall "
                        "clock's pace)")
         return out + self.fault_limits.problems()
-GLITCH_WINDOW_S = 60.0       # /diagnostics counts the DAQ glitches of this last stretch (WARN while there are any)
 IN_TIME_WARN_SHARE = 0.99   # /diagnostics: WARN when fewer commands than this share came within their period
 
 
@@ -154,16 +151,14 @@ ACTIVE, INACTIVE, UNCONFIGURED = "active", "inactive", "unconfigured"   # the li
 
 
 class ValveHardwareNode(LifecycleNode):
+    """The ROS face of a :class:`~piezo_valve_ros.runtime.hardware_loop.HardwareLoop`: parameters, the lifecycle,
+    the topics, ``~/reset`` and /diagnostics; the loop does read -> check -> write, the watchdog, the fault latch,
+    the batch and the pacing."""
+
     STANDALONE = False   # the node has its process to itself (main): every name its command line gives is its own
 
     def __init__(self, backend: Optional[ValveBackend] = None, **kwargs):
         super().__init__("valve_hardware", **kwargs)
-        # the per-command warnings, each at most this often (their counts say how many there were)
-        self._say_rejected, self._say_clamped = Throttle(1.0), Throttle(1.0)
-        self._say_refused_in_fault, self._say_late = Throttle(2.0), Throttle(5.0)
-        self._say_glitch = Throttle(1.0)
-        self.glitches, self._unsaid_glitches = 0, 0   # backend calls that raised once and succeeded when retried
-        self._glitch_times: collections.deque = collections.deque()
         declare_all(self, HARDWARE_PARAMETERS)
         backend_name = str(self.get_parameter("backend").value)
         backend_type = type(backend) if backend is not None else backend_class(backend_name)
@@ -174,19 +169,28 @@ class ValveHardwareNode(LifecycleNode):
         if backend is None:
             values = {prm.name: p[f"{backend_name}.{prm.name}"] for prm in backend_type.PARAMETERS}
             backend = backend_type.from_parameters(values, self.settings.safe_voltage)
-        self._bind_backend(backend, p)
+        timeout = self._bind_backend(backend, p)
+        st = self.settings
+        self.loop = HardwareLoop(
+            backend, LoopSettings(st.clock, st.safe_voltage, st.command_min_v, st.command_max_v, st.samples_batch,
+                                  st.max_speed, st.fault_limits),
+            self.samples_per_period, timeout, logger=self.get_logger, on_position=self._position_out,
+            on_batch=self._batch_out, on_advanced=self._clock_out if st.clock == "lockstep" else None,
+            on_fault=self._on_fault)
+        self.loop.logger = lambda: self.get_logger()   # looked up at each line (a test may replace get_logger)
+        self.loop.step_budget = self._initial_budget
         self._create_interfaces()
-        self._reset_counters()
+        self._tick_timer = None
+        self._linked_controller: Optional[Callable[[float], Optional[float]]] = None
+        self._closed = False
+        self._health_mark = (0, 0)
         self._p, self._stats_period = p, stats_period
         self._timers: list = []
-        self._opened = False
         self._paced_by: Optional[str] = None   # who runs the real-time tick instead of the node's timer
-        self.lifecycle_state = UNCONFIGURED
         self._transition_error = ""
         self._deactivated_by_fault = False
         self._autostarting = False
-        self.refused_inactive = 0
-        self._say_refused_inactive = Throttle(2.0)
+        self._set_state(UNCONFIGURED)
         self.diagnostics = Diagnostics(self, period_parameter(DIAGNOSTICS_PERIOD, p["diagnostics_period_s"]),
                                        self._health)
         if self.settings.autostart:   # (hardware_state says ok once, not inactive first)
@@ -198,97 +202,19 @@ class ValveHardwareNode(LifecycleNode):
         else:
             self.get_logger().info("valve_hardware unconfigured (autostart false): waiting for ~/change_state")
 
-    # ------------------------------------------------------------------ lifecycle
-    def _transition(self, name: str, body: Callable[[], None]) -> TransitionCallbackReturn:
-        """Run a transition's ``body``; an exception is said (rclpy would swallow it) and ends at the safe voltage
-        (ERROR: on_error closes the backend)."""
-        try:
-            body()
-        except Exception as exc:  # whatever the backend raises: said, and the valve left safe
-            self._transition_error = f"{name} failed: {exc}"
-            self.get_logger().error(f"lifecycle: {self._transition_error}")
-            self._try_safe_voltage()
-            return TransitionCallbackReturn.ERROR
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
-        """Open the backend at the safe voltage and start the clock's timers; nothing is driven yet."""
-        def body():
-            if self.settings.clock == "realtime":
-                from ..runtime.realtime import apply
-                apply(self.realtime)
-            self._reset_counters()
-            self._start(self._p, self._stats_period)
-            self.lifecycle_state = INACTIVE
-            if not self._autostarting:
-                self._publish_state()
-        return self._transition("configure", body)
-
-    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        """Commands are applied from now on (at the safe voltage until the first valid one)."""
-        def body():
-            now = time.monotonic()
-            self._armed, self._timed_out = False, False
-            self._last_valid_command_wall = self._last_rows_wall = now
-            self.lifecycle_state = ACTIVE
-            self._publish_state()
-            self.get_logger().info("lifecycle: active, commands applied")
-        result = self._transition("activate", body)
-        return super().on_activate(state) if result == TransitionCallbackReturn.SUCCESS else result
-
-    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        """The safe voltage; commands refused, nothing published as a position."""
-        def body():
-            self.lifecycle_state = INACTIVE
-            self._flush_samples()
-            written = self._try_safe_voltage()
-            self._publish_state()
-            self.get_logger().info(f"lifecycle: inactive, safe voltage {self.settings.safe_voltage} V "
-                                   + ("applied" if written else "could NOT be written") + "; commands refused")
-        result = self._transition("deactivate", body)
-        return super().on_deactivate(state) if result == TransitionCallbackReturn.SUCCESS else result
-
-    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
-        """The safe voltage and the backend closed (configure opens it again)."""
-        return self._transition("cleanup", self._close)
-
-    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        return self._transition("shutdown", self.shutdown_safely)
-
-    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
-        """After a failed transition: the safe voltage and the backend closed (to unconfigured)."""
-        try:
-            self._close()
-        except Exception as exc:   # nothing more to do than say it
-            self.get_logger().error(f"lifecycle: closing after an error raised {exc!r}")
-        return TransitionCallbackReturn.SUCCESS
-
-    def _close(self) -> None:
-        """Stop the timers, apply the safe voltage, flush the samples, close the backend (to unconfigured)."""
-        for timer in self._timers:
-            timer.cancel()
-            self.destroy_timer(timer)
-        self._timers = []
-        if self._tick_timer is not None:
-            self._tick_timer.cancel()
-            self.destroy_timer(self._tick_timer)
-            self._tick_timer = None
-        self.lifecycle_state = UNCONFIGURED
-        if self._opened:
-            self._opened = False
-            self._try_safe_voltage()
-            self._flush_samples()
-            self.backend.close()
-        self._publish_state()
-        self.get_logger().info("lifecycle: unconfigured, the backend closed")
-
-    def _publish_state(self) -> None:
-        """``hardware_state``: ok while active, the fault while one is latched, else the lifecycle state."""
-        if self.fault is not None:
-            text = f"fault: {self.fault.kind}: {self.fault.detail}"
-        else:
-            text = "ok" if self.lifecycle_state == ACTIVE else self.lifecycle_state
-        self.state_pub.publish(String(data=text))
+    # the loop's figures, as the node's (tests, benches and /diagnostics read them here)
+    backend = property(lambda self: self.loop.backend)
+    fault = property(lambda self: self.loop.fault)
+    periods = property(lambda self: self.loop.periods)
+    glitches = property(lambda self: self.loop.glitches)
+    clamped = property(lambda self: self.loop.clamped)
+    rejected = property(lambda self: self.loop.rejected)
+    late_commands = property(lambda self: self.loop.late_commands)
+    refused_in_fault = property(lambda self: self.loop.refused_in_fault)
+    refused_inactive = property(lambda self: self.loop.refused_inactive)
+    loop_timing = property(lambda self: self.loop.loop_timing)
+    step_budget = property(lambda self: self.loop.step_budget)
+    command_timeout_s = property(lambda self: self.loop.command_timeout_s)
 
     def _refuse_unknown(self, backend_name: str, backend_type, overrides) -> None:
         """ValueError naming every parameter the command line (or ``overrides``) gives this node that it does not
@@ -310,82 +236,173 @@ class ValveHardwareNode(LifecycleNode):
         """The start-up parameters that do not depend on the backend, checked (ValueError with every reason);
         returns loop_stats_period_s."""
         self.settings = HardwareSettings.from_specs(SPECS, p)
-        self.step_budget = self._step_budget(p["lockstep.step_budget"])
+        self._initial_budget = self._step_budget(p["lockstep.step_budget"])
         return self.settings.loop_stats_period_s
 
-    def _bind_backend(self, backend: ValveBackend, p: dict) -> None:
-        """The backend and what follows from its sample period: the control period in whole samples, the
-        watchdog's timeout; the real-time settings (applied at configure, on the real-time clock)."""
+    def _bind_backend(self, backend: ValveBackend, p: dict) -> float:
+        """What follows from the backend's sample period: the control period in whole samples, the watchdog's
+        timeout (returned); the real-time settings (applied at configure, on the real-time clock)."""
         if self.settings.clock == "lockstep" and not backend.supports_lockstep:
             raise ValueError(f"backend {p['backend']!r} cannot run in lockstep")
         self.samples_per_period = samples_per_period(as_float("control_period_s", p["control_period_s"]),
                                                      backend.sample_period_s)
-        self.backend = backend
         self.control_period_s = self.samples_per_period * backend.sample_period_s
-        self.command_timeout_s = self._command_timeout(p["command_timeout_s"])
+        timeout = self._command_timeout(p["command_timeout_s"])
         self.realtime = realtime_settings(p)
         if self.realtime.priority and self.settings.busy_poll_s > 0:
             raise ValueError("realtime.priority with realtime.busy_poll_s > 0: a polling thread at real-time "
                              "priority starves every other thread of its CPU, DDS's included; sleep "
                              "(realtime.busy_poll_s 0) or use priority 0")
+        return timeout
 
     def _create_interfaces(self) -> None:
         self.position_pub = self.create_publisher(Float64, "spool_position", SENSOR_QOS)
         self.samples_pub = self.create_publisher(Float64MultiArray, "samples", SAMPLES_QOS)
         self.clock_pub = self.create_publisher(Clock, "/clock", 10) if self.settings.clock == "lockstep" else None
         self._clock_msg = Clock(clock=Time())
-        self.loop_timing = LoopTiming(self.control_period_s)
+        self._full_batch = SamplesBuffer(self.loop.full_batch_rows, 3)   # the usual batch's message, made once
         self._command_sub = self.create_subscription(Float64, "voltage_command", self._on_command, COMMAND_QOS)
         self.state_pub = self.create_publisher(String, "hardware_state", STATE_QOS)
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.add_on_set_parameters_callback(self._on_parameters)
 
-    def _reset_counters(self) -> None:
-        """The loop's state before the first period: no command held, the watchdog not armed, nothing counted."""
-        self._tick_timer = None
-        self._linked_controller: Optional[Callable[[float], Optional[float]]] = None
-        self._batch = np.empty((self.settings.samples_batch + self.samples_per_period, 3))  # rows awaiting `samples`
-        # a batch fills a period at a time: it goes out at the first whole number of periods >= samples_batch
-        full = -(-self.settings.samples_batch // self.samples_per_period) * self.samples_per_period
-        self._full_batch = SamplesBuffer(full, 3)
-        self._batch_rows = 0
-        self._held_command: Optional[float] = None
-        self._last_valid_command_wall = time.monotonic()
-        self._timed_out = False
-        self._armed = False  # the watchdog runs from the first valid command on (until then: safe voltage)
-        self._command_since_publish = False
-        self._last_publish_wall = time.monotonic()
-        self._pace_due: Optional[float] = None   # lockstep.max_speed: the wall time the next period may start
-        self.rejected = 0
-        self.clamped = 0
-        self.late_commands = 0
-        self.periods = 0
-        self._last_position_m = float("nan")   # the last position published [m] (repeated when unanswered)
-        self._closed = False
-        self._health_mark = (0, 0)
-        self.fault: Optional[Fault] = None
-        self._safe_written = True          # while in fault: whether the safe voltage was written
-        self._sample_check = SampleCheck(self.settings.fault_limits)
-        self._last_rows_wall = time.monotonic()
-        self.refused_in_fault = 0
+    # ------------------------------------------------------------------ the loop's outlets
+    def _position_out(self, y: float) -> None:
+        if self._linked_controller is not None:
+            v = self._linked_controller(y)
+            if v is not None:
+                self.loop.accept_command(v)
+        self.position_pub.publish(Float64(data=y))
+
+    def _batch_out(self, rows: np.ndarray) -> None:
+        if rows.shape[0] == self._full_batch.rows.shape[0]:   # the usual case: into the message made once
+            self._full_batch.rows[:] = rows
+            self.samples_pub.publish(self._full_batch.message)
+        else:
+            self.samples_pub.publish(samples_message(rows))
+
+    def _clock_out(self, t_next_s: float) -> None:
+        stamp = self._clock_msg.clock
+        stamp.sec, stamp.nanosec = divmod(int(round(t_next_s * 1e9)), 1_000_000_000)
+        self.clock_pub.publish(self._clock_msg)
+
+    def _on_fault(self, fault: Fault) -> None:
+        """A latched fault: said on hardware_state and /diagnostics; it leaves active (``~/reset`` returns to it)."""
+        self.state_pub.publish(String(data=f"fault: {fault.kind}: {fault.detail}"))
+        if self.lifecycle_state == ACTIVE:
+            self._deactivated_by_fault = True
+            self.trigger_deactivate()
+        if hasattr(self, "diagnostics"):
+            self.diagnostics.publish()
+
+    # ------------------------------------------------------------------ lifecycle
+    def _set_state(self, name: str) -> None:
+        self.lifecycle_state = name
+        self.loop.inactive_state = name
+
+    def _transition(self, name: str, body: Callable[[], None]) -> TransitionCallbackReturn:
+        """Run a transition's ``body``; an exception is said (rclpy would swallow it) and ends at the safe voltage
+        (ERROR: on_error closes the backend)."""
+        try:
+            body()
+        except Exception as exc:  # whatever the backend raises: said, and the valve left safe
+            self._transition_error = f"{name} failed: {exc}"
+            self.get_logger().error(f"lifecycle: {self._transition_error}")
+            self.loop.try_safe_voltage()
+            return TransitionCallbackReturn.ERROR
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Open the backend at the safe voltage and start the clock's timers; nothing is driven yet."""
+        def body():
+            if self.settings.clock == "realtime":
+                from ..runtime.realtime import apply
+                apply(self.realtime)
+            self.loop.reset_counters()
+            self._closed = False
+            self._start(self._p, self._stats_period)
+            self._set_state(INACTIVE)
+            if not self._autostarting:
+                self._publish_state()
+        return self._transition("configure", body)
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Commands are applied from now on (at the safe voltage until the first valid one)."""
+        def body():
+            self.loop.start()
+            self._set_state(ACTIVE)
+            self._publish_state()
+            self.get_logger().info("lifecycle: active, commands applied")
+        result = self._transition("activate", body)
+        return super().on_activate(state) if result == TransitionCallbackReturn.SUCCESS else result
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """The safe voltage; commands refused, nothing published as a position."""
+        def body():
+            self._set_state(INACTIVE)
+            written = self.loop.stop()
+            self._publish_state()
+            self.get_logger().info(f"lifecycle: inactive, safe voltage {self.settings.safe_voltage} V "
+                                   + ("applied" if written else "could NOT be written") + "; commands refused")
+        result = self._transition("deactivate", body)
+        return super().on_deactivate(state) if result == TransitionCallbackReturn.SUCCESS else result
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """The safe voltage and the backend closed (configure opens it again)."""
+        return self._transition("cleanup", self._close)
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        return self._transition("shutdown", self.shutdown_safely)
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """After a failed transition: the safe voltage and the backend closed (to unconfigured)."""
+        try:
+            self._close()
+        except Exception as exc:   # nothing more to do than say it
+            self.get_logger().error(f"lifecycle: closing after an error raised {exc!r}")
+        return TransitionCallbackReturn.SUCCESS
+
+    def _stop_timers(self) -> None:
+        for timer in self._timers:
+            timer.cancel()
+            self.destroy_timer(timer)
+        self._timers = []
+        if self._tick_timer is not None:
+            self._tick_timer.cancel()
+            self.destroy_timer(self._tick_timer)
+            self._tick_timer = None
+
+    def _close(self) -> None:
+        """Stop the timers, apply the safe voltage, flush the samples, close the backend (to unconfigured)."""
+        self._stop_timers()
+        self._set_state(UNCONFIGURED)
+        self.loop.active = False
+        self.loop.close()
+        self._publish_state()
+        self.get_logger().info("lifecycle: unconfigured, the backend closed")
+
+    def _publish_state(self) -> None:
+        """``hardware_state``: ok while active, the fault while one is latched, else the lifecycle state."""
+        fault = self.loop.fault
+        text = (f"fault: {fault.kind}: {fault.detail}" if fault is not None else
+                "ok" if self.lifecycle_state == ACTIVE else self.lifecycle_state)
+        self.state_pub.publish(String(data=text))
 
     def _start(self, p: dict, stats_period: float) -> None:
         """Open the backend at the safe voltage and start the clock's timers (configure)."""
-        self.backend.open()
-        self._opened = True
-        self.backend.write_voltage(self.settings.safe_voltage)
+        self.loop.open()
         if self.settings.clock == "lockstep":
             # y_0 (at the initial voltage) goes out once a commander is matched both ways and settled
             # (_lockstep_idle), or before the first command that arrives earlier
             self._matched_since: Optional[float] = None
-            self._timers.append(self.create_timer(min(0.05, self.command_timeout_s / 10), self._lockstep_idle))
+            self._timers.append(self.create_timer(min(0.05, self.loop.command_timeout_s / 10), self._lockstep_idle))
         else:
             self.backend.prepare_realtime()
             if not tighten_timer_slack():
                 self.get_logger().warning("could not reduce the timer slack: expect period jitter of ~50 us")
             # fallback when nobody claims the pacing (an executor spun elsewhere); spin_loop claims it
             if self._paced_by is None:
-                self._tick_timer = self.create_timer(self.control_period_s, self._realtime_tick)
+                self._tick_timer = self.create_timer(self.control_period_s, self.loop.tick)
         if stats_period > 0:
             self._timers.append(self.create_timer(stats_period, lambda: self.get_logger().info(self._loop_line())))
         self.get_logger().info(
@@ -397,59 +414,46 @@ class ValveHardwareNode(LifecycleNode):
     def _health(self) -> tuple[str, str, dict]:
         """(level, message, values) for /diagnostics: the watchdog, commands in time since the last report
         (real-time clock), clamps and late commands; counters only, nothing that costs the loop."""
-        t = self.loop_timing
+        loop = self.loop
+        t = loop.loop_timing
         periods, in_time = t.periods - self._health_mark[0], t.in_time - self._health_mark[1]
         self._health_mark = (t.periods, t.in_time)
         share = in_time / periods if periods else float("nan")
-        watchdog = ("fired: safe voltage applied" if self._timed_out else
-                    "armed" if self._armed else "waiting for the first command (safe voltage applied)")
+        watchdog = ("fired: safe voltage applied" if loop.timed_out else
+                    "armed" if loop.armed else "waiting for the first command (safe voltage applied)")
         values = {"clock": self.settings.clock, "control_period_s": self.control_period_s, "periods": t.periods,
                   "commands_in_time_share": round(share, 4) if periods else "no periods since the last report",
-                  "commands_clamped": self.clamped, "commands_rejected": self.rejected,
-                  "late_commands": self.late_commands, "watchdog": watchdog, "safe_voltage_v": self.settings.safe_voltage,
-                  "daq_glitches_last_minute": self._glitches_in_last_minute(time.monotonic()),
-                  "daq_glitches": self.glitches}
+                  "commands_clamped": loop.clamped, "commands_rejected": loop.rejected,
+                  "late_commands": loop.late_commands, "watchdog": watchdog,
+                  "safe_voltage_v": self.settings.safe_voltage,
+                  "daq_glitches_last_minute": loop.glitches_in_last_minute(time.monotonic()),
+                  "daq_glitches": loop.glitches}
         values["lifecycle_state"] = self.lifecycle_state
-        if self.fault is not None:
-            values.update({"fault": self.fault.kind, "fault_detail": self.fault.detail,
-                           "commands_refused_in_fault": self.refused_in_fault,
-                           "safe_voltage_written": self._safe_written})
-            held = ("safe voltage applied" if self._safe_written else
+        if loop.fault is not None:
+            values.update({"fault": loop.fault.kind, "fault_detail": loop.fault.detail,
+                           "commands_refused_in_fault": loop.refused_in_fault,
+                           "safe_voltage_written": loop.safe_written})
+            held = ("safe voltage applied" if loop.safe_written else
                     "the safe voltage could NOT be written (writes fail; retrying every period)")
-            return "ERROR", (f"fault {self.fault.text(time.monotonic())}; {held}; commands refused until "
+            return "ERROR", (f"fault {loop.fault.text(time.monotonic())}; {held}; commands refused until "
                              f"~/reset (valve_command reset) once the cause is gone"), values
         if self.lifecycle_state != ACTIVE:
             return "WARN", (f"{self.lifecycle_state} (lifecycle): " + (
                 "the backend is closed" if self.lifecycle_state == UNCONFIGURED else
                 "safe voltage applied") + "; commands refused until ~/change_state activates it"), values
-        if self._timed_out:
-            return "ERROR", f"watchdog: no valid command for {self.command_timeout_s} s, safe voltage applied", values
+        if loop.timed_out:
+            return "ERROR", f"watchdog: no valid command for {loop.command_timeout_s} s, safe voltage applied", values
         warnings = []
-        if self._armed and self.settings.clock == "realtime" and periods and share < IN_TIME_WARN_SHARE:
+        if loop.armed and self.settings.clock == "realtime" and periods and share < IN_TIME_WARN_SHARE:
             warnings.append(f"{100 * share:.1f} % of the commands came within their period")
         if values["daq_glitches_last_minute"]:
             warnings.append(f"{values['daq_glitches_last_minute']} DAQ glitch(es) in the last minute (a backend call "
-                            f"raised once and succeeded when retried; {self.glitches} in all)")
+                            f"raised once and succeeded when retried; {loop.glitches} in all)")
         if warnings:
             return "WARN", "; ".join(warnings), values
         return "OK", f"watchdog {watchdog}", values
 
     # ------------------------------------------------------------------ commands
-    def _validate(self, v: float) -> Optional[float]:
-        if not math.isfinite(v):
-            self.rejected += 1
-            if self._say_rejected.due():
-                self.get_logger().warning(f"rejected non-finite voltage command {v!r} ({self.rejected} so far)")
-            return None
-        if v < self.settings.command_min_v or v > self.settings.command_max_v:
-            self.clamped += 1
-            clamped = min(max(v, self.settings.command_min_v), self.settings.command_max_v)
-            if self._say_clamped.due():
-                self.get_logger().warning(f"clamped voltage command {v:.4g} V to {clamped:.4g} V "
-                                          f"({self.clamped} so far)")
-            return clamped
-        return v
-
     def claim_pacing(self) -> Optional[Pacing]:
         """Real-time clock: the spin loop runs the period tick itself (ros.spin.spin_loop: more precise
         and cheaper than an rclpy timer at kHz rates); this node's own timer stops (or is never made, where the
@@ -461,7 +465,7 @@ class ValveHardwareNode(LifecycleNode):
             self._tick_timer.cancel()
             self.destroy_timer(self._tick_timer)
             self._tick_timer = None
-        return Pacing(self.control_period_s, self._realtime_tick, self.settings.busy_poll_s)
+        return Pacing(self.control_period_s, self.loop.tick, self.settings.busy_poll_s)
 
     def attach_controller(self, on_measurement: Callable[[float], Optional[float]]) -> None:
         """Composed mode, real-time clock: hand each position [m] to ``on_measurement`` by function call
@@ -473,297 +477,23 @@ class ValveHardwareNode(LifecycleNode):
         self._linked_controller = on_measurement
 
     def _on_command(self, msg: Float64) -> None:
-        self._accept_command(msg.data)
-
-    def _accept_command(self, v: float) -> None:
-        if self.fault is not None:
-            self.refused_in_fault += 1
-            if self._say_refused_in_fault.due():
-                self.get_logger().warning(f"command refused: in fault ({self.fault.kind}; {self.refused_in_fault} "
-                                          f"refused so far): valve_command reset once the cause is gone")
-            return
-        if self.lifecycle_state != ACTIVE:
-            self.refused_inactive += 1
-            if self._say_refused_inactive.due():
-                self.get_logger().warning(f"command refused: valve_hardware is {self.lifecycle_state}, not active "
-                                          f"({self.refused_inactive} refused so far): ~/change_state activate")
-            return
-        v = self._validate(v)
-        if v is None:
-            return
-        if self.loop_timing.commanded() is False and self.settings.clock == "realtime" and self.periods > 1:
-            self.late_commands += 1
-            if self._say_late.due():
-                self.get_logger().warning(f"command arrived more than a period after its measurement "
-                                          f"({self.late_commands} so far): the loop runs with extra delay")
-        self._last_valid_command_wall = time.monotonic()
-        self._command_since_publish = True
-        self._armed = True
-        if self._timed_out:
-            self._timed_out = False
-            self.get_logger().info("valid command received: resuming")
-        if self.settings.clock == "realtime":
-            self._write(v)
-            return
-        if self.periods == 0:
-            self._advance_and_publish()  # y_0 first: a commander that did not wait for it
-        if self.step_budget == 0:
-            self._held_command = v
-            return
-        self._apply_lockstep(v)
-
-    def _apply_lockstep(self, v: float) -> None:
-        if not self._write(v):
-            return
-        if self.settings.max_speed:
-            self._keep_pace()
-        self._advance_and_publish()
-        if self.step_budget > 0:
-            self.step_budget -= 1
-            if self.step_budget == 0:
-                self._flush_samples()
-
-    # ------------------------------------------------------------------ time
-    def _keep_pace(self) -> None:
-        """lockstep.max_speed: wait until the next period may start (at most a period of the valve's time over
-        max_speed: this runs in the command's callback).  A loop more than PACE_SLACK_S behind its pace (paused,
-        or slower than it) starts afresh from now instead of running flat out to catch up."""
-        step = self.control_period_s / self.settings.max_speed
-        now = time.monotonic()
-        if self._pace_due is None or now - self._pace_due > PACE_SLACK_S:
-            self._pace_due = now
-        elif self._pace_due > now:
-            time.sleep(self._pace_due - now)
-            # the watchdog measures the commander's silence, and it cannot answer before this period's position
-            # goes out: the wait is ours (a pace slower than command_timeout_s would otherwise trip it)
-            self._last_valid_command_wall = time.monotonic()
-        self._pace_due += step
-
-    def _advance_and_publish(self) -> None:
-        try:
-            rows = self.backend.advance(self.samples_per_period)
-        except Exception as exc:  # a backend's failure, whatever its type: the fault names it
-            self._enter_fault("read_failed", f"advance raised {exc!r}")
-            return
-        if not self._sound(rows):
-            return
-        self._publish(rows)
-        if self.clock_pub is not None:
-            ns = int(round((rows[-1, 0] + self.backend.sample_period_s) * 1e9))
-            stamp = self._clock_msg.clock
-            stamp.sec, stamp.nanosec = divmod(ns, 1_000_000_000)
-            self.clock_pub.publish(self._clock_msg)
-
-    def _publish(self, rows: np.ndarray) -> None:
-        if rows.shape[0] == 0:
-            return
-        self.periods += 1
-        self._command_since_publish = False
-        self._last_publish_wall = time.monotonic()
-        y = float(rows[-1, 2])
-        self._last_position_m = y
-        self.loop_timing.measured()
-        if self._linked_controller is not None:
-            v = self._linked_controller(y)
-            if v is not None:
-                self._accept_command(v)
-        self.position_pub.publish(Float64(data=y))
-        self._collect(rows)
-
-    def _collect(self, rows: np.ndarray) -> None:
-        """Copy rows into the preallocated batch; a full batch goes out as one ``samples`` message."""
-        k, n = rows.shape[0], self._batch_rows
-        if n + k > self._batch.shape[0]:
-            self._flush_samples()
-            n = 0
-            if k > self._batch.shape[0]:  # more than a batch at once (a long stall): send it as it is
-                self.samples_pub.publish(samples_message(rows))
-                return
-        self._batch[n:n + k] = rows
-        self._batch_rows = n + k
-        if self._batch_rows >= self.settings.samples_batch:
-            self._flush_samples()
-
-    def _flush_samples(self) -> None:
-        if self._batch_rows == 0:
-            return
-        n, self._batch_rows = self._batch_rows, 0
-        if n == self._full_batch.rows.shape[0]:   # the usual case: a full batch, into the message made once
-            self._full_batch.rows[:] = self._batch[:n]
-            self.samples_pub.publish(self._full_batch.message)
-        else:
-            self.samples_pub.publish(samples_message(self._batch[:n]))
-
-    def _check_watchdog(self) -> bool:
-        """True when the watchdog fired just now."""
-        if self._timed_out or not self._armed or self.step_budget == 0:
-            return False
-        silent = time.monotonic() - self._last_valid_command_wall
-        if silent < self.command_timeout_s:
-            return False
-        self._timed_out = True
-        self.get_logger().warning(f"no valid command for {silent:.3f} s (timeout {self.command_timeout_s} s): "
-                                  f"applying safe_voltage {self.settings.safe_voltage} V")
-        self._write(self.settings.safe_voltage)
-        return True
-
-    def _realtime_tick(self) -> None:
-        if self.fault is not None:
-            self._while_in_fault()
-            return
-        if self.lifecycle_state != ACTIVE:   # inactive: the backend drained, nothing published
-            if self._opened:
-                try:
-                    self.backend.read_samples()
-                except Exception:   # checked again once active
-                    pass
-            return
-        self._check_watchdog()
-        rows = self._read()
-        if rows is None or not self._sound(rows):
-            return
-        self._publish(rows)
-
-    # ------------------------------------------------------------------ faults
-    def _write(self, v: float) -> bool:
-        """Write ``v`` [V] to the backend; a write that raises is retried once at once (a glitch: said and counted),
-        a second failure latches the fault (False)."""
-        try:
-            self.backend.write_voltage(v)
-            return True
-        except Exception as first:  # a backend's failure, whatever its type
-            try:
-                self.backend.write_voltage(v)
-            except Exception as exc:  # the fault names it
-                self._enter_fault("write_failed", f"write_voltage({v:.4g} V) raised {exc!r} twice in a row")
-                return False
-            self._glitch(f"write_voltage({v:.4g} V)", first)
-            return True
-
-    def _read(self) -> Optional[np.ndarray]:
-        """The backend's new rows; a read that raises is retried once at once (a glitch: said and counted), a second
-        failure latches the fault (None)."""
-        try:
-            return self.backend.read_samples()
-        except Exception as first:
-            try:
-                rows = self.backend.read_samples()
-            except Exception as exc:
-                self._enter_fault("read_failed", f"read_samples raised {exc!r} twice in a row")
-                return None
-            self._glitch("read_samples", first)
-            return rows
-
-    def _glitch(self, what: str, exc: BaseException) -> None:
-        """A backend call that raised and succeeded when retried at once: counted (``/diagnostics`` gives the last
-        minute's and the total, WARN while there are any in the last minute) and said at WARN, at most once a second
-        (with the count since the last line): a DAQ that glitches every few seconds must not look healthy."""
-        now = time.monotonic()
-        self.glitches += 1
-        self._glitch_times.append(now)
-        self._unsaid_glitches += 1
-        if self._say_glitch.due():
-            more = f" ({self._unsaid_glitches} since the last line)" if self._unsaid_glitches > 1 else ""
-            self.get_logger().warning(f"DAQ glitch: {what} raised {exc!r}, retried at once and done{more}; "
-                                      f"{self._glitches_in_last_minute(now)} in the last minute, {self.glitches} in all "
-                                      f"(two in a row latch a fault)")
-            self._unsaid_glitches = 0
-
-    def _glitches_in_last_minute(self, now: float) -> int:
-        while self._glitch_times and self._glitch_times[0] < now - GLITCH_WINDOW_S:
-            self._glitch_times.popleft()
-        return len(self._glitch_times)
-
-    def _sound(self, rows: np.ndarray) -> bool:
-        """Whether a read's rows may be published: finite, plausible, not frozen; samples arriving at all on the
-        real-time clock.  Otherwise the fault is latched."""
-        now = time.monotonic()
-        if rows.shape[0] == 0:
-            silent = now - self._last_rows_wall
-            if self.settings.clock == "realtime" and self.periods and silent >= self.settings.missing_samples_s:
-                self._enter_fault("no_samples", f"no samples from the backend for {silent:.2f} s")
-            return False
-        self._last_rows_wall = now
-        problem = self._sample_check.check(rows)
-        if problem is not None:
-            self._enter_fault(*problem)
-            return False
-        return True
-
-    def _enter_fault(self, kind: str, detail: str) -> None:
-        """Latch a fault (a further one while latched is counted): safe voltage, ERROR, hardware_state."""
-        if self.fault is not None:
-            self.fault = Fault(self.fault.kind, self.fault.detail, self.fault.first_at_s, self.fault.count + 1)
-            return
-        self.fault = Fault(kind, detail, time.monotonic())
-        self._flush_samples()
-        self._safe_written = self._try_safe_voltage()
-        held = (f"safe voltage {self.settings.safe_voltage} V applied" if self._safe_written else
-                f"the safe voltage {self.settings.safe_voltage} V could NOT be written: retrying every period")
-        self.get_logger().error(f"fault {kind}: {detail}; {held}; commands refused until ~/reset")
-        self.state_pub.publish(String(data=f"fault: {kind}: {detail}"))
-        if self.lifecycle_state == ACTIVE:   # a latched fault leaves active (~/reset returns to it)
-            self._deactivated_by_fault = True
-            self.trigger_deactivate()
-        if hasattr(self, "diagnostics"):
-            self.diagnostics.publish()
-
-    def _try_safe_voltage(self) -> bool:
-        try:
-            self.backend.write_voltage(self.settings.safe_voltage)
-            return True
-        except Exception:
-            return False
-
-    def _retry_safe_voltage(self) -> None:
-        if not self._safe_written and self._try_safe_voltage():
-            self._safe_written = True
-            self.get_logger().error(f"in fault {self.fault.kind}: safe voltage {self.settings.safe_voltage} V applied at last")
-
-    def _while_in_fault(self) -> None:
-        """Each period in fault: the safe voltage again until a write succeeds; the backend drained."""
-        self._retry_safe_voltage()
-        try:
-            self.backend.read_samples()
-        except Exception:
-            pass
+        self.loop.accept_command(msg.data)
 
     def _on_reset(self, request, response):
-        """~/reset: leave the fault once the backend writes the safe voltage and reads sound samples again."""
-        if self.fault is None:
-            response.success, response.message = True, "no fault"
+        """~/reset: leave the fault once the backend writes the safe voltage and reads sound samples again; back to
+        active where the fault left it."""
+        had = self.loop.fault
+        response.success, response.message = self.loop.reset()
+        if had is None:
             return response
-        fault = self.fault
-        try:
-            self.backend.write_voltage(self.settings.safe_voltage)
-            rows = self.backend.read_samples() if self.settings.clock == "realtime" else np.zeros((0, 3))
-        except Exception as exc:
-            response.success = False
-            response.message = f"fault {fault.kind} kept: the backend still fails ({exc!r})"
+        if not response.success:
             self.get_logger().error(f"~/reset refused: {response.message}")
             return response
-        problem = SampleCheck(self.settings.fault_limits).check(rows)
-        if problem is not None:
-            response.success = False
-            response.message = f"fault {fault.kind} kept: {problem[0]}: {problem[1]}"
-            self.get_logger().error(f"~/reset refused: {response.message}")
-            return response
-        self.fault, self._safe_written = None, True
-        self._sample_check.reset()
-        now = time.monotonic()
-        self._last_rows_wall = now
-        self._armed, self._timed_out = False, False   # at the safe voltage until the next valid command
-        self._last_valid_command_wall = now
         if self._deactivated_by_fault and self.lifecycle_state == INACTIVE:   # back to where the fault left it
             self._deactivated_by_fault = False
             self.trigger_activate()
         else:
             self._publish_state()
-        response.success = True
-        response.message = (f"fault {fault.kind} cleared ({fault.count} occurrence(s)); safe voltage applied, "
-                            f"commands accepted" + ("" if rows.shape[0] else
-                                                    "; no samples to check yet: the next period's are checked "
-                                                    "as every period's"))
         self.get_logger().info(f"~/reset: {response.message}")
         return response
 
@@ -771,24 +501,25 @@ class ValveHardwareNode(LifecycleNode):
         return bool(self.position_pub.get_subscription_count() and self._command_sub.get_publisher_count())
 
     def _lockstep_idle(self) -> None:
-        if self.fault is not None:   # no period runs and nothing is said again until ~/reset
-            self._retry_safe_voltage()
+        loop = self.loop
+        if loop.fault is not None:   # no period runs and nothing is said again until ~/reset
+            loop.retry_safe_voltage()
             return
         if self.lifecycle_state != ACTIVE:
             return
-        if self.periods == 0:
+        if loop.periods == 0:
             self._publish_first_sample_when_settled()
-        elif self.step_budget != 0 and self._check_watchdog():
-            self._advance_and_publish()  # the safe voltage is applied for one period
-            self._flush_samples()
-        elif (not self._command_since_publish and self._held_command is None
-              and time.monotonic() - self._last_publish_wall > UNANSWERED_REPEAT_S
+        elif loop.step_budget != 0 and loop.check_watchdog():
+            loop.advance_and_publish()  # the safe voltage is applied for one period
+            loop.flush_samples()
+        elif (not loop.command_since_publish and loop.held_command is None
+              and time.monotonic() - loop.last_publish_wall > UNANSWERED_REPEAT_S
               and self._commander_matched()):
             # nobody answered the last position (e.g. the controller restarted): say it again, once a
             # commander's writer is matched on our side too (DDS matches each side on its own; an answer
             # sent before our reader knows its writer is dropped, and a repeat would be answered twice)
-            self._last_publish_wall = time.monotonic()
-            self.position_pub.publish(Float64(data=self._last_position_m))
+            loop.last_publish_wall = time.monotonic()
+            self.position_pub.publish(Float64(data=loop.last_position_m))
 
     def _publish_first_sample_when_settled(self) -> None:
         """y_0 goes out once a commander is matched both ways and has stayed so for FIRST_SAMPLE_SETTLE_S:
@@ -802,7 +533,7 @@ class ValveHardwareNode(LifecycleNode):
         if self._matched_since is None:
             self._matched_since = now
         elif now - self._matched_since >= FIRST_SAMPLE_SETTLE_S:
-            self._advance_and_publish()
+            self.loop.advance_and_publish()
 
     # ------------------------------------------------------------------ parameters
     def _step_budget(self, value) -> int:
@@ -824,7 +555,7 @@ class ValveHardwareNode(LifecycleNode):
 
     def _on_parameters(self, params) -> SetParametersResult:
         """Validate the whole update first, then apply all of it (or nothing)."""
-        budget, timeout = self.step_budget, self.command_timeout_s
+        budget, timeout = self.loop.step_budget, self.loop.command_timeout_s
         try:
             for prm in params:
                 if prm.name == "lockstep.step_budget":
@@ -835,24 +566,12 @@ class ValveHardwareNode(LifecycleNode):
                     raise ValueError(f"{prm.name} cannot be changed at run time (restart the node)")
         except ValueError as exc:
             return refuse(self, str(exc))
-        self.command_timeout_s = timeout
-        if budget != self.step_budget:
-            if budget == -1:                       # free-running <-> paced (a pacer's grants are not logged)
-                self.get_logger().info("lockstep: free-running")
-            elif self.step_budget == -1:
-                self.get_logger().info(f"lockstep: paced, {budget} period(s) granted" if budget else "lockstep: paused")
-            self.step_budget = budget
-            if budget == 0:
-                self._flush_samples()  # paused: everything so far goes out
-            else:
-                self._last_valid_command_wall = time.monotonic()
-                if self._held_command is not None:
-                    v, self._held_command = self._held_command, None
-                    self._apply_lockstep(v)
+        self.loop.command_timeout_s = timeout
+        self.loop.set_step_budget(budget)
         return SetParametersResult(successful=True)
 
     def _loop_line(self) -> str:
-        summary = self.loop_timing.summary()
+        summary = self.loop.loop_timing.summary()
         return summary.lockstep_line() if self.settings.clock == "lockstep" else f"loop: {summary.line()}"
 
     # ------------------------------------------------------------------ shutdown
@@ -863,14 +582,16 @@ class ValveHardwareNode(LifecycleNode):
         self._closed = True
         for timer in self._timers:
             timer.cancel()
-        self.lifecycle_state = UNCONFIGURED
-        if not self._opened:   # never configured (or cleaned up): nothing to make safe
+        self._set_state(UNCONFIGURED)
+        loop = self.loop
+        loop.active = False
+        if not loop.opened:   # never configured (or cleaned up): nothing to make safe
             return
-        self._opened = False
-        written = self._try_safe_voltage()
+        loop.opened = False
+        written = loop.try_safe_voltage()
         try:
             if self.context.ok():  # after a signal the publishers are gone with the context
-                self._flush_samples()
+                loop.flush_samples()
         finally:
             try:
                 self.backend.close()

@@ -7,7 +7,8 @@ from .parameters import (MAX_CONTROL_PERIOD_S, declare, CONTROL_PERIOD, realtime
                          given_parameter_names, nearest_parameter, undeclared_parameters, named_with_nearest,
                          refuse_undeclared)
 from .messages import (DIAGNOSTICS_LEVELS, Diagnostics, samples_message, SamplesBuffer, samples_from_message)
-from .spin import (tighten_timer_slack, make_executor, Pacing, Throttle, claim_pacing, RANK_THREADS_S, spin_loop,
+from ..runtime.throttle import Throttle
+from .spin import (tighten_timer_slack, make_executor, Pacing, claim_pacing, RANK_THREADS_S, spin_loop,
                    SHUTDOWN_DEADLINE_S, init_ros, stop_requested, split_ros_args, close, spin, wants_help,
                    print_help, start_node_process, run_node)
 

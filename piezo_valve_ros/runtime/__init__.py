@@ -1,7 +1,8 @@
 """How the package's processes run: the real-time settings a loop asks the operating system for (``realtime``),
 the loop's timing as the hardware sees it (``loop_timing``), the middleware setting for acknowledged references
-(``dds``), child processes that die with their parent (``processes``) and the allocator's settings for processes
-that analyse records (``memory``).  No ROS import."""
+(``dds``), child processes that die with their parent (``processes``), the allocator's settings for processes
+that analyse records (``memory``), and the hardware's loop over a backend (``hardware_loop``: read, check, write, the
+watchdog, the fault latch, the batch, the pacing).  No ROS import."""
 from __future__ import annotations
 
 from ..core import lazy_exports
@@ -14,4 +15,7 @@ __all__, __getattr__ = lazy_exports(__name__, {
     "ProcessGroup": "processes",
     "node_command": "processes",
     "keep_freed_memory": "memory",
+    "Throttle": "throttle",
+    "HardwareLoop": "hardware_loop",
+    "LoopSettings": "hardware_loop",
 })
