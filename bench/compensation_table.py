@@ -17,8 +17,8 @@ import sys
 import time
 
 from evaluation import SIMULATED_EFFECTS, compare_compensations
-from piezo_valve_ros.core.sim.simulator import ValveSimConfig
-from piezo_valve_ros.core.control.strategies import ControllerConfig, PIDGains, gain_set
+from piezo_valve_ros.core.sim import ValveSimConfig
+from piezo_valve_ros.core.control import ControllerConfig, PIDGains, gain_set
 
 
 def main(argv=None) -> int:

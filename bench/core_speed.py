@@ -13,15 +13,15 @@ import time
 
 import numpy as np
 
-from piezo_valve_ros.core.control.compensation import CompensationModel
-from piezo_valve_ros.core.control.terms.backlash import BacklashModel
+from piezo_valve_ros.core.control import CompensationModel
+from piezo_valve_ros.core.control import BacklashModel
 from piezo_valve_ros.core.model import hysteresis, iir
-from piezo_valve_ros.core.model.hysteresis import GPIM, PAPER_GPIM
-from piezo_valve_ros.core.model.rate_dependence import hysteresis_inverse, hysteresis_stream
-from piezo_valve_ros.core.sim.signals import training_voltage
-from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.control.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController
-from piezo_valve_ros.core.identification.residual import CAPACITY_EXTENSION
+from piezo_valve_ros.core.model import GPIM, PAPER_GPIM
+from piezo_valve_ros.core.model import hysteresis_inverse, hysteresis_stream
+from piezo_valve_ros.core.sim import training_voltage
+from piezo_valve_ros.core.sim import SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control import STRATEGIES, ControllerConfig, PIDGains, ValveController
+from piezo_valve_ros.core.identification import CAPACITY_EXTENSION
 
 from harness import Lines, busy_loops
 

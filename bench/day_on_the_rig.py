@@ -33,15 +33,14 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "test"))
 
 from valve_battery import staircase_and_sines_um  # noqa: E402  (test helpers: the operating reference)
-from piezo_valve_ros.core.control.compensation import CompensationModel  # noqa: E402
-from piezo_valve_ros.core.control.strategies import (STRATEGIES, ControllerConfig, PIDGains,  # noqa: E402
-                                                     ValveController)
-from piezo_valve_ros.core.monitoring.health import HealthLimits, HealthMonitor, Level  # noqa: E402
-from piezo_valve_ros.core.monitoring.refits import PUSH_COLUMNS, UNDO, RefitPolicy, push_row  # noqa: E402
-from piezo_valve_ros.core.sim.experiments import run_closed_loop  # noqa: E402
-from piezo_valve_ros.core.sim.simulator import DriftParams, SensorParams, SimulatedValve, ValveSimConfig  # noqa: E402
+from piezo_valve_ros.core.control import CompensationModel  # noqa: E402
+from piezo_valve_ros.core.control import STRATEGIES, ControllerConfig, PIDGains, ValveController
+from piezo_valve_ros.core.monitoring import HealthLimits, HealthMonitor, Level  # noqa: E402
+from piezo_valve_ros.core.monitoring import PUSH_COLUMNS, UNDO, RefitPolicy, push_row  # noqa: E402
+from piezo_valve_ros.core.sim import run_closed_loop  # noqa: E402
+from piezo_valve_ros.core.sim import DriftParams, SensorParams, SimulatedValve, ValveSimConfig  # noqa: E402
 from piezo_valve_ros.identify import identify_bags  # noqa: E402
-from piezo_valve_ros.io.bags import SAMPLES_TYPE, BagRecorder, qos_profile, serialize_samples  # noqa: E402
+from piezo_valve_ros.io import SAMPLES_TYPE, BagRecorder, qos_profile, serialize_samples  # noqa: E402
 
 DT = 1e-3
 CHUNK_S = 5.0                  # the loop runs this long between the monitor's looks (its step)

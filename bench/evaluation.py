@@ -13,18 +13,18 @@ from typing import TYPE_CHECKING, Callable, Optional, Sequence
 
 import numpy as np
 
-from piezo_valve_ros.core.control.compensation import CompensationModel
-from piezo_valve_ros.core.control.forward import ModelValve
-from piezo_valve_ros.core.sim.experiments import responses, run_closed_loop, simulate_rows
-from piezo_valve_ros.core.metrics import ErrorFigures, error_figures
-from piezo_valve_ros.core.identification.records import Record
-from piezo_valve_ros.core.sim.signals import rig_training_voltage, validation_reference_m, validation_voltage
-from piezo_valve_ros.core.sim.simulator import CreepParams, RateDependenceParams, SaturationParams, SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.control.strategies import ControllerConfig, PIDGains, ValveController
-from piezo_valve_ros.core.model.dynamics import PAPER_SECTION, unity_dc_poles
+from piezo_valve_ros.core.control import CompensationModel
+from piezo_valve_ros.core.control import ModelValve
+from piezo_valve_ros.core.sim import responses, run_closed_loop, simulate_rows
+from piezo_valve_ros.core import ErrorFigures, error_figures
+from piezo_valve_ros.core.identification import Record
+from piezo_valve_ros.core.sim import rig_training_voltage, validation_reference_m, validation_voltage
+from piezo_valve_ros.core.sim import CreepParams, RateDependenceParams, SaturationParams, SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control import ControllerConfig, PIDGains, ValveController
+from piezo_valve_ros.core.model import PAPER_SECTION, unity_dc_poles
 
 if TYPE_CHECKING:
-    from piezo_valve_ros.core.tuning.tuner import LoopMargins, StepScore, TuningResult
+    from piezo_valve_ros.core.tuning import LoopMargins, StepScore, TuningResult
 
 __all__ = ["SIMULATED_EFFECTS", "SETTLE_S", "simulated_analysis", "Tracking", "tracking_test", "model_tracking_test",
            "CompensationResult",
@@ -53,7 +53,7 @@ SIMULATED_EFFECTS: dict[str, Callable[[ValveSimConfig], ValveSimConfig]] = {
 def simulated_analysis(sim_config: ValveSimConfig, training_s: float = 30.0, log: Callable[[str], None] = print):
     """The residual loop on a training record (the identification node's experiment) and a validation record
     (``signals.validation_voltage``, another noise seed) of the simulated valve; returns the Analysis."""
-    from piezo_valve_ros.core.identification.residual import analyse  # the residual loop is heavy to import; the rest of this module is not
+    from piezo_valve_ros.core.identification import (analyse)  # the residual loop is heavy to import; the rest of this module is not
     dt = sim_config.dt
     train = Record.from_rows(simulate_rows(rig_training_voltage(dt, training_s), sim_config))
     validate = Record.from_rows(simulate_rows(validation_voltage(dt), replace(sim_config, seed=VALIDATION_SEED)))
@@ -137,12 +137,12 @@ def compare_compensations(sim_config: ValveSimConfig, strategies: dict[str, Cont
     controller can invert, dynamic feedforward on).  ``tuned``: strategies whose gains are also chosen by the
     tuner on the extended model (``tuning.tune``, default limits), as the identification's ``tune`` step
     would; they run with both models under the label ``"<STRATEGY> tuned"``."""
-    from piezo_valve_ros.core.identification.to_controller import baseline_compensation, compensation
+    from piezo_valve_ros.core.identification import baseline_compensation, compensation
     analysis = simulated_analysis(sim_config, log=log)
     extended = compensation(analysis)
     models = {"baseline": baseline_compensation(analysis).controller_model, "extended": extended.controller_model}
     if tuned:
-        from piezo_valve_ros.core.tuning.tuner import tune
+        from piezo_valve_ros.core.tuning import tune
         strategies = dict(strategies)
         for strategy in tuned:
             gains = tune(strategy, extended.controller_model, sim_config.dt, log=log).gains
@@ -170,7 +170,7 @@ class TuningComparison:
     def outside_limits(self, name: str) -> Optional[str]:
         """Why set ``name`` is outside the tuner's limits on the model (margins, the overshoot limit with G_v
         slower and faster; the nominal run is the valve's here), None when it is within them."""
-        from piezo_valve_ros.core.tuning.tuner import outside_limits
+        from piezo_valve_ros.core.tuning import outside_limits
         return outside_limits(self.margins[name], self.robust_overshoot_pct[name], self.result.limits)
 
     def best_table1(self, max_overshoot_pct: float) -> Optional[str]:
@@ -204,8 +204,8 @@ def compare_tuning(strategy: str, sim_config: ValveSimConfig, model: Compensatio
                    log: Callable[[str], None] = print, **tune_kwargs) -> TuningComparison:
     """Tune ``strategy`` on ``model`` (what identification found, the controller running on it) at the valve's
     period, then run the paper's steps on the simulated valve with the tuned gains and each Table 1 set."""
-    from piezo_valve_ros.core.control.strategies import TABLE1_GAINS
-    from piezo_valve_ros.core.tuning.tuner import dynamics_variants, loop_margins, robust_overshoot_pct, step_score, tune
+    from piezo_valve_ros.core.control import TABLE1_GAINS
+    from piezo_valve_ros.core.tuning import dynamics_variants, loop_margins, robust_overshoot_pct, step_score, tune
     dt, v0 = sim_config.dt, sim_config.initial_voltage_v
     result = tune(strategy, model, dt, log=log, **tune_kwargs)
     sets = {"tuned": result.gains, **{n: g for n, (s, g) in TABLE1_GAINS.items() if s == strategy}}

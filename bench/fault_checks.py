@@ -23,8 +23,8 @@ sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.join(HERE, "..", "test"))
 
 from monitor_health import operation  # noqa: E402  (the operating run)
-from piezo_valve_ros.core.sim.simulator import SensorParams, ValveSimConfig  # noqa: E402
-from piezo_valve_ros.backends.faults import FaultLimits, SampleCheck  # noqa: E402
+from piezo_valve_ros.core.sim import SensorParams, ValveSimConfig  # noqa: E402
+from piezo_valve_ros.backends import FaultLimits, SampleCheck  # noqa: E402
 
 DT = 1e-3
 

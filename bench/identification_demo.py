@@ -18,10 +18,10 @@ import tempfile
 from dataclasses import replace
 
 from piezo_valve_ros.cli import identify as identify_cli
-from piezo_valve_ros.io.bags import write_samples_bag
-from piezo_valve_ros.core.sim.experiments import simulate_rows
-from piezo_valve_ros.core.sim.signals import identification_voltage, validation_voltage
-from piezo_valve_ros.core.sim.simulator import ValveSimConfig
+from piezo_valve_ros.io import write_samples_bag
+from piezo_valve_ros.core.sim import simulate_rows
+from piezo_valve_ros.core.sim import identification_voltage, validation_voltage
+from piezo_valve_ros.core.sim import ValveSimConfig
 
 REPOSITORY = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 REAL_RECORD = os.path.join(REPOSITORY, "test", "data", "smart_hysteresis", "hysteresis_v_150_1hz_1khz.csv")

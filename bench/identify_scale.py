@@ -28,12 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
-from piezo_valve_ros.io.bags import SAMPLES_TYPE, BagRecorder, qos_profile, serialize_samples
-from piezo_valve_ros.runtime.memory import keep_freed_memory
-from piezo_valve_ros.core.identification.records import MAX_ANALYSED_S
-from piezo_valve_ros.core.sim.signals import identification_voltage
-from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.sim.stages.drift import DriftParams
+from piezo_valve_ros.io import SAMPLES_TYPE, BagRecorder, qos_profile, serialize_samples
+from piezo_valve_ros.runtime import keep_freed_memory
+from piezo_valve_ros.core.identification import MAX_ANALYSED_S
+from piezo_valve_ros.core.sim import identification_voltage
+from piezo_valve_ros.core.sim import SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.sim import DriftParams
 
 from harness import Lines
 

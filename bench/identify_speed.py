@@ -24,15 +24,15 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from piezo_valve_ros.io.bags import read_samples, write_samples_bag
-from piezo_valve_ros.runtime.memory import keep_freed_memory
-from piezo_valve_ros.core.identification.effects import CATALOGUE
-from piezo_valve_ros.core.sim.experiments import simulate_rows
-from piezo_valve_ros.core.identification.fitting import FitCache, fit_model
-from piezo_valve_ros.core.identification.records import Record
-from piezo_valve_ros.core.identification.residual import analyse
-from piezo_valve_ros.core.sim.signals import identification_voltage, validation_voltage
-from piezo_valve_ros.core.sim.simulator import DriftParams, ValveSimConfig
+from piezo_valve_ros.io import read_samples, write_samples_bag
+from piezo_valve_ros.runtime import keep_freed_memory
+from piezo_valve_ros.core.identification import CATALOGUE
+from piezo_valve_ros.core.sim import simulate_rows
+from piezo_valve_ros.core.identification import FitCache, fit_model
+from piezo_valve_ros.core.identification import Record
+from piezo_valve_ros.core.identification import analyse
+from piezo_valve_ros.core.sim import identification_voltage, validation_voltage
+from piezo_valve_ros.core.sim import DriftParams, ValveSimConfig
 from piezo_valve_ros.identify import identify_bags
 from threadpoolctl import threadpool_limits
 
@@ -86,8 +86,8 @@ def users_records():
     import os
     import sys
     import numpy as np
-    from piezo_valve_ros.core.control.strategies import PIDGains
-    from piezo_valve_ros.core.sim.simulator import CreepParams, SensorParams
+    from piezo_valve_ros.core.control import PIDGains
+    from piezo_valve_ros.core.sim import CreepParams, SensorParams
     test_dir = Path(__file__).resolve().parent.parent / "test"
     spec = importlib.util.spec_from_file_location("valve_battery", test_dir / "valve_battery.py")
     vb = importlib.util.module_from_spec(spec)

@@ -15,9 +15,9 @@ from __future__ import annotations
 import argparse
 import numpy as np
 
-from piezo_valve_ros.core.sim.experiments import run_delayed_loop
-from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.control.strategies import ControllerConfig, ValveController, gain_set
+from piezo_valve_ros.core.sim import run_delayed_loop
+from piezo_valve_ros.core.sim import SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control import ControllerConfig, ValveController, gain_set
 
 from harness import Lines
 

@@ -24,11 +24,11 @@ sys.path.insert(0, os.path.join(HERE, "..", "test"))
 
 from valve_battery import staircase_and_sines_um  # noqa: E402  (test helpers: the operating reference)
 from harness import loaded  # noqa: E402
-from piezo_valve_ros.core.control.compensation import CompensationModel  # noqa: E402
-from piezo_valve_ros.core.control.strategies import ControllerConfig, PIDGains, ValveController  # noqa: E402
-from piezo_valve_ros.core.monitoring.health import HealthLimits, HealthMonitor, Level  # noqa: E402
-from piezo_valve_ros.core.sim.experiments import run_closed_loop  # noqa: E402
-from piezo_valve_ros.core.sim.simulator import DriftParams, SensorParams, SimulatedValve, ValveSimConfig  # noqa: E402
+from piezo_valve_ros.core.control import CompensationModel  # noqa: E402
+from piezo_valve_ros.core.control import ControllerConfig, PIDGains, ValveController  # noqa: E402
+from piezo_valve_ros.core.monitoring import HealthLimits, HealthMonitor, Level  # noqa: E402
+from piezo_valve_ros.core.sim import run_closed_loop  # noqa: E402
+from piezo_valve_ros.core.sim import DriftParams, SensorParams, SimulatedValve, ValveSimConfig  # noqa: E402
 
 PID_HC = PIDGains(0.4823, 213.8982, 0.0)
 
@@ -123,7 +123,7 @@ def main() -> int:
     print("\n".join(lines[-len(rows) - 2:]), flush=True)
     os.makedirs(args.out, exist_ok=True)
     try:
-        from piezo_valve_ros.io.plots import require
+        from piezo_valve_ros.io import require
         plt = require()
         fig, (ax, ax2) = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
         t = np.array([h.end_s for h in dhealth]) / 60.0

@@ -10,12 +10,12 @@ import time
 
 import numpy as np
 
-from piezo_valve_ros.core.control.compensation import CompensationModel
+from piezo_valve_ros.core.control import CompensationModel
 from evaluation import simulated_analysis
-from piezo_valve_ros.core.sim.experiments import DEFAULT_SWEEP_HZ, frequency_response, paper_step_tests
-from piezo_valve_ros.core.sim.simulator import ValveSimConfig
-from piezo_valve_ros.core.control.strategies import REGISTRY, TABLE1_GAINS, ControllerConfig, PIDGains, has_feedback
-from piezo_valve_ros.core.tuning.tuner import (OVERSHOOT_LIMIT_PCT, TUNABLE_STRATEGIES, dynamics_variants, loop_margins,
+from piezo_valve_ros.core.sim import DEFAULT_SWEEP_HZ, frequency_response, paper_step_tests
+from piezo_valve_ros.core.sim import ValveSimConfig
+from piezo_valve_ros.core.control import REGISTRY, TABLE1_GAINS, ControllerConfig, PIDGains, has_feedback
+from piezo_valve_ros.core.tuning import (OVERSHOOT_LIMIT_PCT, TUNABLE_STRATEGIES, dynamics_variants, loop_margins,
                                          outside_limits, robust_overshoot_pct, tune, TuningError)
 from piezo_valve_ros.identify import compensation
 

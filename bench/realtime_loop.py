@@ -52,7 +52,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
 
 from piezo_valve_ros.ros import COMMAND_QOS, SENSOR_QOS, claim_pacing, make_executor, spin_loop
-from piezo_valve_ros.runtime.processes import ProcessGroup, node_command
+from piezo_valve_ros.runtime import ProcessGroup, node_command
 from harness import Lines
 from loop_trace import LoopTrace, attribute_misses
 
@@ -225,7 +225,7 @@ def busy_loops_beside(count: int):
 def back_to_normal_scheduling() -> None:
     """Undo what a case's hardware node (in this process) asked for: any CPU, the normal scheduler, no wake-up
     latency request."""
-    from piezo_valve_ros.runtime.realtime import available_cpus, pin, release_cpu_wakeup_latency
+    from piezo_valve_ros.runtime import available_cpus, pin, release_cpu_wakeup_latency
     release_cpu_wakeup_latency()
     for tid in os.listdir("/proc/self/task"):
         try:

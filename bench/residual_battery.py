@@ -22,9 +22,9 @@ import os
 import sys
 import time
 
-from piezo_valve_ros.core.identification.records import Record, read_csv
-from piezo_valve_ros.runtime.memory import keep_freed_memory
-from piezo_valve_ros.core.identification.residual import SEPARATION_SHARE, analyse
+from piezo_valve_ros.core.identification import Record, read_csv
+from piezo_valve_ros.runtime import keep_freed_memory
+from piezo_valve_ros.core.identification import SEPARATION_SHARE, analyse
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 TEST_DIR = os.path.join(HERE, "..", "test")
@@ -127,8 +127,8 @@ def main():
         report = analyse(Record.from_rows(vb.rows_after(vb.NOMINAL, pre, train_v, 11))).report.to_json()
         rows.append(row(f"nominal, driven {name} before the record (held-out last 30 %)", "none", report))
         print(" | ".join(rows[-1]), flush=True)
-    from piezo_valve_ros.core.sim.simulator import CreepParams, SensorParams, ValveSimConfig
-    from piezo_valve_ros.core.control.strategies import PIDGains
+    from piezo_valve_ros.core.sim import CreepParams, SensorParams, ValveSimConfig
+    from piezo_valve_ros.core.control import PIDGains
     plain = replace(ValveSimConfig(dt=1e-3).ideal(), dynamics_enabled=True, sensor=SensorParams())
     creep = replace(plain, creep=CreepParams(True, (0.03, 0.03, 0.03), (0.1, 1.0, 10.0)))
     for valve_name, config, declared in (("nominal", plain, "none"), ("creep", creep, "creep")):

@@ -12,9 +12,9 @@ import argparse
 
 import numpy as np
 
-from piezo_valve_ros.core.metrics import step_metrics
-from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.control.strategies import ControllerConfig, ValveController, gain_set
+from piezo_valve_ros.core import step_metrics
+from piezo_valve_ros.core.sim import SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control import ControllerConfig, ValveController, gain_set
 
 PERIODS_S = (1e-4, 1e-3)
 RAMP_S = 2e-3

@@ -14,8 +14,8 @@ import time
 from dataclasses import replace
 
 from evaluation import SIMULATED_EFFECTS, compare_tuning, simulated_analysis
-from piezo_valve_ros.core.sim.simulator import ValveSimConfig
-from piezo_valve_ros.core.control.strategies import TABLE1_GAINS
+from piezo_valve_ros.core.sim import ValveSimConfig
+from piezo_valve_ros.core.control import TABLE1_GAINS
 from piezo_valve_ros.identify import compensation
 
 CASES = [("default", 1e-3), ("slow dynamics", 1e-3), ("default", 1e-4)]

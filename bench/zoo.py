@@ -24,9 +24,9 @@ import valve_zoo as zoo                                        # noqa: E402  (te
 import valve_battery as battery                                # noqa: E402
 import external_records as external                            # noqa: E402
 from harness import busy_loops                                 # noqa: E402
-from piezo_valve_ros.core.identification.records import Record   # noqa: E402
-from piezo_valve_ros.runtime.memory import keep_freed_memory   # noqa: E402
-from piezo_valve_ros.core.identification.residual import analyse   # noqa: E402
+from piezo_valve_ros.core.identification import Record  # noqa: E402
+from piezo_valve_ros.runtime import keep_freed_memory  # noqa: E402
+from piezo_valve_ros.core.identification import analyse  # noqa: E402
 
 RECORDS = ((1, 1.0), (2, 0.85), (3, 1.0), (4, 0.9), (5, 0.95))   # (seed, training length share) of each record
 EXTERNAL_NOTE = ("## Records others made\n\nOutput of `python bench/zoo.py {command}`: the records in "

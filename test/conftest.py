@@ -12,11 +12,11 @@ import shared  # noqa: E402  (found through the path set just above)
 from ros_helpers import ros_env  # noqa: E402
 
 # the workers analyse records: freed arrays kept for the next ones, as valve_identify keeps them (runtime.memory)
-from piezo_valve_ros.runtime.memory import keep_freed_memory  # noqa: E402
+from piezo_valve_ros.runtime import keep_freed_memory  # noqa: E402
 keep_freed_memory()
 
 # ... and run BLAS on one thread, as the nodes do: its idle workers spin, and the workers share the machine (core.blas)
-from piezo_valve_ros.core.blas import one_blas_thread_for_process  # noqa: E402
+from piezo_valve_ros.core import one_blas_thread_for_process  # noqa: E402
 one_blas_thread_for_process()
 
 # ... and analyse on one thread: the suite's workers fill the cores already, and a second analysis thread then costs
@@ -28,7 +28,7 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 os.environ.update({k: ros_env()[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
 
 # ... and a reference a test publishes is acknowledged within milliseconds, as in valve_command and valve_rig
-from piezo_valve_ros.runtime.dds import use_fast_acknowledgements  # noqa: E402
+from piezo_valve_ros.runtime import use_fast_acknowledgements  # noqa: E402
 use_fast_acknowledgements()
 
 

@@ -8,7 +8,7 @@ from typing import Optional
 
 import numpy as np
 
-from piezo_valve_ros.core.identification.records import Record
+from piezo_valve_ros.core.identification import Record
 
 HERE = Path(__file__).resolve().parent / "data" / "external_records"
 

@@ -38,7 +38,7 @@ DOMAIN_ID = _claim_domain_id()
 def ros_env() -> dict:
     """The environment of a process a test starts: the suite's domain, this machine only; the middleware's
     defaults (the fast-acknowledgement profile of the test process is not passed on: a tool chooses it)."""
-    from piezo_valve_ros.runtime.dds import without_fast_acknowledgements
+    from piezo_valve_ros.runtime import without_fast_acknowledgements
     env = without_fast_acknowledgements(dict(os.environ))
     env["ROS_DOMAIN_ID"] = DOMAIN_ID
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"

@@ -86,6 +86,6 @@ def default_valve_analysis_1khz():
     tuning tests' model and the identification tests' poles come from this one analysis."""
     def compute():
         from evaluation import simulated_analysis
-        from piezo_valve_ros.core.sim.simulator import ValveSimConfig
+        from piezo_valve_ros.core.sim import ValveSimConfig
         return simulated_analysis(ValveSimConfig(dt=1e-3), log=lambda s: None)
     return computed_once("shared.default_valve_analysis_1khz", compute)

@@ -216,7 +216,7 @@ def test_the_steady_state_of_a_filter_is_scipys():
     """dynamics.steady_state (the nodes' lfilter_zi without scipy.signal) gives scipy's answer."""
     import numpy as np
     from scipy.signal import lfilter_zi
-    from piezo_valve_ros.core.model.dynamics import PAPER_VALVE_MODEL, first_order_lag, second_order, steady_state
+    from piezo_valve_ros.core.model import PAPER_VALVE_MODEL, first_order_lag, second_order, steady_state
     filters = [first_order_lag(0.01, 1e-4), PAPER_VALVE_MODEL.discretise(1e-4), PAPER_VALVE_MODEL.discretise(1e-3),
                second_order(2 * np.pi * 60, 0.6).discretise(5e-4)]
     for f in filters:
@@ -228,7 +228,7 @@ def test_the_steady_state_of_a_filter_is_scipys():
 def test_every_typed_error_shares_the_one_base():
     """Each ``...Error`` class the package defines derives from ``core.errors.PiezoValveError`` (besides the
     built-in class it always was), so one ``except`` serves the tools' error handling."""
-    from piezo_valve_ros.core.errors import PiezoValveError
+    from piezo_valve_ros.core import PiezoValveError
     from piezo_valve_ros.cli.tool import run_tool
     errors = {}
     for path in ROOT.rglob("*.py"):
@@ -275,7 +275,7 @@ def test_each_part_of_the_core_exports_its_everyday_names_lazily(part):
 def test_a_parameter_spec_checks_type_range_and_choices_with_one_line_naming_it():
     """ParameterSpec.checked: the value as the default's type, within its range or choices; every refusal is one
     line that names the parameter and the value."""
-    from piezo_valve_ros.core.validation import ParameterSpec
+    from piezo_valve_ros.core import ParameterSpec
     clock = ParameterSpec("clock", "realtime", "", choices=("realtime", "lockstep"))
     assert clock.checked("lockstep") == "lockstep"
     batch = ParameterSpec("samples_batch", 1000, "", low=1)
@@ -302,10 +302,38 @@ def test_identification_hands_the_controller_typed_values_not_parameter_names():
     """The seam between identification and control is typed (``Effect.compensation`` fills ``CompensationModel``
     fields): no controller parameter name is written in the identification's source; they belong to the node's and
     the files' edge (``CompensationModel.to_parameters``/``from_parameters``)."""
-    from piezo_valve_ros.core.control.compensation import MODEL_PARAMETERS
+    from piezo_valve_ros.core.control import MODEL_PARAMETERS
     found = []
     for path in (ROOT / "core" / "identification").rglob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in MODEL_PARAMETERS:
                 found.append(f"{path.relative_to(ROOT)}:{node.lineno}: {node.value!r}")
     assert found == []
+
+
+FACES = ("io", "runtime", "backends", "ros", "rig")   # besides the core's parts and the core itself
+CORE_MODULES = ("metrics", "runs", "validation", "defaults", "blas", "errors")   # the core's own: its face's
+MAX_DEEP_IMPORTS = 30
+
+
+def _deep(module: str) -> bool:
+    """Whether ``from <module> import`` reaches past a face: into a module of the core's parts or of the folders
+    with a face (the nodes and the command-line tools are executables, imported where they are)."""
+    parts = module.split(".")
+    if parts[0] != PACKAGE or len(parts) < 3:
+        return False
+    if parts[1] == "core":
+        return len(parts) > 3 or parts[2] in CORE_MODULES
+    return parts[1] in FACES
+
+
+def test_tests_and_benches_import_through_the_faces():
+    """Tests and benches import what they use from the faces (``piezo_valve_ros.core.identification``, ``...io``),
+    as a user does, so a module can move behind its face without touching them; at most MAX_DEEP_IMPORTS reach past
+    one (private helpers a test pins down)."""
+    deep = []
+    for path in sorted(list((ROOT.parent / "test").glob("*.py")) + list((ROOT.parent / "bench").glob("*.py"))):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module and _deep(node.module):
+                deep.append(f"{path.name}:{node.lineno} {node.module}")
+    assert len(deep) <= MAX_DEEP_IMPORTS, "\n".join(deep)

@@ -7,16 +7,16 @@ import pytest
 
 from shared import computed_once
 
-from piezo_valve_ros.core.control.compensation import CompensationModel
-from piezo_valve_ros.core.control.forward import ModelValve
-from piezo_valve_ros.core.control.strategies import ControllerConfig, PIDGains, ValveController
-from piezo_valve_ros.core.control.terms.backlash import BacklashModel, PlayInverse
-from piezo_valve_ros.core.identification.records import Record
-from piezo_valve_ros.core.identification.residual import analyse
-from piezo_valve_ros.core.model.hysteresis import output_play
-from piezo_valve_ros.core.sim.experiments import run_closed_loop, simulate_rows
-from piezo_valve_ros.core.sim.signals import identification_voltage, validation_voltage
-from piezo_valve_ros.core.sim.simulator import BacklashParams, SensorParams, SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control import CompensationModel
+from piezo_valve_ros.core.control import ModelValve
+from piezo_valve_ros.core.control import ControllerConfig, PIDGains, ValveController
+from piezo_valve_ros.core.control import BacklashModel, PlayInverse
+from piezo_valve_ros.core.identification import Record
+from piezo_valve_ros.core.identification import analyse
+from piezo_valve_ros.core.model import output_play
+from piezo_valve_ros.core.sim import run_closed_loop, simulate_rows
+from piezo_valve_ros.core.sim import identification_voltage, validation_voltage
+from piezo_valve_ros.core.sim import BacklashParams, SensorParams, SimulatedValve, ValveSimConfig
 
 DT = 1e-3       # 1 kHz: G_v resolved, half the samples of the battery's 2 kHz
 WIDTH_UM = 1.5

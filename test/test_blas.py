@@ -11,7 +11,7 @@ import pytest
 
 from ros_helpers import ros_env
 
-from piezo_valve_ros.core.blas import THREAD_VARIABLES
+from piezo_valve_ros.core import THREAD_VARIABLES
 
 # prints the BLAS libraries' thread counts, e.g. {"numpy": 2, "scipy": 2} (by the wheel that bundles each)
 REPORT = ("def threads():\n"

@@ -5,15 +5,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from piezo_valve_ros.core.control.compensation import (MODEL_PARAMETERS, CompensationModel, CreepModel, DynamicFeedforward,
-                                               StaticInverse)
-from piezo_valve_ros.core.model.dynamics import PAPER_VALVE_MODEL, ContinuousTF, first_order_lag
-from piezo_valve_ros.core.model.output_map import TERM_COUNT, OutputMap, term_rows, terms
-from piezo_valve_ros.core.sim.experiments import run_closed_loop
-from piezo_valve_ros.core.model.hysteresis import GPIM, PAPER_GPIM
-from piezo_valve_ros.core.sim.signals import validation_reference_m
-from piezo_valve_ros.core.sim.simulator import SaturationParams, SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.control.strategies import ControllerConfig, PIDGains, ValveController
+from piezo_valve_ros.core.control import (MODEL_PARAMETERS, CompensationModel, CreepModel, DynamicFeedforward,
+                                          StaticInverse)
+from piezo_valve_ros.core.model import PAPER_VALVE_MODEL, ContinuousTF, first_order_lag
+from piezo_valve_ros.core.model import TERM_COUNT, OutputMap, term_rows, terms
+from piezo_valve_ros.core.sim import run_closed_loop
+from piezo_valve_ros.core.model import GPIM, PAPER_GPIM
+from piezo_valve_ros.core.sim import validation_reference_m
+from piezo_valve_ros.core.sim import SaturationParams, SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control import ControllerConfig, PIDGains, ValveController
 
 # a map that flattens both ends of the paper's range (about -68..67 um), as a tanh end stop does
 FLATTENING = OutputMap(0.0, 70.0, (0.0, -6.0, 0.0, 0.0, -3.0, 0.0, 0.0, 3.0))
@@ -25,7 +25,7 @@ def test_each_term_declares_writes_and_reads_its_own_parameters():
     what it wrote, and the controller's model schema is the GPIM's entries and the terms' together; a refused
     parameter of one term is named, the others still read."""
     from dataclasses import fields
-    from piezo_valve_ros.core.control.terms import TERMS
+    from piezo_valve_ros.core.control import TERMS
     model = CompensationModel(PAPER_GPIM.model(), ContinuousTF((4.0e6,), (1.0, 3000.0, 4.0e6)), CREEP, FLATTENING,
                               True, (0.5, 0.0, 1.0, -0.2, 0.0, 0.3, 0.1, 0.0, 0.0), (0.0, 10.0))
     assert {t.field for t in TERMS} == {f.name for f in fields(CompensationModel)} - {"gpim"}
@@ -183,7 +183,7 @@ def test_the_sampled_valve_behind_the_dynamic_feedforward_follows_f_without_over
     does not overshoot; W and F sampled separately (the first design) overshot 8 % at 10 kHz."""
     from scipy.signal import lfilter
 
-    from piezo_valve_ros.core.sim.signals import step_reference_m
+    from piezo_valve_ros.core.sim import step_reference_m
     for dt in (1e-4, 1e-3):
         ff = DynamicFeedforward(PAPER_VALVE_MODEL, dt)
         w, f = ff.filters()
@@ -279,7 +279,7 @@ def test_a_model_is_refused_under_a_command_range_it_was_not_fitted_on():
     """model.fitted_range_v: a model fitted on a +-150 V drive is refused by a 0-10 V controller (its thresholds
     describe another amplifier), a 0-10 V model by a +-150 V controller (commands far beyond its record), each
     with the reason; a range a quarter of the span beyond the fit is taken, and an unknown range is not checked."""
-    from piezo_valve_ros.core.control.compensation import FITTED_RANGE_MARGIN, MIN_FITTED_SPAN_SHARE
+    from piezo_valve_ros.core.control import FITTED_RANGE_MARGIN, MIN_FITTED_SPAN_SHARE
     params = CompensationModel().to_parameters()
     assert params["model.fitted_range_v"] == [0.0, 0.0]            # the paper's model: unknown, not checked
     CompensationModel.from_parameters(params, -150.0, 150.0)

@@ -8,9 +8,9 @@ from external_records import EXTERNAL, MICRO_PEAK_PCT, MICRO_RMS_UM, judged_righ
 from shared import computed_once
 from valve_zoo import CASES
 
-from piezo_valve_ros.core.identification.records import Record, noise_floor_um
-from piezo_valve_ros.core.identification.report import check_report
-from piezo_valve_ros.core.identification.residual import analyse
+from piezo_valve_ros.core.identification import Record, noise_floor_um
+from piezo_valve_ros.core.identification import check_report
+from piezo_valve_ros.core.identification import analyse
 
 MICRO = "micromanipulator (measured, 200 Hz)"
 BROADBAND = "6.4 kHz broadband periodic drive, a second drive nobody recorded"
@@ -94,8 +94,8 @@ def test_a_closed_loop_record_offers_no_evidence_for_its_noise_and_calls_nothing
 
     from valve_battery import closed_loop_rows
 
-    from piezo_valve_ros.core.control.strategies import PIDGains
-    from piezo_valve_ros.core.sim.simulator import SensorParams, ValveSimConfig
+    from piezo_valve_ros.core.control import PIDGains
+    from piezo_valve_ros.core.sim import SensorParams, ValveSimConfig
     config = replace(ValveSimConfig(dt=1e-3).ideal(), dynamics_enabled=True, sensor=SensorParams())
     train, validate = (Record.from_rows(closed_loop_rows(config, "pid_hc", PIDGains(0.4823, 213.8982, 0.0), seed))
                        for seed in (1, 2))

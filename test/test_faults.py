@@ -18,10 +18,10 @@ import rclpy
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64, String
 
-from piezo_valve_ros.backends.kit import FaultInjectingBackend, check_backend
+from piezo_valve_ros.backends import FaultInjectingBackend, check_backend
 from piezo_valve_ros.backends import SimBackend
-from piezo_valve_ros.core.sim.simulator import ValveSimConfig
-from piezo_valve_ros.backends.faults import FaultLimits, SampleCheck
+from piezo_valve_ros.core.sim import ValveSimConfig
+from piezo_valve_ros.backends import FaultLimits, SampleCheck
 from piezo_valve_ros.ros import COMMAND_QOS, SENSOR_QOS, STATE_QOS, make_executor
 from piezo_valve_ros.nodes.controller import ValveControllerNode
 from piezo_valve_ros.nodes.hardware import ValveHardwareNode
@@ -89,9 +89,9 @@ def test_a_noise_free_valve_stepped_again_and_again_never_trips_the_frozen_check
 def test_a_healthy_valve_never_trips_the_checks_even_noise_free_or_at_a_rail():
     """The simulated valve (every effect, and again without noise) through a minute of the paper's training
     signal, steps to both rails and holds: no check trips."""
-    from piezo_valve_ros.core.sim.signals import rig_training_voltage
+    from piezo_valve_ros.core.sim import rig_training_voltage
     from dataclasses import replace
-    from piezo_valve_ros.core.sim.simulator import SensorParams, SimulatedValve
+    from piezo_valve_ros.core.sim import SensorParams, SimulatedValve
     for noise in (True, False):
         config = ValveSimConfig(dt=1e-4, seed=3)
         valve = SimulatedValve(config if noise else replace(config, sensor=SensorParams(noise_enabled=False)))

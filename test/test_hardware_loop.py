@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from piezo_valve_ros.backends import SimBackend
-from piezo_valve_ros.backends.kit import FaultInjectingBackend
-from piezo_valve_ros.core.sim.simulator import ValveSimConfig
+from piezo_valve_ros.backends import FaultInjectingBackend
+from piezo_valve_ros.core.sim import ValveSimConfig
 from piezo_valve_ros.runtime import HardwareLoop, LoopSettings
 
 SAFE_V = 5.0

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from piezo_valve_ros.core.model.hysteresis import (GPIM, GPIMParams, InverseGPIM, NotInvertibleError, PAPER_GPIM,
-                                             PlayOperatorBank, play_batch, inverse_problems)
+from piezo_valve_ros.core.model import (GPIM, GPIMParams, InverseGPIM, NotInvertibleError, PAPER_GPIM,
+                                        PlayOperatorBank, play_batch, inverse_problems)
 
 
 def random_walk(n, seed, step=0.05, centre=5.0):
@@ -171,7 +171,7 @@ def _play_by_definition(lower, upper, r, z0, scale=None):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_play_batch_with_widening_and_scaled_thresholds_matches_the_definition(seed):
-    from piezo_valve_ros.core.model.hysteresis import play_batch
+    from piezo_valve_ros.core.model import play_batch
     rng = np.random.default_rng(seed)
     v = np.cumsum(rng.standard_normal(4000)) * 0.3
     r = np.linspace(0, 3, 7)
@@ -189,7 +189,7 @@ def test_play_batch_with_widening_and_scaled_thresholds_matches_the_definition(s
 def test_last_contact_gives_the_exact_sensitivities():
     """dH/dtheta from the last contacts equals central finite differences, for the descending envelope
     (asymmetry) and for thresholds widened by a rate term (rate dependence)."""
-    from piezo_valve_ros.core.model.hysteresis import last_contact, play_batch
+    from piezo_valve_ros.core.model import last_contact, play_batch
     rng = np.random.default_rng(4)
     v = np.cumsum(rng.standard_normal(5000)) * 0.3
     r = np.linspace(0, 3, 9)
@@ -222,7 +222,7 @@ def test_last_contact_is_the_same_whatever_its_block_size():
     once, the side follows the input's direction), with a descending envelope of its own and with a rate term;
     an operator never touched keeps side 0 and sample -1."""
     from piezo_valve_ros.core.model import hysteresis
-    from piezo_valve_ros.core.model.hysteresis import last_contact, play_batch
+    from piezo_valve_ros.core.model import last_contact, play_batch
     rng = np.random.default_rng(8)
     v = np.cumsum(rng.standard_normal(3000)) * 0.3
     r = np.append(np.linspace(0, 3, 9), 1e6)   # the last operator is never touched
@@ -251,7 +251,7 @@ def test_contact_sensitivity_compiled_gives_the_numpy_paths_bits(n):
     thresholds): compiled, each row's terms formed and summed as numpy forms and sums them (its pairwise sum), so
     the two paths agree to the bit for every operator count (above 128 the numpy path runs), each bound choice and
     one or several columns; and both equal the sum written out, to rounding."""
-    from piezo_valve_ros.core.model.hysteresis import contact_sensitivity, last_contact, play_batch
+    from piezo_valve_ros.core.model import contact_sensitivity, last_contact, play_batch
     rng = np.random.default_rng(n)
     v = np.cumsum(rng.standard_normal(6000)) * 0.3
     r = np.linspace(0, 3, n)
@@ -274,8 +274,8 @@ def test_contact_sensitivity_compiled_gives_the_numpy_paths_bits(n):
 @pytest.mark.parametrize("method, delay", [("zoh", 0.0), ("foh", 0.0), ("foh", 5e-5)])
 def test_closed_form_discretisation_matches_scipy(method, delay):
     from scipy import signal
-    from piezo_valve_ros.core.model.dynamics import ContinuousTF, PAPER_VALVE_MODEL, discretise
-    from piezo_valve_ros.core.model.dynamics import unity_dc_poles
+    from piezo_valve_ros.core.model import ContinuousTF, PAPER_VALVE_MODEL, discretise
+    from piezo_valve_ros.core.model import unity_dc_poles
     x = np.random.default_rng(0).standard_normal(3000).cumsum()
     for tf in (PAPER_VALVE_MODEL, unity_dc_poles([(1095.0, 1.32), (3000.0, 0.2)]), ContinuousTF((1.0,), (0.03, 1.0))):
         num, den = np.asarray(tf.num), np.asarray(tf.den)
@@ -291,8 +291,8 @@ def test_discretisation_of_a_repeated_pole_pair_keeps_unity_dc_gain():
     4-fold pole, which np.roots splits by ~1e-4; partial fractions over it gave a DC gain of 8e6 and a
     controller banging between its rails.  The sampled filter matches scipy's and has unity DC gain."""
     from scipy import signal
-    from piezo_valve_ros.core.control.compensation import DynamicFeedforward
-    from piezo_valve_ros.core.model.dynamics import ContinuousTF, discretise, unity_dc_poles
+    from piezo_valve_ros.core.control import DynamicFeedforward
+    from piezo_valve_ros.core.model import ContinuousTF, discretise, unity_dc_poles
     wf = 1570.8
     quad = ContinuousTF((wf ** 4,), tuple(np.polymul([1.0, 2 * wf, wf * wf], [1.0, 2 * wf, wf * wf])))
     b, a = discretise(quad, 1e-3)
@@ -357,8 +357,8 @@ def test_the_per_step_inverse_never_leaves_the_drive_range_whatever_the_demand()
     """A demand beyond what the model reaches gives the end of the input range, never beyond it: every input the
     per-step inverse returns, by its closed form or its general solve, on every model and from every state, lies in
     0..10 V (the other tests skip samples at the ends)."""
-    from piezo_valve_ros.core.model.hysteresis import MonotoneInverseGPIM, inverse_gpim
-    from piezo_valve_ros.core.model.rate_dependence import RateDependentInverseGPIM
+    from piezo_valve_ros.core.model import MonotoneInverseGPIM, inverse_gpim
+    from piezo_valve_ros.core.model import RateDependentInverseGPIM
     rng = np.random.default_rng(11)
     models = (asymmetric(0.95 / 0.9647, 0.2 - 0.1014), asymmetric(1.06, -0.35, -0.0005))
     for model in models:
@@ -377,7 +377,7 @@ def test_envelopes_that_cross_are_inverted_exactly_step_by_step():
     """Issue 11.2: a descending envelope below the ascending one on part of the range has no closed-form
     inverse (InverseGPIM refuses it, saying where), but the per-step solve inverts it to rounding over long
     random admissible demands, linear and curved, after a reset, a state take-over and a model update."""
-    from piezo_valve_ros.core.model.hysteresis import MonotoneInverseGPIM, dead_band_problems, inverse_gpim
+    from piezo_valve_ros.core.model import MonotoneInverseGPIM, dead_band_problems, inverse_gpim
     crossing = asymmetric(0.95 / 0.9647, 0.2 - 0.1014)      # U < L above 6.7 V
     assert "below the ascending one from 6.7" in dead_band_problems(crossing)[0]
     assert not inverse_problems(crossing)
@@ -417,11 +417,11 @@ def test_ol_hc_with_the_asymmetric_inverse_tracks_an_asymmetric_valve_exactly():
     """The controller's feedforward on an ideal simulated valve (hysteresis only, no G_v) with separate
     envelopes: the exact asymmetric inverse tracks to rounding, the symmetric model does not."""
     from dataclasses import replace
-    from piezo_valve_ros.core.sim.experiments import run_closed_loop
-    from piezo_valve_ros.core.sim.signals import validation_reference_m
-    from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
-    from piezo_valve_ros.core.control.compensation import CompensationModel
-    from piezo_valve_ros.core.control.strategies import ControllerConfig, ValveController
+    from piezo_valve_ros.core.sim import run_closed_loop
+    from piezo_valve_ros.core.sim import validation_reference_m
+    from piezo_valve_ros.core.sim import SimulatedValve, ValveSimConfig
+    from piezo_valve_ros.core.control import CompensationModel
+    from piezo_valve_ros.core.control import ControllerConfig, ValveController
     model = asymmetric()
     sim_config = replace(ValveSimConfig().ideal(), dynamics_enabled=False,
                          descending_envelope=(model.b0, model.b1))
@@ -437,9 +437,9 @@ def test_ol_hc_with_the_asymmetric_inverse_tracks_an_asymmetric_valve_exactly():
 def test_the_turning_points_of_a_path_leave_the_operators_as_the_whole_path_does():
     """``InitialState`` keeps only where an input path turned: the states after it are the same, for a
     symmetric and an asymmetric GPIM."""
-    from piezo_valve_ros.core.model.hysteresis import GPIM
-    from piezo_valve_ros.core.identification.valve_model import InitialState
-    from piezo_valve_ros.core.model.hysteresis import turning_points
+    from piezo_valve_ros.core.model import GPIM
+    from piezo_valve_ros.core.identification import InitialState
+    from piezo_valve_ros.core.model import turning_points
     g = PAPER_GPIM.model()
     asymmetric = GPIM(g.thresholds, g.weights, g.a0, g.a1, g.offset_um, 1.1, 0.3, 0.01)
     rng = np.random.default_rng(3)
@@ -460,7 +460,7 @@ def test_the_turning_points_of_a_path_leave_the_operators_as_the_whole_path_does
 def test_play_bounds_give_every_start_s_states_as_one_clamp():
     """A play bank's states from any start are that start clipped to (L, U) (clamps compose into one), for
     symmetric and for asymmetric drives: what a separate session's unknown start is estimated through."""
-    from piezo_valve_ros.core.model.hysteresis import play_batch, play_bounds
+    from piezo_valve_ros.core.model import play_batch, play_bounds
     rng = np.random.default_rng(3)
     g = PAPER_GPIM.model()
     v = 5.0 + np.cumsum(rng.normal(0.0, 0.05, 4000))

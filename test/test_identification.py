@@ -12,17 +12,17 @@ from valve_battery import (BATTERY, NOMINAL, OUTSIDE, PRE_HISTORIES, rows_after,
                            validation_voltage_)
 
 from piezo_valve_ros.core.identification import residual, search
-from piezo_valve_ros.core.identification.report import check_report
-from piezo_valve_ros.core.sim.experiments import run_closed_loop
-from piezo_valve_ros.core.identification.fitting import fit_paper_gpim
-from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM, inverse_problems
-from piezo_valve_ros.core.identification.records import HELD_OUT_FRACTION, IdentificationError, Record, noise_floor_um, read_csv
-from piezo_valve_ros.core.identification.residual import (CAPACITY_EXTENSION, CAPACITY_OPERATORS, GAIN_THRESHOLD,
-                                           MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE,
-                                           UNEXPLAINED_NOISE_RATIO, analyse)
-from piezo_valve_ros.core.sim.simulator import CreepParams, SensorParams, SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.control.compensation import CompensationModel, CreepModel
-from piezo_valve_ros.core.control.strategies import ControllerConfig, PIDGains, ValveController
+from piezo_valve_ros.core.identification import check_report
+from piezo_valve_ros.core.sim import run_closed_loop
+from piezo_valve_ros.core.identification import fit_paper_gpim
+from piezo_valve_ros.core.model import PAPER_GPIM, inverse_problems
+from piezo_valve_ros.core.identification import HELD_OUT_FRACTION, IdentificationError, Record, noise_floor_um, read_csv
+from piezo_valve_ros.core.identification import (CAPACITY_EXTENSION, CAPACITY_OPERATORS, GAIN_THRESHOLD,
+                                                 MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, UNEXPLAINED_NOISE_RATIO,
+                                                 analyse)
+from piezo_valve_ros.core.sim import CreepParams, SensorParams, SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control import CompensationModel, CreepModel
+from piezo_valve_ros.core.control import ControllerConfig, PIDGains, ValveController
 
 DT = 5e-4
 TRAIN_V, VALID_V = training_voltage(DT), validation_voltage_(DT)
@@ -94,7 +94,7 @@ def test_a_record_that_cannot_separate_two_effects_says_which_and_why():
     assert pair["share"] >= residual.SEPARATION_SHARE
     assert f"{other} cuts the held-out RMS" in pair["why"]
     # the experiment that would tell them apart, from each effect's own description of what shows it
-    from piezo_valve_ros.core.identification.effects import Creep, Drift
+    from piezo_valve_ros.core.identification import Creep, Drift
     assert pair["experiment"].startswith(f"to tell {named} from {other}, record ")
     assert Creep.telling_experiment in pair["experiment"] and Drift.telling_experiment in pair["experiment"]
     assert check_report(report) == []          # the typed schema, its indistinguishable entries too
@@ -106,8 +106,8 @@ def test_the_report_is_a_frozen_typed_tree_whose_json_is_report_json():
     only where they are set."""
     import dataclasses
     import json
-    from piezo_valve_ros.core.identification.report import (ConfirmRound, Decision, ErrorFigures, IdentificationReport,
-                                                            SearchRow)
+    from piezo_valve_ros.core.identification import (ConfirmRound, Decision, ErrorFigures, IdentificationReport,
+                                                     SearchRow)
     report = analysis_of("masking pair: creep + drift").report
     assert isinstance(report, IdentificationReport) and report.effects_added == ("creep", "drift")
     assert isinstance(report.final.validate, ErrorFigures) and report.final.validate.rms_um < report.baseline.validate.rms_um
@@ -267,7 +267,7 @@ def test_held_out_split_is_the_contract_s_last_30_percent():
 def test_the_held_out_part_and_the_fit_part_share_no_sample_at_any_rate(rate_hz):
     """The last 30 % held out of one record: at the record's rate and at the analysis rate (block means), every
     held-out sample comes after every sample the fit sees, and the two parts together are the record."""
-    from piezo_valve_ros.core.identification.split import split_records
+    from piezo_valve_ros.core.identification import split_records
     n = int(round(17.3 * rate_hz)) + 7          # a length no block size divides
     t = np.arange(n) / rate_hz
     v = 5.0 + 4.0 * np.sin(2 * np.pi * 0.7 * t) * np.exp(-t / 20.0)
@@ -341,7 +341,7 @@ def test_no_exact_refit_is_run_where_no_effect_could_be_supported():
     The nominal valve's baseline is at its noise: the exact checks on top are skipped with one line saying so
     (they were six refits, one of them six dynamics forms), and nothing is added."""
     import re
-    from piezo_valve_ros.core.identification.search import room_for_an_effect, support
+    from piezo_valve_ros.core.identification import room_for_an_effect, support
     for without_rms in (0.01, 0.049, 0.0499, 0.05, 0.051, 0.2):
         without = _score(without_rms)
         for with_rms in (0.0, 1e-6, 0.5 * without_rms, without_rms):
@@ -497,9 +497,8 @@ def test_identified_creep_compensation_cuts_the_step_and_hold_error():
     dt = 1e-3
     config = replace(ValveSimConfig(dt=dt).ideal(), dynamics_enabled=True, sensor=SensorParams(),
                      creep=CreepParams(True, (0.03, 0.03, 0.03), (0.1, 1.0, 10.0)))
-    from piezo_valve_ros.core.sim.experiments import simulate_rows
-    from piezo_valve_ros.core.sim.signals import identification_voltage
-    from piezo_valve_ros.core.sim.signals import identification_voltage, validation_voltage
+    from piezo_valve_ros.core.sim import simulate_rows
+    from piezo_valve_ros.core.sim import identification_voltage, validation_voltage
     train = Record.from_rows(simulate_rows(identification_voltage(dt), replace(config, seed=1)))
     validate = Record.from_rows(simulate_rows(validation_voltage(dt), replace(config, seed=2)))
     a = analyse(train, validate)
@@ -584,9 +583,9 @@ def test_the_start_grid_ranks_every_candidate_start_as_one_prediction_each_would
     both families of ``estimate_state`` (rested at e, back from an excursion to e), on a model with asymmetric
     envelopes, thresholds that widen with the rate and a transport delay, each misfit is the one its own
     prediction gives (to rounding), so the grid picks the same starts to refine."""
-    from piezo_valve_ros.core.identification.initial_state import grid_misfits
-    from piezo_valve_ros.core.identification.valve_model import InitialState, ValveModel
-    from piezo_valve_ros.core.metrics import rms
+    from piezo_valve_ros.core.identification import grid_misfits
+    from piezo_valve_ros.core.identification import InitialState, ValveModel
+    from piezo_valve_ros.core import rms
     m = PAPER_GPIM.model()
     gpim = replace(m, **envelopes) if envelopes else m
     model = ValveModel(gpim, rate_widening_v=(0.02, 0.01, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0), delay_s=0.0007)
@@ -828,7 +827,7 @@ def test_the_analysis_threads_come_from_the_environment_or_the_cpus_this_process
     """PIEZO_ANALYSIS_THREADS sets them (the suite's workers, which fill the cores, use one); unset, the CPUs
     of the process' affinity, at most four; anything but a whole number >= 1 is refused with what it was."""
     from piezo_valve_ros.core import defaults
-    from piezo_valve_ros.core.errors import PiezoValveError
+    from piezo_valve_ros.core import PiezoValveError
     assert defaults.available_cpu_count() == len(os.sched_getaffinity(0))
     assert defaults.analysis_threads({}) == min(4, len(os.sched_getaffinity(0)))
     assert defaults.analysis_threads({"PIEZO_ANALYSIS_THREADS": "3"}) == 3
@@ -849,9 +848,9 @@ def test_the_analysis_threads_come_from_the_environment_or_the_cpus_this_process
 
 def test_asymmetry_is_compensated_only_where_the_controller_can_invert_it():
     from types import SimpleNamespace
-    from piezo_valve_ros.core.identification.effects import NotCompensable
-    from piezo_valve_ros.core.identification.effects.asymmetry import Asymmetry
-    from piezo_valve_ros.core.model.hysteresis import GPIM, PAPER_GPIM
+    from piezo_valve_ros.core.identification import NotCompensable
+    from piezo_valve_ros.core.identification import Asymmetry
+    from piezo_valve_ros.core.model import GPIM, PAPER_GPIM
     m = PAPER_GPIM.model()
     effect = Asymmetry()
     above = GPIM(m.thresholds, m.weights, m.a0, m.a1, m.offset_um, m.a0 * 1.03, m.a1 + 0.08, 0.0)
@@ -868,9 +867,9 @@ def test_asymmetry_steps_keep_the_descending_envelope_rising_on_a_record_of_part
     """A record that drove only 5..7 V puts the asymmetry's centre far from 0 V: however far a Gauss-Newton step
     pushes the curvature, the descending envelope it proposes is a valid GPIM that rises from 0 V to the end of
     the range (it once stopped valve_identify with "envelope slope a0 (and b0) must be > 0")."""
-    from piezo_valve_ros.core.identification.effects.asymmetry import MIN_SLOPE_SHARE, Asymmetry
-    from piezo_valve_ros.core.identification.valve_model import ValveModel
-    from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM
+    from piezo_valve_ros.core.identification import MIN_SLOPE_SHARE, Asymmetry
+    from piezo_valve_ros.core.identification import ValveModel
+    from piezo_valve_ros.core.model import PAPER_GPIM
     m = PAPER_GPIM.model()
     effect = Asymmetry(centre_v=6.0, half_span_v=1.0)
     model = ValveModel(m)
@@ -890,8 +889,8 @@ def test_a_descending_shift_alone_is_a_symmetric_loop_on_moved_thresholds(shift_
     symmetric GPIM's on the thresholds ``symmetric_thresholds`` gives (each moved by half the shift, those moved to
     zero or below merged into the zero-threshold one, zero kept) plus an offset, on a random walk over 0..10 V;
     the residual loop's ``revisit_placement`` rests on it."""
-    from piezo_valve_ros.core.identification.effects.asymmetry import Asymmetry
-    from piezo_valve_ros.core.model.hysteresis import GPIM, play_batch
+    from piezo_valve_ros.core.identification import Asymmetry
+    from piezo_valve_ros.core.model import GPIM, play_batch
     rng = np.random.default_rng(7)
     v = np.clip(5.0 + np.cumsum(rng.normal(0.0, 0.2, 6000)), 0.0, 10.0)
     thresholds = np.arange(10) * 0.45
@@ -925,9 +924,9 @@ def test_a_models_bound_sensitivities_match_finite_differences_column_by_column(
     descending envelope, ``widening_sensitivity`` for rate-dependent thresholds), several changes at once, equal
     central finite differences of the hysteresis output with the bounds moved (every threshold above zero: an
     operator of zero threshold has both bounds at once, and any widening changes which one it follows)."""
-    from piezo_valve_ros.core.identification.records import Record
-    from piezo_valve_ros.core.identification.valve_model import ValveModel
-    from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM, play_batch
+    from piezo_valve_ros.core.identification import Record
+    from piezo_valve_ros.core.identification import ValveModel
+    from piezo_valve_ros.core.model import PAPER_GPIM, play_batch
     rng = np.random.default_rng(11)
     t = np.arange(4000) * 1e-3
     v = 5.0 + 4.0 * np.sin(2 * np.pi * 1.3 * t) * np.exp(-0.3 * t) + 0.3 * np.cumsum(rng.standard_normal(t.size)) / 20
@@ -976,9 +975,9 @@ def test_where_the_first_order_search_is_not_trusted_the_effects_are_chosen_by_e
     (a 5 V step in one 1 ms period meets the amplifier's slew limit: a rate effect) removes 28 % of the structured
     residual on top of them, but pays for a tenth of it in the held-out stretches it does worse in: not named (with
     G_v's poles refitted through creep and saturation it removes 4 %)."""
-    from piezo_valve_ros.core.sim.experiments import simulate_rows
-    from piezo_valve_ros.core.sim.signals import identification_voltage
-    from piezo_valve_ros.core.sim.signals import rig_training_voltage
+    from piezo_valve_ros.core.sim import simulate_rows
+    from piezo_valve_ros.core.sim import identification_voltage
+    from piezo_valve_ros.core.sim import rig_training_voltage
     base = ValveSimConfig(dt=1e-4, seed=7)
     config = replace(base, gpim=replace(base.gpim, rho=6.6, tau=1.0, offset_um=-75.0))
     rows = simulate_rows(np.repeat(rig_training_voltage(1e-3, 30.0, 0.25), 10), config)
@@ -1016,8 +1015,9 @@ def test_an_effects_refit_is_settled_not_one_solve_deep():
     single solve from the baseline does not, and on the direction-dependent creep valve its held-out error is
     several times the settled fit's at nearly the same training error: a judgement made on it (the exact
     drop-one check) would turn on how many solves were run, not on the valve."""
-    from piezo_valve_ros.core.identification.effects import CATALOGUE
-    from piezo_valve_ros.core.identification.fitting import SETTLE_TOLERANCE, FitCache, _linear_solve, fit_model
+    from piezo_valve_ros.core.identification import CATALOGUE
+    from piezo_valve_ros.core.identification import SETTLE_TOLERANCE, FitCache, fit_model
+    from piezo_valve_ros.core.identification.fitting import _linear_solve
     a = analysis_of("creep, direction-dependent log kernel")
     fit, base = a.split.fit, a.baseline
     creep = next(e for e in (cls.prepare(fit, base.context(fit).H) for cls in CATALOGUE) if e.name == "creep")
@@ -1044,15 +1044,16 @@ def test_a_settle_that_swings_is_damped_until_it_agrees():
     paper's GPIM and G_v refitted as the baseline): solving again and again from one solve does not settle, each
     solve moves the weights by about their whole norm, back and forth, and further each time; the refit
     (``fitting._settled``) damps the swing and ends where one more solve leaves the weights put."""
-    from piezo_valve_ros.core.control.compensation import CompensationModel
-    from piezo_valve_ros.core.identification.effects import CATALOGUE
-    from piezo_valve_ros.core.identification.fitting import SETTLE_TOLERANCE, FitCache, _linear_solve, fit_model
-    from piezo_valve_ros.core.identification.records import analysis_record
-    from piezo_valve_ros.core.identification.valve_model import ValveModel
-    from piezo_valve_ros.core.model.dynamics import sections
-    from piezo_valve_ros.core.sim.experiments import simulate_rows
-    from piezo_valve_ros.core.sim.signals import identification_voltage
-    from piezo_valve_ros.core.sim.simulator import DriftParams
+    from piezo_valve_ros.core.control import CompensationModel
+    from piezo_valve_ros.core.identification import CATALOGUE
+    from piezo_valve_ros.core.identification import SETTLE_TOLERANCE, FitCache, fit_model
+    from piezo_valve_ros.core.identification.fitting import _linear_solve
+    from piezo_valve_ros.core.identification import analysis_record
+    from piezo_valve_ros.core.identification import ValveModel
+    from piezo_valve_ros.core.model import sections
+    from piezo_valve_ros.core.sim import simulate_rows
+    from piezo_valve_ros.core.sim import identification_voltage
+    from piezo_valve_ros.core.sim import DriftParams
     config = replace(ValveSimConfig(), drift=DriftParams(enabled=True), descending_envelope=(0.95, 0.2), dt=DT, seed=1)
     rows = simulate_rows(identification_voltage(DT, 40.0), config)
     fit = analysis_record(Record(rows[:, 0], rows[:, 1], rows[:, 2] * 1e6))
@@ -1113,7 +1114,7 @@ def test_a_fast_creep_does_not_bend_the_identified_g_v():
 def test_the_bounded_solve_keeps_its_bounds_exactly():
     """Weights bounded at 0 come out >= 0, not -5e-19: a bounded solver may leave such rounding (BVLS did on a
     few of these problems), and a negative weight makes a model with crossing envelopes uninvertible."""
-    from piezo_valve_ros.core.identification.fitting import solve_gram
+    from piezo_valve_ros.core.identification import solve_gram
     for seed in range(200):
         rng = np.random.default_rng(seed)
         A = np.cumsum(rng.normal(size=(400, 30)), axis=0)
@@ -1172,7 +1173,7 @@ def test_the_bounded_solve_is_the_unique_minimiser_with_free_coefficients_and_bo
 def test_a_transport_delay_in_fractional_samples_shifts_the_prediction_by_that_much():
     """discretise_for's delay: whole samples, then the fraction by linear interpolation; a model with delay_s
     predicts its undelayed prediction that much later (a ramp: exactly)."""
-    from piezo_valve_ros.core.model.at_rest import delay_taps
+    from piezo_valve_ros.core.model import delay_taps
     assert list(delay_taps(0.0)) == [1.0, 0.0] and list(delay_taps(2.25)) == [0.0, 0.0, 0.75, 0.25]
     train, _ = records("nominal")
     model = analysis_of("nominal").baseline
@@ -1187,7 +1188,7 @@ def test_a_transport_delay_in_fractional_samples_shifts_the_prediction_by_that_m
 def test_every_catalogue_effect_says_what_it_looks_like_and_what_experiment_shows_it():
     """Each effect's one home carries its residual signature and the excitation that tells it from its
     look-alikes (the report's indistinguishable entries quote them)."""
-    from piezo_valve_ros.core.identification.effects import CATALOGUE
+    from piezo_valve_ros.core.identification import CATALOGUE
     for effect in CATALOGUE:
         assert effect.signature and effect.telling_experiment, effect.name
     assert len({e.telling_experiment for e in CATALOGUE}) == len(CATALOGUE)

@@ -15,13 +15,13 @@ import pytest
 import yaml
 from shared import directory_made_once
 
-from piezo_valve_ros.io.bags import (FLOAT64_TYPE, BagRecorder, qos_profile, read_samples, serialize_float64,
-                                   write_samples_bag)
-from piezo_valve_ros.core.control.compensation import CompensationModel
-from piezo_valve_ros.core.identification.report import check_report
-from piezo_valve_ros.core.sim.experiments import simulate_rows
-from piezo_valve_ros.core.sim.signals import identification_voltage, validation_voltage
-from piezo_valve_ros.core.sim.simulator import ValveSimConfig
+from piezo_valve_ros.io import (FLOAT64_TYPE, BagRecorder, qos_profile, read_samples, serialize_float64,
+                                write_samples_bag)
+from piezo_valve_ros.core.control import CompensationModel
+from piezo_valve_ros.core.identification import check_report
+from piezo_valve_ros.core.sim import simulate_rows
+from piezo_valve_ros.core.sim import identification_voltage, validation_voltage
+from piezo_valve_ros.core.sim import ValveSimConfig
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 
@@ -242,7 +242,7 @@ def test_two_samples_topics_need_a_choice(tmp_path):
     # merge a second namespace into the same bag by writing both topics through one recorder
     rec = BagRecorder(tmp_path / "two", {"/v1/samples": ("std_msgs/msg/Float64MultiArray", qos_profile(True, 100)),
                                          "/v2/samples": ("std_msgs/msg/Float64MultiArray", qos_profile(True, 100))})
-    from piezo_valve_ros.io.bags import serialize_samples
+    from piezo_valve_ros.io import serialize_samples
     rec.write("/v1/samples", 1, serialize_samples(rows[:1000]))
     rec.write("/v2/samples", 2, serialize_samples(rows[:1000]))
     rec.close()
@@ -327,7 +327,7 @@ def test_report_keeps_every_key_earlier_reports_had(identified_10khz):
 
 def _segmented_bag(path, rows, storage, messages_per_segment=5, batch=1000):
     """A recorder's multi-file bag: a new storage file every ``messages_per_segment`` messages."""
-    from piezo_valve_ros.io.bags import SAMPLES_TYPE, serialize_samples
+    from piezo_valve_ros.io import SAMPLES_TYPE, serialize_samples
     clock = [0.0]
     rec = BagRecorder(path, {"/valve1/samples": (SAMPLES_TYPE, qos_profile(True, 100))}, storage,
                       segment_s=float(messages_per_segment), clock=lambda: clock[0])
@@ -368,7 +368,7 @@ def test_a_model_fitted_on_part_of_the_drive_limits_the_commands_to_what_it_know
     """A record over 2..8 V: the parameters file limits the commands to 0.5..9.5 V (a quarter of the fitted span
     beyond it), says so, and the controller and valve_tune accept it; the controller refuses the model for
     0..10 V, naming the range to set.  A record over 0.11 V of the drive is too narrow: a note, no limits."""
-    from piezo_valve_ros.core.control.compensation import command_range_for, fitted_range_problems
+    from piezo_valve_ros.core.control import command_range_for, fitted_range_problems
     assert command_range_for((2.0, 8.0), 0.0, 10.0, 5.0) == (0.5, 9.5)
     assert command_range_for((1.0, 9.0), 0.0, 10.0, 5.0) == (0.0, 10.0)
     assert command_range_for((6.07, 6.18), 0.0, 10.0, 5.0) is None
@@ -389,7 +389,7 @@ def test_a_model_fitted_on_part_of_the_drive_limits_the_commands_to_what_it_know
 
 
 def test_the_offline_monitor_says_why_a_short_record_gives_no_verdict(tmp_path):
-    from piezo_valve_ros.core.control.compensation import CompensationModel as Model
+    from piezo_valve_ros.core.control import CompensationModel as Model
     from piezo_valve_ros.identify import parameters_yaml
     rows = simulate_rows(identification_voltage(5e-4, 5.0)[: int(12 / 5e-4)], ValveSimConfig(dt=5e-4, seed=4))
     write_samples_bag(tmp_path / "short", rows)
@@ -403,8 +403,8 @@ def test_the_offline_monitor_says_why_a_short_record_gives_no_verdict(tmp_path):
 
 
 def test_a_noise_free_record_is_judged_against_its_resolution_not_a_noise_of_1e_minus_14():
-    from piezo_valve_ros.core.identification.records import Record
-    from piezo_valve_ros.core.identification.residual import analyse
+    from piezo_valve_ros.core.identification import Record
+    from piezo_valve_ros.core.identification import analyse
     rows = simulate_rows(identification_voltage(5e-4, 10.0), ValveSimConfig(dt=5e-4, seed=5).ideal())
     report = analyse(Record.from_rows(rows)).report.to_json()
     assert report["noise_floor_um"] == pytest.approx(1e-6 * report["range_um"], rel=1e-3)
@@ -416,7 +416,7 @@ def test_the_written_command_limits_are_rounded_inwards_so_the_tools_accept_them
     """A record over 2.9396..7.009 V puts the quarter-span limit at 1.92225 V: written rounded to 4 decimals it
     must lie inside (1.9223), or valve_tune and the controller refuse the file the tool wrote."""
     from types import SimpleNamespace
-    from piezo_valve_ros.core.control.compensation import fitted_range_problems
+    from piezo_valve_ros.core.control import fitted_range_problems
     from piezo_valve_ros.identify import command_range_note
     for fitted in [(2.9396, 7.009), (2.94, 7.0091), (3.00005, 6.99995), (4.12345, 6.54321)]:
         limits, note = command_range_note(SimpleNamespace(controller_model=SimpleNamespace(fitted_range_v=fitted)))
@@ -442,8 +442,8 @@ def _two_valve_day(path):
 def test_a_window_of_a_long_bag_is_read_alone(tmp_path):
     """read_samples keeps only the rows of the window (from the record's first sample, or on the samples' own
     time axis); a window that holds nothing or is malformed is refused with one line naming the record's extent."""
-    from piezo_valve_ros.io.bags import BagError
-    from piezo_valve_ros.core.runs import TimeWindow
+    from piezo_valve_ros.io import BagError
+    from piezo_valve_ros.core import TimeWindow
     day = _two_valve_day(tmp_path / "day")
     t0 = day[0, 0]
     rows, _ = read_samples(tmp_path / "day", window=TimeWindow(5.0, 8.0))
@@ -497,7 +497,7 @@ def test_valve_identify_and_valve_plot_take_a_window_of_a_long_run(tmp_path):
 def _sine_bag(path, seconds, rate_hz=1000.0, batch=1000):
     """A bag of a 1 Hz sine drive and a position that follows it, written a message at a time (its rows are never
     all in memory here)."""
-    from piezo_valve_ros.io.bags import SAMPLES_TYPE, serialize_samples
+    from piezo_valve_ros.io import SAMPLES_TYPE, serialize_samples
     rec = BagRecorder(path, {"/samples": (SAMPLES_TYPE, qos_profile(True, 100))}, segment_s=float("inf"),
                       clock=lambda: 0.0)
     for k0 in range(0, int(seconds * rate_hz), batch):
@@ -513,7 +513,7 @@ def test_a_long_bag_is_read_no_further_than_the_loop_analyses(tmp_path):
     read takes does not grow with the bag (peak traced allocations for a bag 4x longer within 1.3x, and below the
     longer bag's own rows), and a warning says how long the record runs and what was read."""
     import tracemalloc
-    from piezo_valve_ros.core.identification.records import MAX_ANALYSED_S
+    from piezo_valve_ros.core.identification import MAX_ANALYSED_S
     from piezo_valve_ros.identify import read_record
     peaks, records = [], []
     for seconds in (1.5 * MAX_ANALYSED_S, 6 * MAX_ANALYSED_S):
@@ -535,8 +535,8 @@ def test_a_long_bag_is_read_no_further_than_the_loop_analyses(tmp_path):
 def test_the_loop_analyses_the_first_part_of_a_long_record_and_says_so():
     """analyse on a record longer than MAX_ANALYSED_S: its first MAX_ANALYSED_S, a warning and the report's
     ``analysed`` say so; a shorter record is analysed whole."""
-    from piezo_valve_ros.core.identification.records import MAX_ANALYSED_S, Record
-    from piezo_valve_ros.core.identification.residual import analyse
+    from piezo_valve_ros.core.identification import MAX_ANALYSED_S, Record
+    from piezo_valve_ros.core.identification import analyse
     rows = simulate_rows(identification_voltage(1e-3, 30.0), ValveSimConfig(dt=1e-3, seed=5))
     n = rows.shape[0]
     reps = int(np.ceil(1.6 * MAX_ANALYSED_S / (n * 1e-3)))

@@ -7,8 +7,8 @@ import pytest
 from scipy import signal
 
 from piezo_valve_ros.core.model import iir
-from piezo_valve_ros.core.model.dynamics import lag_bank, steady_state
-from piezo_valve_ros.core.model.at_rest import filter_at_rest, filter_rows_at_rest
+from piezo_valve_ros.core.model import lag_bank, steady_state
+from piezo_valve_ros.core.model import filter_at_rest, filter_rows_at_rest
 
 FILTERS = {
     "first order": ([0.0, 0.3], [1.0, -0.7]),
@@ -139,7 +139,7 @@ def test_filter_columns_gives_the_rows_bits_of_the_transposed_columns(name, k):
     got = iir.filter_columns(b, a, columns, columns[0], zi)
     assert got.shape == (k, 1000)
     assert np.array_equal(got, iir.filter_rows(b, a, np.ascontiguousarray((columns - columns[0]).T), zi))
-    from piezo_valve_ros.core.model.at_rest import filter_state_columns_at_rest
+    from piezo_valve_ros.core.model import filter_state_columns_at_rest
     rest = rng.standard_normal(k)
     for before in ((None, rest) if taps > 1 else ()):   # (a gain has no state to rest in)
         expected = filter_rows_at_rest(b, a, np.ascontiguousarray((columns - columns[0]).T), before)
@@ -171,7 +171,7 @@ def test_a_bank_filtered_in_parts_into_one_array_has_the_whole_banks_bits(name):
     with pytest.raises(ValueError, match="C-contiguous float64 array of shape"):
         iir.filter_rows(b, a, np.ascontiguousarray(others.T), zi[6:], out=np.empty((700, 3)).T)
     from types import SimpleNamespace
-    from piezo_valve_ros.core.identification.valve_model import Context
+    from piezo_valve_ros.core.identification import Context
     ctx = SimpleNamespace(filter=(np.asarray(b, float), np.asarray(a, float)), states=states, record=np.zeros(700))
     rest = rng.standard_normal(9)
     for before in ((None, rest) if taps > 1 else ()):   # (a gain has no state to rest in)

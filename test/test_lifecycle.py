@@ -20,8 +20,8 @@ from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
 from piezo_valve_ros.backends import SimBackend
-from piezo_valve_ros.backends.kit import FaultInjectingBackend
-from piezo_valve_ros.core.sim.simulator import ValveSimConfig
+from piezo_valve_ros.backends import FaultInjectingBackend
+from piezo_valve_ros.core.sim import ValveSimConfig
 from piezo_valve_ros.nodes.hardware import ValveHardwareNode
 from piezo_valve_ros.ros import COMMAND_QOS, SENSOR_QOS, STATE_QOS, make_executor
 

@@ -6,12 +6,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from piezo_valve_ros.core.control.compensation import CompensationModel
-from piezo_valve_ros.core.control.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController
-from piezo_valve_ros.core.monitoring.health import HealthLimits, HealthMonitor, Level
-from piezo_valve_ros.core.model.hysteresis import GPIM
-from piezo_valve_ros.core.sim.experiments import run_closed_loop
-from piezo_valve_ros.core.sim.simulator import DriftParams, SensorParams, SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control import CompensationModel
+from piezo_valve_ros.core.control import STRATEGIES, ControllerConfig, PIDGains, ValveController
+from piezo_valve_ros.core.monitoring import HealthLimits, HealthMonitor, Level
+from piezo_valve_ros.core.model import GPIM
+from piezo_valve_ros.core.sim import run_closed_loop
+from piezo_valve_ros.core.sim import DriftParams, SensorParams, SimulatedValve, ValveSimConfig
 from valve_battery import staircase_and_sines_um
 
 DT = 1e-3
@@ -93,7 +93,7 @@ def test_a_drift_that_sets_in_is_warned_within_ten_seconds_named_and_cleared_by_
     assert after[-1].resembles.startswith("drift: an offset of +1.4") or after[-1].resembles.startswith("drift: an offset of +1.5"), after[-1].resembles
     assert after[-1].residual_mean_um == pytest.approx(1.5, abs=0.1)
     # the push the policy decides on that verdict: the offset moved up by the window's mean residual
-    from piezo_valve_ros.core.monitoring.refits import RefitPolicy
+    from piezo_valve_ros.core.monitoring import RefitPolicy
     decision = RefitPolicy(Level.WARN, window_s=4.0).decide(after[-1], ENABLED, MODEL)
     g = CompensationModel().gpim
     assert decision.offset_after(g.offset_um) == pytest.approx(g.offset_um + after[-1].residual_mean_um)
@@ -120,7 +120,7 @@ def test_a_valve_held_still_is_not_judged():
 def test_the_dominant_turning_points_give_the_same_state_as_the_whole_path_and_stay_few():
     """The monitor's voltage history: the wiping-out property keeps it exact and short (every sample of a
     noisy voltage turns; the extrema that still matter are few), for symmetric and asymmetric envelopes."""
-    from piezo_valve_ros.core.model.hysteresis import dominant_turning_points, turning_points
+    from piezo_valve_ros.core.model import dominant_turning_points, turning_points
     g = CompensationModel().gpim
     asymmetric = GPIM(g.thresholds, g.weights, 1.0, 0.0, g.offset_um, 1.05, 0.3, 0.005)
     rng = np.random.default_rng(1)
@@ -161,7 +161,7 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
     from rclpy.executors import SingleThreadedExecutor
     from std_msgs.msg import Float64MultiArray
     from ros_helpers import ros_env, wait_for_text
-    from piezo_valve_ros.runtime.processes import ProcessGroup
+    from piezo_valve_ros.runtime import ProcessGroup
     bin_dir = os.path.dirname(sys.executable)
     ns = f"/monitor{os.getpid()}"
     params = tmp_path / "rig.yaml"
@@ -230,7 +230,7 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
             refit_at = time.monotonic()
             assert spin_until(lambda: any(lv == b"\x00" for lv, _, _ in levels_since(refit_at)), 90.0), \
                 (levels_since(refit_at)[-3:], (tmp_path / "rig.log").read_text()[-2000:])
-            from piezo_valve_ros.core.control.compensation import MODEL_DEFAULTS
+            from piezo_valve_ros.core.control import MODEL_DEFAULTS
             got = tool("get", "controller", "gpim.offset_um")
             moved = float(got.stdout.split(":")[1]) - MODEL_DEFAULTS["gpim.offset_um"]
             assert 2.5 < moved < 3.2, got.stdout
@@ -240,7 +240,7 @@ def test_the_monitor_node_on_a_running_rig_warns_of_a_drift_names_it_and_clears_
         assert "pushed an offset change of +" in log and "the offset a drift moved" in log, log[-3000:]
         assert ok_before and rows and len(rows[-1]) == 7
         # each push announced on ~/pushes (a labelled row a bag keeps) and on /diagnostics
-        from piezo_valve_ros.core.monitoring.refits import PUSH_COLUMNS
+        from piezo_valve_ros.core.monitoring import PUSH_COLUMNS
         assert pushes and all(label == ",".join(PUSH_COLUMNS) for label, _ in pushes), pushes
         first, last = (dict(zip(PUSH_COLUMNS, pushes[k][1])) for k in (0, -1))
         # the first push may come while the drift still rises (the rest is followed up): an offset, up, at most it
@@ -263,7 +263,7 @@ def test_valve_identify_monitor_judges_a_recorded_day_offline(tmp_path):
     import os
     import subprocess
     import sys
-    from piezo_valve_ros.io.bags import write_samples_bag
+    from piezo_valve_ros.io import write_samples_bag
     from piezo_valve_ros.identify import parameters_yaml
     write_samples_bag(tmp_path / "day", operating_rows(replace(PLAIN, drift=DRIFT), 120.0))
     (tmp_path / "fitted.yaml").write_text(parameters_yaml(CompensationModel().to_parameters(), ["the paper's model"]))
@@ -286,7 +286,7 @@ def test_valve_identify_monitor_judges_a_recorded_day_offline(tmp_path):
 
 
 def _verdict(level: Level, end_s: float, resembles: str = "", mean_um: float = 0.0):
-    from piezo_valve_ros.core.monitoring.health import Health
+    from piezo_valve_ros.core.monitoring import Health
     return Health(level, end_s - 4.0, end_s, abs(mean_um), mean_um, 0.1, 0.05, 2.0, 3.0, 0.0, resembles, 0.3, "")
 
 
@@ -297,8 +297,8 @@ MODEL = CompensationModel()
 def test_a_push_that_leaves_part_of_a_settling_drift_at_warn_is_followed_up_until_ok():
     """refit_when error: an offset at ERROR is pushed; the rest a still-settling drift leaves shows at WARN on the new
     model and is pushed too, once a window, until a verdict is OK; after that a WARN waits for ERROR again."""
-    from piezo_valve_ros.core.monitoring.refits import RefitPolicy
-    from piezo_valve_ros.core.monitoring.health import OFFSET_PREFIX
+    from piezo_valve_ros.core.monitoring import RefitPolicy
+    from piezo_valve_ros.core.monitoring import OFFSET_PREFIX
     policy = RefitPolicy(Level.ERROR, window_s=4.0)
     offset = f"{OFFSET_PREFIX} of +1.000 um the model lacks"
     assert policy.decide(_verdict(Level.WARN, 28.0, offset, 0.5), ENABLED, MODEL) is None     # below refit_when
@@ -313,8 +313,8 @@ def test_a_push_that_leaves_part_of_a_settling_drift_at_warn_is_followed_up_unti
 
 
 def test_a_refit_is_pushed_only_to_an_enabled_controller_without_its_guard_and_anything_else_is_advised_once():
-    from piezo_valve_ros.core.monitoring.refits import RefitPolicy
-    from piezo_valve_ros.core.monitoring.health import OFFSET_PREFIX
+    from piezo_valve_ros.core.monitoring import RefitPolicy
+    from piezo_valve_ros.core.monitoring import OFFSET_PREFIX
     offset = f"{OFFSET_PREFIX} of +1.000 um the model lacks"
     for state, why in (({}, "the controller's state is not known (~/controller_state)"),
                        ({"enabled": 0.0, "guard_active": 0.0}, "the controller is disabled"),
@@ -392,7 +392,7 @@ def test_valve_monitor_reports_every_second_before_and_between_its_verdicts(tmp_
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
     from ros_helpers import ros_env
-    from piezo_valve_ros.runtime.processes import ProcessGroup
+    from piezo_valve_ros.runtime import ProcessGroup
     ns = f"/alone{os.getpid()}"
     context = rclpy.Context()
     rclpy.init(context=context)
@@ -432,7 +432,7 @@ def test_a_gain_change_the_window_determines_is_pushed_checked_on_the_next_windo
     pushed once it takes most of the held-out RMS (the whole model, weights scaled), the rest pushed on a later
     window; each push checked on the next window against the model it replaced (run beside it) and kept; the valve
     is OK again with the pushes' gains adding up to the loss."""
-    from piezo_valve_ros.core.monitoring.refits import GAIN, RefitPolicy
+    from piezo_valve_ros.core.monitoring import GAIN, RefitPolicy
     rows = operating_rows(replace(PLAIN, drift=GAIN_LOSS), 150.0)
     monitor, policy = HealthMonitor(MODEL, DT), RefitPolicy(Level.WARN, window_s=20.0)
     step = int(round(1.0 / DT))
@@ -470,8 +470,8 @@ def test_a_gain_change_the_held_out_part_does_not_support_is_refused_with_the_re
     the first part, a prediction that spans too little of the output range, a gain no drift makes, an offset that
     needs no gain, a gain still changing within the window: each refused, and the policy says why instead of
     pushing."""
-    from piezo_valve_ros.core.monitoring.refits import RefitPolicy
-    from piezo_valve_ros.core.monitoring.health import GAIN_PREFIX, Health
+    from piezo_valve_ros.core.monitoring import RefitPolicy
+    from piezo_valve_ros.core.monitoring import GAIN_PREFIX, Health
     monitor = HealthMonitor(MODEL, DT)
     lo, hi = MODEL.gpim.output_range(*monitor.command_range_v)
     t = np.arange(20000) * DT
@@ -500,7 +500,7 @@ def test_a_push_that_leaves_the_next_window_worse_is_undone_and_a_good_one_kept(
     """A 1 um offset drift: the policy decides its push; applied wrongly (the opposite sign, as a controller that
     took another model would run) the next window is worse than the model it replaced would have left, and the
     policy pushes the replaced model back; the right push is kept."""
-    from piezo_valve_ros.core.monitoring.refits import UNDO, RefitPolicy
+    from piezo_valve_ros.core.monitoring import UNDO, RefitPolicy
     drift = DriftParams(True, offset_um=1.0, gain_change=0.0, time_constant_s=2.0, start_s=20.0)
     rows = operating_rows(replace(PLAIN, drift=drift), 90.0)
     outcomes = {}

@@ -20,7 +20,7 @@ import rclpy
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64, Float64MultiArray
 
-from piezo_valve_ros.core.control.strategies import ControllerConfig, ValveController, gain_set
+from piezo_valve_ros.core.control import ControllerConfig, ValveController, gain_set
 from piezo_valve_ros.ros import COMMAND_QOS, SAMPLES_QOS, make_executor, samples_message
 from piezo_valve_ros.nodes.controller import ValveControllerNode
 from piezo_valve_ros.nodes.hardware import ValveHardwareNode
@@ -258,7 +258,7 @@ def test_controller_refuses_bad_filter_and_rate_widening_at_start_up(controller,
 
 
 def test_rate_widening_zeros_mean_none_and_negative_coefficients_are_a_model(controller):
-    from piezo_valve_ros.core.model.rate_dependence import RateDependentInverseGPIM
+    from piezo_valve_ros.core.model import RateDependentInverseGPIM
     assert not isinstance(controller(gain_set="", gpim__rate_widening_v=[0.0] * 9).controller.ff_inverse,
                           RateDependentInverseGPIM)
     narrowing = controller(gain_set="", gpim__rate_widening_v=[-1.0] * 9)   # thresholds that narrow with the rate
@@ -299,7 +299,7 @@ def test_a_model_that_knows_part_of_the_drive_loads_with_its_command_range_in_on
     """A fitted model of a record over 2.94..7.01 V and the command range it knows (1.93..8.02 V), in one update,
     as valve_command load sends a valve_identify/valve_tune file: applied together (the model alone does not suit
     0..10 V, the range alone not the old model's checks); the model alone is refused with the range to set."""
-    from piezo_valve_ros.core.control.compensation import CompensationModel, command_range_for
+    from piezo_valve_ros.core.control import CompensationModel, command_range_for
     ctl = controller(gain_set="pid_hc_2")
     fitted = (2.9396, 7.009)
     lo, hi = command_range_for(fitted, 0.0, 10.0, 5.0)
@@ -630,7 +630,7 @@ def test_hardware_holds_the_cpus_awake_when_asked(tmp_path):
 def test_controller_takes_an_asymmetric_model_only_when_it_can_invert_it(controller):
     """Issue 11.2/3: gpim.descending_envelope makes the controller's GPIM asymmetric (inverted exactly);
     one that is not rising on the command range, or a malformed list, is refused with the reason."""
-    from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM
+    from piezo_valve_ros.core.model import PAPER_GPIM
     g = PAPER_GPIM
     good = [g.a0 * 1.03, g.a1 + 0.08, 0.0]
     ctl = controller(gain_set="", strategy="ol_hc", gpim__descending_envelope=good)
@@ -653,8 +653,8 @@ def test_controller_takes_an_asymmetric_model_only_when_it_can_invert_it(control
 def test_controller_takes_a_whole_extended_model_in_one_update_or_refuses_it_whole(controller):
     """Issue 11.3: the model the identification pushes (creep, saturation map, dynamic feedforward) is applied
     in one atomic update; a malformed part refuses all of it, with the reason, and changes nothing."""
-    from piezo_valve_ros.core.control.compensation import CompensationModel, CreepModel
-    from piezo_valve_ros.core.model.output_map import OutputMap
+    from piezo_valve_ros.core.control import CompensationModel, CreepModel
+    from piezo_valve_ros.core.model import OutputMap
     ctl = controller(gain_set="", strategy="ol_hc")
     extended = CompensationModel(creep=CreepModel((0.5, 5.0), (0.02, 0.02)),
                                  output_map=OutputMap(0.0, 70.0, (0.0, -3.0, 0.0, 0.0, -1.0, 0.0, 0.0, 1.0)),
@@ -672,8 +672,8 @@ def test_controller_takes_a_rate_dependent_model_and_says_what_its_inverse_costs
     """Issue 11.2/3: gpim.rate_widening_v makes the controller's inverse rate-dependent (pushed with the rest
     of the model, atomically); a malformed widening is refused whole; at a 0.1 ms period the node warns that
     an inverse solved each step may overrun, at 1 ms it does not."""
-    from piezo_valve_ros.core.control.compensation import CompensationModel
-    from piezo_valve_ros.core.model.rate_dependence import RateDependentInverseGPIM
+    from piezo_valve_ros.core.control import CompensationModel
+    from piezo_valve_ros.core.model import RateDependentInverseGPIM
     model = CompensationModel(rate_widening_v=(-0.006, -0.37, 1.79, -0.028, 0.44, -1.25, 0.0, 0.0, 0.0))
     ctl = controller(gain_set="", strategy="ol_hc")
     assert ctl.set_parameters_atomically([Parameter(k, value=v) for k, v in model.to_parameters().items()]).successful
@@ -831,10 +831,10 @@ def test_valve_command_loads_a_fitted_model_atomically_where_set_refuses_it(cont
     refused (their counts differ in between); `valve_command load` applies the whole file in one update,
     and a file whose model is not invertible, or was fitted on another drive, is refused whole, nothing
     changed."""
-    from piezo_valve_ros.core.control.compensation import CompensationModel
-    from piezo_valve_ros.core.model.hysteresis import GPIMParams
+    from piezo_valve_ros.core.control import CompensationModel
+    from piezo_valve_ros.core.model import GPIMParams
     from piezo_valve_ros.identify import parameters_yaml
-    from piezo_valve_ros.rig.client import run_in_background
+    from piezo_valve_ros.rig import run_in_background
     ctl = controller()
     thread, stop, executor = run_in_background([ctl])
     exe = os.path.join(os.path.dirname(sys.executable), "valve_command")
@@ -932,7 +932,7 @@ def test_hardware_diagnostics_report_the_watchdog(hardware):
 def test_one_rule_says_whether_a_time_is_a_whole_number_of_periods():
     """The hardware's control period, the simulator's sensor delay and the composed node's two periods are
     judged by one rule (``core.validation``): equal to rounding, never to a choice."""
-    from piezo_valve_ros.core.validation import same_period, whole_periods
+    from piezo_valve_ros.core import same_period, whole_periods
     assert whole_periods(1e-3, 1e-4) == 10 and whole_periods(0.3e-3, 1e-4) == 3 and whole_periods(0.0, 1e-4) == 0
     assert whole_periods(1.5e-4, 1e-4) is None and whole_periods(1.0005e-3, 1e-4) is None
     assert whole_periods(float("nan"), 1e-4) is None and whole_periods(float("inf"), 1e-4) is None
@@ -975,10 +975,10 @@ def test_settings_checks_are_declared_on_their_fields_and_checked_by_one_functio
     refuses nan and a negative value, and a positive one refuses zero, one line naming it."""
     import dataclasses
     import math
-    from piezo_valve_ros.core.control.strategies import ControllerConfig
-    from piezo_valve_ros.core.monitoring.health import HealthLimits
-    from piezo_valve_ros.core.tuning.tuner import TuningLimits
-    from piezo_valve_ros.core.validation import POSITIVE, field_problems, ruled
+    from piezo_valve_ros.core.control import ControllerConfig
+    from piezo_valve_ros.core.monitoring import HealthLimits
+    from piezo_valve_ros.core.tuning import TuningLimits
+    from piezo_valve_ros.core import POSITIVE, field_problems, ruled
     checked = 0
     for settings in (HealthLimits(), TuningLimits(), ControllerConfig()):
         assert settings.problems() == []

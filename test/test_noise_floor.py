@@ -3,9 +3,9 @@ drive cannot echo; unknown where a record offers none of them."""
 import numpy as np
 import pytest
 
-from piezo_valve_ros.core.identification.noise import (band_noise, beyond_response_noise, estimate_noise_floor,
-                                                      hold_noise, period_noise)
-from piezo_valve_ros.core.identification.records import Record, noise_floor_um
+from piezo_valve_ros.core.identification import (band_noise, beyond_response_noise, estimate_noise_floor, hold_noise,
+                                                 period_noise)
+from piezo_valve_ros.core.identification import Record, noise_floor_um
 
 DT = 5e-4
 NOISE = 0.05

@@ -7,7 +7,7 @@ from pathlib import Path
 import yaml
 
 from piezo_valve_ros.cli.rig import parse_args, rig_parameters
-from piezo_valve_ros.runtime.processes import NODE_MODULES
+from piezo_valve_ros.runtime import NODE_MODULES
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -68,7 +68,7 @@ def test_every_node_has_a_console_script_and_an_install_path():
 def test_the_report_page_is_written_from_the_typed_definition_and_a_bad_report_is_caught():
     import subprocess
     import sys
-    from piezo_valve_ros.core.identification.report import check_report
+    from piezo_valve_ros.core.identification import check_report
     check = subprocess.run([sys.executable, str(ROOT / "scripts" / "report_schema.py"), "--check"],
                            capture_output=True, text=True, timeout=60)
     assert check.returncode == 0, check.stderr

@@ -5,12 +5,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from piezo_valve_ros.core.control.compensation import CompensationModel
-from piezo_valve_ros.core.model.hysteresis import GPIM, PAPER_GPIM, PlayOperatorBank, play_batch
-from piezo_valve_ros.core.model.rate_dependence import (RateDependentGPIMStream, RateDependentInverseGPIM, RateWidening,
-                                                  hysteresis_inverse, rate_terms, swap_inverse)
-from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.control.strategies import ControllerConfig, ValveController, gain_set
+from piezo_valve_ros.core.control import CompensationModel
+from piezo_valve_ros.core.model import GPIM, PAPER_GPIM, PlayOperatorBank, play_batch
+from piezo_valve_ros.core.model import (RateDependentGPIMStream, RateDependentInverseGPIM, RateWidening,
+                                        hysteresis_inverse, rate_terms, swap_inverse)
+from piezo_valve_ros.core.sim import SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control import ControllerConfig, ValveController, gain_set
 
 DT = 5e-4
 PAPER = PAPER_GPIM.model()

@@ -178,8 +178,8 @@ def _expect_bring_up(k: int, out: str, workdir: Path) -> None:
         assert "wrote fitted.yaml" in out and "applied together" in out, out
         # valve_plot's tracking figure is the position against the reference in force at each sample, computed
         # directly from the bag (its sine is many small changes, none a step to be moved)
-        from piezo_valve_ros.core.runs import reference_on_samples
-        from piezo_valve_ros.io.bags import read_run
+        from piezo_valve_ros.core import reference_on_samples
+        from piezo_valve_ros.io import read_run
         said = float(re.search(r"tracking error over \d+ % of the run \(where a reference was in force\): "
                                r"RMS ([\d.]+) um", out).group(1))
         rows, ref_t, ref_m, _ = read_run(workdir / "run.bag")

@@ -16,11 +16,11 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64, Float64MultiArray
 
 from piezo_valve_ros.backends import SimBackend
-from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
-from piezo_valve_ros.runtime.loop_timing import LoopTiming
+from piezo_valve_ros.core.sim import SimulatedValve, ValveSimConfig
+from piezo_valve_ros.runtime import LoopTiming
 from piezo_valve_ros.ros import (COMMAND_QOS, SAMPLES_QOS, SENSOR_QOS, claim_pacing, make_executor, Pacing,
                                  samples_from_message, spin_loop)
-from piezo_valve_ros.runtime.processes import ProcessGroup, node_command
+from piezo_valve_ros.runtime import ProcessGroup, node_command
 
 
 # ---------------------------------------------------------------------------- ROS-free pieces

@@ -13,9 +13,9 @@ import yaml
 
 from ros_helpers import ros_env, start, wait_for_text
 
-from piezo_valve_ros.io.bags import read_samples
+from piezo_valve_ros.io import read_samples
 from piezo_valve_ros.ros import SHUTDOWN_DEADLINE_S
-from piezo_valve_ros.runtime.processes import ProcessGroup, node_command
+from piezo_valve_ros.runtime import ProcessGroup, node_command
 
 PERIOD = 1e-3  # 1 kHz control, 10 kHz sampling
 PERTURBED = {"sim.gpim.rho": 6.6, "sim.gpim.tau": 1.0, "sim.gpim.offset_um": -75.0}  # not the paper's valve

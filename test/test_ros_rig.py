@@ -14,15 +14,15 @@ from ros_helpers import ros_env, start, wait_for_text
 import rclpy
 from std_msgs.msg import Float64
 
-from piezo_valve_ros.core.sim.experiments import run_closed_loop
-from piezo_valve_ros.core.metrics import step_metrics
-from piezo_valve_ros.core.sim.signals import step_reference_m
-from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.control.strategies import STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set
+from piezo_valve_ros.core.sim import run_closed_loop
+from piezo_valve_ros.core import step_metrics
+from piezo_valve_ros.core.sim import step_reference_m
+from piezo_valve_ros.core.sim import SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control import STRATEGIES, ControllerConfig, PIDGains, ValveController, gain_set
 from piezo_valve_ros.ros import COMMAND_QOS
 from piezo_valve_ros.nodes.hardware import MAX_COMMAND_TIMEOUT_S
-from piezo_valve_ros.rig.client import RigClient, run_in_background
-from piezo_valve_ros.runtime.processes import ProcessGroup, node_command
+from piezo_valve_ros.rig import RigClient, run_in_background
+from piezo_valve_ros.runtime import ProcessGroup, node_command
 
 DT = 1e-4
 GAINS = {"pid": "pid_1", "pid_hc": "pid_hc_5", "ff_pid": "ff_pid_1", "ff_pid_g": "ff_pid_g_2"}
@@ -324,7 +324,7 @@ def test_a_child_stuck_in_c_holding_the_gil_is_ended_after_its_parents_sigkill(t
     """The backstop of the death signal works where the child's own Python cannot run: its SIGTERM handler and
     any thread of its own wait for the GIL, so a separate watcher process dumps its stacks and kills it
     PARENT_DEATH_GRACE_S after it was asked to stop."""
-    from piezo_valve_ros.runtime.processes import PARENT_DEATH_GRACE_S
+    from piezo_valve_ros.runtime import PARENT_DEATH_GRACE_S
     log_path = tmp_path / "parent.log"
     with open(log_path, "w") as log:
         parent = subprocess.Popen([sys.executable, "-c", _PARENT, _STUCK_CHILD], stdout=log,
@@ -418,9 +418,9 @@ def test_fast_acknowledgements_are_chosen_for_tools_and_not_passed_to_nodes():
     """The profile is chosen where nothing else is (Fast DDS, no profiles file of the user's), and dropped
     from the environment of the nodes a launcher starts; its writers' heartbeat is 20 ms."""
     import xml.etree.ElementTree as ET
-    from piezo_valve_ros.runtime.dds import (FAST_ACK_PROFILE, HEARTBEAT_PERIOD_S, use_fast_acknowledgements,
-                                     without_fast_acknowledgements)
-    from piezo_valve_ros.runtime.processes import ProcessGroup
+    from piezo_valve_ros.runtime import (FAST_ACK_PROFILE, HEARTBEAT_PERIOD_S, use_fast_acknowledgements,
+                                         without_fast_acknowledgements)
+    from piezo_valve_ros.runtime import ProcessGroup
     env = {}
     assert use_fast_acknowledgements(env) and env == {"FASTRTPS_DEFAULT_PROFILES_FILE": str(FAST_ACK_PROFILE)}
     assert use_fast_acknowledgements(env)                                   # chosen twice: still ours
@@ -471,7 +471,7 @@ def test_a_loop_with_two_periods_of_delay_is_caught_by_the_guard_through_ros(ros
     assert "oscillation guard: commands on both rails" in log
     assert on_rail.mean() < 0.05, on_rail.mean()
     # in process, the same valve (delay included) and controller: the guard is part of the controller
-    from piezo_valve_ros.core.sim.simulator import SensorParams
+    from piezo_valve_ros.core.sim import SensorParams
     config = ValveSimConfig(seed=3, sensor=SensorParams(delay_samples=20))
     valve = SimulatedValve(config)
     strategy, gains = gain_set("pid_hc_5")

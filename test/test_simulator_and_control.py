@@ -4,17 +4,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from piezo_valve_ros.core.control.compensation import CompensationModel
-from piezo_valve_ros.core.model.dynamics import PAPER_VALVE_MODEL, ContinuousTF
-from piezo_valve_ros.core.sim.experiments import paper_step_tests, run_closed_loop
-from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM, GPIM
-from piezo_valve_ros.core.metrics import bandwidth_metrics, step_metrics, error_figures
-from piezo_valve_ros.core.sim.signals import (identification_voltage, training_voltage,
-                                          validation_reference_m)
-from piezo_valve_ros.core.sim.simulator import (CreepParams, DriftParams, RateDependenceParams, SensorParams,
-                                            SimulatedValve, ValveSimConfig)
-from piezo_valve_ros.core.control.strategies import (STRATEGIES, TABLE1_GAINS, ControllerConfig, PIDGains,
-                                             ValveController, gain_set)
+from piezo_valve_ros.core.control import CompensationModel
+from piezo_valve_ros.core.model import PAPER_VALVE_MODEL, ContinuousTF
+from piezo_valve_ros.core.sim import paper_step_tests, run_closed_loop
+from piezo_valve_ros.core.model import PAPER_GPIM, GPIM
+from piezo_valve_ros.core import bandwidth_metrics, step_metrics, error_figures
+from piezo_valve_ros.core.sim import identification_voltage, training_voltage, validation_reference_m
+from piezo_valve_ros.core.sim import (CreepParams, DriftParams, RateDependenceParams, SensorParams, SimulatedValve,
+                                      ValveSimConfig)
+from piezo_valve_ros.core.control import STRATEGIES, TABLE1_GAINS, ControllerConfig, PIDGains, ValveController, gain_set
 
 DT = 1e-4
 
@@ -48,7 +46,7 @@ def test_the_hysteresis_stage_held_at_one_input_gives_what_its_operators_give(en
     """A rig samples several times per control period at one command: the stage returns its last output there
     instead of stepping the operators again.  Bit for bit what stepping gives, symmetric or not (lower > upper
     too), also after a batch run."""
-    from piezo_valve_ros.core.sim.stages.hysteresis import Hysteresis
+    from piezo_valve_ros.core.sim import Hysteresis
     model = PAPER_GPIM.model()
     if envelope is not None:
         model = GPIM(model.thresholds, model.weights, model.a0, model.a1, model.offset_um, *envelope)
@@ -139,7 +137,7 @@ def test_a_strategy_is_what_its_registry_entry_says_not_its_name(monkeypatch, li
     entry commands the valve bit for bit as that law does, through a switch to it and the oscillation guard's
     fallback, and the tuner ranks gains for it as for that law.  The derived lists follow the registry."""
     from piezo_valve_ros.core.control import strategies
-    from piezo_valve_ros.core.tuning.tuner import plant_gain_range
+    from piezo_valve_ros.core.tuning import plant_gain_range
     assert strategies.STRATEGIES == tuple(strategies.REGISTRY)
     assert set(strategies.FEEDBACK_STRATEGIES) == {n for n, s in strategies.REGISTRY.items() if s.feedback}
     assert all(not strategies.REGISTRY[f].feedback for f in strategies.FALLBACK_LAW.values())
@@ -204,7 +202,7 @@ def test_pid_hc_integrator_moves_toward_the_demand_on_a_rail_never_past_it():
     """PID HC's integrator holds the position demand: on a rail it may still move toward the demand (frozen
     where the 87.5 um step first met the rail it was tens of um short and the step settled on a slow integrator
     tail), never past it.  The paper's 87.5 um step at 10 kHz then settles about as fast as the small steps."""
-    from piezo_valve_ros.core.sim.signals import step_reference_m
+    from piezo_valve_ros.core.sim import step_reference_m
     config = ValveSimConfig()
     ctl = ValveController(ControllerConfig(strategy="pid_hc", gains=gain_set("pid_hc_5")[1], dt=config.dt))
     ctl.reset(config.initial_voltage_v)
@@ -350,7 +348,7 @@ def test_signals_shapes():
 def _delayed_loop(strategy_gains: str, delay_periods, dt=1e-3, duration_s=3.0, seed=0):
     """A 1 kHz loop on the simulated valve whose measurements reach the controller ``delay_periods(t)``
     periods late (a busy computer between two processes); a 2 Hz, 30 um sine demand."""
-    from piezo_valve_ros.core.sim.experiments import run_delayed_loop
+    from piezo_valve_ros.core.sim import run_delayed_loop
     cfg = ValveSimConfig(seed=seed)
     strategy, gains = gain_set(strategy_gains)
     ctl = ValveController(ControllerConfig(strategy=strategy, gains=gains, dt=dt))
@@ -389,7 +387,7 @@ def test_the_guards_both_rails_window_is_twenty_ms_at_any_period(dt):
     """A P controller driven onto the upper rail, then (after a gap at mid-range) onto the lower one: both rails
     within GUARD_WINDOW_S (20 ms) trip the guard, 30 ms apart do not, at 1 and 10 kHz (the window in periods
     is the time divided by the period)."""
-    from piezo_valve_ros.core.control.strategies import GUARD_WINDOW_S
+    from piezo_valve_ros.core.control import GUARD_WINDOW_S
     for gap_s, trips in ((0.5 * GUARD_WINDOW_S, 1), (1.5 * GUARD_WINDOW_S, 0)):
         ctl = ValveController(ControllerConfig(strategy="pid", gains=PIDGains(50.0, 0.0, 0.0), dt=dt))
         ctl.reset()
@@ -404,7 +402,7 @@ def test_the_guards_hold_doubles_while_the_oscillation_recurs_up_to_its_limit_an
     """A P controller kept swinging rail to rail (the measurement far below, then far above): each trip holds the
     loop on its feedforward; one that recurs within two holds of the last holds twice as long, up to
     GUARD_MAX_HOLD_S; after a quiet spell the hold starts again at GUARD_HOLD_S."""
-    from piezo_valve_ros.core.control.strategies import GUARD_HOLD_S, GUARD_MAX_HOLD_S
+    from piezo_valve_ros.core.control import GUARD_HOLD_S, GUARD_MAX_HOLD_S
     dt = 1e-3
     ctl = ValveController(ControllerConfig(strategy="pid", gains=PIDGains(50.0, 0.0, 0.0), dt=dt))
     ctl.reset()
@@ -441,7 +439,7 @@ def test_the_pids_derivative_opposes_a_measurement_that_rises_towards_the_demand
 
 def test_the_guard_never_trips_on_the_paper_step_tests_or_without_delay():
     """Every Table 1 set on the paper's three steps at 10 kHz: no trip, so the paper's results stand."""
-    from piezo_valve_ros.core.sim.signals import PAPER_STEPS_UM, step_reference_m
+    from piezo_valve_ros.core.sim import PAPER_STEPS_UM, step_reference_m
     for name, (strategy, gains) in TABLE1_GAINS.items():
         for a, b in PAPER_STEPS_UM:
             config = ValveSimConfig()
@@ -455,7 +453,7 @@ def test_the_guard_never_trips_on_the_paper_step_tests_or_without_delay():
 
 
 def test_sensor_delay_shifts_the_measurement_exactly_and_step_equals_batch():
-    from piezo_valve_ros.core.sim.simulator import SensorParams
+    from piezo_valve_ros.core.sim import SensorParams
     v = 5.0 + 3.0 * np.sin(np.arange(3000) * 0.01)
     quiet = dict(noise_enabled=False, quantisation_enabled=False)
     plain = SimulatedValve(ValveSimConfig(sensor=SensorParams(**quiet))).run(v)
@@ -558,7 +556,7 @@ def test_each_switchable_stage_is_declared_once_and_the_backend_follows_it():
     """STAGE_SWITCHES is the one list of the chain's switches: the sim backend declares a parameter per switch
     with the default config's state as its default, and each parameter turns exactly its stage on or off."""
     from piezo_valve_ros.backends import SimBackend, sim_config_from_parameters
-    from piezo_valve_ros.core.sim.simulator import STAGE_SWITCHES
+    from piezo_valve_ros.core.sim import STAGE_SWITCHES
     defaults = declared = {p.name: p.default for p in SimBackend.PARAMETERS}
     base = sim_config_from_parameters(defaults)
     assert base == ValveSimConfig()
@@ -602,7 +600,7 @@ def test_the_paper_tables_bench_builds_every_controller_of_table1():
     """bench/paper_tables.py's controllers: OL and OL HC by name, every Table 1 gain set by its name, each a
     controller that runs (a gain set's name is not a strategy: the bench once passed it as one and stopped)."""
     import paper_tables
-    from piezo_valve_ros.core.control.strategies import TABLE1_GAINS
+    from piezo_valve_ros.core.control import TABLE1_GAINS
     for name in ["ol", "ol_hc"] + list(TABLE1_GAINS):
         config = paper_tables.config_for(name)
         assert config.problems() == [], name

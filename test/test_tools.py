@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from ros_helpers import ros_env, wait_for_text
 
-from piezo_valve_ros.io.bags import FLOAT64_TYPE, TYPESTORE, read_samples
-from piezo_valve_ros.core.sim.signals import load_profile, ramp_profile, sine_profile
+from piezo_valve_ros.io import FLOAT64_TYPE, TYPESTORE, read_samples
+from piezo_valve_ros.core.sim import load_profile, ramp_profile, sine_profile
 from piezo_valve_ros.cli.command import parse_assignment
 from piezo_valve_ros.cli.record import dropped_sample_rows
-from piezo_valve_ros.runtime.processes import ProcessGroup
+from piezo_valve_ros.runtime import ProcessGroup
 
 BIN = os.path.dirname(sys.executable)  # the console scripts of the installed package
 
@@ -73,7 +73,7 @@ def test_valve_command_refuses_a_reference_no_valve_reaches_before_sending(args,
 
 
 def test_steps_are_found_in_a_recorded_reference_and_measured():
-    from piezo_valve_ros.core.runs import find_steps, reference_on_samples
+    from piezo_valve_ros.core import find_steps, reference_on_samples
     t = np.arange(10000) * 1e-4                                  # 1 s at 10 kHz
     ref_t = np.r_[0.1, 0.3, 0.6 + np.arange(40) * 5e-3]           # 0, a step to 20 um, then a sine in small moves
     ref_m = np.r_[0.0, 20e-6, 20e-6 + 2e-6 * np.sin(np.arange(1, 41) * 0.5)]
@@ -92,9 +92,9 @@ def test_references_are_put_on_the_samples_time_axis_where_simulated_time_runs_a
     """A lockstep rig's time runs at a varying share of the wall clock (here 0.25x, then 2x): a reference is placed by
     the messages around it that pair a receive time with a sample time, not by one constant offset (which put a
     tour's step seconds away from where it happened and reported a tracking error of 5-11 um)."""
-    from piezo_valve_ros.io.bags import BagRecorder, SAMPLES_TYPE, qos_profile, serialize_float64, \
-        serialize_samples, read_run
-    from piezo_valve_ros.core.runs import find_steps, reference_on_samples, receive_to_sample_time
+    from piezo_valve_ros.io import (BagRecorder, SAMPLES_TYPE, qos_profile, serialize_float64, serialize_samples,
+                                    read_run)
+    from piezo_valve_ros.core import find_steps, reference_on_samples, receive_to_sample_time
     dt = 1e-3
     t = np.arange(4000) * dt
     wall = np.where(t < 2.0, 4.0 * t, 8.0 + 0.5 * (t - 2.0)) + 1000.0   # receive time [s] of each sample
@@ -127,7 +127,7 @@ def test_two_steps_sent_close_together_are_each_moved_to_their_own_reaction():
     reaction to the second (a 40 um swing down the loop's other branch) is more than twice the first's, and within
     a second of both.  Each jump is moved to the command's change in its own direction, after the jump before it
     (the first was moved onto the second's reaction, held for no time, and the step table had no 20 -> -20)."""
-    from piezo_valve_ros.core.runs import align_jumps, find_steps, reference_on_samples
+    from piezo_valve_ros.core import align_jumps, find_steps, reference_on_samples
     dt = 1e-3
     t = np.arange(3000) * dt
     up_at, down_at = 1.0, 1.35                                            # where the controller applied them
@@ -151,7 +151,7 @@ def test_a_sine_sent_as_many_small_changes_keeps_its_times_and_its_tracking_figu
     said RMS 22.5 um and fit 19 % on a valve that tracked within 2 um); the figures valve_plot gives are those of the
     position against the reference in force at each sample."""
     from piezo_valve_ros.cli.plot import summary_lines
-    from piezo_valve_ros.core.runs import align_jumps, reference_on_samples
+    from piezo_valve_ros.core import align_jumps, reference_on_samples
     dt = 1e-3
     t = np.arange(8000) * dt
     received = np.arange(0.5, 7.5, 0.02)
@@ -173,7 +173,7 @@ def test_a_sine_sent_as_many_small_changes_keeps_its_times_and_its_tracking_figu
 def test_valve_plots_summary_of_a_stretch_says_it_is_a_stretch_and_why_it_has_no_reference():
     """--from/--to: the extent is the stretch's, said as such; no reference sent by its end is not 'none in the bag'."""
     from piezo_valve_ros.cli.plot import summary_lines
-    from piezo_valve_ros.core.runs import TimeWindow
+    from piezo_valve_ros.core import TimeWindow
     t = 600.0 + np.arange(6001) * 1e-2
     rows = np.column_stack((t, 5.0 + np.sin(t), 13e-6 * (5.0 + np.sin(t))))
     none = np.full(t.size, np.nan)
@@ -317,7 +317,7 @@ def test_record_command_and_identify_a_running_rig(tmp_path):
 
 def test_valve_rig_asks_for_priority_and_cpus_only_on_the_real_time_clock():
     from piezo_valve_ros.cli.rig import parse_args, rig_parameters
-    from piezo_valve_ros.runtime.realtime import available_cpus
+    from piezo_valve_ros.runtime import available_cpus
     cpus = sorted(available_cpus())
     hw, ctl = rig_parameters(parse_args(["--demo", "none", "--clock", "realtime", "--control-period-s", "0.0005"]))
     assert hw["realtime.busy_poll_s"] == 0.0005 and hw["realtime.priority"] == 0 and "realtime.cpus" not in hw
@@ -457,7 +457,7 @@ def test_valve_rig_stops_when_its_identification_plan_ends(tmp_path):
 
 def test_one_samples_decoder_for_bags_and_messages():
     from types import SimpleNamespace as NS
-    from piezo_valve_ros.io.samples import SamplesLayoutError, decode_samples
+    from piezo_valve_ros.io import SamplesLayoutError, decode_samples
     data = [1.0, 5.0, 2e-6, 9.0, 1.1, 6.0, 3e-6, 9.0]  # columns in another order, and an extra one
     dims = [NS(size=2, label="sample"), NS(size=4, label="time,voltage_command,spool_position,extra")]
     np.testing.assert_array_equal(decode_samples(dims, data), [[1.0, 5.0, 2e-6], [1.1, 6.0, 3e-6]])
@@ -481,8 +481,8 @@ def test_valve_rig_brings_up_your_backend_from_one_parameters_file(tmp_path):
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
     from std_msgs.msg import Float64MultiArray
-    from piezo_valve_ros.core.control.compensation import CompensationModel
-    from piezo_valve_ros.core.model.hysteresis import GPIMParams
+    from piezo_valve_ros.core.control import CompensationModel
+    from piezo_valve_ros.core.model import GPIMParams
     from piezo_valve_ros.identify import parameters_yaml
     ns = f"/bringup{os.getpid()}"
     params = tmp_path / "my_rig.yaml"
@@ -566,7 +566,7 @@ def test_valve_rig_knows_which_options_the_command_line_gave():
 def test_valve_record_summary_says_what_went_into_the_bag(tmp_path):
     """valve_record's closing summary (the line, and the object --json prints): duration, messages per topic,
     size, samples rows and rows dropped between the first and the last."""
-    from piezo_valve_ros.io.bags import write_samples_bag
+    from piezo_valve_ros.io import write_samples_bag
     from piezo_valve_ros.cli.record import parse_args, summary, summary_line
     rows = np.column_stack([np.arange(1000) * 1e-3, np.full(1000, 5.0), np.zeros(1000)])
     rows = np.delete(rows, [500, 501], axis=0)                    # two rows lost
@@ -603,9 +603,9 @@ def test_valve_record_reads_references_only_once_it_records_samples(tmp_path):
     waits for it (valve_command --wait-readers) sends nothing the bag cannot place on the samples' time axis, however
     late discovery matches the samples topic on a loaded computer."""
     from std_msgs.msg import Float64, Float64MultiArray
-    from piezo_valve_ros.io.bags import read_run
+    from piezo_valve_ros.io import read_run
     from piezo_valve_ros.ros import REFERENCE_QOS, SAMPLES_QOS, samples_message
-    from piezo_valve_ros.rig.recording import RigRecorder
+    from piezo_valve_ros.rig import RigRecorder
     ns = f"/deferred{os.getpid()}"
     with recorder_and_rig_nodes(ns) as (recorder_node, rig, executor):
         reference = rig.create_publisher(Float64, "position_reference", REFERENCE_QOS)
@@ -643,7 +643,7 @@ def test_a_recorder_reader_says_when_a_publisher_offers_a_qos_it_cannot_read(tmp
     recorded) and for nothing else (every event handler is waited on in each executor round)."""
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from std_msgs.msg import Float64
-    from piezo_valve_ros.rig.recording import RigRecorder
+    from piezo_valve_ros.rig import RigRecorder
     ns = f"/qos{os.getpid()}"
     with recorder_and_rig_nodes(ns) as (recorder_node, rig, executor):
         RigRecorder(recorder_node)

@@ -7,14 +7,15 @@ import numpy as np
 import pytest
 import yaml
 
-from piezo_valve_ros.core.control.compensation import CompensationModel
+from piezo_valve_ros.core.control import CompensationModel
 from evaluation import SIMULATED_EFFECTS
-from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.control.strategies import TABLE1_GAINS, ControllerConfig, PIDGains
-from piezo_valve_ros.core.control.forward import ModelValve
-from piezo_valve_ros.core.tuning.tuner import (DERIVATIVE_STARTS_S, StepScore, TuningError, TuningLimits,
-                                         _moves, dynamics_variants, linear_step, loop_margins, plant_gain_range, robust_overshoot_pct,
-                                         step_score, time_scaled, tune)
+from piezo_valve_ros.core.sim import SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.control import TABLE1_GAINS, ControllerConfig, PIDGains
+from piezo_valve_ros.core.control import ModelValve
+from piezo_valve_ros.core.tuning import (DERIVATIVE_STARTS_S, StepScore, TuningError, TuningLimits,
+                                         dynamics_variants, linear_step, loop_margins, plant_gain_range,
+                                         robust_overshoot_pct, step_score, time_scaled, tune)
+from piezo_valve_ros.core.tuning.tuner import _moves
 from piezo_valve_ros.identify import ParametersFileError, parameters_yaml, read_parameters_file
 from piezo_valve_ros.nodes.controller import settings_from_parameters
 from piezo_valve_ros.cli.tune import main as valve_tune
@@ -26,9 +27,9 @@ SLOW = SIMULATED_EFFECTS["slow dynamics"](ValveSimConfig(dt=DT))   # a valve Tab
 
 def _guard_trips(gains: PIDGains, model: CompensationModel, dt: float) -> int:
     """Oscillation-guard trips of pid_hc with ``gains`` on ``model`` as a valve over a 20 um step."""
-    from piezo_valve_ros.core.sim.experiments import run_closed_loop
-    from piezo_valve_ros.core.sim.signals import step_reference_m
-    from piezo_valve_ros.core.control.strategies import ValveController
+    from piezo_valve_ros.core.sim import run_closed_loop
+    from piezo_valve_ros.core.sim import step_reference_m
+    from piezo_valve_ros.core.control import ValveController
     valve = ModelValve(model, dt, 5.0)
     ctl = ValveController(ControllerConfig("pid_hc", gains, dt), model)
     ctl.reset(5.0)
@@ -97,9 +98,9 @@ def test_tuned_gains_meet_the_limits_and_hold_on_a_valve_table1_does_not_fit():
     assert on_valve.worst_overshoot_pct < 2.0 and on_valve.settling_time_s < 0.06, on_valve
     # every Table 1 pid_hc set overshoots or oscillates on this valve at this rate (the oscillation guard trips
     # and holds it on the feedforward: the tuned set never needs that)
-    from piezo_valve_ros.core.sim.experiments import run_closed_loop
-    from piezo_valve_ros.core.sim.signals import PAPER_STEPS_UM, step_reference_m
-    from piezo_valve_ros.core.control.strategies import ValveController
+    from piezo_valve_ros.core.sim import run_closed_loop
+    from piezo_valve_ros.core.sim import PAPER_STEPS_UM, step_reference_m
+    from piezo_valve_ros.core.control import ValveController
 
     def trips(gains):
         n = 0
@@ -255,8 +256,8 @@ def test_a_step_run_gives_up_after_a_step_past_the_limit_and_never_wins():
 def test_the_comparison_says_why_a_faster_table1_set_is_not_the_tuners_choice():
     """TuningComparison's verdict: beaten, or not beaten and why (outside the tuner's limits)."""
     from evaluation import TuningComparison
-    from piezo_valve_ros.core.metrics import StepMetrics
-    from piezo_valve_ros.core.tuning.tuner import LoopMargins, TuningResult
+    from piezo_valve_ros.core import StepMetrics
+    from piezo_valve_ros.core.tuning import LoopMargins, TuningResult
 
     def score(ms, pct):
         return StepScore(tuple(StepMetrics(ms * 1e-3, pct, 0.0) for _ in range(3)), 0.0)
@@ -308,8 +309,8 @@ def test_identify_tune_and_beat_table1_on_the_default_valve(strategy, default_va
 def test_the_model_run_over_a_block_equals_the_model_stepped_sample_by_sample():
     """ModelValve.run (the health monitor's prediction) and .step (the tuner's valve) share one state and
     give the same positions, in any mix, with creep and a saturation map in the model and rate dependence."""
-    from piezo_valve_ros.core.control.compensation import CreepModel
-    from piezo_valve_ros.core.model.output_map import TERM_COUNT, OutputMap
+    from piezo_valve_ros.core.control import CreepModel
+    from piezo_valve_ros.core.model import TERM_COUNT, OutputMap
     rng = np.random.default_rng(3)
     v = 5.0 + 4.0 * np.sin(np.linspace(0.0, 12.0, 3000)) + 0.3 * rng.standard_normal(3000)
     models = [PAPER, replace(PAPER, creep=CreepModel((0.05, 1.0), (0.02, 0.03)),
@@ -328,8 +329,8 @@ def test_every_default_gain_set_keeps_the_tuners_margins_at_its_period_and_loses
     period they run at: each PID HC set of SAFE_PERIOD_S keeps gain margin >= 6 dB and phase margin >= 45 deg on
     the paper's model up to its safe period, and at 1.5x that period it does not (the table is not needlessly
     cautious); the default at 1 ms is not pid_hc_5 (0.3 dB there)."""
-    from piezo_valve_ros.core.control.strategies import SAFE_PERIOD_S, default_gain_set, gain_set
-    from piezo_valve_ros.core.tuning.tuner import MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG
+    from piezo_valve_ros.core.control import SAFE_PERIOD_S, default_gain_set, gain_set
+    from piezo_valve_ros.core.tuning import MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG
 
     def safe(name, dt):
         m = loop_margins(*gain_set(name), PAPER, dt)

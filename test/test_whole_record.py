@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from piezo_valve_ros.core.identification import MAX_ANALYSED_S, BlockMeans, Record, check_report
-from piezo_valve_ros.core.identification.records import analysis_record
-from piezo_valve_ros.core.sim.signals import identification_voltage
-from piezo_valve_ros.core.sim.simulator import SimulatedValve, ValveSimConfig
-from piezo_valve_ros.core.sim.stages.drift import DriftParams
+from piezo_valve_ros.core.identification import analysis_record
+from piezo_valve_ros.core.sim import identification_voltage
+from piezo_valve_ros.core.sim import SimulatedValve, ValveSimConfig
+from piezo_valve_ros.core.sim import DriftParams
 from piezo_valve_ros.identify import identify_bags, read_record, report_json
-from piezo_valve_ros.io.bags import write_samples_bag
+from piezo_valve_ros.io import write_samples_bag
 
 DT = 1e-3
 SECONDS = 6 * MAX_ANALYSED_S        # 600 s: the loop's stretch is its first sixth

@@ -9,9 +9,9 @@ import pytest
 from shared import computed_once
 from valve_zoo import CASES
 
-from piezo_valve_ros.core.identification.records import Record
-from piezo_valve_ros.core.identification.report import check_report
-from piezo_valve_ros.core.identification.residual import analyse
+from piezo_valve_ros.core.identification import Record
+from piezo_valve_ros.core.identification import check_report
+from piezo_valve_ros.core.identification import analyse
 
 NOT_YET: dict[str, str] = {}
 
@@ -82,10 +82,10 @@ def test_a_rate_dependent_slope_is_left_to_the_feedback():
     """The controller's inverse has no rate-dependent slope: the dynamics effect says so when it has one, and gives
     the widening alone when it has none."""
     import numpy as np
-    from piezo_valve_ros.core.identification.effects import NotCompensable
-    from piezo_valve_ros.core.identification.effects.dynamics import Dynamics
-    from piezo_valve_ros.core.identification.valve_model import ValveModel
-    from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM
+    from piezo_valve_ros.core.identification import NotCompensable
+    from piezo_valve_ros.core.identification import Dynamics
+    from piezo_valve_ros.core.identification import ValveModel
+    from piezo_valve_ros.core.model import PAPER_GPIM
     model = ValveModel(PAPER_GPIM.model(), rate_widening_v=(0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
     with pytest.raises(NotCompensable, match="rate-dependent slope"):
         Dynamics(form="rates").compensation(model, np.array([0.0, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]))

@@ -27,9 +27,9 @@ from typing import Callable, Optional
 import numpy as np
 from scipy import signal
 
-from piezo_valve_ros.core.model.dynamics import PAPER_VALVE_MODEL, ContinuousTF
-from piezo_valve_ros.core.model.hysteresis import PAPER_GPIM, play_batch
-from piezo_valve_ros.core.sim.signals import identification_voltage, validation_voltage
+from piezo_valve_ros.core.model import PAPER_VALVE_MODEL, ContinuousTF
+from piezo_valve_ros.core.model import PAPER_GPIM, play_batch
+from piezo_valve_ros.core.sim import identification_voltage, validation_voltage
 
 DT = 5e-4            # 2 kHz: fast enough for G_v's poles, small enough for a quick suite
 NOISE_UM = 0.05
@@ -334,10 +334,10 @@ def closed_loop_rows(sim_config, strategy: str, gains, seed: int) -> np.ndarray:
     controller (``strategy``, ``gains``, the paper's model) following ``staircase_and_sines_um``: the
     voltage is the controller's output, not a designed signal."""
     from dataclasses import replace as _replace
-    from piezo_valve_ros.core.control.compensation import CompensationModel
-    from piezo_valve_ros.core.sim.experiments import run_closed_loop
-    from piezo_valve_ros.core.sim.simulator import SimulatedValve
-    from piezo_valve_ros.core.control.strategies import ControllerConfig, ValveController
+    from piezo_valve_ros.core.control import CompensationModel
+    from piezo_valve_ros.core.sim import run_closed_loop
+    from piezo_valve_ros.core.sim import SimulatedValve
+    from piezo_valve_ros.core.control import ControllerConfig, ValveController
     dt = sim_config.dt
     valve = SimulatedValve(_replace(sim_config, seed=seed))
     controller = ValveController(ControllerConfig(strategy=strategy, gains=gains, dt=dt), CompensationModel())

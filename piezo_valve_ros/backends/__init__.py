@@ -6,6 +6,9 @@ from __future__ import annotations
 
 from .base import (ENTRY_POINT_GROUP, BackendParameter, SimBackend, ValveBackend, available_backends,
                    backend_class, backend_parameters, register_backend, sim_config_from_parameters)
+from .faults import Fault, FaultLimits, SampleCheck
+from .kit import FaultInjectingBackend, check_backend
 
 __all__ = ["ValveBackend", "SimBackend", "BackendParameter", "backend_parameters", "register_backend",
-           "backend_class", "available_backends", "sim_config_from_parameters", "ENTRY_POINT_GROUP"]
+           "backend_class", "available_backends", "sim_config_from_parameters", "ENTRY_POINT_GROUP", "Fault",
+           "FaultLimits", "SampleCheck", "FaultInjectingBackend", "check_backend"]

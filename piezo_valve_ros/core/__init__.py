@@ -18,3 +18,29 @@ def lazy_exports(package: str, exports: dict[str, str]) -> tuple[list[str], Call
         setattr(sys.modules[package], name, value)
         return value
     return sorted(exports), __getattr__
+
+
+# the core's own modules' everyday names (metrics, runs, validation, blas, errors); ``lazy_exports`` stays a
+# module attribute for the parts' faces
+__all__, __getattr__ = lazy_exports(__name__, {
+    "ErrorFigures": "metrics",
+    "POSITIVE": "validation",
+    "ParameterSpec": "validation",
+    "PiezoValveError": "errors",
+    "StepMetrics": "metrics",
+    "THREAD_VARIABLES": "blas",
+    "TimeWindow": "runs",
+    "align_jumps": "runs",
+    "bandwidth_metrics": "metrics",
+    "error_figures": "metrics",
+    "field_problems": "validation",
+    "find_steps": "runs",
+    "one_blas_thread_for_process": "blas",
+    "receive_to_sample_time": "runs",
+    "reference_on_samples": "runs",
+    "rms": "metrics",
+    "ruled": "validation",
+    "same_period": "validation",
+    "step_metrics": "metrics",
+    "whole_periods": "validation",
+})

@@ -14,4 +14,12 @@ __all__, __getattr__ = lazy_exports(__name__, {
     "SAMPLES_COLUMNS": "samples",
     "SamplesLayoutError": "samples",
     "decode_samples": "samples",
+    "FLOAT64_TYPE": "bags",
+    "SAMPLES_TYPE": "bags",
+    "TYPESTORE": "bags",
+    "qos_profile": "bags",
+    "read_run": "bags",
+    "require": "plots",
+    "serialize_float64": "bags",
+    "serialize_samples": "bags",
 })

@@ -18,4 +18,12 @@ __all__, __getattr__ = lazy_exports(__name__, {
     "Throttle": "throttle",
     "HardwareLoop": "hardware_loop",
     "LoopSettings": "hardware_loop",
+    "FAST_ACK_PROFILE": "dds",
+    "HEARTBEAT_PERIOD_S": "dds",
+    "NODE_MODULES": "processes",
+    "PARENT_DEATH_GRACE_S": "processes",
+    "available_cpus": "realtime",
+    "pin": "realtime",
+    "release_cpu_wakeup_latency": "realtime",
+    "without_fast_acknowledgements": "dds",
 })

@@ -10,4 +10,10 @@ __all__, __getattr__ = lazy_exports(__name__, {
     "Level": "health",
     "RefitPolicy": "refits",
     "RefitDecision": "refits",
+    "GAIN": "refits",
+    "GAIN_PREFIX": "health",
+    "OFFSET_PREFIX": "health",
+    "PUSH_COLUMNS": "refits",
+    "UNDO": "refits",
+    "push_row": "refits",
 })
