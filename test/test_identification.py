@@ -106,8 +106,8 @@ def test_the_report_is_a_frozen_typed_tree_whose_json_is_report_json():
     only where they are set."""
     import dataclasses
     import json
-    from piezo_valve_ros.core.identification import (ConfirmRound, Decision, ErrorFigures, IdentificationReport,
-                                                     SearchRow)
+    from piezo_valve_ros.core import ErrorFigures
+    from piezo_valve_ros.core.identification import ConfirmRound, Decision, IdentificationReport, SearchRow
     report = analysis_of("masking pair: creep + drift").report
     assert isinstance(report, IdentificationReport) and report.effects_added == ("creep", "drift")
     assert isinstance(report.final.validate, ErrorFigures) and report.final.validate.rms_um < report.baseline.validate.rms_um

@@ -29,7 +29,6 @@ __all__, __getattr__ = lazy_exports(__name__, {
     "Decision": "report",
     "Drift": "effects",
     "Dynamics": "effects.dynamics",
-    "ErrorFigures": "report",
     "FitCache": "fitting",
     "GAIN_THRESHOLD": "residual",
     "InitialState": "valve_model",
