@@ -144,8 +144,8 @@ def identify_the_day(run: dict, keep: str | None) -> list[str]:
                   f"{'named' if w.drift_added else 'not named'} ({w.evidence}); the trend {w.peak_to_peak_um:.2f} um "
                   f"peak to peak, departing from its start from {w.onset_s:.0f} s",
                   "error RMS at the analysis rate by tenth of the day, without -> with the trend [um]: "
-                  + ", ".join(f"{s['rms_um']:.3f} -> {s['rms_with_trend_um']:.3f}" for s in w.stretches)]
-    lines += [f"{key}: {text}" for key, text in r.figures_from.items()] + ["```"]
+                  + ", ".join(f"{s.rms_um:.3f} -> {s.rms_with_trend_um:.3f}" for s in w.stretches)]
+    lines += [f"{key}: {text}" for key, text in r.figures_from.to_json().items() if text] + ["```"]
     return lines
 
 

@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 
 from .initial_state import WIPE_STATE_GAIN
-from .report import (Baseline, BaselineFits, Capacity, Decision, Final, IdentificationReport, NoiseEstimate,
+from .report import (Baseline, BaselineFits, Capacity, Decision, Final, FiguresFrom, IdentificationReport, NoiseEstimate,
                      NoiseFloorReport, ResidualStructure, Session, to_json)
 from .records import HELD_OUT_FRACTION, noise_peak_um
 from .search import GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, support, unsupported_because
@@ -204,7 +204,7 @@ class ReportStage:
         self.log(f"{report.summary} ({report.seconds:.1f} s)")
         return report
 
-    def figures_from(self) -> dict[str, str]:
+    def figures_from(self) -> FiguresFrom:
         """Which stretch of which record each of the report's figures comes from, in words."""
         split, a = self.split, self.analysed["train"]
         train = f"the training record's {split.fit_full.time_s[0]:.3f}..{a['to_s']:.3f} s" + (
@@ -214,16 +214,19 @@ class ReportStage:
                 else "held out: the validation record's "
                 + f"{self.analysed['validate']['from_s']:.3f}..{self.analysed['validate']['to_s']:.3f} s")
         stretch = f"fitted on {train}, {held}"
-        out = {"baseline": stretch, "final": stretch + ("; its drift fitted on the whole record"
-                                                        if self.trend is not None and self.trend.supported else ""),
-               "diagnosis": stretch + ("; drift's on the whole record" if self.trend is not None else ""),
-               "residual_structure": f"the final model's held-out error ({held} of {train})" if split.held_out
-               else f"the final model's held-out error ({held})"}
+        whole = None
         if self.whole is not None:
-            out["whole_record"] = (f"the stretch's model run over the whole training record "
-                                   f"({self.whole.time_s[0]:.3f}..{self.whole.time_s[-1]:.3f} s) at "
-                                   f"{self.whole.rate_hz:.0f} Hz, its residual in block means searched for a trend")
-        return out
+            whole = (f"the stretch's model run over the whole training record ({self.whole.time_s[0]:.3f}.."
+                     f"{self.whole.time_s[-1]:.3f} s) at {self.whole.rate_hz:.0f} Hz, its residual searched for a "
+                     f"trend")
+        return FiguresFrom(
+            baseline=stretch,
+            final=stretch + ("; its drift fitted on the whole record" if self.trend is not None and self.trend.supported
+                             else ""),
+            diagnosis=stretch + ("; drift's on the whole record" if self.trend is not None else ""),
+            residual_structure=(f"the final model's held-out error ({held} of {train})" if split.held_out
+                                else f"the final model's held-out error ({held})"),
+            whole_record=whole)
 
     def sessions_report(self, start: StartChoice, final: ValveModel) -> tuple[list[Session], dict]:
         """Each record as a session of its own, for the final model (``Session`` in the report's schema), and how

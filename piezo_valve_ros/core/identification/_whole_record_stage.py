@@ -9,7 +9,7 @@ from typing import Optional
 import numpy as np
 
 from .effects.drift import Drift
-from .report import WholeRecordReport
+from .report import Stretch, TrendRMS, WholeRecordReport
 from .search import NoiseLevels
 from .whole_record import TREND_BLOCK_S, TREND_RESOLUTION_S, TREND_SEGMENT_S, Trend, trend_search, whole_residual
 from ._effect_choice import Story, Verdict, _decided
@@ -78,15 +78,14 @@ class WholeRecordStage:
             block_s=TREND_BLOCK_S, segment_s=TREND_SEGMENT_S, resolution_s=TREND_RESOLUTION_S,
             trend_terms=t.effect.trend_terms,
             tried={str(k): round(v, 6) for k, v in t.tried.items()},
-            held_out_rms_um={"without": round(t.without_um, 6), "with": round(t.with_um, 6)},
+            held_out_rms_um=TrendRMS(round(t.without_um, 6), round(t.with_um, 6)),
             drift_added=t.supported, decided_by=t.support.by, evidence=t.support.describe(),
             peak_to_peak_um=round(t.peak_to_peak_um, 6), onset_s=round(t.onset_s, 3),
-            rms_um={"without_trend": round(t.rms_um[0], 6), "with_trend": round(t.rms_um[1], 6)},
+            rms_um=TrendRMS(round(t.rms_um[0], 6), round(t.rms_um[1], 6)),
             beyond_stretch_rms_um=(None if math.isnan(t.beyond_rms_um[0]) else
-                                   {"without_trend": round(t.beyond_rms_um[0], 6),
-                                    "with_trend": round(t.beyond_rms_um[1], 6)}),
-            stretches=tuple({"from_s": round(a, 3), "to_s": round(b, 3), "rms_um": round(r0, 6),
-                             "rms_with_trend_um": round(r1, 6)} for a, b, r0, r1 in t.stretch_rms_um))
+                                   TrendRMS(round(t.beyond_rms_um[0], 6), round(t.beyond_rms_um[1], 6))),
+            stretches=tuple(Stretch(round(a, 3), round(b, 3), round(r0, 6), round(r1, 6))
+                            for a, b, r0, r1 in t.stretch_rms_um))
 
     def whole_record_evidence(self) -> str:
         """How the whole-record verdict was reached, in words (the diagnosis' ``how``)."""

@@ -16,7 +16,7 @@ from typing import Optional, Union
 from ..metrics import ErrorFigures
 
 __all__ = ["IdentificationReport", "Figures", "Baseline", "Final", "Decision", "Indistinguishable",
-           "ResidualStructure", "NoiseEstimate", "WholeRecordReport", "NoiseFloorReport", "Capacity", "SearchRow", "ConfirmRound", "Session", "BaselineFits", "ErrorFigures",
+           "ResidualStructure", "NoiseEstimate", "WholeRecordReport", "TrendRMS", "Stretch", "FiguresFrom", "NoiseFloorReport", "Capacity", "SearchRow", "ConfirmRound", "Session", "BaselineFits", "ErrorFigures",
            "check_report", "schema_tables", "to_json"]
 
 
@@ -181,6 +181,30 @@ class Session(_Node):
 
 
 @dataclass(frozen=True)
+class TrendRMS(_Node):
+    without_trend: float = _item("the stretch's model's error RMS as it is [um]")
+    with_trend: float = _item("... less the whole record's trend [um]")
+
+
+@dataclass(frozen=True)
+class Stretch(_Node):
+    from_s: float = _item("first block's time [s]")
+    to_s: float = _item("last block's time [s]")
+    rms_um: float = _item("the error RMS at the analysis rate there [um]")
+    rms_with_trend_um: float = _item("... less the trend [um]")
+
+
+@dataclass(frozen=True)
+class FiguresFrom(_Node):
+    baseline: str = _item("the stretch the baseline's figures come from")
+    final: str = _item("... the final model's")
+    diagnosis: str = _item("... the diagnosis'")
+    residual_structure: str = _item("... the residual's structure")
+    whole_record: Optional[str] = _item("... the whole record's trend (null where the loop saw all of the record)",
+                                        default=None)
+
+
+@dataclass(frozen=True)
 class WholeRecordReport(_Node):
     from_s: float = _item("the whole record's (or its window's) first sample time [s]")
     to_s: float = _item("its last sample time [s]")
@@ -191,19 +215,19 @@ class WholeRecordReport(_Node):
     resolution_s: float = _item("the trend's spline intervals span at least this long [s]")
     trend_terms: int = _item("the best trend's cubic spline intervals over the record")
     tried: dict = _item("cross-validated block RMS [um] by number of spline intervals tried")
-    held_out_rms_um: dict = _item("the cross-validated block RMS without and with the best trend [um]")
+    held_out_rms_um: TrendRMS = _item("the cross-validated error RMS (analysis rate) without and with the best "
+                                      "trend [um]")
     drift_added: bool = _item("whether the trend is supported (search.support): drift over the whole record")
     decided_by: str = _item("the rule that supported it, or empty")
     evidence: str = _item("the decision in words")
     peak_to_peak_um: float = _item("the fitted trend's size [um]")
     onset_s: float = _item("the first time it departs from its start by a tenth of its size [s]")
-    rms_um: dict = _item("the stretch's model's error RMS at the analysis rate over the whole record, without_trend "
-                         "and with_trend [um]")
-    beyond_stretch_rms_um: Optional[dict] = _item("the same over what lies beyond the analysed stretch (never fitted "
-                                                  "or held out there: all of it out of sample) [um]; null where nothing "
-                                                  "does")
-    stretches: tuple[dict, ...] = _item("the error RMS at the analysis rate by tenth of the record, without and with "
-                                        "the trend (from_s, to_s, rms_um, rms_with_trend_um) [s, um]")
+    rms_um: TrendRMS = _item("the stretch's model's error RMS at the analysis rate over the whole record [um]")
+    beyond_stretch_rms_um: Optional[TrendRMS] = _item("the same over what lies beyond the analysed stretch (never "
+                                                      "fitted there: all of it out of sample) [um]; null where nothing "
+                                                      "does")
+    stretches: tuple[Stretch, ...] = _item("the error RMS at the analysis rate by tenth of the record, without and "
+                                           "with the trend")
 
 
 @dataclass(frozen=True)
@@ -256,8 +280,7 @@ class IdentificationReport(_Node):
                            "times), samples, of_samples and record_duration_s; a record longer than MAX_ANALYSED_S "
                            "(100 s) is analysed on its first 100 s, its whole length (the training record's) for a "
                            "slow trend (whole_record), and a warning says so")
-    figures_from: dict = _item("which stretch of which record each figure comes from, in words: baseline, final, "
-                               "diagnosis, residual_structure, and whole_record where there is one")
+    figures_from: FiguresFrom = _item("which stretch of which record each figure comes from, in words")
     validate_range_um: float = _item("range of the held-out position [um]")
     sample_rate_hz: float = _item("the record's sampling rate [Hz]")
     analysis_rate_hz: float = _item("the rate fits and decisions run at (block means) [Hz]")

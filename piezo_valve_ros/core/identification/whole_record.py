@@ -6,11 +6,13 @@ shape, G_v, delay, creep, the effects it finds) on its first ``MAX_ANALYSED_S`` 
 record counts for what only shows over time: it is reduced to block means at the analysis rate as it is read
 (``BlockMeans``: memory of one message, not of the record), the stretch's model runs over all of it in chunks
 (``whole_residual``: each chunk after a warm-up long enough for creep's slowest lag to settle, so memory is that
-of one chunk and cost is linear in length), and the residual's block means are searched for a smooth trend in time
-of offset and gain (``trend_search``): the drift effect's "whole" form: cubic B-splines over the whole record, on intervals down
-to ``TREND_RESOLUTION_S``, each zero outside four of them, so a trend that sets in late leaves the rest untouched).  The trend is scored by two-fold cross-validation over alternate
-``TREND_SEGMENT_S`` stretches and judged by the loop's own rule (``search.support``); a trend that shows only late in
-the record (a warm-up at minute 20) is found where it happens.  Nothing here imports ROS.
+of one chunk and cost is linear in length; per block of TREND_BLOCK_S the sums a least-squares fit needs), and the
+residual is searched for a smooth trend in time of offset and gain (``trend_search``): the drift effect's "whole"
+form, cubic B-splines over the whole record on intervals no finer than ``TREND_RESOLUTION_S`` (each zero outside
+four of them, so a trend that sets in late leaves the rest untouched), fitted at the analysis rate from the blocks'
+sums.  The trend is scored by two-fold cross-validation over alternate ``TREND_SEGMENT_S`` stretches and judged by
+the loop's own rule (``search.support``); a trend that shows only late in the record (a warm-up at minute 20) is
+found where it happens.  Nothing here imports ROS.
 """
 from __future__ import annotations
 
@@ -43,8 +45,8 @@ MIN_STREAM_ROWS = 64          # the sampling period is taken from at least this 
 class BlockMeans:
     """Rows (time [s], voltage [V], position [m]) streamed in, the record at most ``max_rate_hz`` out: block means as
     ``records.analysis_record`` takes them (the same block length and source period), with a memory of one message.
-    Rows at or before the last one taken are dropped and counted in ``dropped`` (a batch delivered twice counts once).  ``record()`` gives the
-    reduced record so far; ``rows`` counts the source rows taken."""
+    Rows at or before the last one taken are dropped and counted in ``dropped`` (a batch delivered twice counts
+    once).  ``record()`` gives the reduced record so far; ``rows`` counts the source rows taken."""
 
     def __init__(self, max_rate_hz: float = ANALYSIS_RATE_HZ):
         self.max_rate_hz = max_rate_hz
