@@ -40,9 +40,14 @@ class WholeRecordStage:
         residual = whole_residual(base, whole, like, self.log)
         source_rows = residual.rows_per_block * whole.block
         levels = NoiseLevels(self.noise, self.noise / math.sqrt(source_rows), known=self.floor.known)
-        trend = self.trend = trend_search(residual, t0, duration, like, levels, self.log,
-                                          stretch_end_s=float(self.split.score_full.time_s[-1]) if self.split.held_out
-                                          else float(self.split.fit_full.time_s[-1]))
+        stretch_end = (float(self.split.score_full.time_s[-1]) if self.split.held_out
+                       else float(self.split.fit_full.time_s[-1]))
+        # a story that showed no drift on its stretch keeps it there: the trend starts where the stretch ends (so
+        # the stretch's figures stand, and a drift is found where it happens); the stretch's own drift is replaced
+        # by one over the whole record
+        from_s = 0.0 if had else max(stretch_end - t0, 0.0)
+        trend = self.trend = trend_search(residual, t0, duration, like, levels, self.log, stretch_end_s=stretch_end,
+                                          from_s=from_s)
         span = f"{self.whole.time_s[0]:.0f}..{self.whole.time_s[-1]:.0f} s"
         added, verdicts, drop_one = list(story.added), dict(story.verdicts), dict(story.drop_one)
         self.log(f"whole record ({span}): the stretch's model leaves {trend.rms_um[0]:.4f} um RMS at the analysis "
@@ -76,8 +81,8 @@ class WholeRecordStage:
         return WholeRecordReport(
             from_s=float(w.time_s[0]), to_s=float(w.time_s[-1]), rows=len(w), rate_hz=round(w.rate_hz, 3),
             block_s=TREND_BLOCK_S, segment_s=TREND_SEGMENT_S, resolution_s=TREND_RESOLUTION_S,
-            trend_terms=t.effect.trend_terms,
-            tried={str(k): round(v, 6) for k, v in t.tried.items()},
+            trend_terms=t.effect.trend_terms, trend_gain=bool(np.any(t.coefs[t.coefs.size // 2:])),
+            tried={k: round(v, 6) for k, v in t.tried.items()},
             held_out_rms_um=TrendRMS(round(t.without_um, 6), round(t.with_um, 6)),
             drift_added=t.supported, decided_by=t.support.by, evidence=t.support.describe(),
             peak_to_peak_um=round(t.peak_to_peak_um, 6), onset_s=round(t.onset_s, 3),

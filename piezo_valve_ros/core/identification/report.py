@@ -214,7 +214,9 @@ class WholeRecordReport(_Node):
     segment_s: float = _item("cross-validation: alternate stretches this long fit and score each other [s]")
     resolution_s: float = _item("the trend's spline intervals span at least this long [s]")
     trend_terms: int = _item("the best trend's cubic spline intervals over the record")
-    tried: dict = _item("cross-validated block RMS [um] by number of spline intervals tried")
+    trend_gain: bool = _item("whether the best trend has a gain term besides the offset")
+    tried: dict = _item("cross-validated error RMS [um] of every trend tried: its spline intervals and its terms "
+                        "(offset, or offset and gain)")
     held_out_rms_um: TrendRMS = _item("the cross-validated error RMS (analysis rate) without and with the best "
                                       "trend [um]")
     drift_added: bool = _item("whether the trend is supported (search.support): drift over the whole record")

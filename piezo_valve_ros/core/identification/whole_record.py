@@ -172,7 +172,7 @@ class Trend:
     """The trend search's finding: the drift effect over the whole record (``effect``, ``coefs``: its offset then gain
     coefficients [um]) where ``support`` supports it; the residual's cross-validated block RMS without and with it
     [um], the trend's size (peak to peak [um]) and the first time it departs from its start by a tenth of that,
-    what every number of spline intervals tried scored, and the residual's RMS at the analysis rate without and with
+    what every form tried scored (by its intervals and terms), and the residual's RMS at the analysis rate without and with
     the trend: by tenth of the record, over all of it, and over what lies beyond the analysed stretch."""
 
     effect: Drift
@@ -203,6 +203,14 @@ def _normal_equations(residual: WholeResidual, F: np.ndarray, rows: np.ndarray) 
     return gram, np.concatenate((Fr.T @ sum_e, Fr.T @ sums[:, 1]))
 
 
+def _solve_form(gram: np.ndarray, rhs: np.ndarray, with_gain: bool) -> np.ndarray:
+    """The trend's coefficients (offset, then gain: zeros where ``with_gain`` is False)."""
+    if with_gain:
+        return _solve(gram, rhs)
+    k = rhs.size // 2
+    return np.concatenate((_solve(gram[:k, :k], rhs[:k]), np.zeros(k)))
+
+
 def _solve(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     scale = np.sqrt(np.maximum(np.diag(gram), 1e-300))
     g = gram / np.outer(scale, scale)
@@ -221,31 +229,37 @@ def _block_errors(residual: WholeResidual, offset_um: np.ndarray, gain_um: np.nd
 
 
 def trend_search(residual: WholeResidual, t0: float, duration_s: float, like: Drift, noise: NoiseLevels,
-                 log: Callable[[str], None] = lambda s: None, stretch_end_s: float = -math.inf) -> Trend:
+                 log: Callable[[str], None] = lambda s: None, stretch_end_s: float = -math.inf,
+                 from_s: float = 0.0) -> Trend:
     """Search ``residual`` for a smooth trend in time of offset and gain (the drift effect's "whole" form over
     ``duration_s`` [s] from ``t0``), with every number of spline intervals in TREND_TERMS the record resolves
-    (TREND_RESOLUTION_S); each fitted at the analysis rate (the normal equations from the blocks' sums) and scored by
+    (TREND_RESOLUTION_S), of offset alone and of offset and gain; each fitted at the analysis rate (the normal equations from the blocks' sums) and scored by
     two-fold cross-validation over alternate TREND_SEGMENT_S stretches, the best judged by ``search.support`` against
-    no trend (``noise``: the floor at the record's and the analysis rate)."""
+    no trend (``noise``: the floor at the record's and the analysis rate).  The trend starts ``from_s`` [s] after
+    ``t0`` (zero before: the stretch the model was fitted and judged on, where it showed none)."""
     segment = np.floor((residual.time_s - residual.time_s[0]) / TREND_SEGMENT_S).astype(int)
     folds = (segment % 2 == 0, segment % 2 == 1)
-    most = max(int(duration_s // TREND_RESOLUTION_S), 1)
+    most = max(int((duration_s - from_s) // TREND_RESOLUTION_S), 1)
     zero = np.zeros(residual.time_s.size)
     tried, best = {}, None
     for k in [k for k in TREND_TERMS if k <= most]:
-        effect = like.whole(duration_s, k)
+        effect = like.whole(duration_s, k, from_s)
         F = effect.time_rows(residual.time_s - t0).T
-        cv = np.empty_like(zero)
-        for fit_rows, score_rows in (folds, folds[::-1]):
-            c = _solve(*_normal_equations(residual, F, fit_rows))
-            cv[score_rows] = _block_errors(residual, F @ c[:F.shape[1]], F @ c[F.shape[1]:])[score_rows]
-        tried[k] = rms(cv)
-        if best is None or tried[k] < tried[best[0]]:
-            best = (k, effect, F, cv)
-    k, effect, F, cv = best
+        equations = [_normal_equations(residual, F, rows) for rows in folds]
+        for with_gain in (False, True):   # an offset alone, or offset and gain (nested: the simpler first)
+            cv = np.empty_like(zero)
+            for (gram, rhs), score_rows in zip(equations, folds[::-1]):
+                c = _solve_form(gram, rhs, with_gain)
+                cv[score_rows] = _block_errors(residual, F @ c[:F.shape[1]], F @ c[F.shape[1]:])[score_rows]
+            label = f"{k}{' offset and gain' if with_gain else ' offset'}"
+            tried[label] = rms(cv)
+            if best is None or tried[label] < tried[best[0]]:
+                best = (label, effect, F, cv, with_gain)
+    label, effect, F, cv, with_gain = best
+    k = effect.trend_terms
     without, with_ = Score.of(_block_errors(residual, zero, zero)), Score.of(cv)
     sup = support(with_, without, noise)
-    coefs = _solve(*_normal_equations(residual, F, np.ones(zero.size, bool)))
+    coefs = _solve_form(*_normal_equations(residual, F, np.ones(zero.size, bool)), with_gain)
     offset, gain = F @ coefs[:F.shape[1]], F @ coefs[F.shape[1]:]
     full = offset + gain * residual.gain_input   # the trend's block means
     pp = float(np.ptp(full)) if full.size else 0.0
@@ -259,7 +273,7 @@ def trend_search(residual: WholeResidual, t0: float, duration_s: float, like: Dr
     whole = (residual.rms_with(zero, zero), residual.rms_with(offset, gain))
     past = ((residual.rms_with(zero, zero, beyond), residual.rms_with(offset, gain, beyond))
             if residual.time_s[beyond].size else (math.nan, math.nan))
-    log(f"whole record: a trend on {k} spline interval(s) scores best ({', '.join(f'{n}: {r:.4f}' for n, r in tried.items())} "
+    log(f"whole record: a trend of {'offset and gain' if with_gain else 'offset'} on {k} spline interval(s) scores best ({', '.join(f'{n}: {r:.4f}' for n, r in tried.items())} "
         f"um RMS, cross-validated); offset {float(np.ptp(offset)):.3f} um and gain {float(np.ptp(gain)):.3f} um peak to "
         f"peak, in all {pp:.3f} um, from {onset:.0f} s")
     return Trend(effect, coefs, sup, without.rms, with_.rms, pp, onset, tried, stretches, whole, past)

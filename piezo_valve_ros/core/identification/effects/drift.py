@@ -50,22 +50,26 @@ class Drift(Effect):
     mean_rate_v_s: float = 1.0
     form: str = "all"   # "linear" (t/T alone) or "all" (see FORMS), or "whole"
     trend_terms: int = 0   # the "whole" form's spline intervals
+    trend_from_s: float = 0.0   # ... and where its trend starts (after t0) [s]
 
-    def whole(self, duration_s: float, trend_terms: int) -> "Drift":
-        """The "whole" form over ``duration_s`` [s] in ``trend_terms`` spline intervals (a long record's trend)."""
-        return replace(self, duration_s=duration_s, form="whole", trend_terms=trend_terms)
+    def whole(self, duration_s: float, trend_terms: int, from_s: float = 0.0) -> "Drift":
+        """The "whole" form over ``duration_s`` [s] in ``trend_terms`` spline intervals (a long record's trend),
+        starting ``from_s`` [s] after t0 (zero before: the stretch a model was fitted and judged on)."""
+        return replace(self, duration_s=duration_s, form="whole", trend_terms=trend_terms, trend_from_s=from_s)
 
     def time_rows(self, t: np.ndarray) -> np.ndarray:
         """(k, N) the "whole" form's functions of the time since the model's t0 [s]: cubic B-splines on
-        ``trend_terms`` equal intervals of the record's length T, less the one that is not zero at t0 (so the trend
-        starts at zero, and one that sets in late is zero until it does: each spline is zero outside four
-        intervals); held at their value at T beyond it."""
+        ``trend_terms`` equal intervals from ``trend_from_s`` to the record's length T, less those not zero at their
+        start (the first; and the second, its slope, where the trend starts after t0: it goes on smoothly from the
+        flat stretch before it), so the trend starts at zero, and one that sets in late is zero until it does (each
+        spline is zero outside four intervals); held at their value at T beyond it."""
         from scipy.interpolate import BSpline
         k = max(int(self.trend_terms), 1)
         knots = np.concatenate(([0.0] * 3, np.linspace(0.0, 1.0, k + 1), [1.0] * 3))
-        x = np.clip(np.asarray(t, float) / self.duration_s, 0.0, 1.0)
+        start = self.trend_from_s
+        x = np.clip((np.asarray(t, float) - start) / (self.duration_s - start), 0.0, 1.0)
         rows = BSpline.design_matrix(x, knots, 3).T.toarray()
-        return np.ascontiguousarray(rows[1:])
+        return np.ascontiguousarray(rows[2:] if start > 0 else rows[1:])
     @classmethod
     def prepare(cls, train: Record, H: np.ndarray) -> Optional["Drift"]:
         lo, hi = float(np.min(H)), float(np.max(H))
@@ -121,7 +125,9 @@ class Drift(Effect):
 
     def describe(self, model, coefs) -> dict:
         if self.form == "whole":
-            names = [f"spline_{j}_of_{self.trend_terms}" for j in range(1, max(self.trend_terms, 1) + 3)]
+            first = 3 if self.trend_from_s > 0 else 2
+            names = [f"spline_{j}_of_{self.trend_terms}_from_{self.trend_from_s:g}s"
+                     for j in range(first, max(self.trend_terms, 1) + 4)]
         else:
             names = ["t/T"] + ([] if self.form == "linear" else [f"1-exp(-t/({f}T))" for f in self.time_scales]
                                + [f"heating_{int(t)}s" for t in HEATING_TIME_CONSTANTS_S]) + (
