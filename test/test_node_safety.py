@@ -125,6 +125,9 @@ def controller(ros_context):
     ({"fault__stuck_command_span_v": float("nan")}, "fault.stuck_command_span_v"),
     ({"fault__missing_samples_s": 0.0}, "fault.missing_samples_s"),
     ({"fault__missing_samples_s": "never"}, "fault.missing_samples_s"),
+    ({"autostart": "yes"}, "expecting type 'BOOL': autostart"),   # rclpy's typed declaration
+    ({"autostart": 0}, "expecting type 'BOOL': autostart"),
+    ({"autostart": float("nan")}, "expecting type 'BOOL': autostart"),
 ])
 def test_hardware_refuses_unsafe_start_up_parameters(hardware, overrides, says):
     with pytest.raises(Exception, match=says):
@@ -157,7 +160,7 @@ def test_hardware_applies_a_valid_timeout_and_refuses_step_budget_on_the_real_ti
 
 @pytest.mark.parametrize("name, value", [("safe_voltage", 8.0), ("command_max_v", 20.0), ("control_period_s", 2e-3),
                                          ("clock", "lockstep"), ("backend", "other"), ("sim.noise", False),
-                                         ("realtime.cpu_wakeup_latency_us", 0)])
+                                         ("realtime.cpu_wakeup_latency_us", 0), ("autostart", False)])
 def test_hardware_start_up_settings_are_read_only(hardware, name, value):
     hw = hardware(clock="realtime")
     before = hw.get_parameter(name).value

@@ -17,7 +17,7 @@ found where it happens.  Nothing here imports ROS.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Optional
 
 import numpy as np
@@ -119,11 +119,8 @@ class WholeResidual:
     def rms_with(self, offset_um: np.ndarray, gain_um: np.ndarray, rows: slice = slice(None)) -> float:
         """The residual's RMS [um] at the analysis rate over the blocks ``rows``, less a trend of ``offset_um`` +
         ``gain_um`` x h per block (constant within a block: TREND_BLOCK_S is far shorter than any trend's scale)."""
-        n = self.rows_per_block
-        e, h, s = self.error_um[rows] * n, self.gain_input[rows] * n, self.sums[rows]
-        a, b = offset_um[rows], gain_um[rows]
-        sse = s[:, 0] - 2 * a * e - 2 * b * s[:, 1] + n * a * a + 2 * a * b * h + b * b * s[:, 2]
-        return math.sqrt(max(float(np.sum(sse)), 0.0) / max(n * sse.size, 1))
+        e = _block_errors(self, offset_um, gain_um)[rows]
+        return math.sqrt(float(np.mean(e * e))) if e.size else 0.0
 
 
 def whole_residual(model: ValveModel, record: Record, drift: Drift,
@@ -163,7 +160,6 @@ def whole_residual(model: ValveModel, record: Record, drift: Drift,
 
 
 def _from_rest(model: ValveModel) -> ValveModel:
-    from dataclasses import replace
     return replace(model, history=REST)
 
 
