@@ -360,6 +360,15 @@ def test_the_sim_backends_drift_parameters_are_checked():
                                 (("drift_gain_change", "much"), "sim.drift_gain_change")):
         with pytest.raises(ValueError, match=says):
             sim_config_from_parameters({name: value})
+    # every reason in one refusal, each named as the node declares it; then the checks of two values together
+    with pytest.raises(ValueError, match=r"sim.sensor_delay_s must lie in \[0, 0.1\].*"
+                                         r"sim.backlash_width_um must be >= 0.*sim.gpim.n must be an integer"):
+        sim_config_from_parameters({"backlash_width_um": -0.1, "sensor_delay_s": 1.0, "gpim.n": "many"})
+    with pytest.raises(ValueError, match=r"sim.sensor_delay_s must be a whole number of sample periods"):
+        sim_config_from_parameters({"sample_period_s": 1e-4, "sensor_delay_s": 1.5e-4})
+    with pytest.raises(ValueError, match=r"sim.gpim: "):
+        sim_config_from_parameters({"gpim.n": 0})
+    assert sim_config_from_parameters({"sample_period_s": 1e-4, "sensor_delay_s": 3e-4}).sensor.delay_samples == 3
 
 
 @pytest.mark.parametrize("drift, named", [

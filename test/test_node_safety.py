@@ -91,7 +91,7 @@ def controller(ros_context):
     ({"clock": "wallclock"}, "clock must be one of realtime, lockstep, got 'wallclock'"),
     ({"samples_batch": 0}, "samples_batch must be >= 1, got 0"),
     ({"samples_batch": 2.5}, "samples_batch must be an integer"),
-    ({"lockstep__step_budget": -2, "clock": "lockstep"}, "must be -1"),
+    ({"lockstep__step_budget": -2, "clock": "lockstep"}, "lockstep.step_budget must be >= -1"),
     ({"lockstep__max_speed": 2.0}, "lockstep.max_speed applies only to clock lockstep"),
     ({"lockstep__max_speed": -1.0, "clock": "lockstep"}, "lockstep.max_speed must be >= 0, got -1.0"),
     ({"lockstep__max_speed": float("nan"), "clock": "lockstep"}, "lockstep.max_speed must be finite"),
@@ -99,7 +99,7 @@ def controller(ros_context):
     ({"safe_voltage": 11.0}, "safe_voltage must lie within"),
     ({"command_min_v": 5.0, "command_max_v": 5.0, "safe_voltage": 5.0}, "must be below"),
     ({"sim__sensor_delay_s": 0.00015}, "whole number of sample periods"),
-    ({"sim__sensor_delay_s": -0.001}, "whole number of sample periods"),
+    ({"sim__sensor_delay_s": -0.001}, "sim.sensor_delay_s out of range"),   # a double: rclpy's range check
     ({"realtime__switch_interval_s": 0.1}, "out of range"),
     ({"realtime__switch_interval_s": 1}, "switch_interval_s must lie in"),
     ({"realtime__priority": 99}, "realtime.priority must lie in 0..98"),
@@ -241,11 +241,15 @@ def test_controller_refuses_what_it_would_not_apply(controller, name, value):
 
 
 @pytest.mark.parametrize("overrides, says", [
-    ({"derivative_filter_s": 0.0}, "derivative_filter_s must be > 0"),
-    ({"derivative_filter_s": -1e-3}, "derivative_filter_s must be > 0"),
-    ({"derivative_filter_s": float("nan")}, "derivative_filter_s must be"),
+    ({"derivative_filter_s": 0.0}, "derivative_filter_s out of range"),   # a double: rclpy's range check
+    ({"derivative_filter_s": -1e-3}, "derivative_filter_s out of range"),
+    ({"derivative_filter_s": float("nan")}, "derivative_filter_s"),
     ({"derivative_filter_s": "abc"}, "derivative_filter_s must be a number"),
-    ({"derivative_filter_s": 1.0}, "within"),
+    ({"derivative_filter_s": 1.0}, "derivative_filter_s out of range"),
+    ({"derivative_filter_s": 1}, r"derivative_filter_s must lie in \[1e-05, 0.1\]"),   # an integer: the node's own
+    ({"reference_ramp_s": -1}, "reference_ramp_s must be >= 0"),
+    ({"handback_timeout_s": 20}, r"handback_timeout_s must lie in \[0.05, 10\]"),
+    ({"kp": -1}, "kp must be >= 0"),
     ({"gpim__rate_widening_v": [1.0, 2.0]}, "needs 9 coefficients"),
     ({"gpim__rate_widening_v": [float("nan")] * 9}, "must be finite"),
     ({"gpim__rate_widening_v": "abc"}, "list of numbers"),
@@ -713,6 +717,11 @@ def identification(ros_context, tmp_path):
     ({"hardware": ""}, "hardware must name a node"),
     ({"hardware": "the rig!"}, "hardware 'the rig!' is not a node name"),
     ({"controller": ""}, "controller must name a node"),
+    ({"plan": "train,bogus"}, "unknown step"),
+    ({"training_s": 0.0}, "training_s must be > 0"),
+    ({"validation_amplitude_m": -1e-6}, "validation_amplitude_m must be > 0"),
+    ({"training_s": 0.0, "time_scale": 0.0, "plan": "refit"},   # every reason in one refusal
+     "refit needs a train step.*time_scale must be > 0.*training_s must be > 0"),
 ])
 def test_identification_refuses_bad_settings_at_start_up(identification, overrides, says):
     with pytest.raises(ValueError, match=says):
@@ -729,7 +738,7 @@ def test_identification_settings_are_start_up_only(identification, name, value):
     result = set_one(node, name, value)
     assert not result.successful and "read-only" in result.reason.lower()
     assert node.get_parameter(name).value == before or (before != before and value != value)
-    assert node.tune_limits.max_overshoot_pct == 0.0 and node.tune_strategy == "pid_hc"
+    assert node.settings.tune_limits.max_overshoot_pct == 0.0 and node.settings.tune_strategy == "pid_hc"
 
 
 @pytest.mark.parametrize("executable, module", [("valve_hardware", "hardware"), ("valve_controller", "controller"),

@@ -194,10 +194,13 @@ class _PlanStub:
     the keep_worse_refit reason, the parameters file, the controller's set requests and a logger."""
 
     def __init__(self, tmp_path, keep_worse_refit=""):
+        from piezo_valve_ros.nodes.identification import SPECS, IdentificationSettings
         self._last_validation = 0.5
         self._before_refit = ({"gpim.rho": 5.8}, b"# the model before the refit\n")
-        self.keep_worse_refit = keep_worse_refit
         self.params_out = tmp_path / "fitted.yaml"
+        self.settings = IdentificationSettings.from_specs(SPECS, {
+            **{name: spec.default for name, spec in SPECS.items()},
+            "keep_worse_refit": keep_worse_refit, "params_out": str(self.params_out)})
         self.params_out.write_text("# the refit's model\n")
         self.sent, self.said = [], []
 

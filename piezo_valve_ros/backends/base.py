@@ -31,13 +31,13 @@ from __future__ import annotations
 import copy
 import time
 from abc import ABC, abstractmethod
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Dict, Optional, Type
 
 import numpy as np
 
 from ..core.sim.simulator import STAGE_SWITCHES, BacklashParams, DriftParams, SimulatedValve, ValveSimConfig
-from ..core.validation import ParameterSpec, as_bool, as_float, as_int, whole_periods
+from ..core.validation import ParameterSpec, Settings, from_parameter, whole_periods
 from ..core.model.drive import CENTRE_VOLTAGE_V
 
 __all__ = ["ValveBackend", "SimBackend", "BackendParameter", "backend_parameters", "register_backend", "backend_class",
@@ -136,63 +136,77 @@ class ValveBackend(ABC):
         per-period path would otherwise do inside a tick (imports, first-use allocations).  Optional."""
 
 
-def _sensor_delay_samples(delay_s: float, dt: float) -> int:
-    k = whole_periods(delay_s, dt)
-    if not 0.0 <= delay_s <= MAX_SENSOR_DELAY_S or k is None:
-        raise ValueError(f"sim.sensor_delay_s must be a whole number of sample periods ({dt} s) in "
-                         f"[0, {MAX_SENSOR_DELAY_S}] s, got {delay_s}")
-    return int(k)
-
-
 _GPIM_KEYS = ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")
+
+
+@dataclass(frozen=True)
+class SimSettings(Settings):
+    """The ``sim`` backend's settings besides its stages' on/off switches (``STAGE_SWITCHES``), read from its
+    PARAMETERS by ``Settings.from_specs`` (each checked by its spec: type, range; named ``sim.<name>`` in a
+    refusal), the checks that need two of them together in ``problems``."""
+
+    seed: int
+    sample_period_s: float        # [s]
+    sensor_delay_s: float         # [s], whole sample periods
+    drift_offset_um: float        # [um]
+    drift_gain_change: float      # [-]
+    drift_time_constant_s: float  # [s]
+    backlash_width_um: float      # [um]
+    drift_start_s: float          # [s]
+    gpim_a0: float = from_parameter("gpim.a0")
+    gpim_a1: float = from_parameter("gpim.a1")
+    gpim_alpha: float = from_parameter("gpim.alpha")
+    gpim_rho: float = from_parameter("gpim.rho")
+    gpim_tau: float = from_parameter("gpim.tau")
+    gpim_n: int = from_parameter("gpim.n")
+    gpim_offset_um: float = from_parameter("gpim.offset_um")
+
+    @property
+    def sensor_delay_samples(self) -> int:
+        return int(whole_periods(self.sensor_delay_s, self.sample_period_s) or 0)
+
+    def gpim(self, base):
+        """``base`` (GPIMParams) with this valve's own GPIM parameters."""
+        return replace(base, **{k: getattr(self, "gpim_" + k) for k in _GPIM_KEYS})
+
+    def problems(self) -> list[str]:
+        out = []
+        if not self.sample_period_s > 0:
+            return [f"sim.sample_period_s must be > 0, got {self.sample_period_s}"]
+        if whole_periods(self.sensor_delay_s, self.sample_period_s) is None:
+            out.append(f"sim.sensor_delay_s must be a whole number of sample periods ({self.sample_period_s} s), "
+                       f"got {self.sensor_delay_s}")
+        if not self.drift_time_constant_s > 0:
+            out.append(f"sim.drift_time_constant_s must be > 0, got {self.drift_time_constant_s}")
+        try:
+            self.gpim(ValveSimConfig().gpim).model()
+        except ValueError as exc:
+            out.append(f"sim.gpim: {exc}")
+        return out
 
 
 def sim_config_from_parameters(values: dict, initial_voltage_v: float = CENTRE_VOLTAGE_V) -> ValveSimConfig:
     """The simulated valve from the ``sim`` backend's parameter values (names without ``sim.``; missing ones
-    take their defaults; effects switchable one by one); ValueError with the reason."""
-    v = {prm.name: prm.default for prm in SimBackend.PARAMETERS}
+    take their defaults; effects switchable one by one); ValueError with every reason."""
+    specs = {prm.name: prm.under("sim.") for prm in SimBackend.PARAMETERS}   # keyed by name, said as sim.<name>
+    v = {name: spec.default for name, spec in specs.items()}
     v.update(values)
+    settings = SimSettings.from_specs(specs, v)
     base = ValveSimConfig()
-    gpim = replace(base.gpim, **{k: (as_int if k == "n" else as_float)(f"sim.gpim.{k}", v[f"gpim.{k}"])
-                                 for k in _GPIM_KEYS})
-    gpim.model()  # raises ValueError with the reason
-    dt = as_float("sim.sample_period_s", v["sample_period_s"])
-    if not dt > 0:
-        raise ValueError(f"sim.sample_period_s must be > 0, got {dt}")
     config = replace(
         base,
-        gpim=gpim,
-        dt=dt,
-        seed=as_int("sim.seed", v["seed"]),
-        drift=replace(base.drift, **_drift_values(v)),
-        backlash=replace(base.backlash, width_um=_backlash_width(v)),
-        sensor=replace(base.sensor,
-                       delay_samples=_sensor_delay_samples(as_float("sim.sensor_delay_s", v["sensor_delay_s"]), dt)),
+        gpim=settings.gpim(base.gpim),
+        dt=settings.sample_period_s,
+        seed=settings.seed,
+        drift=replace(base.drift, offset_um=settings.drift_offset_um, gain_change=settings.drift_gain_change,
+                      time_constant_s=settings.drift_time_constant_s, start_s=settings.drift_start_s),
+        backlash=replace(base.backlash, width_um=settings.backlash_width_um),
+        sensor=replace(base.sensor, delay_samples=settings.sensor_delay_samples),
         initial_voltage_v=float(initial_voltage_v),
     )
     for switch in STAGE_SWITCHES:   # each stage's switch, from its one declaration
-        config = switch.set(config, as_bool(f"sim.{switch.name}", v[switch.name]))
+        config = switch.set(config, specs[switch.name].checked(v[switch.name]))
     return config
-
-
-def _backlash_width(v: dict) -> float:
-    width = as_float("sim.backlash_width_um", v["backlash_width_um"])
-    if width < 0:
-        raise ValueError(f"sim.backlash_width_um must be >= 0, got {width}")
-    return width
-
-
-def _drift_values(v: dict) -> dict:
-    """The drift's size and onset from the sim backend's values; ValueError with the reason."""
-    out = {"offset_um": as_float("sim.drift_offset_um", v["drift_offset_um"]),
-           "gain_change": as_float("sim.drift_gain_change", v["drift_gain_change"]),
-           "time_constant_s": as_float("sim.drift_time_constant_s", v["drift_time_constant_s"]),
-           "start_s": as_float("sim.drift_start_s", v["drift_start_s"])}
-    if not out["time_constant_s"] > 0:   # (as_float refuses NaN and infinities)
-        raise ValueError(f"sim.drift_time_constant_s must be > 0, got {out['time_constant_s']}")
-    if out["start_s"] < 0:
-        raise ValueError(f"sim.drift_start_s must be >= 0, got {out['start_s']}")
-    return out
 
 
 def _sim_parameters() -> tuple:
@@ -201,16 +215,16 @@ def _sim_parameters() -> tuple:
             BackendParameter("sample_period_s", ValveSimConfig().dt, "sampling period [s]"),
             *(BackendParameter(s.name, s.is_on(ValveSimConfig()), s.description) for s in STAGE_SWITCHES),
             BackendParameter("sensor_delay_s", 0.0, "LVDT transport delay [s] (whole samples; e.g. a "
-                                                    "conditioning filter)"),
+                                                    "conditioning filter)", low=0.0, high=MAX_SENSOR_DELAY_S),
             BackendParameter("drift_offset_um", DriftParams().offset_um, "thermal drift: offset it approaches [um]"),
             BackendParameter("drift_gain_change", DriftParams().gain_change, "thermal drift: gain change it "
                                                                                "approaches [-]"),
             BackendParameter("drift_time_constant_s", DriftParams().time_constant_s, "thermal drift: time "
                                                                                      "constant [s]"),
             BackendParameter("backlash_width_um", BacklashParams().width_um, "backlash: clearance either side of the "
-                                                                             "spool [um] (a play of this half-width)"),
+                             "spool [um] (a play of this half-width)", low=0.0),
             BackendParameter("drift_start_s", 0.0, "thermal drift: sets in this long after the backend opens [s] "
-                                                   "(a drift that appears during operation)"),
+                                                   "(a drift that appears during operation)", low=0.0),
             *(BackendParameter(f"gpim.{k}", getattr(PAPER_GPIM, k), "the valve's own GPIM (paper units)")
               for k in _GPIM_KEYS))
 

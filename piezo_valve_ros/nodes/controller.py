@@ -16,7 +16,7 @@ Either way it resumes bumplessly from the applied voltage.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass
 import sys
 import time
 from typing import Any, Callable, Optional, Sequence
@@ -34,9 +34,9 @@ from ..core.sim.signals import ReferenceRamp
 from ..core.control.strategies import (GUARD_WINDOW_S, has_feedback, SAFE_PERIOD_S, STRATEGIES, TABLE1_GAINS, ControllerConfig,
                                        PIDGains, ValveController, default_gain_set, gain_set, loop_settings)
 from ..ros import (COMMAND_QOS, CONTROL_PERIOD, DIAGNOSTICS_PERIOD, LATEST_SENSOR_QOS, SAMPLES_QOS, STATE_QOS,
-                   declare_all, Diagnostics, parameter_values, period_parameter, realtime_settings, realtime_specs,
+                   declare_all, Diagnostics, parameter_values, realtime_settings, realtime_specs,
                    refuse, refuse_undeclared, run_node, samples_from_message, SamplesBuffer, Throttle)
-from ..core.validation import ParameterSpec, as_float
+from ..core.validation import ParameterSpec, Settings
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
 GAIN_SET_KEYS = ("strategy", "kp", "ki", "kd")   # what an active gain_set decides
@@ -55,10 +55,19 @@ def gain_set_values(name: str) -> dict[str, Any]:
 
 
 def settings_from_parameters(p: dict[str, Any]) -> tuple[ControllerConfig, CompensationModel]:
-    """Controller settings and the compensation model from a flat parameter dict; raises ValueError with every
-    problem found."""
+    """Controller settings and the compensation model from a flat parameter dict (the control law's parameters
+    checked by their ``ParameterSpec`` first, then together by ``ControllerConfig`` and the model's own checks);
+    raises ValueError with every problem found."""
+    problems = []
+    for name in CONTROL_LAW_PARAMETERS:
+        try:
+            SPECS[name].checked(p[name])
+        except ValueError as exc:
+            problems.append(str(exc))
+    if problems:
+        raise ValueError("; ".join(problems))
     strategy = str(p["strategy"])
-    gains = PIDGains(as_float("kp", p["kp"]), as_float("ki", p["ki"]), as_float("kd", p["kd"]))
+    gains = PIDGains(float(p["kp"]), float(p["ki"]), float(p["kd"]))
     name = str(p.get("gain_set", "") or "")
     if name:
         wanted = gain_set_values(name)
@@ -68,9 +77,6 @@ def settings_from_parameters(p: dict[str, Any]) -> tuple[ControllerConfig, Compe
                              f"{', '.join(differ)}, clear it in the same request (gain_set:= with nothing after it, or gain_set: '' in a file)")
     config = loop_settings(p, strategy, gains)
     problems = config.problems()
-    lo, hi = DERIVATIVE_FILTER_RANGE_S
-    if not lo <= config.derivative_filter_s <= hi:
-        problems.append(f"derivative_filter_s must lie within {lo:g}..{hi:g} s, got {config.derivative_filter_s:g}")
     model = None
     try:
         model = CompensationModel.from_parameters(p, config.command_min_v, config.command_max_v, config.dt)
@@ -89,33 +95,49 @@ STATE_PERIOD = ParameterSpec(
     "strategy, guard) this often [s]; 0: never", read_only=True, low=0.0, high=10.0)
 DEFAULT_GAIN_SET = default_gain_set(CONTROL_PERIOD.default)   # the node's default gains are safe at its default period
 _GAINS = TABLE1_GAINS[DEFAULT_GAIN_SET][1]
-CONTROLLER_PARAMETERS: tuple[ParameterSpec, ...] = tuple(
-    ParameterSpec(name, default, text) for name, default, text in [
-        ("strategy", "pid_hc", "the control law (the paper's six)"),
-        ("gain_set", "", "Table 1 gain set name: sets strategy/kp/ki/kd (which read back its values); '' = none"),
-        ("kp", _GAINS.kp, f"proportional gain (normalised, um/um; default: {DEFAULT_GAIN_SET}'s, safe at the default "
-                          "control period)"), ("ki", _GAINS.ki, "integral gain [1/s]"),
-        ("kd", _GAINS.kd, "derivative gain [s] (the paper uses 0)"),
-        ("derivative_filter_s", ControllerConfig.derivative_filter_s,
-         f"time constant of the D term's first-order filter [s] ({DERIVATIVE_FILTER_RANGE_S[0]:g}.."
-         f"{DERIVATIVE_FILTER_RANGE_S[1]:g}; valve_tune and the tune step use it)"),
-        ("command_min_v", COMMAND_MIN_V, "[V]"), ("command_max_v", COMMAND_MAX_V, "[V]"),
-        ("centre_voltage_v", CENTRE_VOLTAGE_V, "[V]"),
-        ("reference_ramp_s", 0.0, "reference changes become ramps of this duration [s] (paper: 0.002)"),
-        ("initial_reference_m", 0.0, "reference until the first position_reference [m]"),
-        ("enabled", True, "false: publish no commands (another node drives voltage_command, e.g. identification); "
-                          "true again resumes from the applied voltage"),
-    ] + [(name, default, text) for name, (default, text) in MODEL_PARAMETERS.items()]) + (
+CONTROLLER_PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec("strategy", "pid_hc", "the control law (the paper's six)", choices=STRATEGIES),
+    ParameterSpec("gain_set", "", "Table 1 gain set name: sets strategy/kp/ki/kd (which read back its values); '' = none"),
+    ParameterSpec("kp", _GAINS.kp, f"proportional gain (normalised, um/um; default: {DEFAULT_GAIN_SET}'s, safe at the "
+                  "default control period)", low=0.0),
+    ParameterSpec("ki", _GAINS.ki, "integral gain [1/s]", low=0.0),
+    ParameterSpec("kd", _GAINS.kd, "derivative gain [s] (the paper uses 0)", low=0.0),
+    ParameterSpec("derivative_filter_s", ControllerConfig.derivative_filter_s,
+                  "time constant of the D term's first-order filter [s] (valve_tune and the tune step use it)",
+                  low=DERIVATIVE_FILTER_RANGE_S[0], high=DERIVATIVE_FILTER_RANGE_S[1]),
+    ParameterSpec("command_min_v", COMMAND_MIN_V, "[V]"),
+    ParameterSpec("command_max_v", COMMAND_MAX_V, "[V]"),
+    ParameterSpec("centre_voltage_v", CENTRE_VOLTAGE_V, "[V]"),
+    ParameterSpec("reference_ramp_s", 0.0, "reference changes become ramps of this duration [s] (paper: 0.002; "
+                  "0: steps)", low=0.0),
+    ParameterSpec("initial_reference_m", 0.0, "reference until the first position_reference [m]"),
+    ParameterSpec("enabled", True, "false: publish no commands (another node drives voltage_command, e.g. "
+                  "identification); true again resumes from the applied voltage"),
+    *(ParameterSpec(name, default, text) for name, (default, text) in MODEL_PARAMETERS.items()),
     CONTROL_PERIOD,
     ParameterSpec("handback_timeout_s", 1.0, "disabled: when the commands of the node that took over stop for this "
-                  f"long, take control back [s] ({HANDBACK_TIMEOUT_RANGE_S[0]:g}..{HANDBACK_TIMEOUT_RANGE_S[1]:g})",
-                  low=HANDBACK_TIMEOUT_RANGE_S[0], high=HANDBACK_TIMEOUT_RANGE_S[1]),
+                  "long, take control back [s]", low=HANDBACK_TIMEOUT_RANGE_S[0], high=HANDBACK_TIMEOUT_RANGE_S[1]),
     *realtime_specs(),
     STATE_PERIOD,
     DIAGNOSTICS_PERIOD,
 )
-CONTROLLER_PARAMETERS = tuple(replace(s, choices=STRATEGIES) if s.name == "strategy" else s
-                              for s in CONTROLLER_PARAMETERS)
+SPECS = {s.name: s for s in CONTROLLER_PARAMETERS}
+CONTROL_LAW_PARAMETERS = ("strategy", "kp", "ki", "kd", "derivative_filter_s", "command_min_v", "command_max_v",
+                          "centre_voltage_v", "control_period_s")   # what ControllerConfig is made of (loop_settings)
+
+
+@dataclass(frozen=True)
+class ControllerNodeSettings(Settings):
+    """``valve_controller``'s own settings beside the control law's (``settings_from_parameters``), read by
+    ``Settings.from_specs`` from CONTROLLER_PARAMETERS at start-up and again for every update (the live ones:
+    ``enabled``, ``reference_ramp_s``, ``handback_timeout_s``)."""
+
+    enabled: bool
+    reference_ramp_s: float       # [s]; 0: steps
+    initial_reference_m: float    # [m]
+    handback_timeout_s: float     # [s]
+    state_period_s: float         # [s]; 0: never
+    diagnostics_period_s: float   # [s]; 0: never
 CONTROLLER_STATE_COLUMNS = ("time_s", "reference_m", "measured_m", "error_m", "command_v", "strategy_index",
                             "guard_active", "enabled")   # ~/controller_state: one row; strategy_index into STRATEGIES
 
@@ -133,15 +155,15 @@ class ValveControllerNode(Node):
             self.set_parameters([Parameter(k, value=v) for k, v in gain_set_values(name).items()])
         p = parameter_values(self)
         config, model = settings_from_parameters(p)
-        self.handback_timeout_s = self._handback_timeout(p["handback_timeout_s"])
+        settings = ControllerNodeSettings.from_specs(SPECS, p)
+        self.handback_timeout_s = settings.handback_timeout_s
         from ..runtime.realtime import apply
         self.realtime = realtime_settings(p)
         apply(self.realtime)
         self.controller = ValveController(config, model)
         self._check_inverse_cost(self.controller)
-        self.ramp = ReferenceRamp(as_float("initial_reference_m", p["initial_reference_m"]),
-                                  self._ramp_s(p["reference_ramp_s"]), config.dt)
-        self.enabled = bool(p["enabled"])
+        self.ramp = ReferenceRamp(settings.initial_reference_m, settings.reference_ramp_s, config.dt)
+        self.enabled = settings.enabled
         self._last_position_m = None
         self._guarding = False
         self._said_no_listener = False
@@ -166,10 +188,9 @@ class ValveControllerNode(Node):
         self._last_command_v = float("nan")
         self.state_pub = self.create_publisher(Float64MultiArray, "~/controller_state", 10)
         self._state = SamplesBuffer(1, len(CONTROLLER_STATE_COLUMNS), ",".join(CONTROLLER_STATE_COLUMNS))
-        state_period = period_parameter(STATE_PERIOD, p["state_period_s"])
-        if state_period > 0:
-            self.create_timer(state_period, self.publish_state)
-        self.diagnostics = Diagnostics(self, period_parameter(DIAGNOSTICS_PERIOD, p["diagnostics_period_s"]), self._health)
+        if settings.state_period_s > 0:
+            self.create_timer(settings.state_period_s, self.publish_state)
+        self.diagnostics = Diagnostics(self, settings.diagnostics_period_s, self._health)
         self.get_logger().info(f"valve_controller up: strategy={config.strategy}{self._gains_text(config)} "
                                f"period={config.dt * 1e3:.3f} ms" + (f" (gain_set {p['gain_set']})" if p["gain_set"] else "")
                                + f"; {self.realtime.describe()}")
@@ -199,21 +220,6 @@ class ValveControllerNode(Node):
             return ""  # the gains are not used
         g = config.gains
         return f" kp={g.kp} ki={g.ki}" + (f" kd={g.kd}" if g.kd else "")
-
-    @staticmethod
-    def _ramp_s(value) -> float:
-        ramp_s = as_float("reference_ramp_s", value)
-        if ramp_s < 0:
-            raise ValueError(f"reference_ramp_s must be >= 0 (0: steps), got {ramp_s}")
-        return ramp_s
-
-    @staticmethod
-    def _handback_timeout(value) -> float:
-        timeout = as_float("handback_timeout_s", value)
-        lo, hi = HANDBACK_TIMEOUT_RANGE_S
-        if not lo <= timeout <= hi:
-            raise ValueError(f"handback_timeout_s must lie in [{lo:g}, {hi:g}] s, got {timeout}")
-        return timeout
 
     # ------------------------------------------------------------------ loop
     def on_measurement(self, y: float) -> Optional[float]:
@@ -429,9 +435,7 @@ class ValveControllerNode(Node):
             p[prm.name] = prm.value
         try:
             config, model = settings_from_parameters(p)
-            ramp_s = self._ramp_s(p["reference_ramp_s"])
-            handback = self._handback_timeout(p["handback_timeout_s"])
-            as_float("initial_reference_m", p["initial_reference_m"])
+            settings = ControllerNodeSettings.from_specs(SPECS, p)
         except ValueError as exc:
             return refuse(self, f"({', '.join(x.name for x in params)}): {exc}")
         ctl = self.controller
@@ -459,10 +463,10 @@ class ValveControllerNode(Node):
         if (config.strategy, config.gains) != (old.strategy, old.gains):
             ctl.set_strategy(config.strategy, config.gains)
             self.get_logger().info(f"strategy={config.strategy}{self._gains_text(config)} (bumpless)")
-        self.ramp.set_ramp(ramp_s, config.dt)
-        self.handback_timeout_s = handback
+        self.ramp.set_ramp(settings.reference_ramp_s, config.dt)
+        self.handback_timeout_s = settings.handback_timeout_s
         if "enabled" in changed:
-            self._set_enabled(bool(p["enabled"]))
+            self._set_enabled(settings.enabled)
         return SetParametersResult(successful=True)
 
 

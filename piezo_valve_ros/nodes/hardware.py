@@ -50,7 +50,7 @@ from ..ros import (COMMAND_QOS, CONTROL_PERIOD, DIAGNOSTICS_PERIOD, MAX_CONTROL_
                    parameter_values, period_parameter, realtime_settings, realtime_specs, refuse, run_node,
                    samples_message, SamplesBuffer, tighten_timer_slack)
 from ..core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
-from ..core.validation import ParameterSpec, Settings, as_float, as_int, from_parameter, whole_periods
+from ..core.validation import ParameterSpec, Settings, from_parameter, whole_periods
 
 
 MAX_COMMAND_TIMEOUT_S = 10.0    # the watchdog may not be stretched beyond this
@@ -76,7 +76,7 @@ HARDWARE_PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("command_min_v", COMMAND_MIN_V, "commands below are clamped [V]", read_only=True),
     ParameterSpec("command_max_v", COMMAND_MAX_V, "commands above are clamped [V]", read_only=True),
     ParameterSpec("lockstep.step_budget", -1, "lockstep only: periods to run before pausing (-1 = no pause); "
-                  "refused on the real-time clock (a paused watchdog would hold the last command)"),
+                  "refused on the real-time clock (a paused watchdog would hold the last command)", low=-1),
     ParameterSpec("lockstep.max_speed", 0.0, "lockstep only: the valve's time runs at most this many times as fast "
                   "as the wall clock (0 = as fast as commands come, which keeps two cores busy; 1 = never ahead of "
                   "the wall clock)", read_only=True, low=0.0),
@@ -244,7 +244,7 @@ class ValveHardwareNode(LifecycleNode):
         timeout (returned); the real-time settings (applied at configure, on the real-time clock)."""
         if self.settings.clock == "lockstep" and not backend.supports_lockstep:
             raise ValueError(f"backend {p['backend']!r} cannot run in lockstep")
-        self.samples_per_period = samples_per_period(as_float("control_period_s", p["control_period_s"]),
+        self.samples_per_period = samples_per_period(SPECS["control_period_s"].checked(p["control_period_s"]),
                                                      backend.sample_period_s)
         self.control_period_s = self.samples_per_period * backend.sample_period_s
         timeout = self._command_timeout(p["command_timeout_s"])
@@ -537,16 +537,17 @@ class ValveHardwareNode(LifecycleNode):
 
     # ------------------------------------------------------------------ parameters
     def _step_budget(self, value) -> int:
-        budget = as_int("lockstep.step_budget", value)
-        if budget < -1:
-            raise ValueError(f"lockstep.step_budget must be -1 (no pause) or >= 0, got {budget}")
+        """The live ``lockstep.step_budget`` checked by its spec and against the clock; ValueError with the reason."""
+        budget = SPECS["lockstep.step_budget"].checked(value)
         if budget != -1 and self.settings.clock != "lockstep":
             raise ValueError("lockstep.step_budget applies only to clock lockstep (on the real-time clock a "
                              "paused loop would stop the watchdog)")
         return budget
 
     def _command_timeout(self, value) -> float:
-        timeout = as_float("command_timeout_s", value)
+        """The live ``command_timeout_s`` checked by its spec and against the control period; ValueError with the
+        reason."""
+        timeout = SPECS["command_timeout_s"].checked(value)
         shortest = MIN_TIMEOUT_PERIODS * self.control_period_s
         if not shortest <= timeout <= MAX_COMMAND_TIMEOUT_S:
             raise ValueError(f"command_timeout_s must lie in [{shortest:g}, {MAX_COMMAND_TIMEOUT_S:g}] s "

@@ -37,7 +37,7 @@ import math
 import sys
 import threading
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from datetime import datetime
 from pathlib import Path
 from typing import Optional
@@ -65,7 +65,7 @@ from ..rig.recording import RigRecorder
 from ..runtime.memory import keep_freed_memory
 from ..ros import (COMMAND_QOS, CONTROL_PERIOD, REFERENCE_QOS, SENSOR_QOS, declare_all, parameter_values,
                    refuse_undeclared, run_node)
-from ..core.validation import ParameterSpec, as_float
+from ..core.validation import ParameterSpec, Settings, from_parameter
 from ..core.model.drive import CENTRE_VOLTAGE_V
 
 STEPS = ("train", "refit", "tune", "validate")
@@ -130,6 +130,67 @@ IDENTIFICATION_PARAMETERS = tuple(replace(s, choices=_CHOICES.get(s.name, ())) f
 SPECS = {s.name: s for s in IDENTIFICATION_PARAMETERS}
 
 
+@dataclass(frozen=True)
+class IdentificationSettings(Settings):
+    """``valve_identification``'s settings (all start-up only), read from IDENTIFICATION_PARAMETERS by
+    ``Settings.from_specs``; the plan's order and the lengths checked together in ``problems``."""
+
+    plan: str
+    control_period_s: float            # [s]
+    training_s: float                  # [s]
+    validation_s: float                # [s]
+    validation_amplitude_m: float      # [m]
+    validation_strategy: str
+    tune_strategy: str
+    tune_max_overshoot_pct: float      # [%]
+    time_scale: float
+    bag_dir: str
+    storage: str
+    params_out: str
+    push: bool
+    keep_worse_refit: str
+    controller: str
+    hardware: str
+    exit_when_done: bool
+    progress_period_s: float = from_parameter("progress_period_s")   # [s]
+
+    @property
+    def steps(self) -> list[str]:
+        """The plan's steps in order."""
+        return [s.strip() for s in self.plan.split(",") if s.strip()]
+
+    @property
+    def bag_path(self) -> Path:
+        return Path(self.bag_dir)
+
+    @property
+    def params_path(self) -> Path:
+        """Where refit and tune write the controller's parameters (default: <bag_dir>/fitted.yaml)."""
+        return Path(self.params_out) if self.params_out else self.bag_path / "fitted.yaml"
+
+    @property
+    def tune_limits(self) -> TuningLimits:
+        return TuningLimits(max_overshoot_pct=self.tune_max_overshoot_pct)
+
+    @property
+    def reason_to_keep_worse(self) -> str:
+        return self.keep_worse_refit.strip()
+
+    def problems(self) -> list[str]:
+        steps, out = self.steps, []
+        unknown = [s for s in steps if s not in STEPS]
+        if unknown:
+            out.append(f"plan: unknown step(s) {', '.join(unknown)}; steps are {', '.join(STEPS)}")
+        if "refit" in steps and ("train" not in steps or steps.index("train") > steps.index("refit")):
+            out.append("plan: refit needs a train step before it (it refits on that run's bag)")
+        if "tune" in steps and ("refit" not in steps or steps.index("refit") > steps.index("tune")):
+            out.append("plan: tune needs a refit step before it (it tunes on that model)")
+        positive = ("control_period_s", "time_scale", "training_s", "validation_s", "validation_amplitude_m",
+                    "progress_period_s")
+        out += [f"{name} must be > 0, got {getattr(self, name)!r}" for name in positive if not getattr(self, name) > 0]
+        return out + self.tune_limits.problems()
+
+
 class ValveIdentificationNode(Node):
     def __init__(self, **kwargs):
         super().__init__("valve_identification", **kwargs)
@@ -138,38 +199,9 @@ class ValveIdentificationNode(Node):
         # pushes a model); this node has its process to itself, so every name its command line gives is its own
         refuse_undeclared([self], "valve_identification")
         p = parameter_values(self)
-        self.plan = [s.strip() for s in str(p["plan"]).split(",") if s.strip()]
-        unknown = [s for s in self.plan if s not in STEPS]
-        if unknown:
-            raise ValueError(f"plan: unknown step(s) {', '.join(unknown)}; steps are {', '.join(STEPS)}")
-        if "refit" in self.plan and ("train" not in self.plan or self.plan.index("train") > self.plan.index("refit")):
-            raise ValueError("plan: refit needs a train step before it (it refits on that run's bag)")
-        if "tune" in self.plan and ("refit" not in self.plan or self.plan.index("refit") > self.plan.index("tune")):
-            raise ValueError("plan: tune needs a refit step before it (it tunes on that model)")
-        if "refit" in self.plan:
+        self.settings = settings = IdentificationSettings.from_specs(SPECS, p)
+        if "refit" in settings.steps:
             analysis_threads()   # a bad PIEZO_ANALYSIS_THREADS refuses the plan now, not after its experiments
-        self.tune_strategy = SPECS["tune_strategy"].checked(p["tune_strategy"])
-        self.tune_limits = TuningLimits(max_overshoot_pct=as_float("tune_max_overshoot_pct",
-                                                                   p["tune_max_overshoot_pct"]))
-        problems = self.tune_limits.problems()
-        if problems:
-            raise ValueError("; ".join(problems))
-        self.period_s = as_float("control_period_s", p["control_period_s"])
-        self.training_s = as_float("training_s", p["training_s"])
-        self.validation_s = as_float("validation_s", p["validation_s"])
-        self.validation_amplitude_m = as_float("validation_amplitude_m", p["validation_amplitude_m"])
-        self.time_scale = as_float("time_scale", p["time_scale"])
-        self.progress_period_s = as_float("progress_period_s", p["progress_period_s"])
-        if not (self.period_s > 0 and self.time_scale > 0 and self.training_s > 0 and self.validation_s > 0
-                and self.progress_period_s > 0):
-            raise ValueError("control_period_s, time_scale, training_s, validation_s and progress_period_s must be > 0")
-        self.validation_strategy = SPECS["validation_strategy"].checked(p["validation_strategy"])
-        self.bag_dir = Path(str(p["bag_dir"]))
-        self.storage = SPECS["storage"].checked(p["storage"])
-        self.params_out = Path(str(p["params_out"]) or self.bag_dir / "fitted.yaml")
-        self.push = bool(p["push"])
-        self.keep_worse_refit = str(p["keep_worse_refit"]).strip()
-        self.exit_when_done = bool(p["exit_when_done"])
         self.step_now: Optional[str] = None          # the step running (what Ctrl-C cuts short)
         self.interrupted = False
         self._last_validation: Optional[float] = None   # the last validation's tracking RMS [um]
@@ -177,11 +209,11 @@ class ValveIdentificationNode(Node):
 
         self.command_pub = self.create_publisher(Float64, "voltage_command", COMMAND_QOS)
         self.reference_pub = self.create_publisher(Float64, "position_reference", REFERENCE_QOS)
-        self.recorder = RigRecorder(self, self.storage)
+        self.recorder = RigRecorder(self, self.settings.storage)
         self._player: Optional[_Player] = None
         self.create_subscription(Float64, "spool_position", self._on_position, SENSOR_QOS)
-        self.controller_name, self.controller = self._parameter_client("controller", p["controller"])
-        self.hardware_name, self.hardware = self._parameter_client("hardware", p["hardware"])
+        self.controller_name, self.controller = self._parameter_client("controller", settings.controller)
+        self.hardware_name, self.hardware = self._parameter_client("hardware", settings.hardware)
         self._paces_lockstep = False   # this node pauses the lockstep rig between experiments
         self._rig_paused = False
         self.summary: list[dict] = []
@@ -189,7 +221,8 @@ class ValveIdentificationNode(Node):
         self.failed = False
         self._worker = threading.Thread(target=self._run_plan, daemon=True)
         self._worker.start()
-        self.get_logger().info(f"valve_identification up: plan {', '.join(self.plan) or '(none)'}; bags in {self.bag_dir}")
+        self.get_logger().info(f"valve_identification up: plan {', '.join(settings.steps) or '(none)'}; "
+                               f"bags in {settings.bag_path}")
 
     def _parameter_client(self, parameter: str, value) -> tuple[str, AsyncParameterClient]:
         """(name, client) of the node the ``parameter`` names (ValueError naming the parameter if it names none)."""
@@ -204,7 +237,7 @@ class ValveIdentificationNode(Node):
     # ------------------------------------------------------------------ recording
     def _start_recording(self, label: str) -> Path:
         stamp = datetime.now().strftime("%Y%m%d_%H%M%S_%f")
-        return self.recorder.start(self.bag_dir / f"{label}_{stamp}")
+        return self.recorder.start(self.settings.bag_path / f"{label}_{stamp}")
 
     def _stop_recording(self) -> dict:
         return self.recorder.stop()
@@ -242,7 +275,7 @@ class ValveIdentificationNode(Node):
             self._pause_rig(True)
 
     def _play_on_running_rig(self, player: _Player, what: str) -> None:
-        expected_s = player.values.size * self.period_s
+        expected_s = player.values.size * self.settings.control_period_s
         self._player = player
         player.next()  # the first value goes out at once (in lockstep it also advances the rig)
         started = last_log = time.monotonic()
@@ -253,7 +286,7 @@ class ValveIdentificationNode(Node):
             if time.monotonic() > deadline:
                 raise TimeoutError(f"{what}: rig stopped answering ({player.index}/{player.values.size} periods)")
             now = time.monotonic()
-            if now - last_log > self.progress_period_s:
+            if now - last_log > self.settings.progress_period_s:
                 last_log = now
                 done = player.index / player.values.size
                 elapsed = now - started
@@ -326,21 +359,23 @@ class ValveIdentificationNode(Node):
 
     def _plan_length(self) -> str:
         """One line: how long the plan's experiments run in the rig's time, and what that means on a lockstep rig."""
-        train_s = rig_training_voltage(self.period_s, self.training_s, self.time_scale).size * self.period_s
-        validate_s = self.validation_s * self.time_scale + VALIDATION_LEAD_S
-        seconds = sum(train_s if step == "train" else validate_s if step == "validate" else 0.0 for step in self.plan)
+        st = self.settings
+        train_s = rig_training_voltage(st.control_period_s, st.training_s, st.time_scale).size * st.control_period_s
+        validate_s = st.validation_s * st.time_scale + VALIDATION_LEAD_S
+        seconds = sum(train_s if step == "train" else validate_s if step == "validate" else 0.0 for step in st.steps)
         return (f"plan: {seconds:.0f} s of experiments in the rig's time (train {train_s:.0f} s, validate "
                 f"{validate_s:.0f} s each); on the wall clock as long, on a lockstep rig at its own pace (the "
                 "progress lines say how far); refit and tune take seconds to a minute each")
 
     # ------------------------------------------------------------------ steps
     def _step_train(self) -> dict:
-        values = rig_training_voltage(self.period_s, self.training_s, self.time_scale)
+        st = self.settings
+        values = rig_training_voltage(st.control_period_s, st.training_s, st.time_scale)
         ok, reason = self._set_controller({"enabled": False})
         if not ok:
             raise RuntimeError(f"cannot disable the controller: {reason}")
         bag = self._start_recording("train")
-        self.get_logger().info(f"train: {values.size} periods ({values.size * self.period_s:.1f} s), recording {bag}")
+        self.get_logger().info(f"train: {values.size} periods ({values.size * st.control_period_s:.1f} s), recording {bag}")
         try:
             self._play(_Player(values, self.command_pub), "train")
         finally:
@@ -374,27 +409,27 @@ class ValveIdentificationNode(Node):
             self.get_logger().warning(f"refit: {why}")
         values = controller_parameters(comp)
         before = None
-        if self.push:   # what the push replaces: a validation that tracks worse after it takes it back
+        if self.settings.push:   # what the push replaces: a validation that tracks worse after it takes it back
             try:
                 before = (self._controller_values(list(values)),
-                          self.params_out.read_bytes() if self.params_out.exists() else None)
+                          self.settings.params_path.read_bytes() if self.settings.params_path.exists() else None)
             except (RuntimeError, TimeoutError) as exc:
                 self.get_logger().warning(f"refit: the controller's model before the push could not be read ({exc}): "
                                           f"a worse validation after it cannot take it back")
-        pushed, reason = self._set_controller(values, atomically=True) if self.push else (False, "push disabled")
+        pushed, reason = self._set_controller(values, atomically=True) if self.settings.push else (False, "push disabled")
         if pushed:
             self._before_refit = before
-        if pushed or not self.push:
-            write_atomically(self.params_out, controller_parameters_yaml(comp, str(bag), report))
+        if pushed or not self.settings.push:
+            write_atomically(self.settings.params_path, controller_parameters_yaml(comp, str(bag), report))
             self.last_refit = (comp, str(bag), report)  # what a tune step tunes on
         if pushed:
             self.get_logger().info(f"refit: model {comp.model.name} pushed to the controller; parameters in "
-                                   f"{self.params_out}")
-        elif self.push:
+                                   f"{self.settings.params_path}")
+        elif self.settings.push:
             self.get_logger().warning(f"refit: model not pushed ({reason}); last good parameters file kept")
         return {"step": "refit", "ok": True, "model": comp.model.name, "effects_added": list(report.effects_added),
                 "baseline_validate": to_json(report.baseline.validate), "final_validate": to_json(report.final.validate),
-                "params_out": str(self.params_out), "pushed": pushed, "reason": reason}
+                "params_out": str(self.settings.params_path), "pushed": pushed, "reason": reason}
 
     def _controller_values(self, names: list[str], timeout_s: float = 10.0) -> dict:
         """The running controller's values of ``names`` (RuntimeError when it does not answer)."""
@@ -411,21 +446,21 @@ class ValveIdentificationNode(Node):
             self.get_logger().error("tune: no refitted model to tune on (the refit failed or was not pushed)")
             return {"step": "tune", "ok": False, "reason": "no refitted model"}
         comp, bag, report = last
-        config = loop_settings(self._controller_values(list(LOOP_SETTINGS)), self.tune_strategy)
+        config = loop_settings(self._controller_values(list(LOOP_SETTINGS)), self.settings.tune_strategy)
         try:
-            result = tune(self.tune_strategy, comp.controller_model, config.dt, self.tune_limits, config,
+            result = tune(self.settings.tune_strategy, comp.controller_model, config.dt, self.settings.tune_limits, config,
                           log=lambda s: self.get_logger().info(s))
         except TuningError as exc:
             self.get_logger().error(f"tune: {exc}; the controller's gains are unchanged")
             return {"step": "tune", "ok": False, "reason": str(exc)}
         gains = result.parameters()
-        pushed, reason = self._set_controller(gains, atomically=True) if self.push else (False, "push disabled")
-        if pushed or not self.push:
-            write_atomically(self.params_out, controller_parameters_yaml(
+        pushed, reason = self._set_controller(gains, atomically=True) if self.settings.push else (False, "push disabled")
+        if pushed or not self.settings.push:
+            write_atomically(self.settings.params_path, controller_parameters_yaml(
                 comp, bag, report, extra=gains, extra_comments=[f"tuned: {result.summary()}"]))
         if pushed:
-            self.get_logger().info(f"tune: gains pushed to the controller; parameters in {self.params_out}")
-        elif self.push:
+            self.get_logger().info(f"tune: gains pushed to the controller; parameters in {self.settings.params_path}")
+        elif self.settings.push:
             self.get_logger().warning(f"tune: gains not pushed ({reason}); parameters file unchanged")
         m, s = result.margins, result.score
         finite = lambda x: float(x) if math.isfinite(x) else None  # noqa: E731  (JSON has no infinity)
@@ -439,7 +474,7 @@ class ValveIdentificationNode(Node):
         # the controller's settings, put back after the validation: the rig is left as the plan found it
         settings = self._controller_values(list(VALIDATION_RESTORES))
         # one atomic request: an active gain_set refuses a strategy unless the same update clears it
-        ok, reason = self._set_controller({"enabled": True, "strategy": self.validation_strategy, "gain_set": ""},
+        ok, reason = self._set_controller({"enabled": True, "strategy": self.settings.validation_strategy, "gain_set": ""},
                                           atomically=True)
         if not ok:
             raise RuntimeError(f"cannot set the controller up for validation: {reason}")
@@ -460,7 +495,7 @@ class ValveIdentificationNode(Node):
             self.get_logger().info(f"validate: the controller back on {said}, as before the validation")
         else:
             self.get_logger().error(f"validate: the controller could not be put back on {said} ({reason}): it runs "
-                                    f"{self.validation_strategy}")
+                                    f"{self.settings.validation_strategy}")
 
     def _judge_refit(self, result: dict) -> dict:
         """A validation after a pushed refit that tracks worse than the one before it: the model the refit replaced
@@ -473,14 +508,14 @@ class ValveIdentificationNode(Node):
         if now <= before:
             self.get_logger().info(f"validate: the refit cut the tracking error RMS {before:.3f} -> {now:.3f} um")
             return {**result, "refit_judged": "better"}
-        if self.keep_worse_refit:
+        if self.settings.reason_to_keep_worse:
             self.get_logger().warning(f"validate: the refit made tracking worse ({before:.3f} -> {now:.3f} um RMS); "
-                                      f"kept as told: {self.keep_worse_refit}")
-            return {**result, "refit_judged": "worse, kept: " + self.keep_worse_refit}
+                                      f"kept as told: {self.settings.reason_to_keep_worse}")
+            return {**result, "refit_judged": "worse, kept: " + self.settings.reason_to_keep_worse}
         values, file_bytes = replaced
         ok, reason = self._set_controller(values, atomically=True)
         if ok and file_bytes is not None:
-            write_atomically(self.params_out, file_bytes.decode())
+            write_atomically(self.settings.params_path, file_bytes.decode())
         self.get_logger().warning(
             f"validate: the refit made tracking worse ({before:.3f} -> {now:.3f} um RMS): " +
             ("the model before it pushed back" + (" and its parameters file restored" if file_bytes is not None else "")
@@ -490,8 +525,9 @@ class ValveIdentificationNode(Node):
         return {**result, "refit_judged": "worse, taken back" if ok else "worse, could not be taken back"}
 
     def _validate(self) -> dict:
-        ref = validation_reference_m(self.period_s / self.time_scale, self.validation_s, self.validation_amplitude_m * 1e6)
-        lead = max(int(VALIDATION_LEAD_S / self.period_s), 1)  # ease in from 0 (the validation demand starts off 0)
+        st = self.settings
+        ref = validation_reference_m(st.control_period_s / st.time_scale, st.validation_s, st.validation_amplitude_m * 1e6)
+        lead = max(int(VALIDATION_LEAD_S / st.control_period_s), 1)  # ease in from 0 (the validation demand starts off 0)
         ref = np.concatenate((ref[0] * np.linspace(0.0, 1.0, lead), ref))
         bag = self._start_recording("validate")
         sent: list[float] = []
@@ -508,10 +544,10 @@ class ValveIdentificationNode(Node):
         span = float(np.ptp(ref) * 1e6)
         demand_um = np.asarray(sent[:n])[lead:] * 1e6
         figures = error_figures(demand_um + err_um, demand_um, span)
-        self.get_logger().info(f"validate ({self.validation_strategy}): tracking error RMS {figures.rms_um:.3f} um, "
+        self.get_logger().info(f"validate ({self.settings.validation_strategy}): tracking error RMS {figures.rms_um:.3f} um, "
                                f"peak {figures.peak_um:.3f} um ({figures.peak_pct:.2f} % of the {span:.1f} um demand "
                                f"range), fit {figures.fit_pct:.1f} % (NRMSE)")
-        return {"step": "validate", "strategy": self.validation_strategy, "bag": str(bag),
+        return {"step": "validate", "strategy": self.settings.validation_strategy, "bag": str(bag),
                 **{k: float(v) for k, v in vars(figures).items()}}
 
     def _wait_for_the_rig(self) -> None:
@@ -536,21 +572,21 @@ class ValveIdentificationNode(Node):
                                           f"voltage_command in ROS_DOMAIN_ID {domain}")
 
     def _run_plan(self) -> None:
-        if not self.plan:
+        if not self.settings.steps:
             self.get_logger().info("empty plan: nothing to do")
             self.finished.set()
-            if self.exit_when_done:
+            if self.settings.exit_when_done:
                 self.context.try_shutdown()
             return
         try:
             self._wait_for_the_rig()
             self._take_lockstep_pacing()
             self.get_logger().info(self._plan_length())
-            for k, step in enumerate(self.plan):
-                self.step_now = f"{step} ({k + 1} of {len(self.plan)})"
+            for k, step in enumerate(self.settings.steps):
+                self.step_now = f"{step} ({k + 1} of {len(self.settings.steps)})"
                 result = getattr(self, f"_step_{step}")()
                 self.summary.append(result)
-                write_atomically(self.bag_dir / "summary.json", summary_json(self.summary))
+                write_atomically(self.settings.bag_path / "summary.json", summary_json(self.summary))
             self.step_now = None
             self.get_logger().info("plan done")
         except Exception as exc:
@@ -565,7 +601,7 @@ class ValveIdentificationNode(Node):
                 self.get_logger().warning(f"the lockstep rig may still be paused ({exc}): set {self.hardware_name} "
                                           f"{LOCKSTEP_BUDGET}:=-1")
             self.finished.set()
-            if self.exit_when_done or self.failed:   # a failed plan has nothing left to do: exit 1
+            if self.settings.exit_when_done or self.failed:   # a failed plan has nothing left to do: exit 1
                 self.context.try_shutdown()
 
 
