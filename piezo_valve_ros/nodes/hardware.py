@@ -588,23 +588,18 @@ class ValveHardwareNode(LifecycleNode):
         loop.active = False
         if not loop.opened:   # never configured (or cleaned up): nothing to make safe
             return
-        loop.opened = False
-        written = loop.try_safe_voltage()
-        try:
-            if self.context.ok():  # after a signal the publishers are gone with the context
-                loop.flush_samples()
-        finally:
-            try:
-                self.backend.close()
-            except Exception as exc:
-                print(f"[ERROR] [valve_hardware]: closing the backend raised {exc!r}", file=sys.stderr, flush=True)
-            held = (f"safe_voltage {self.settings.safe_voltage} V applied" if written else
-                    f"the safe voltage {self.settings.safe_voltage} V could NOT be written: the DAQ holds its last value")
-            line = f"valve_hardware stopped: {held}; {self._loop_line()}"
-            if self.context.ok():
-                self.get_logger().info(line)
-            else:  # after Ctrl-C/SIGTERM the ROS context (and /rosout) is already gone
-                print(f"[INFO] [valve_hardware]: {line}", file=sys.stderr, flush=True)
+        alive = self.context.ok()   # after Ctrl-C/SIGTERM the ROS context (publishers, /rosout) is already gone
+
+        def say(level: str) -> Callable[[str], None]:
+            return lambda line: print(f"[{level}] [valve_hardware]: {line}", file=sys.stderr, flush=True)
+        written = loop.close(publish=alive, say=say("ERROR"))
+        held = (f"safe_voltage {self.settings.safe_voltage} V applied" if written else
+                f"the safe voltage {self.settings.safe_voltage} V could NOT be written: the DAQ holds its last value")
+        line = f"valve_hardware stopped: {held}; {self._loop_line()}"
+        if alive:
+            self.get_logger().info(line)
+        else:
+            say("INFO")(line)
 
 
 class _StandaloneHardwareNode(ValveHardwareNode):

@@ -117,17 +117,22 @@ class HardwareLoop:
         self.opened = True
         self.backend.write_voltage(self.settings.safe_voltage)
 
-    def close(self) -> bool:
-        """The safe voltage, the batch flushed, the backend closed; whether the safe voltage was written (True when
-        the backend was not open)."""
+    def close(self, publish: bool = True, say: Optional[Callable[[str], None]] = None) -> bool:
+        """The safe voltage, the batch flushed (``publish`` False: not, its outlet is gone, e.g. after Ctrl-C), the
+        backend closed; whether the safe voltage was written (True when the backend was not open).  A backend that
+        raises as it closes is said (``say``, default the logger's error line) and the loop is closed all the same."""
         if not self.opened:
             return True
         self.opened = False
         written = self.try_safe_voltage()
         try:
-            self.flush_samples()
+            if publish:
+                self.flush_samples()
         finally:
-            self.backend.close()
+            try:
+                self.backend.close()
+            except Exception as exc:
+                (say or self.logger().error)(f"closing the backend raised {exc!r}")
         return written
 
     def start(self) -> None:
