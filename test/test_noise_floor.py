@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from piezo_valve_ros.core.identification import (band_noise, beyond_response_noise, estimate_noise_floor, hold_noise,
-                                                 period_noise)
+                                                 period_noise, welch_density)
 from piezo_valve_ros.core.identification import Record, noise_floor_um
 
 DT = 5e-4
@@ -77,3 +77,15 @@ def test_the_lowest_direct_estimate_is_the_floor_and_every_kind_is_reported():
     assert [e.source for e in floor.evidence] == ["holds", "repeated periods", "input-free band"]
     assert floor.rms_um == min(e.rms_um for e in floor.evidence[:2])
     assert floor.as_dict()["evidence"]["holds"]["rms_um"] == pytest.approx(NOISE, rel=0.1)
+
+
+@pytest.mark.parametrize("n, segment", [(20000, 1024), (5003, 256), (777, 128), (300, 64)])
+def test_the_band_s_spectra_are_scipy_s_welch_with_a_line_off_each_segment(n, segment):
+    """welch_density is scipy.signal.welch(nperseg=segment, detrend="linear") written with one projection for all
+    segments: the same frequencies and densities to rounding (a random walk: a line in every segment to take off)."""
+    from scipy.signal import welch
+    x = np.cumsum(np.random.default_rng(n).standard_normal(n)) + 3.0
+    f_ref, p_ref = welch(x, 2000.0, nperseg=segment, detrend="linear")
+    f, p = welch_density(x, 2000.0, segment)
+    assert np.array_equal(f, f_ref)
+    assert np.allclose(p, p_ref, rtol=1e-9, atol=1e-12 * p_ref.max())

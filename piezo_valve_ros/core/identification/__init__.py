@@ -56,4 +56,5 @@ __all__, __getattr__ = lazy_exports(__name__, {
     "solve_gram": "fitting",
     "split_records": "split",
     "support": "search",
+    "welch_density": "noise",
 })

@@ -317,19 +317,25 @@ class _EffectChoice:
         # against the set as it ends if nothing is added: with G_v's poles fitted again through it (an effect
         # added here must do more than the poles' refit at the end would do anyway)
         polishing = self.pool.submit(self.polished, final)   # beside the refits (it waits for nothing)
-        options = [n for n in self.exact_options(current) if frozenset(current + [n]) not in tried]
-        refits = self.refit_many([(current + [n], final) for n in options])
+        credited = [n for n in self.exact_options(current) if frozenset(current + [n]) not in tried]
+        cheap = [n for n in credited if not self.by_name[n].costly_refit]
+        refits = self.refit_many([(current + [n], final) for n in cheap])
         polished = polishing.result()
         polished_score = self.held_out(polished)
         base_score = min(final_score, polished_score, key=lambda s: s.rms)
-        best = self._best_supported(options, refits, base_score)
+        options, refits, best = self._costly_unless_settled(current, final, cheap, refits,
+                                                            [n for n in credited if n not in cheap], base_score)
         if best is None and self.structure_remains(polished if polished_score.rms <= final_score.rms else final):
             # something is missing and none of the effects the search credited explains it: its first-order
             # ranking of the rest is what the exact refits are there to overrule (a slow pole beside an asymmetry,
             # which the search credits with nothing (-1 %), cuts a third of the held-out RMS refitted)
-            rest = [n for n in self.names if n not in current and n not in options
+            rest = [n for n in self.names if n not in current and n not in credited
                     and frozenset(current + [n]) not in tried]
-            options, refits = options + rest, refits + self.refit_many([(current + [n], final) for n in rest])
+            cheap = [n for n in rest if not self.by_name[n].costly_refit]
+            more, more_refits, best = self._costly_unless_settled(
+                current, final, cheap, self.refit_many([(current + [n], final) for n in cheap]),
+                [n for n in rest if n not in cheap], base_score)
+            options, refits = options + more, refits + more_refits
             best = self._best_supported(options, refits, base_score)
         self.exact_checks.setdefault(frozenset(current), {}).update(
             {n: (score, base_score) for n, (_, score) in zip(options, refits)})
@@ -343,6 +349,25 @@ class _EffectChoice:
         self.log(f"exact check: {best[0]} cuts the held-out RMS {base_score.rms:.4f} -> {best[1].rms:.4f} um, "
                  f"{_decided(support(best[1], base_score, self.levels))} (the first-order search underrated it); added")
         return current + [best[0]]
+
+    def _costly_unless_settled(self, current: list[str], final: ValveModel, options: list[str],
+                               refits: list[tuple[ValveModel, Score]], costly: list[str], base: Score
+                               ) -> tuple[list[str], list[tuple[ValveModel, Score]], Optional[tuple[str, Score]]]:
+        """The exact checks ``options`` (refitted: ``refits``) joined by the ``costly`` ones (``Effect.costly_refit``,
+        refitted here) unless the best supported of ``options`` leaves no room for an effect (``room_for_an_effect``):
+        then a costly one could not be supported against it either (it would have to explain more than the structure
+        it leaves), so the record could not tell which is better, and the cheaper is taken without the seconds of the
+        costly refit.  Returns (options refitted, their refits, the best supported or None)."""
+        best = self._best_supported(options, refits, base)
+        if costly and best is not None and not room_for_an_effect(best[1], self.levels):
+            self.log(f"exact check on top of {_set_named(current)}: {', '.join(costly)} not refitted: with {best[0]} "
+                     f"{no_room_because(best[1], self.levels)}, nor could it be told from {best[0]}")
+            return options, refits, best
+        if not costly:
+            return options, refits, best
+        options = options + costly
+        refits = refits + self.refit_many([(current + [n], final) for n in costly])
+        return options, refits, self._best_supported(options, refits, base)
 
     def _best_supported(self, options: list[str], refits: list[tuple[ValveModel, Score]], base: Score
                         ) -> Optional[tuple[str, Score]]:

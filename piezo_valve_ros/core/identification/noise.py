@@ -172,16 +172,23 @@ def _period(v: np.ndarray) -> Optional[int]:
     for lag in sorted(peaks[np.argsort(-acf[peaks])][:12].tolist()):
         reach = min(PERIOD_LAG_REACH, max(1, lag // 100))   # a peak of a partly periodic drive sits near its period
         for p in sorted(range(lag - reach, lag + reach + 1), key=lambda q: abs(q - lag)):
-            if p >= PERIOD_MIN_SAMPLES and _repeating_runs(v, p):
+            if p >= PERIOD_MIN_SAMPLES and _repeating_runs(v, p, span):
                 return p
     return None
 
 
-def _repeating_runs(v: np.ndarray, p: int) -> list[tuple[int, int]]:
+def _repeating_runs(v: np.ndarray, p: int, span: Optional[float] = None) -> list[tuple[int, int]]:
     """Runs (a, b) of rows k with v[k + p] = v[k] (within ``PERIOD_TOLERANCE`` of the span) at least
     ``PERIOD_MIN_REPEATS - 1`` periods long over which the drive moves by ``PERIOD_MIN_MOTION`` of its span (a still
-    drive repeats any period: that is a hold)."""
-    span = float(np.ptp(v))
+    drive repeats any period: that is a hold).  ``span``: ``v``'s (computed when not given)."""
+    span = float(np.ptp(v)) if span is None else span
+    need = (PERIOD_MIN_REPEATS - 1) * p
+    stride = max(1, need // 4)
+    # first every stride-th row: a run of ``need`` rows holds at least 4 of them in a row, so where no 3 in a row
+    # repeat there is none (one pass over n / stride rows rejects a lag that is no period: most of those tried)
+    coarse = np.abs(v[p::stride] - v[:v.size - p:stride]) <= PERIOD_TOLERANCE * span
+    if stride > 1 and not any(b - a >= 3 for a, b in _runs(coarse)):
+        return []
     same = np.abs(v[p:] - v[:-p]) <= PERIOD_TOLERANCE * span
     return [(a, b) for a, b in _runs(same)
             if b - a >= (PERIOD_MIN_REPEATS - 1) * p and float(np.ptp(v[a:b])) >= PERIOD_MIN_MOTION * span]
@@ -226,9 +233,6 @@ def band_noise(records: Sequence[Record], response: Optional[Callable[[np.ndarra
     power gain |G(f)|^2 at frequencies f [Hz] (unity at DC), which the echo is multiplied by (a band beyond the
     valve's own response: a closed loop feeds the sensor's noise back into the drive at every frequency, where
     the valve cannot follow it)."""
-    from ..model.dynamics import scipy_signal
-
-    welch = scipy_signal().welch
     levels, weights, shares = [], [], []
     for record in records:
         n = len(record)
@@ -239,8 +243,8 @@ def band_noise(records: Sequence[Record], response: Optional[Callable[[np.ndarra
         gain = float(vc @ (y - y.mean()) / max(vc @ vc, 1e-300))
         segment = min(BAND_SEGMENT, 1 << int(math.floor(math.log2(n // 4))))
         fs = record.rate_hz
-        f, s_v = welch(v, fs, nperseg=segment, detrend="linear")
-        _, s_y = welch(y, fs, nperseg=segment, detrend="linear")
+        f, s_v = welch_density(v, fs, segment)
+        _, s_y = welch_density(y, fs, segment)
         f, s_v, s_y = f[1:], s_v[1:], s_y[1:]   # (the mean's bin)
         echo = gain * gain * s_v * (1.0 if response is None else response(f))
         free = echo < BAND_INPUT_SHARE * s_y
@@ -261,6 +265,24 @@ def band_noise(records: Sequence[Record], response: Optional[Callable[[np.ndarra
                          f"the output's power where the drive has none it could echo{beyond} "
                          f"({100 * min(shares):.0f} % of the band or more), taken as white over the whole band",
                          int(sum(weights)))
+
+
+def welch_density(x: np.ndarray, fs_hz: float, segment: int) -> tuple[np.ndarray, np.ndarray]:
+    """(f [Hz], one-sided power spectral density [unit^2/Hz]) of ``x`` by Welch's method: Hann-windowed segments of
+    ``segment`` samples overlapping by half, each less its least-squares line, averaged (``scipy.signal.welch(x, fs,
+    nperseg=segment, detrend="linear")``, equal to rounding, tested; written out because scipy detrends segment by
+    segment, a thousand least-squares solves for a 10 kHz record, where one projection serves them all)."""
+    from numpy.lib.stride_tricks import sliding_window_view
+    from ..model.dynamics import scipy_signal
+
+    frames = sliding_window_view(np.asarray(x, float), segment)[::segment - segment // 2]
+    line = np.vstack((np.ones(segment), np.arange(segment, dtype=float)))   # (2, segment)
+    frames = frames - (frames @ np.linalg.pinv(line)) @ line
+    window = scipy_signal().get_window("hann", segment)
+    spectrum = np.fft.rfft(frames * window, axis=1)
+    density = (spectrum.real ** 2 + spectrum.imag ** 2).mean(axis=0) / (fs_hz * float(window @ window))
+    density[1:-1 if segment % 2 == 0 else None] *= 2.0   # one-sided: every bin but DC (and Nyquist) twice
+    return np.fft.rfftfreq(segment, 1.0 / fs_hz), density
 
 
 def beyond_response_noise(records: Sequence[Record], response: Callable[[np.ndarray], np.ndarray]) -> NoiseEvidence:

@@ -84,7 +84,7 @@ class ContinuousTF:
         return h
 
 
-DISTINCT_POLE_GAP = 1e-2   # poles closer than this share of the largest go through scipy's matrix exponential
+DISTINCT_POLE_GAP = 1e-2   # two poles closer than this share of the larger go through scipy's matrix exponential
 
 PAPER_VALVE_MODEL = ContinuousTF((1.2e6,), (1.0, 2900.0, 1.2e6))
 
@@ -102,15 +102,19 @@ def discretise(tf: ContinuousTF, dt: float, method: str = "zoh", delay_s: float 
     num = num[np.argmax(num != 0):] if np.any(num != 0) else num[-1:]
     den = np.asarray(tf.den, float)
     if delay_s:
-        num = np.polymul(num, [-0.5 * delay_s, 1.0])
-        den = np.polymul(den, [0.5 * delay_s, 1.0])
+        num = np.convolve(num, [-0.5 * delay_s, 1.0])   # (np.polymul's product, without its poly1d objects:
+        den = np.convolve(den, [0.5 * delay_s, 1.0])    # a fit discretises hundreds of trial poles)
     num, den = num / den[0], den / den[0]
     poles = np.roots(den)
-    gaps = np.where(np.eye(poles.size, dtype=bool), np.inf, np.abs(np.subtract.outer(poles, poles)))
+    size = np.abs(poles)
+    gaps = np.where(np.eye(poles.size, dtype=bool), np.inf, np.abs(np.subtract.outer(poles, poles))
+                    / np.maximum.outer(size, size))
     # a root of multiplicity m comes out of np.roots split by ~eps^(1/m) (1e-4 relative for a 4-fold one, as
     # in a feedforward target with two equal double poles), and partial fractions over such near-equal poles
-    # cancel catastrophically: only well separated poles take the closed form
-    distinct = poles.size > 0 and bool(np.min(gaps) > DISTINCT_POLE_GAP * np.max(np.abs(poles)))
+    # cancel catastrophically: only poles apart by DISTINCT_POLE_GAP of the larger of each pair take the
+    # closed form (each pair on its own scale: a fast delay factor beside two slow poles 10 % apart does not
+    # send them through the matrix exponential)
+    distinct = poles.size > 0 and bool(np.min(gaps) > DISTINCT_POLE_GAP)
     if num.size >= den.size or not distinct or np.any(poles == 0):
         b, a, _ = scipy_signal().cont2discrete((num, den), dt, method=method)
         return np.atleast_1d(np.squeeze(b)), np.asarray(a, float)
@@ -174,7 +178,7 @@ def _unity_dc_poles(sections: tuple[tuple[float, float], ...]) -> ContinuousTF:
     num, den = np.array([1.0]), np.array([1.0])
     for w, z in sections:
         tf = second_order(w, z)
-        num, den = np.polymul(num, tf.num), np.polymul(den, tf.den)
+        num, den = np.convolve(num, tf.num), np.convolve(den, tf.den)
     return ContinuousTF(tuple(float(x) for x in num), tuple(float(x) for x in den))
 
 

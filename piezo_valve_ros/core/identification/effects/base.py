@@ -54,6 +54,8 @@ class Effect:
     ridge: ClassVar[float] = EFFECT_RIDGE
     after_dynamics: ClassVar[int] = 0        # coefficients of an output map after G (0: the effect acts before G)
     coefficient_floor: ClassVar[float] = -np.inf   # the lower bound of its coefficients in a fit
+    costly_refit: ClassVar[bool] = False     # an exact refit costs seconds (several forms, each a nonlinear fit):
+                                             # checked after the others (``_EffectChoice.exact_addition``)
 
     @classmethod
     def prepare(cls, train: Record, H: np.ndarray) -> Optional["Effect"]:
