@@ -24,7 +24,7 @@ from .core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 from .core.monitoring.health import Health, HealthLimits, HealthMonitor, Level
 from .io.params_yaml import node_section, yaml_value
 from .core.identification.records import MAX_ANALYSED_S, Record, read_csv
-from .core.identification.report import IdentificationReport
+from .core.identification.report import IdentificationReport, SchemaBlock
 from .core.identification.whole_record import BlockMeans
 from .core.runs import WHOLE_RECORD, TimeWindow, WindowError
 from .core.identification.residual import Analysis, analyse
@@ -155,7 +155,7 @@ def monitor_record(path, params_file, topic: Optional[str] = None, limits: Optio
 def health_json(verdicts: list[Health], source: str) -> str:
     """The monitor's verdicts as JSON, with a schema block (name, version, package version, time)."""
     counts = {lv.name: sum(h.level is lv for h in verdicts) for lv in Level}
-    return json.dumps({"schema": _schema_block(HEALTH_SCHEMA, HEALTH_SCHEMA_VERSION), "source": source,
+    return json.dumps({"schema": _schema_block(HEALTH_SCHEMA, HEALTH_SCHEMA_VERSION).to_json(), "source": source,
                        "counts": counts,
                        "verdicts": [h.as_dict() for h in verdicts]}, indent=2) + "\n"
 
@@ -294,14 +294,15 @@ SUMMARY_SCHEMA = "piezo_valve_ros/identification-summary"
 SUMMARY_SCHEMA_VERSION = 1   # an object: schema and the plan's steps (before: the bare list of steps)
 
 
-def _schema_block(name: str, version: int) -> dict:
-    return {"name": name, "version": version, "package_version": package_version(),
-            "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+def _schema_block(name: str, version: int) -> SchemaBlock:
+    """What a written file is: its schema's name and version, the package's version, when."""
+    return SchemaBlock(name=name, version=version, package_version=package_version(),
+                       created_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"))
 
 
 def summary_json(steps: list[dict]) -> str:
     """The identification node's ``summary.json``: a schema block and the figures of each step done."""
-    return json.dumps({"schema": _schema_block(SUMMARY_SCHEMA, SUMMARY_SCHEMA_VERSION), "steps": steps},
+    return json.dumps({"schema": _schema_block(SUMMARY_SCHEMA, SUMMARY_SCHEMA_VERSION).to_json(), "steps": steps},
                       indent=2) + "\n"
 
 

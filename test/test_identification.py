@@ -107,7 +107,8 @@ def test_the_report_is_a_frozen_typed_tree_whose_json_is_report_json():
     import dataclasses
     import json
     from piezo_valve_ros.core import ErrorFigures
-    from piezo_valve_ros.core.identification import ConfirmRound, Decision, IdentificationReport, SearchRow
+    from piezo_valve_ros.core.identification import (Analysed, AnalysedRecord, ConfirmRound, Decision,
+                                                     IdentificationReport, SchemaBlock, SearchRow)
     report = analysis_of("masking pair: creep + drift").report
     assert isinstance(report, IdentificationReport) and report.effects_added == ("creep", "drift")
     assert isinstance(report.final.validate, ErrorFigures) and report.final.validate.rms_um < report.baseline.validate.rms_um
@@ -121,9 +122,15 @@ def test_the_report_is_a_frozen_typed_tree_whose_json_is_report_json():
     assert data["thresholds"]["signature"] == data["thresholds"]["held_out_gain"]
     assert "rounds" not in data   # retired (it repeated "confirm" under an earlier report's name)
     assert data["final"]["validate"] == dataclasses.asdict(report.final.validate)
-    written = dataclasses.replace(report, source={"train_bag": "a"}, schema={"name": "x"}).to_json()
-    assert list(written)[0] == "schema" and written["source"] == {"train_bag": "a"}
+    schema = SchemaBlock(name="x", version=1, package_version="0", created_utc="2026-01-01T00:00:00+00:00")
+    written = dataclasses.replace(report, source={"train_bag": "a"}, schema=schema).to_json()
+    assert list(written)[0] == "schema" and written["source"] == {"train_bag": "a"} and written["schema"]["version"] == 1
     assert check_report(written) == []
+    assert "report.schema: version missing" in check_report({**written, "schema": {"name": "x"}})   # (nested, optional)
+    # what the loop analysed, typed: the training record's stretch, the validation record's (no whole record here)
+    assert isinstance(report.analysed, Analysed) and isinstance(report.analysed.validate, AnalysedRecord)
+    assert data["analysed"]["train"]["samples"] == report.analysed.train.samples > 0
+    assert "whole_record" not in data["analysed"]["train"]
     assert check_report({**data, "diagnosis": [{"effect": "creep"}]})[0].startswith("report.diagnosis[0]: added missing")
 
 

@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 
 from .initial_state import WIPE_STATE_GAIN
-from .report import (Baseline, BaselineFits, Capacity, Decision, Final, FiguresFrom, IdentificationReport, NoiseEstimate,
+from .report import (Analysed, Baseline, BaselineFits, Capacity, Decision, Final, FiguresFrom, IdentificationReport, NoiseEstimate,
                      NoiseFloorReport, ResidualStructure, Session, to_json)
 from .records import HELD_OUT_FRACTION, noise_peak_um
 from .search import GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, support, unsupported_because
@@ -173,7 +173,7 @@ class ReportStage:
             validation=held_out_text,
             held_out_fraction=HELD_OUT_FRACTION if split.held_out else None,
             held_out_samples=len(split.score_full) - split.start_full,
-            analysed=self.analysed,
+            analysed=Analysed(train=self.analysed["train"], validate=self.analysed.get("validate")),
             figures_from=self.figures_from(),
             validate_range_um=round(self.range_val, 4),
             sample_rate_hz=round(self.full.rate_hz, 3),
@@ -207,12 +207,12 @@ class ReportStage:
     def figures_from(self) -> FiguresFrom:
         """Which stretch of which record each of the report's figures comes from, in words."""
         split, a = self.split, self.analysed["train"]
-        train = f"the training record's {split.fit_full.time_s[0]:.3f}..{a['to_s']:.3f} s" + (
+        train = f"the training record's {split.fit_full.time_s[0]:.3f}..{a.to_s:.3f} s" + (
             f" (its rows before {split.wiped_at_s:.3f} s left out: the operators' state there unknown)"
             if split.wiped_at_s is not None else "")
         held = (f"its last {100 * HELD_OUT_FRACTION:.0f} % held out" if split.held_out
                 else "held out: the validation record's "
-                + f"{self.analysed['validate']['from_s']:.3f}..{self.analysed['validate']['to_s']:.3f} s")
+                + f"{self.analysed['validate'].from_s:.3f}..{self.analysed['validate'].to_s:.3f} s")
         stretch = f"fitted on {train}, {held}"
         whole = None
         if self.whole is not None:

@@ -16,7 +16,8 @@ from typing import Optional, Union
 from ..metrics import ErrorFigures
 
 __all__ = ["IdentificationReport", "Figures", "Baseline", "Final", "Decision", "Indistinguishable",
-           "ResidualStructure", "NoiseEstimate", "WholeRecordReport", "TrendRMS", "Stretch", "FiguresFrom", "NoiseFloorReport", "Capacity", "SearchRow", "ConfirmRound", "Session", "BaselineFits", "ErrorFigures",
+           "ResidualStructure", "NoiseEstimate", "WholeRecordReport", "Analysed", "AnalysedRecord",
+           "AnalysedWhole", "SchemaBlock", "TrendRMS", "Stretch", "FiguresFrom", "NoiseFloorReport", "Capacity", "SearchRow", "ConfirmRound", "Session", "BaselineFits", "ErrorFigures",
            "check_report", "schema_tables", "to_json"]
 
 
@@ -233,6 +234,40 @@ class WholeRecordReport(_Node):
 
 
 @dataclass(frozen=True)
+class AnalysedWhole(_Node):
+    from_s: float = _item("the whole training record's first sample time [s]")
+    to_s: float = _item("its last sample time [s]")
+    rows: int = _item("its rows at the analysis rate")
+    rate_hz: float = _item("the analysis rate [Hz]")
+    samples: Optional[int] = _optional("its samples at the record's own rate (where it was in memory whole)")
+
+
+@dataclass(frozen=True)
+class AnalysedRecord(_Node):
+    from_s: float = _item("the analysed stretch's first sample time [s]")
+    to_s: float = _item("its last sample time [s]")
+    samples: int = _item("its samples at the record's rate")
+    of_samples: int = _item("the record's samples (the window's, with --from/--to)")
+    record_duration_s: float = _item("the record's duration [s]")
+    whole_record: Optional[AnalysedWhole] = _optional("the training record longer than MAX_ANALYSED_S: all of it, at "
+                                                      "the analysis rate, for a slow trend")
+
+
+@dataclass(frozen=True)
+class Analysed(_Node):
+    train: AnalysedRecord = _item("the training record's")
+    validate: Optional[AnalysedRecord] = _optional("the validation record's (where there is one)")
+
+
+@dataclass(frozen=True)
+class SchemaBlock(_Node):
+    name: str = _item("what the file is (e.g. piezo_valve_ros/identification-report)")
+    version: int = _item("its schema version")
+    package_version: str = _item("the piezo_valve_ros version that wrote it")
+    created_utc: str = _item("when (ISO 8601, UTC)")
+
+
+@dataclass(frozen=True)
 class BaselineFits(_Node):
     capacity: tuple[Capacity, ...] = _item("")
     chosen: str = _item("")
@@ -248,7 +283,7 @@ class IdentificationReport(_Node):
     """What one run of the residual loop found (``residual.analyse``), as report.json holds it
     (``to_json``)."""
 
-    schema: Optional[dict] = _optional("name, version, package_version, created_utc of the report file")
+    schema: Optional[SchemaBlock] = _optional("what the report file is and which version of the package wrote it")
     range_um: float = _item("range of the measured position the peak shares are taken of [um]")
     baseline: Baseline = _item("the paper's model (GPIM + second-order G_v) fitted to the record: its error figures "
                                "on the training part, the held-out data at the record's rate and at the analysis "
@@ -278,10 +313,9 @@ class IdentificationReport(_Node):
     held_out_fraction: Optional[float] = _item("the share held out of the training record (null with a validation "
                                                "record)")
     held_out_samples: int = _item("held-out samples at the record's rate")
-    analysed: dict = _item("what of each record the loop analysed: train (and validate) with from_s, to_s (sample "
-                           "times), samples, of_samples and record_duration_s; a record longer than MAX_ANALYSED_S "
-                           "(100 s) is analysed on its first 100 s, its whole length (the training record's) for a "
-                           "slow trend (whole_record), and a warning says so")
+    analysed: Analysed = _item("what of each record the loop analysed; a record longer than MAX_ANALYSED_S (100 s) is "
+                               "analysed on its first 100 s, its whole length (the training record's) for a slow "
+                               "trend (whole_record), and a warning says so")
     figures_from: FiguresFrom = _item("which stretch of which record each figure comes from, in words")
     validate_range_um: float = _item("range of the held-out position [um]")
     sample_rate_hz: float = _item("the record's sampling rate [Hz]")
@@ -358,8 +392,9 @@ def check_report(report: dict, typed: type = IdentificationReport, where: str = 
         if not isinstance(value, _python_type(t)):
             problems.append(f"{where}.{key}: {type(value).__name__}, expected {_type_name(t)}")
             continue
-        if is_dataclass(t):
-            problems += check_report(value, t, f"{where}.{key}")
+        record = next((a for a in (t, *typing.get_args(t)) if is_dataclass(a)), None)   # (Optional[...]'s too)
+        if record is not None and isinstance(value, dict):
+            problems += check_report(value, record, f"{where}.{key}")
         item = _item_type(t)
         if item is not None and is_dataclass(item):
             for i, entry in enumerate(value):

@@ -63,7 +63,7 @@ from .fitting import FitCache, fit_model, uniform_thresholds
 from ..model.hysteresis import GPIM
 from .noise import estimate_noise_floor
 from .initial_state import session_start
-from .report import IdentificationReport
+from .report import AnalysedRecord, AnalysedWhole, IdentificationReport
 from .records import ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, MAX_ANALYSED_S, SUPPORTED_RATE_HZ, Record, analysis_record
 from .search import GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, NoiseLevels, Score  # noqa: F401
 from .split import SessionStart, Split, split_records
@@ -153,15 +153,14 @@ class _Loop(StartStage, CapacityStage, WholeRecordStage, ReportStage):
         self.warnings: list[str] = []
         self.known_rows: Optional[int] = None   # held-out rows before the input first leaves the fit part's range
         self.start_left_out: Optional[dict] = None   # a validation session's first rows left out (in motion)
-        self.analysed: dict = {}   # what of each record the loop analysed (the report's "analysed")
+        self.analysed: dict[str, AnalysedRecord] = {}   # what of each record the loop analysed (the report's)
         whole_rows = len(train_full) if whole is None else None
         part = self.representative_part(train_full, "train", "training record", whole)
         if part is not train_full or (whole is not None and whole.time_s[-1] > part.time_s[-1]):
             self.whole = analysis_record(train_full, max_rate_hz) if whole is None else whole
-            self.analysed["train"]["whole_record"] = {
-                "from_s": float(self.whole.time_s[0]), "to_s": float(self.whole.time_s[-1]),
-                "rows": len(self.whole), "rate_hz": round(self.whole.rate_hz, 3),
-                **({"samples": whole_rows} if whole_rows is not None else {})}
+            self.analysed["train"] = replace(self.analysed["train"], whole_record=AnalysedWhole(
+                from_s=float(self.whole.time_s[0]), to_s=float(self.whole.time_s[-1]), rows=len(self.whole),
+                rate_hz=round(self.whole.rate_hz, 3), samples=whole_rows))
         train_full = part
         if validate_full is not None:
             validate_full = self.representative_part(validate_full, "validate", "validation record")
@@ -217,9 +216,8 @@ class _Loop(StartStage, CapacityStage, WholeRecordStage, ReportStage):
         part = record.first(self.analysed_s)
         duration = record.duration_s if whole is None else float(whole.time_s[-1] - record.time_s[0] + record.dt)
         of = len(record) if whole is None else len(whole) * whole.block   # (source rows, less a partial block)
-        self.analysed[key] = {"from_s": float(part.time_s[0]), "to_s": float(part.time_s[-1]),
-                              "samples": len(part), "of_samples": of,
-                              "record_duration_s": duration}
+        self.analysed[key] = AnalysedRecord(from_s=float(part.time_s[0]), to_s=float(part.time_s[-1]),
+                                            samples=len(part), of_samples=of, record_duration_s=duration)
         if part is not record or (whole is not None and duration > part.duration_s + 2 * record.dt):
             if key == "train":
                 self.warnings.append(f"the {what} is {duration:.0f} s long: its first {part.duration_s:.0f} s were "
