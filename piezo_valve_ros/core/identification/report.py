@@ -219,7 +219,10 @@ class WholeRecordReport(_Node):
     tried: dict = _item("cross-validated error RMS [um] of every trend tried: its spline intervals and its terms "
                         "(offset, or offset and gain)")
     held_out_rms_um: TrendRMS = _item("the cross-validated error RMS (analysis rate) without and with the best "
-                                      "trend [um]")
+                                      "trend, judged_beside refitted in both [um]")
+    judged_beside: str = _item("what was refitted over the whole record on both sides of the judgement, so a trend "
+                               "must explain what it does not (creep's slow terms, where the model has creep; "
+                               "'' none)")
     drift_added: bool = _item("whether the trend is supported (search.support): drift over the whole record")
     decided_by: str = _item("the rule that supported it, or empty")
     evidence: str = _item("the decision in words")
