@@ -2,10 +2,12 @@
 command-line tool.  Read from the source (every import, also those inside functions and under
 TYPE_CHECKING), so an arrow cannot hide in a lazy import."""
 import ast
+import dataclasses
 import os
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 PACKAGE = "piezo_valve_ros"
@@ -337,3 +339,35 @@ def test_tests_and_benches_import_through_the_faces():
             if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module and _deep(node.module):
                 deep.append(f"{path.name}:{node.lineno} {node.module}")
     assert len(deep) <= MAX_DEEP_IMPORTS, "\n".join(deep)
+
+
+def test_every_effect_has_its_three_homes():
+    """Each catalogue effect is named by the identification (its module in ``core/identification/effects``), made by
+    stages of the simulated valve (``simulated_by``: StageSwitch names) and compensated by fields of the
+    controller's model (``compensated_by``: a control term's, or the GPIM's), or refused with a reason (none
+    declared: its ``compensation`` raises NotCompensable).  Every switchable stage of the simulated valve makes an
+    effect, except the amplifier's slew limit and the sensor's noise (measured, not named)."""
+    from piezo_valve_ros.core.control import CompensationModel
+    from piezo_valve_ros.core.control.terms import TERMS
+    from piezo_valve_ros.core.identification import CATALOGUE, NotCompensable
+    from piezo_valve_ros.core.sim import STAGE_SWITCHES
+    stages = {s.name for s in STAGE_SWITCHES}
+    homes = {t.field for t in TERMS} | {"gpim"}
+    assert homes <= {f.name for f in dataclasses.fields(CompensationModel)}
+    for effect in CATALOGUE:
+        assert effect.simulated_by and set(effect.simulated_by) <= stages, effect.name
+        assert set(effect.compensated_by) <= homes, effect.name
+        if not effect.compensated_by:   # the feedback's: it says why
+            with pytest.raises(NotCompensable, match=effect.name):
+                effect().compensation(None, np.zeros(0))
+    assert stages - {s for e in CATALOGUE for s in e.simulated_by} == {"slew_limit", "noise"}
+
+
+def test_an_effect_that_fills_a_field_it_does_not_declare_is_refused():
+    """The declaration is what ``to_controller`` holds an effect to: a compensation that fills another field of the
+    controller's model is a TypeError naming it, not a silent change of the model."""
+    from piezo_valve_ros.core.identification import CATALOGUE
+    creep = next(e for e in CATALOGUE if e.name == "creep")
+    stray = type("StrayCreep", (creep,), {"compensation": lambda self, model, coefs: {"backlash": None}})
+    with pytest.raises(TypeError, match="creep effect's compensation fills backlash, which it does not declare"):
+        stray().controller_fields(None, np.zeros(0))

@@ -67,7 +67,7 @@ def compensation(analysis: Analysis, dynamic_feedforward: bool = True) -> Compen
     usable, refused, reduced = [], {}, []
     for e, c in zip(final.effects, final.coefs):
         try:
-            trial = replace(controller, **e.compensation(final, c))
+            trial = replace(controller, **e.controller_fields(final, c))
         except NotCompensable as exc:
             refused[e.name] = str(exc)
             part = e.compensable()   # what of it the controller can take, refitted below without the rest
@@ -103,7 +103,7 @@ def _refitted(analysis: Analysis, effects: list, dynamic_feedforward: bool, driv
     controller = base_model(model, dynamic_feedforward, drive)
     for e, c in zip(model.effects, model.coefs):
         try:
-            controller = replace(controller, **e.compensation(model, c))
+            controller = replace(controller, **e.controller_fields(model, c))
         except NotCompensable as exc:
             raise ValueError(str(exc)) from exc
     problems = controller.problems(*drive)

@@ -30,6 +30,8 @@ PLACED_THRESHOLD_FLOOR_V = 1e-6   # a threshold moved to this or below is the ze
 @dataclass(frozen=True)
 class Asymmetry(Effect):
     name = "asymmetry"
+    simulated_by = ("asymmetry",)
+    compensated_by = ("gpim",)
     telling_experiment = ("slow full cycles and minor loops at both ends of the range: asymmetric envelopes bend one "
                           "branch more than the other, at any rate and level")
     signature = ("ascending and descending branches differ: the residual follows the operators' sensitivity to a "

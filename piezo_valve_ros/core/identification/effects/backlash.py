@@ -30,6 +30,8 @@ SEARCH_WIDTHS = (0.002, 0.005, 0.01, 0.02, 0.04)   # the search's play half-widt
 @dataclass(frozen=True)
 class Backlash(Effect):
     name = "backlash"
+    simulated_by = ("backlash",)
+    compensated_by = ("backlash",)
     telling_experiment = ("small reversals at two rates: after each reversal the position holds while the drive "
                           "moves the same distance at any rate (a lag's hold grows with the rate)")
     signature = ("a flat step after every reversal: the position holds while the drive crosses a fixed clearance, "

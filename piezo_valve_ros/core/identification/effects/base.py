@@ -56,6 +56,11 @@ class Effect:
     coefficient_floor: ClassVar[float] = -np.inf   # the lower bound of its coefficients in a fit
     costly_refit: ClassVar[bool] = False     # an exact refit costs seconds (several forms, each a nonlinear fit):
                                              # checked after the others (``_EffectChoice.exact_addition``)
+    # its other two homes: the simulated valve's stages that make it (StageSwitch names), and the CompensationModel
+    # fields its ``compensation`` fills (a control term's, or the GPIM's; none: it raises NotCompensable, the
+    # feedback's to absorb); ``to_controller`` refuses a compensation that fills another field
+    simulated_by: ClassVar[tuple[str, ...]] = ()
+    compensated_by: ClassVar[tuple[str, ...]] = ()
 
     @classmethod
     def prepare(cls, train: Record, H: np.ndarray) -> Optional["Effect"]:
@@ -150,6 +155,17 @@ class Effect:
     def plot_axis(self, ctx: "Context") -> tuple[np.ndarray, str, bool]:
         """(values, label, log scale?) to plot this effect's residual against."""
         return ctx.H, "model output [um]", False
+
+    def controller_fields(self, model: "ValveModel", coefs: np.ndarray) -> dict:
+        """``compensation``, held to the fields the effect declares as its home in the controller
+        (``compensated_by``): TypeError naming the effect where it fills another (a catalogue effect written
+        wrong); NotCompensable as ``compensation`` raises it."""
+        fields = self.compensation(model, coefs)
+        stray = set(fields) - set(self.compensated_by)
+        if stray:
+            raise TypeError(f"the {self.name} effect's compensation fills {', '.join(sorted(stray))}, which it does "
+                            f"not declare (compensated_by: {', '.join(self.compensated_by) or 'none'})")
+        return fields
 
     def compensation(self, model: "ValveModel", coefs: np.ndarray) -> dict:
         """What compensates this effect: ``CompensationModel`` field -> typed value (a ``CreepModel``, an ``OutputMap``,

@@ -29,6 +29,8 @@ SHAPED_UP_TO_S = 15.0   # direction- and level-dependent terms for time constant
 @dataclass(frozen=True)
 class Creep(Effect):
     name = "creep"
+    simulated_by = ("creep",)
+    compensated_by = ("creep",)
     telling_experiment = ("holds of several seconds after steps of different sizes in both directions: creep keeps "
                           "moving towards the step, by a share of its size, slower and slower")
     signature = ("slow approach after steps and reversals: the residual follows slow lags (0.05-50 s) of the "

@@ -40,6 +40,8 @@ _SLOW_KEPT = 16
 @dataclass(frozen=True)
 class Drift(Effect):
     name = "drift"
+    simulated_by = ("drift",)
+    compensated_by = ()
     telling_experiment = ("the same cycle repeated before and after a long hold: drift moves with the time since the "
                           "start whatever the input did, creep and hysteresis do not")
     signature = ("slow change of offset or gain: the residual trends with the time since the start or with how "

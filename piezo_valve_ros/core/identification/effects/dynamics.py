@@ -43,6 +43,8 @@ EXTRA_START = 3.0   # the extra pole pair starts this factor above G_v's natural
 @dataclass(frozen=True)
 class Dynamics(Effect):
     name = "dynamics"
+    simulated_by = ("dynamics", "rate_dependence")
+    compensated_by = ("rate_widening_v",)
     costly_refit = True   # six forms, each a Gauss-Newton fit (the poles' placed from several starts)
     telling_experiment = ("the same loop at several rates (0.1 to 10 Hz) and fast steps: a delay or a lag shows in "
                           "the first milliseconds after a step, rate-dependent hysteresis in a loop that widens with "

@@ -28,6 +28,8 @@ __all__ = ["Saturation"]
 @dataclass(frozen=True)
 class Saturation(Effect):
     name = "saturation"
+    simulated_by = ("saturation",)
+    compensated_by = ("output_map",)
     telling_experiment = ("slow sweeps to each end of the range and back: the flattening grows towards the ends, the "
                           "same on both branches and at every rate")
     signature = ("loop ends flattened: the residual is a static function of the model output bending the ends of "
