@@ -371,3 +371,25 @@ def test_an_effect_that_fills_a_field_it_does_not_declare_is_refused():
     stray = type("StrayCreep", (creep,), {"compensation": lambda self, model, coefs: {"backlash": None}})
     with pytest.raises(TypeError, match="creep effect's compensation fills backlash, which it does not declare"):
         stray().controller_fields(None, np.zeros(0))
+
+
+def test_the_simulated_valve_is_its_chain_of_links_folded_over_a_config():
+    """Every stage module of the simulated valve has its link in the chain (``stages.CHAIN`` before the spool,
+    ``stages.SENSING`` after it), and ``SimulatedValve`` is that fold: a config with every switch on has one stage per
+    link and the spool; the ideal valve keeps the amplifier, the hysteresis, G_v and the sensor alone."""
+    import importlib
+    from piezo_valve_ros.core.sim import SimulatedValve, ValveSimConfig
+    from piezo_valve_ros.core.sim.stages import CHAIN, SENSING, STAGE_SWITCHES
+    folder = ROOT / "core" / "sim" / "stages"
+    modules = [p.stem for p in folder.glob("*.py") if p.stem not in ("__init__", "base")]
+    assert len(modules) >= 9, modules
+    links = {id(link) for link in CHAIN + SENSING}
+    for name in modules:
+        module = importlib.import_module(f"piezo_valve_ros.core.sim.stages.{name}")
+        assert any(id(v) in links for k, v in vars(module).items() if k.endswith("LINK")), name
+    every = ValveSimConfig(sensor=dataclasses.replace(ValveSimConfig().sensor, delay_samples=2))
+    for switch in STAGE_SWITCHES:
+        every = switch.set(every, True)
+    assert len(SimulatedValve(every)._stages) == len(CHAIN) + 1 + len(SENSING)
+    kinds = [type(s).__name__ for s in SimulatedValve(ValveSimConfig().ideal())._stages]
+    assert kinds == ["Amplifier", "Hysteresis", "Dynamics", "_Spool", "Sensor"], kinds

@@ -12,8 +12,9 @@ Signal chain (each stage has its own switch and parameters)::
       -> LVDT noise and quantisation -> position [m]
 
 Each stage is a small class with ``step`` (per sample) and ``run`` (a whole record, vectorised) on one
-state, in its own module under ``stages/`` with its parameters and its switch; ``SimulatedValve`` chains the stages that are switched on, so ``step`` and ``run`` go through the
-same chain and give the same result, and a run repeats bit for bit from ``seed``.  Default effects: slew limit, creep, flattening,
+state, in its own module under ``stages/`` with its parameters, its link and its switch; ``SimulatedValve`` folds the
+chain of links (``stages.CHAIN``) over its config, keeping the stages that are switched on, so ``step`` and ``run`` go
+through the same chain and give the same result, and a run repeats bit for bit from ``seed``.  Default effects: slew limit, creep, flattening,
 noise, quantisation.  Off by default (for identification work): asymmetry, rate
 dependence, backlash, drift.
 """
@@ -28,16 +29,15 @@ import numpy as np
 from ..model.dynamics import PAPER_VALVE_MODEL, ContinuousTF
 from ..model.hysteresis import GPIM, GPIMParams, PAPER_GPIM
 from ..model.drive import CENTRE_VOLTAGE_V
-from .stages import STAGE_SWITCHES, StageSwitch
+from .stages import CHAIN, SENSING, STAGE_SWITCHES, StageSwitch
 from .stages.amplifier import Amplifier, AmplifierParams
-from .stages.backlash import Backlash, BacklashParams
-from .stages.creep import Creep, CreepParams
-from .stages.drift import Drift, DriftParams
-from .stages.dynamics import Dynamics
+from .stages.backlash import BacklashParams
+from .stages.creep import CreepParams
+from .stages.drift import DriftParams
 from .stages.hysteresis import ASYMMETRIC_ENVELOPE, Hysteresis
-from .stages.rate_dependence import RateDependence, RateDependenceParams
-from .stages.saturation import Saturation, SaturationParams
-from .stages.sensor import Sensor, SensorDelay, SensorParams
+from .stages.rate_dependence import RateDependenceParams
+from .stages.saturation import SaturationParams
+from .stages.sensor import SensorParams
 
 __all__ = [
     "AmplifierParams",
@@ -50,6 +50,7 @@ __all__ = [
     "ValveSimConfig",
     "StageSwitch",
     "STAGE_SWITCHES",
+    "CHAIN",
     "ASYMMETRIC_ENVELOPE",
     "SimulatedValve",
 ]
@@ -117,35 +118,30 @@ class SimulatedValve:
         if not (config.dt > 0 and math.isfinite(config.dt)):
             raise ValueError(f"dt must be a positive finite time, got {config.dt}")
         self.config = config
-        self.hysteresis = config.hysteresis_model()
         self.reset()
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
+        """Every stage at rest at the config's initial voltage: the chain (``stages.CHAIN``, then the spool, then
+        ``stages.SENSING``) folded over the config, each link building its stage (none where it is switched off)
+        at rest at the value the stages before it pass on."""
         c = self.config
-        d = int(c.sensor.delay_samples)
-        if d < 0:
-            raise ValueError(f"sensor delay_samples must be >= 0, got {d}")
-        v0 = float(np.clip(c.initial_voltage_v, c.amplifier.input_min_v, c.amplifier.input_max_v))
         self.time_s = 0.0
         self.sample_index = 0
-        self._amplifier = Amplifier(c.amplifier, c.dt, v0)
-        self._hysteresis = Hysteresis(self.hysteresis, v0)
-        y0 = self.hysteresis.output_from_state(self._hysteresis.stream.state)
-        saturation = Saturation(c.saturation) if c.saturation.enabled else None
-        y_static = saturation.step(y0, 0) if saturation else y0
-        self._spool = _Spool(y_static)
-        stages = [self._amplifier, self._hysteresis,
-                  Creep(c.creep, c.dt, y0) if c.creep.enabled else None,
-                  RateDependence(c.rate, c.dt, y0) if c.rate.enabled else None,
-                  saturation,
-                  Dynamics(c.valve_model, c.dt, y_static) if c.dynamics_enabled else None,
-                  Backlash(c.backlash, y_static) if c.backlash.enabled else None,
-                  Drift(c.drift, c.dt) if c.drift.enabled else None,
-                  self._spool,
-                  SensorDelay(d, y_static) if d else None,
-                  Sensor(c.sensor, c.seed)]
+        x = float(np.clip(c.initial_voltage_v, c.amplifier.input_min_v, c.amplifier.input_max_v))
+        stages = []
+        for link in CHAIN:
+            stage, x = link.build(c, x)
+            stages.append(stage)
+        self._spool = _Spool(x)
+        stages.append(self._spool)
+        for link in SENSING:
+            stage, x = link.build(c, x)
+            stages.append(stage)
         self._stages = [st for st in stages if st is not None]
+        self._amplifier = next(st for st in self._stages if isinstance(st, Amplifier))
+        self._hysteresis = next(st for st in self._stages if isinstance(st, Hysteresis))
+        self.hysteresis = self._hysteresis.stream.model   # the valve's GPIM
 
     @property
     def electrode_v(self) -> float:

@@ -5,7 +5,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .base import StageSwitch
+from .base import Link, StageSwitch
 
 
 @dataclass(frozen=True)
@@ -86,3 +86,10 @@ class Amplifier:
 
 SWITCH = StageSwitch("slew_limit", "amplifier current limit", lambda c: c.amplifier.enabled,
                      lambda c, on: replace(c, amplifier=replace(c.amplifier, enabled=on)))
+
+
+def _build(config, v0: float):
+    return Amplifier(config.amplifier, config.dt, v0), v0
+
+
+LINK = Link("amplifier", _build)

@@ -7,7 +7,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ...model.hysteresis import PlayOperatorBank
-from .base import StageSwitch
+from .base import Link, StageSwitch
 
 
 @dataclass(frozen=True)
@@ -36,3 +36,10 @@ class Backlash:
 
 SWITCH = StageSwitch("backlash", "backlash on the spool's path", lambda c: c.backlash.enabled,
                      lambda c, on: replace(c, backlash=replace(c.backlash, enabled=on)))
+
+
+def _build(config, y0: float):
+    return (Backlash(config.backlash, y0) if config.backlash.enabled else None), y0
+
+
+LINK = Link("backlash", _build)

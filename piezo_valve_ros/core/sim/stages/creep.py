@@ -6,7 +6,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ...model.dynamics import first_order_lag
-from .base import StageSwitch
+from .base import Link, StageSwitch
 
 
 @dataclass(frozen=True)
@@ -42,3 +42,10 @@ class Creep:
 
 SWITCH = StageSwitch("creep", "creep", lambda c: c.creep.enabled,
                      lambda c, on: replace(c, creep=replace(c.creep, enabled=on)))
+
+
+def _build(config, y0: float):
+    return (Creep(config.creep, config.dt, y0) if config.creep.enabled else None), y0
+
+
+LINK = Link("creep", _build)

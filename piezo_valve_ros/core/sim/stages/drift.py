@@ -6,7 +6,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .base import StageSwitch
+from .base import Link, StageSwitch
 
 
 @dataclass(frozen=True)
@@ -43,3 +43,10 @@ class Drift:
 
 SWITCH = StageSwitch("drift", "thermal drift", lambda c: c.drift.enabled,
                      lambda c, on: replace(c, drift=replace(c.drift, enabled=on)))
+
+
+def _build(config, y0: float):
+    return (Drift(config.drift, config.dt) if config.drift.enabled else None), y0
+
+
+LINK = Link("drift", _build)

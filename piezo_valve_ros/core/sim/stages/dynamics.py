@@ -6,7 +6,7 @@ from dataclasses import replace
 import numpy as np
 
 from ...model.dynamics import ContinuousTF
-from .base import StageSwitch
+from .base import Link, StageSwitch
 
 
 class Dynamics:
@@ -25,3 +25,10 @@ class Dynamics:
 
 SWITCH = StageSwitch("dynamics", "G_v(s)", lambda c: c.dynamics_enabled,
                      lambda c, on: replace(c, dynamics_enabled=on))
+
+
+def _build(config, y0: float):
+    return (Dynamics(config.valve_model, config.dt, y0) if config.dynamics_enabled else None), y0
+
+
+LINK = Link("dynamics", _build)

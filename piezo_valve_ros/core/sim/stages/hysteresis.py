@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 
 from ...model.hysteresis import GPIM
-from .base import StageSwitch
+from .base import Link, StageSwitch
 
 ASYMMETRIC_ENVELOPE = (0.95, 0.2)   # (b0, b1) of the descending envelope when the asymmetry switch is on
 
@@ -37,3 +37,11 @@ class Hysteresis:
 
 SWITCH = StageSwitch("asymmetry", "asymmetry", lambda c: c.descending_envelope is not None,
                      lambda c, on: replace(c, descending_envelope=ASYMMETRIC_ENVELOPE if on else None))
+
+
+def _build(config, v0: float):
+    stage = Hysteresis(config.hysteresis_model(), v0)
+    return stage, stage.stream.model.output_from_state(stage.stream.state)
+
+
+LINK = Link("hysteresis", _build)

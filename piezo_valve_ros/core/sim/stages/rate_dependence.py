@@ -6,7 +6,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ...model.dynamics import first_order_lag
-from .base import StageSwitch
+from .base import Link, StageSwitch
 
 
 @dataclass(frozen=True)
@@ -35,3 +35,10 @@ class RateDependence:
 
 SWITCH = StageSwitch("rate_dependence", "rate dependence", lambda c: c.rate.enabled,
                      lambda c, on: replace(c, rate=replace(c.rate, enabled=on)))
+
+
+def _build(config, y0: float):
+    return (RateDependence(config.rate, config.dt, y0) if config.rate.enabled else None), y0
+
+
+LINK = Link("rate_dependence", _build)

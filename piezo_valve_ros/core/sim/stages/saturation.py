@@ -6,7 +6,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .base import StageSwitch
+from .base import Link, StageSwitch
 
 
 @dataclass(frozen=True)
@@ -35,3 +35,13 @@ class Saturation:
 
 SWITCH = StageSwitch("saturation", "loop-end flattening", lambda c: c.saturation.enabled,
                      lambda c, on: replace(c, saturation=replace(c.saturation, enabled=on)))
+
+
+def _build(config, y0: float):
+    if not config.saturation.enabled:
+        return None, y0
+    stage = Saturation(config.saturation)
+    return stage, stage.step(y0, 0)
+
+
+LINK = Link("saturation", _build)

@@ -5,7 +5,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .base import StageSwitch
+from .base import Link, StageSwitch
 
 
 NOISE_BLOCK = 4096  # noise is drawn in fixed blocks so step() and run() consume the RNG alike
@@ -85,3 +85,18 @@ class Sensor:
 
 SWITCH = StageSwitch("noise", "LVDT noise", lambda c: c.sensor.noise_enabled,
                      lambda c, on: replace(c, sensor=replace(c.sensor, noise_enabled=on)))
+
+
+def _build_delay(config, y0: float):
+    d = int(config.sensor.delay_samples)
+    if d < 0:
+        raise ValueError(f"sensor delay_samples must be >= 0, got {d}")
+    return (SensorDelay(d, y0) if d else None), y0
+
+
+def _build(config, y0: float):
+    return Sensor(config.sensor, config.seed), y0
+
+
+DELAY_LINK = Link("sensor_delay", _build_delay)
+LINK = Link("sensor", _build)
