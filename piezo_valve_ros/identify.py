@@ -24,7 +24,7 @@ from .core.model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 from .core.monitoring.health import Health, HealthLimits, HealthMonitor, Level
 from .io.params_yaml import node_section, yaml_value
 from .core.identification.records import MAX_ANALYSED_S, Record, read_csv
-from .core.identification.report import IdentificationReport, SchemaBlock
+from .core.identification.report import IdentificationReport, SchemaBlock, Source, TrainWindow
 from .core.identification.whole_record import BlockMeans
 from .core.runs import WHOLE_RECORD, TimeWindow, WindowError
 from .core.identification.residual import Analysis, analyse
@@ -113,9 +113,9 @@ def identify_bags(train_bag, validate_bag=None, topic: Optional[str] = None,
     validate = (None if validate_bag is None
                 else read_record(validate_bag, topic, log, damaged, longest_s=MAX_ANALYSED_S)[0])
     analysis = analyse(train, validate, log=log, whole=whole)
-    source = {"train_bag": str(train_bag), "validate_bag": None if validate_bag is None else str(validate_bag),
-              "topic": name, "train_window": {**window.as_dict(), "first_sample_s": float(train.time_s[0]),
-                                              "last_sample_s": float(train.time_s[-1]), "samples": len(train)}}
+    source = Source(train_bag=str(train_bag), validate_bag=None if validate_bag is None else str(validate_bag),
+                    topic=name, train_window=TrainWindow(**window.as_dict(), first_sample_s=float(train.time_s[0]),
+                                                         last_sample_s=float(train.time_s[-1]), samples=len(train)))
     analysis.report = replace(analysis.report, warnings=tuple(damaged) + analysis.report.warnings, source=source)
     return analysis, name
 

@@ -108,7 +108,8 @@ def test_the_report_is_a_frozen_typed_tree_whose_json_is_report_json():
     import json
     from piezo_valve_ros.core import ErrorFigures
     from piezo_valve_ros.core.identification import (Analysed, AnalysedRecord, ConfirmRound, Decision,
-                                                     IdentificationReport, SchemaBlock, SearchRow)
+                                                     IdentificationReport, SchemaBlock, SearchRow, Source,
+                                                     TrainWindow)
     report = analysis_of("masking pair: creep + drift").report
     assert isinstance(report, IdentificationReport) and report.effects_added == ("creep", "drift")
     assert isinstance(report.final.validate, ErrorFigures) and report.final.validate.rms_um < report.baseline.validate.rms_um
@@ -123,8 +124,12 @@ def test_the_report_is_a_frozen_typed_tree_whose_json_is_report_json():
     assert "rounds" not in data   # retired (it repeated "confirm" under an earlier report's name)
     assert data["final"]["validate"] == dataclasses.asdict(report.final.validate)
     schema = SchemaBlock(name="x", version=1, package_version="0", created_utc="2026-01-01T00:00:00+00:00")
-    written = dataclasses.replace(report, source={"train_bag": "a"}, schema=schema).to_json()
-    assert list(written)[0] == "schema" and written["source"] == {"train_bag": "a"} and written["schema"]["version"] == 1
+    source = Source(train_bag="a", validate_bag=None, topic=None, train_window=TrainWindow(
+        from_s=None, to_s=None, axis="record_start", first_sample_s=0.0, last_sample_s=1.0, samples=2))
+    written = dataclasses.replace(report, source=source, schema=schema).to_json()
+    assert list(written)[0] == "schema" and written["schema"]["version"] == 1
+    assert written["source"] == {"train_bag": "a", "validate_bag": None, "topic": None, "train_window": {
+        "from_s": None, "to_s": None, "axis": "record_start", "first_sample_s": 0.0, "last_sample_s": 1.0, "samples": 2}}
     assert check_report(written) == []
     assert "report.schema: version missing" in check_report({**written, "schema": {"name": "x"}})   # (nested, optional)
     # what the loop analysed, typed: the training record's stretch, the validation record's (no whole record here)

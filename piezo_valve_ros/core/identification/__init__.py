@@ -22,6 +22,8 @@ __all__, __getattr__ = lazy_exports(__name__, {
     "Analysed": "report",
     "AnalysedRecord": "report",
     "SchemaBlock": "report",
+    "Source": "report",
+    "TrainWindow": "report",
     "check_report": "report",
     "Asymmetry": "effects.asymmetry",
     "CAPACITY_EXTENSION": "residual",

@@ -17,7 +17,7 @@ from ..metrics import ErrorFigures
 
 __all__ = ["IdentificationReport", "Figures", "Baseline", "Final", "Decision", "Indistinguishable",
            "ResidualStructure", "NoiseEstimate", "WholeRecordReport", "Analysed", "AnalysedRecord",
-           "AnalysedWhole", "SchemaBlock", "TrendRMS", "Stretch", "FiguresFrom", "NoiseFloorReport", "Capacity", "SearchRow", "ConfirmRound", "Session", "BaselineFits", "ErrorFigures",
+           "AnalysedWhole", "SchemaBlock", "Source", "TrainWindow", "TrendRMS", "Stretch", "FiguresFrom", "NoiseFloorReport", "Capacity", "SearchRow", "ConfirmRound", "Session", "BaselineFits", "ErrorFigures",
            "check_report", "schema_tables", "to_json"]
 
 
@@ -271,6 +271,24 @@ class SchemaBlock(_Node):
 
 
 @dataclass(frozen=True)
+class TrainWindow(_Node):
+    from_s: Optional[float] = _item("the window's start [s] on its axis (null: the record's start)")
+    to_s: Optional[float] = _item("its end [s] (null: the record's end)")
+    axis: str = _item("record_start (seconds from the first sample) or stamps (the samples' own time axis)")
+    first_sample_s: float = _item("the first sample read in it [s]")
+    last_sample_s: float = _item("the last sample read in it [s]")
+    samples: int = _item("samples read in it (at most MAX_ANALYSED_S of them; the rest streamed for the whole record)")
+
+
+@dataclass(frozen=True)
+class Source(_Node):
+    train_bag: str = _item("the training bag (or CSV) as given")
+    validate_bag: Optional[str] = _item("the validation bag (or CSV) as given (null: none, a held-out tail)")
+    topic: Optional[str] = _item("the samples topic read (null: a CSV)")
+    train_window: TrainWindow = _item("the stretch of the training record used")
+
+
+@dataclass(frozen=True)
 class BaselineFits(_Node):
     capacity: tuple[Capacity, ...] = _item("")
     chosen: str = _item("")
@@ -343,9 +361,8 @@ class IdentificationReport(_Node):
     whole_record: Optional[WholeRecordReport] = _optional(
         "a training record longer than MAX_ANALYSED_S: the stretch's model run over all of it, and the slow trend "
         "searched there (present only then)")
-    source: Optional[dict] = _optional("the bags (or CSV) and topic read, and the stretch of the training record "
-                                       "used (train_window: from_s, to_s, axis, first_sample_s, last_sample_s, "
-                                       "samples)")
+    source: Optional[Source] = _optional("the bags (or CSV) and topic read, and the stretch of the training record "
+                                         "used")
 
     def to_json(self) -> dict:
         """report.json's content (without the schema block unless set)."""
