@@ -271,19 +271,30 @@ def test_contact_sensitivity_compiled_gives_the_numpy_paths_bits(n):
         contact_sensitivity(side, idx, w, rho, "sideways")
 
 
-@pytest.mark.parametrize("method, delay", [("zoh", 0.0), ("foh", 0.0), ("foh", 5e-5)])
+@pytest.mark.parametrize("method, delay", [("zoh", 0.0), ("foh", 0.0), ("foh", 5e-5), ("zoh", 3e-4)])
 def test_closed_form_discretisation_matches_scipy(method, delay):
     from scipy import signal
     from piezo_valve_ros.core.model import ContinuousTF, PAPER_VALVE_MODEL, discretise
     from piezo_valve_ros.core.model import unity_dc_poles
     x = np.random.default_rng(0).standard_normal(3000).cumsum()
-    for tf in (PAPER_VALVE_MODEL, unity_dc_poles([(1095.0, 1.32), (3000.0, 0.2)]), ContinuousTF((1.0,), (0.03, 1.0))):
+    for tf in (PAPER_VALVE_MODEL, unity_dc_poles([(1095.0, 1.32), (3000.0, 0.2)]), ContinuousTF((1.0,), (0.03, 1.0)),
+               unity_dc_poles([(1095.0, 1.32), (600.0, 1.01)])):   # (real poles 15 % apart beside a delay's fast one)
         num, den = np.asarray(tf.num), np.asarray(tf.den)
         if delay:
             num, den = np.polymul(num, [-delay / 2, 1]), np.polymul(den, [delay / 2, 1])
         b0, a0, _ = signal.cont2discrete((num, den), 5e-4, method=method)
         b1, a1 = discretise(tf, 5e-4, method, delay)
         assert np.max(np.abs(signal.lfilter(np.squeeze(b0), a0, x) - signal.lfilter(b1, a1, x))) < 1e-8
+
+
+def test_an_integrator_is_discretised_without_a_warning():
+    """A pole at 0 has no partial-fraction form (nor a scale for the poles' gap): scipy's, silently."""
+    import warnings
+    from piezo_valve_ros.core.model import ContinuousTF, discretise
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        b, a = discretise(ContinuousTF((1.0,), (1.0, 0.0)), 1e-3)
+    assert np.allclose(b, [0.0, 1e-3]) and np.allclose(a, [1.0, -1.0])
 
 
 def test_discretisation_of_a_repeated_pole_pair_keeps_unity_dc_gain():

@@ -359,11 +359,11 @@ class _EffectChoice:
         it leaves), so the record could not tell which is better, and the cheaper is taken without the seconds of the
         costly refit.  Returns (options refitted, their refits, the best supported or None)."""
         best = self._best_supported(options, refits, base)
-        if costly and best is not None and not room_for_an_effect(best[1], self.levels):
+        if not costly:
+            return options, refits, best
+        if best is not None and not room_for_an_effect(best[1], self.levels):
             self.log(f"exact check on top of {_set_named(current)}: {', '.join(costly)} not refitted: with {best[0]} "
                      f"{no_room_because(best[1], self.levels)}, nor could it be told from {best[0]}")
-            return options, refits, best
-        if not costly:
             return options, refits, best
         options = options + costly
         refits = refits + self.refit_many([(current + [n], final) for n in costly])

@@ -25,7 +25,6 @@ class WholeRecordStage:
 
     whole: Optional["object"] = None
     trend: Optional[Trend] = None
-    whole_errors: Optional["object"] = None   # the stretch's model's residual over the whole record (WholeResidual)
 
     def whole_record_story(self, story: Story) -> Story:
         """``story`` with the drift the whole record supports (the stretch's own drift replaced by the whole record's
@@ -39,7 +38,7 @@ class WholeRecordStage:
         t0 = base.t0   # where the fit starts (after a wipe, where the loop found the start unknown): so does this
         whole = self.whole = self.whole.slice(int(np.searchsorted(self.whole.time_s, t0 - 0.5 * self.whole.dt)))
         duration = float(whole.time_s[-1] - t0 + whole.dt)
-        residual = self.whole_errors = whole_residual(base, whole, like, self.log, slow_creep_rows(base))
+        residual = whole_residual(base, whole, like, self.log, slow_creep_rows(base))
         source_rows = residual.rows_per_block * whole.block
         levels = NoiseLevels(self.noise, self.noise / math.sqrt(source_rows), known=self.floor.known)
         stretch_end = (float(self.split.score_full.time_s[-1]) if self.split.held_out
@@ -86,7 +85,7 @@ class WholeRecordStage:
             trend_terms=t.effect.trend_terms, trend_gain=bool(np.any(t.coefs[t.coefs.size // 2:])),
             tried={k: round(v, 6) for k, v in t.tried.items()},
             held_out_rms_um=TrendRMS(round(t.without_um, 6), round(t.with_um, 6)),
-            judged_beside=self.whole_errors.nuisance_names if self.whole_errors is not None else "",
+            judged_beside=t.judged_beside,
             drift_added=t.supported, decided_by=t.support.by, evidence=t.support.describe(),
             peak_to_peak_um=round(t.peak_to_peak_um, 6), onset_s=round(t.onset_s, 3),
             rms_um=TrendRMS(round(t.rms_um[0], 6), round(t.rms_um[1], 6)),
@@ -97,7 +96,7 @@ class WholeRecordStage:
 
     def whole_record_evidence(self) -> str:
         """How the whole-record verdict was reached, in words (the diagnosis' ``how``)."""
-        beside = self.whole_errors.nuisance_names if self.whole_errors is not None else ""
+        beside = self.trend.judged_beside if self.trend is not None else ""
         return (f"a trend in time of offset and gain over the whole record ({self.whole.time_s[0]:.0f}..."
                 f"{self.whole.time_s[-1]:.0f} s, {TREND_BLOCK_S:g} s block means), cross-validated over alternate "
                 f"{TREND_SEGMENT_S:g} s stretches" + (f", judged beside {beside}" if beside else ""))

@@ -224,6 +224,7 @@ class Trend:
     stretch_rms_um: tuple[tuple[float, float, float, float], ...]   # (from_s, to_s, rms without, rms with) by tenth
     rms_um: tuple[float, float]          # the residual's RMS at the analysis rate over the record, without and with
     beyond_rms_um: tuple[float, float]   # ... over what lies beyond the analysed stretch (never fitted)
+    judged_beside: str = ""              # what was refitted beside it on both sides of the judgement ("": nothing)
 
     @property
     def supported(self) -> bool:
@@ -347,4 +348,5 @@ def trend_search(residual: WholeResidual, t0: float, duration_s: float, like: Dr
         f"({', '.join(f'{n}: {r:.4f}' for n, r in tried.items())} um RMS, cross-validated{beside}; without a trend "
         f"{without.rms:.4f} um); offset {float(np.ptp(offset)):.3f} um and gain {float(np.ptp(gain)):.3f} um peak "
         f"to peak, in all {pp:.3f} um, from {onset:.0f} s")
-    return Trend(effect, coefs, sup, without.rms, with_.rms, pp, onset, tried, stretches, whole, past)
+    return Trend(effect, coefs, sup, without.rms, with_.rms, pp, onset, tried, stretches, whole, past,
+                 residual.nuisance_names)

@@ -107,15 +107,17 @@ def discretise(tf: ContinuousTF, dt: float, method: str = "zoh", delay_s: float 
     num, den = num / den[0], den / den[0]
     poles = np.roots(den)
     size = np.abs(poles)
-    gaps = np.where(np.eye(poles.size, dtype=bool), np.inf, np.abs(np.subtract.outer(poles, poles))
-                    / np.maximum.outer(size, size))
     # a root of multiplicity m comes out of np.roots split by ~eps^(1/m) (1e-4 relative for a 4-fold one, as
     # in a feedforward target with two equal double poles), and partial fractions over such near-equal poles
     # cancel catastrophically: only poles apart by DISTINCT_POLE_GAP of the larger of each pair take the
     # closed form (each pair on its own scale: a fast delay factor beside two slow poles 10 % apart does not
     # send them through the matrix exponential)
-    distinct = poles.size > 0 and bool(np.min(gaps) > DISTINCT_POLE_GAP)
-    if num.size >= den.size or not distinct or np.any(poles == 0):
+    distinct = poles.size > 0 and bool(np.all(size > 0))   # (a pole at 0: no closed form, and no scale)
+    if distinct:
+        gaps = np.where(np.eye(poles.size, dtype=bool), np.inf,
+                        np.abs(np.subtract.outer(poles, poles)) / np.maximum.outer(size, size))
+        distinct = bool(np.min(gaps) > DISTINCT_POLE_GAP)
+    if num.size >= den.size or not distinct:
         b, a, _ = scipy_signal().cont2discrete((num, den), dt, method=method)
         return np.atleast_1d(np.squeeze(b)), np.asarray(a, float)
     residues = np.polyval(num, poles) / np.polyval(np.polyder(den), poles)
