@@ -26,9 +26,11 @@ def test_each_term_declares_writes_and_reads_its_own_parameters():
     parameter of one term is named, the others still read."""
     from dataclasses import fields
     from piezo_valve_ros.core.control import TERMS
-    model = CompensationModel(PAPER_GPIM.model(), ContinuousTF((4.0e6,), (1.0, 3000.0, 4.0e6)), CREEP, FLATTENING,
-                              True, (0.5, 0.0, 1.0, -0.2, 0.0, 0.3, 0.1, 0.0, 0.0), (0.0, 10.0))
-    assert {t.field for t in TERMS} == {f.name for f in fields(CompensationModel)} - {"gpim"}
+    model = CompensationModel(PAPER_GPIM.model(), ContinuousTF((4.0e6,), (1.0, 3000.0, 4.0e6)), creep=CREEP,
+                              output_map=FLATTENING, dynamic_feedforward=True,
+                              rate_widening_v=(0.5, 0.0, 1.0, -0.2, 0.0, 0.3, 0.1, 0.0, 0.0), fitted_range_v=(0.0, 10.0))
+    # the model's own fields (the GPIM, G_v) and every other term's value by its field name
+    assert {t.field for t in TERMS} == ({f.name for f in fields(CompensationModel)} | set(model.terms)) - {"gpim", "terms"}
     declared = [name for t in TERMS for name in t.parameters]
     assert len(declared) == len(set(declared)) and set(declared) <= set(MODEL_PARAMETERS)
     assert set(MODEL_PARAMETERS) - set(declared) == {n for n in MODEL_PARAMETERS if n.startswith("gpim.")} - \
@@ -54,8 +56,8 @@ def test_each_term_declares_writes_and_reads_its_own_parameters():
 def test_the_schema_round_trips_and_covers_every_declared_parameter():
     g = PAPER_GPIM.model()
     model = CompensationModel(GPIM(g.thresholds, g.weights, g.a0, g.a1, g.offset_um, 0.95, 0.2),
-                              ContinuousTF((4.0e6,), (1.0, 3000.0, 4.0e6)), CREEP, FLATTENING, True,
-                              (0.5, 0.0, 1.0, -0.2, 0.0, 0.3, 0.1, 0.0, 0.0))
+                              ContinuousTF((4.0e6,), (1.0, 3000.0, 4.0e6)), creep=CREEP, output_map=FLATTENING,
+                              dynamic_feedforward=True, rate_widening_v=(0.5, 0.0, 1.0, -0.2, 0.0, 0.3, 0.1, 0.0, 0.0))
     params = model.to_parameters()
     assert set(params) <= set(MODEL_PARAMETERS) and not any(v == [] for v in params.values())
     again = CompensationModel.from_parameters(params)

@@ -24,7 +24,7 @@ cannot represent (drift) the identification refuses with a reason
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Optional
 
 import numpy as np
@@ -36,8 +36,7 @@ from ..model.hysteresis import GPIM, PAPER_GPIM, GPIMParams, inverse_problems
 from ..model.output_map import OutputMap
 from ..model.rate_dependence import widening_problems
 from ..validation import as_float, as_float_list, as_int
-from .terms import TERMS
-from .terms.backlash import BacklashModel
+from . import terms as _terms
 from .terms.creep import MAX_CREEP_GAIN_SUM, CreepModel
 
 __all__ = ["CreepModel", "OutputMap", "DynamicFeedforward", "CompensationModel", "StaticInverse", "reference_filters",
@@ -224,20 +223,43 @@ def command_range_for(fitted_range_v: tuple[float, ...], v_min: float, v_max: fl
     return narrowed
 
 
-@dataclass(frozen=True)
-class CompensationModel:
-    """Everything ``valve_controller`` inverts: GPIM (both envelopes, thresholds widening with the input rate
-    by ``rate_widening_v`` [V], see ``rate_dependence``), G_v, creep, the saturation map, backlash on the spool's
-    path and whether the feedforward inverts G_v too.  Units: V, um, s."""
+_CORE = ("gpim", "valve_model")   # CompensationModel's own fields; every other term's value is in its ``terms``
 
-    gpim: GPIM = field(default_factory=PAPER_GPIM.model)
-    valve_model: ContinuousTF = PAPER_VALVE_MODEL
-    creep: CreepModel = CreepModel()
-    output_map: OutputMap = OutputMap()
-    dynamic_feedforward: bool = False
-    rate_widening_v: tuple[float, ...] = ()
-    fitted_range_v: tuple[float, ...] = ()   # (lo, hi) [V] the model was fitted on; empty: unknown
-    backlash: BacklashModel = BacklashModel()
+
+@dataclass(frozen=True, init=False)
+class CompensationModel:
+    """Everything ``valve_controller`` inverts: the GPIM, G_v and the value of every other term of ``TERMS`` by its
+    field name (``terms``): thresholds widening with the input rate (``rate_widening_v`` [V], see
+    ``rate_dependence``), creep, the saturation map (``output_map``), backlash on the spool's path, whether the
+    feedforward inverts G_v too (``dynamic_feedforward``) and the voltages the model was fitted on
+    (``fitted_range_v``).  Made as ``CompensationModel(gpim, valve_model, creep=..., backlash=...)``: a term not given
+    takes its ``Term.default``; a name no term has is a TypeError.  Each term's value reads as an attribute
+    (``model.creep``) or ``model.terms[name]``.  Units: V, um, s."""
+
+    gpim: GPIM
+    valve_model: ContinuousTF
+    terms: dict
+
+    def __init__(self, gpim: Optional[GPIM] = None, valve_model: ContinuousTF = PAPER_VALVE_MODEL,
+                 terms: Optional[dict] = None, **values: Any):
+        known = {t.field: t for t in _terms.TERMS if t.field not in _CORE}
+        given = {**(terms or {}), **values}
+        unknown = sorted(set(given) - set(known))
+        if unknown:
+            raise TypeError(f"CompensationModel has no term {', '.join(unknown)} (terms: {', '.join(known)})")
+        object.__setattr__(self, "gpim", PAPER_GPIM.model() if gpim is None else gpim)
+        object.__setattr__(self, "valve_model", valve_model)
+        object.__setattr__(self, "terms", {name: given.get(name, t.default) for name, t in known.items()})
+
+    def __getattr__(self, name: str) -> Any:   # a term's value by its field name (only called where no attribute is)
+        terms = self.__dict__.get("terms")
+        if terms is not None and name in terms:
+            return terms[name]
+        raise AttributeError(f"{type(self).__name__!s} has no attribute or term {name!r}")
+
+    def value(self, field_name: str) -> Any:
+        """A term's value (or the GPIM's, G_v's) by its field name."""
+        return getattr(self, field_name) if field_name in _CORE else self.terms[field_name]
 
     @property
     def rate_dependent(self) -> bool:
@@ -250,13 +272,15 @@ class CompensationModel:
         out = (inverse_problems(self.gpim, v_min, v_max) + self.valve_model.problems() + self.creep.problems()
                + widening_problems(self.rate_widening_v) + fitted_range_problems(self.fitted_range_v, v_min, v_max))
         map_problems = self.output_map.problems()
+        span = math.inf
         if not out and not map_problems:
             lo, hi = self.gpim.output_range(v_min, v_max)
             map_problems = self.output_map.problems(lo, hi, floor=self.creep.gain_sum if self.creep.active else 0.0)
-            map_problems += self.backlash.problems(hi - lo)
-        else:
-            map_problems += self.backlash.problems()
+            span = hi - lo
         out += map_problems
+        for term in _terms.TERMS:   # the terms that check themselves (those on the spool's path)
+            if term.problems is not None:
+                out += term.problems(self.terms[term.field], span)
         if self.dynamic_feedforward and not self.valve_model.problems():
             out += DynamicFeedforward(self.valve_model, CONTROL_PERIOD_S if dt is None else dt).problems()
         return out
@@ -270,8 +294,8 @@ class CompensationModel:
         out: dict[str, Any] = {"gpim.thresholds": _floats(g.thresholds), "gpim.weights": _floats(g.weights),
                                "gpim.a0": float(g.a0), "gpim.a1": float(g.a1), "gpim.offset_um": float(g.offset_um),
                                "gpim.descending_envelope": b}
-        for term in TERMS:
-            out.update(term.write(getattr(self, term.field)))
+        for term in _terms.TERMS:
+            out.update(term.write(self.value(term.field)))
         return out
 
     @classmethod
@@ -308,7 +332,7 @@ class CompensationModel:
                     gpim = GPIM(gpim.thresholds, gpim.weights, a0, a1, offset, *descending)
             except ValueError as exc:
                 problems.append(str(exc))
-        values = {term.field: term.read(get) for term in TERMS}   # each term reads its own parameters
+        values = {term.field: term.read(get) for term in _terms.TERMS}   # each term reads its own parameters
         if problems:
             raise ValueError("; ".join(problems))
         model = cls(gpim, **values)
@@ -334,6 +358,6 @@ MODEL_PARAMETERS: dict[str, tuple[Any, str]] = {
     "gpim.descending_envelope": ([], "asymmetric GPIM: descending envelope [b0, b1] or [b0, b1, b2] (b0 v + b1 + "
                                      "b2 v^2, at or above the ascending one on the command range; empty or equal "
                                      "to [a0, a1]: the ascending one)"),
-    **{name: entry for term in TERMS for name, entry in term.parameters.items()},
+    **{name: entry for term in _terms.TERMS for name, entry in term.parameters.items()},
 }
 MODEL_DEFAULTS = {name: default for name, (default, _) in MODEL_PARAMETERS.items()}

@@ -12,6 +12,7 @@ import numpy as np
 from ..model.dynamics import first_order_lag
 from ..model.hysteresis import PlayOperatorBank
 from ..model.rate_dependence import hysteresis_stream
+from . import terms as _terms
 from .compensation import CompensationModel
 
 __all__ = ["ModelValve"]
@@ -21,7 +22,8 @@ class ModelValve:
     """The identified model run forwards, ``step(v) -> position [m]`` once per ``dt`` (the same timing as
     ``simulator.SimulatedValve``) or ``run(v) -> positions [m]`` over a block: the (rate-dependent) GPIM's
     H, then ``S = M(H) + sum g_i (lag_i[H] - H)`` (saturation map and creep, as ``compensation`` inverts
-    them), then G_v, then the backlash's play.  No noise, no amplifier.  The operators start virgin at ``initial_voltage_v`` or in
+    them), then G_v, then the terms on the spool's path (``Term.forward``: the backlash's play), folded in the
+    order of ``terms.TERMS``.  No noise, no amplifier.  The operators start virgin at ``initial_voltage_v`` or in
     ``state`` (e.g. ``GPIM.state_after`` a voltage history); creep and G_v at rest at that output."""
 
     def __init__(self, model: CompensationModel, dt: float, initial_voltage_v: float,
@@ -43,7 +45,9 @@ class ModelValve:
         self._map = m.output_map
         self._gv = m.valve_model.discretise(self.dt)
         self._gv.reset(self._map.value(y0))
-        self._play = PlayOperatorBank([m.backlash.width_um], [self._map.value(y0)]) if m.backlash.active else None
+        x0 = self._map.value(y0)
+        self._outputs = [step for term in _terms.TERMS if term.place == "output"
+                         for step in [term.forward(m.terms[term.field], x0)] if step is not None]
 
     def step(self, voltage_v: float) -> float:
         h = self._gpim.step(voltage_v)
@@ -51,7 +55,9 @@ class ModelValve:
         for g, lag in self._creep:
             y += g * (lag.step(h) - h)
         x = self._gv.step(y)
-        return (float(self._play.step(x, x)[0]) if self._play is not None else x) * 1e-6
+        for output in self._outputs:
+            x = output.step(x)
+        return x * 1e-6
 
     def run(self, voltage_v: np.ndarray) -> np.ndarray:
         """Positions [m] for a block of voltages [V], one per ``dt``; the state carries on as with ``step``."""
@@ -64,6 +70,6 @@ class ModelValve:
         for g, lag in self._creep:
             y += g * (lag.run(h) - h)
         x = self._gv.run(y)
-        if self._play is not None:
-            x = self._play.run(x, x)[:, 0]
+        for output in self._outputs:
+            x = output.run(x)
         return x * 1e-6

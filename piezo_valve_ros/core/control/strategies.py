@@ -47,7 +47,7 @@ from typing import Optional
 
 from ..defaults import CONTROL_PERIOD_S, PAPER_CONTROL_PERIOD_S
 from .compensation import CompensationModel, StaticInverse, reference_filters
-from .terms.backlash import PlayInverse
+from . import terms as _terms
 from ..model.hysteresis import GPIM, NotInvertibleError
 from ..model.rate_dependence import hysteresis_inverse, swap_inverse, take_over_state
 from ..model.drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
@@ -274,6 +274,25 @@ class ValveController:
         return StaticInverse(comp.creep, comp.output_map, self.config.dt, h0,
                              (self._demand_min_um, self._demand_max_um))
 
+    def _fold_output_inverses(self, y0_um: float, old: Optional[CompensationModel] = None) -> list:
+        """The reference path's inverses of the terms at the ``output`` place (``terms.TERMS``), last term first, at rest
+        at the reference ``y0_um`` [um]; with ``old`` (the model before a swap) a term whose value is unchanged keeps
+        its inverse and a changed one carries on from it (``Term.inverse``)."""
+        before = dict(getattr(self, "_inverse_by_term", {}))
+        steps = {}
+        for term in _terms.TERMS:
+            if term.place != "output":
+                continue
+            value = self.compensation.terms[term.field]
+            if old is not None and term.field in before and old.terms.get(term.field) == value:
+                step = before[term.field]
+            else:
+                step = term.inverse(value, y0_um, before.get(term.field) if old is not None else None)
+            if step is not None:
+                steps[term.field] = step
+        self._inverse_by_term = steps
+        return list(steps.values())[::-1]
+
     def reset(self, voltage_v: Optional[float] = None, reference_m: Optional[float] = None,
               forward_state=None) -> None:
         """Start afresh: inverses in the virgin state at ``voltage_v`` (default centre), or in the forward model's
@@ -296,8 +315,8 @@ class ValveController:
         s0 = self._static.forward(y0) if self._static is not None else y0
         self._loop_h = y0                   # pid_hc's last hysteresis demand (where the map's inverse starts)
         self._last_ref_um = s0 if reference_m is None else reference_m * 1e6
-        self._play = PlayInverse(self.compensation.backlash, self._last_ref_um) if self.compensation.backlash.active \
-            else None                       # the backlash inverse on the reference path (None without backlash)
+        # the inverses of the terms on the spool's path (backlash), in the order the reference passes them
+        self._output_inverses = self._fold_output_inverses(self._last_ref_um)
         self._gv.reset(self._last_ref_um)
         if self._dyn is not None:
             self._dyn.reset(self._last_ref_um)
@@ -447,10 +466,8 @@ class ValveController:
         self.compensation, self.ff_inverse, self.loop_inverse = compensation, ff, loop
         if (compensation.creep, compensation.output_map) != (old.creep, old.output_map):
             self._static = self._static_inverse(ff.peek_forward(self._last_ff_v))
-        if compensation.backlash != old.backlash:   # the reference's direction carried into the new clearance
-            direction = self._play.direction if self._play is not None else 0
-            self._play = PlayInverse(compensation.backlash, self._last_ref_um, direction) \
-                if compensation.backlash.active else None
+        # each changed term on the spool's path carries on from its old inverse (backlash: the reference's direction)
+        self._output_inverses = self._fold_output_inverses(self._last_ref_um, old)
         self._setup_model()
         # the next period's feedforward voltage is taken over from the old model (its inverse, as it stands,
         # asked for that period's demand) and the difference handed to the integrator or the decaying bump:
@@ -550,7 +567,9 @@ class ValveController:
                 self._transfer(FALLBACK_LAW[s])
         y_ref = reference_m * 1e6
         self._last_ref_um = y_ref
-        x_ref = self._play.step(y_ref) if self._play is not None else y_ref
+        x_ref = y_ref
+        for inverse in self._output_inverses:
+            x_ref = inverse.step(x_ref)
         s_ref = self._dyn.step(x_ref) if self._dyn is not None else x_ref
         h_ref = self._static.step(s_ref) if self._static is not None else s_ref
         ff_demand = min(max(h_ref, self._demand_min_um), self._demand_max_um)

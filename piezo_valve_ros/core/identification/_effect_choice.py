@@ -8,7 +8,8 @@ from dataclasses import dataclass, replace
 from typing import Callable, Optional
 
 
-from .effects import CATALOGUE, Effect
+from . import effects as _effects
+from .effects import Effect
 from .fitting import fit_model, refit_poles_with_effects, with_poles
 from .report import ConfirmRound, Indistinguishable, SearchRow
 from .search import (MAX_LOSS_RATIO, GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, NoiseLevels, Score, SubsetSearch,
@@ -47,7 +48,8 @@ class _EffectChoice:
         self.confirm_log: list[ConfirmRound] = []
         self._confirmed: Optional[tuple] = None   # the search's set as confirmed (story), once
         H_fit = baseline.context(self.fit).H
-        self.effects: list[Effect] = [e for e in (cls.prepare(self.fit, H_fit) for cls in CATALOGUE) if e is not None]
+        self.effects: list[Effect] = [e for e in (cls.prepare(self.fit, H_fit) for cls in _effects.CATALOGUE)
+                                      if e is not None]
         self.by_name: dict[str, Effect] = {e.name: e for e in self.effects}
         self.names: list[str] = [e.name for e in self.effects]
         self.search: Optional[SubsetSearch] = None

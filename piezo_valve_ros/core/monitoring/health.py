@@ -42,7 +42,7 @@ import numpy as np
 
 from ..control.compensation import CompensationModel
 from ..control.forward import ModelValve
-from ..identification.effects import CATALOGUE
+from ..identification import effects as _effects
 from ..identification.initial_state import estimate_state
 from ..identification.records import ANALYSIS_RATE_HZ, IdentificationError, Record, analysis_record, noise_floor_um
 from ..identification.search import SubsetSearch
@@ -424,7 +424,7 @@ class HealthMonitor:
         history = tuple(before) + (float(v[0]),)
         start = InitialState("remanent", dominant_turning_points(np.asarray(history))) if len(history) > 1 else InitialState()
         baseline = ValveModel(self.model.gpim, tuple(sections(self.model.valve_model)), t0=split.t0, history=start)
-        effects = [e for e in (cls.prepare(split.fit, baseline.context(split.fit).H) for cls in CATALOGUE)
+        effects = [e for e in (cls.prepare(split.fit, baseline.context(split.fit).H) for cls in _effects.CATALOGUE)
                    if e is not None]
         search = SubsetSearch(baseline, split, effects)
         refit = search.score(frozenset())

@@ -22,13 +22,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 
 from ..model.dynamics import PAPER_VALVE_MODEL, ContinuousTF
 from ..model.hysteresis import GPIM, GPIMParams, PAPER_GPIM
 from ..model.drive import CENTRE_VOLTAGE_V
+from . import stages as _stages
 from .stages import CHAIN, SENSING, STAGE_SWITCHES, StageSwitch
 from .stages.amplifier import Amplifier, AmplifierParams
 from .stages.backlash import BacklashParams
@@ -74,6 +75,11 @@ class ValveSimConfig:
     backlash: BacklashParams = BacklashParams()
     sensor: SensorParams = SensorParams()
     initial_voltage_v: float = CENTRE_VOLTAGE_V
+    added: tuple[tuple[str, Any], ...] = ()   # (link name, parameters) of stages added to the chain beyond these
+
+    def added_params(self, name: str, default: Any = None) -> Any:
+        """The parameters of the added stage ``name`` (``added``), or ``default`` where the config has none."""
+        return next((params for link, params in self.added if link == name), default)
 
     def ideal(self) -> "ValveSimConfig":
         """Only hysteresis (and G_v if enabled): no creep, flattening, noise, slew, drift."""
@@ -130,12 +136,12 @@ class SimulatedValve:
         self.sample_index = 0
         x = float(np.clip(c.initial_voltage_v, c.amplifier.input_min_v, c.amplifier.input_max_v))
         stages = []
-        for link in CHAIN:
+        for link in _stages.CHAIN:   # (read here: a chain extended after import is folded too)
             stage, x = link.build(c, x)
             stages.append(stage)
         self._spool = _Spool(x)
         stages.append(self._spool)
-        for link in SENSING:
+        for link in _stages.SENSING:
             stage, x = link.build(c, x)
             stages.append(stage)
         self._stages = [st for st in stages if st is not None]

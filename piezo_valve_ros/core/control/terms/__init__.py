@@ -1,7 +1,9 @@
-"""The compensator's terms besides the GPIM, one module each: the ``CompensationModel`` field it fills, its
-``valve_controller`` parameters and how its value is written to and read from them (``base.Term``).
-``CompensationModel.to_parameters``/``from_parameters`` and ``MODEL_PARAMETERS`` fold over ``TERMS``: a new
-compensable term is a module here and an entry below (and its field on ``CompensationModel``)."""
+"""The compensator's terms besides the GPIM, one module each: the ``CompensationModel`` value it fills, its
+``valve_controller`` parameters, how its value is written to and read from them, and its place in the chain
+(``base.Term``).  ``CompensationModel`` (its values by name, its checks, ``to_parameters``/``from_parameters``),
+``MODEL_PARAMETERS``, the controller's reference path and ``ModelValve`` fold over ``TERMS`` (read from this module
+when they run, so a registry extended after import counts): a new compensable term is a module here and an entry
+below."""
 from __future__ import annotations
 
 from .backlash import TERM as BACKLASH

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from ...model.hysteresis import PlayOperatorBank
 from ...validation import as_float
 from .base import Term
 
@@ -54,6 +55,26 @@ class PlayInverse:
         return y_ref_um + self.width * self.direction
 
 
+class Play:
+    """The play run forwards (``ModelValve``): the spool's position [um] for G's output, at rest at ``x0_um``."""
+
+    def __init__(self, model: BacklashModel, x0_um: float):
+        self._bank = PlayOperatorBank([model.width_um], [x0_um])
+
+    def step(self, x: float) -> float:
+        return float(self._bank.step(x, x)[0])
+
+    def run(self, x):
+        return self._bank.run(x, x)[:, 0]
+
+
+def _inverse(model: BacklashModel, y0_um: float, previous):
+    """The reference path's inverse; the direction the reference last moved carried into a new clearance."""
+    if not model.active:
+        return None
+    return PlayInverse(model, y0_um, previous.direction if isinstance(previous, PlayInverse) else 0)
+
+
 def _read(get):
     width = get("backlash.width_um", as_float)
     return None if width is None else BacklashModel(width)
@@ -61,6 +82,11 @@ def _read(get):
 
 TERM = Term(
     field="backlash",
+    default=BacklashModel(),
+    place="output",
+    forward=lambda model, x0_um: Play(model, x0_um) if model.active else None,
+    inverse=_inverse,
+    problems=lambda model, span_um: model.problems(span_um),
     parameters={"backlash.width_um": (0.0, "backlash on the spool's path: clearance either side [um] (the play's "
                                            "half-width), added to the reference in the direction it moves; 0: none")},
     write=lambda b: {"backlash.width_um": float(b.width_um)},

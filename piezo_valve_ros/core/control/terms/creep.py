@@ -46,6 +46,8 @@ def _read(get):
 
 TERM = Term(
     field="creep",
+    default=CreepModel(),
+    place="static",
     parameters={"creep.time_constants_s": ([], "creep compensation (feedforward path): lag time constants [s]"),
                 "creep.gains": ([], "creep compensation: gains [-] (empty or all 0: none)")},
     # one neutral lag rather than []: an empty list has no element type for a ROS parameter

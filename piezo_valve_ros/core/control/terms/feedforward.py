@@ -6,6 +6,8 @@ from .base import Term
 
 TERM = Term(
     field="dynamic_feedforward",
+    default=False,
+    place="dynamics",
     parameters={"feedforward.dynamics": (False, "the feedforward also inverts G_v (W = F/G_v, F critically damped 3x "
                                                 "faster); ff_pid_g then shapes its reference with F")},
     write=lambda on: {"feedforward.dynamics": bool(on)},

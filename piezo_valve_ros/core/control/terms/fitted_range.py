@@ -12,6 +12,7 @@ def _read(get):
 
 TERM = Term(
     field="fitted_range_v",
+    default=(),
     parameters={"model.fitted_range_v": ([0.0, 0.0], "voltages [lo, hi] the model was fitted on [V] ([0, 0]: unknown); "
                                                      "the command range must lie within them (a quarter of their span "
                                                      "beyond at most) and span at least a quarter of them")},

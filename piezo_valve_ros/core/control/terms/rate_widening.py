@@ -16,6 +16,8 @@ def _read(get):
 
 TERM = Term(
     field="rate_widening_v",
+    default=(),
+    place="gpim",
     parameters={"gpim.rate_widening_v": (
         [], f"rate-dependent GPIM: every threshold widens by sum c rho_f / (rho_f + s_k) [V], rho_f = |dv/dt| through "
             f"the lags {list(RATE_FILTERS_S)} s, s_k = {list(RATE_SCALES_V_S)} V/s; {TERM_COUNT} coefficients c [V], "

@@ -20,6 +20,8 @@ def _read(get):
 
 TERM = Term(
     field="output_map",
+    default=OutputMap(),
+    place="static",
     parameters={
         "saturation.centre_um": (0.0, "saturation map: centre of the normalised output [um]"),
         "saturation.half_range_um": (1.0, "saturation map: half range of the normalised output [um]"),

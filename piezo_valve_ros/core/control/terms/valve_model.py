@@ -13,6 +13,8 @@ def _read(get):
 
 TERM = Term(
     field="valve_model",
+    default=PAPER_VALVE_MODEL,
+    place="dynamics",
     parameters={"valve_model.num": (list(PAPER_VALVE_MODEL.num), "G_v(s) numerator"),
                 "valve_model.den": (list(PAPER_VALVE_MODEL.den), "G_v(s) denominator")},
     write=lambda tf: {"valve_model.num": floats(tf.num), "valve_model.den": floats(tf.den)},

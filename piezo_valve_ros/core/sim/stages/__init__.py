@@ -2,7 +2,8 @@
 is every stage in the order the signal passes them, which ``SimulatedValve`` folds over a config (each link builds
 its stage, or none where it is switched off); ``STAGE_SWITCHES`` is every switchable stage, from which the ``sim``
 backend makes its ``sim.<name>`` parameters.  A new stage is a module here, its link and switch below and its
-parameters on ``ValveSimConfig``."""
+parameters on ``ValveSimConfig`` (a stage from outside the package keeps them in ``ValveSimConfig.added``; the chain is
+read when a valve resets, so one added to it after import counts)."""
 from __future__ import annotations
 
 from . import amplifier, backlash, creep, drift, dynamics, hysteresis, rate_dependence, saturation, sensor
