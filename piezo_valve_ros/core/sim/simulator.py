@@ -30,7 +30,7 @@ from ..model.dynamics import PAPER_VALVE_MODEL, ContinuousTF
 from ..model.hysteresis import GPIM, GPIMParams, PAPER_GPIM
 from ..model.drive import CENTRE_VOLTAGE_V
 from . import stages as _stages
-from .stages import CHAIN, SENSING, STAGE_SWITCHES, StageSwitch
+from .stages import CHAIN, STAGE_SWITCHES, StageSwitch
 from .stages.amplifier import Amplifier, AmplifierParams
 from .stages.backlash import BacklashParams
 from .stages.creep import CreepParams
