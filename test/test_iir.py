@@ -8,6 +8,7 @@ from scipy import signal
 
 from piezo_valve_ros.core.model import iir
 from piezo_valve_ros.core.model import lag_bank, steady_state
+from piezo_valve_ros.core.model import lag_poles
 from piezo_valve_ros.core.model import filter_at_rest, filter_rows_at_rest
 
 FILTERS = {
@@ -59,6 +60,33 @@ def test_first_order_bank_gives_lfilters_bits():
     assert np.array_equal(got, expected)
     with pytest.raises(ValueError, match="differ in shape"):
         iir.first_order_bank(x, poles, poles[:2], 0.0)
+
+
+@pytest.mark.parametrize("taus, shaped, offset", [((0.005, 0.015, 0.05, 0.15, 0.5, 1.5), 5, 0.3),
+                                                   ((0.005, 0.05, 0.5), 3, 0.0), ((0.005, 0.05), 0, 0.0),
+                                                   ((0.005, 0.015, 0.05, 0.15, 0.5), 2, -1.0)])
+def test_creeps_rows_in_one_pass_have_the_bits_of_the_banks_and_numpys_steps(taus, shaped, offset):
+    """``creep_lag_rows`` against the rows built as creep built them: its lags (``lag_bank``), the direction terms
+    from np.diff and np.cumsum of the fastest lag's changes, the level terms a product; on a walk with holds (exact
+    zeros among the changes) and at rest elsewhere before the record."""
+    dt = 1e-3
+    h = np.random.default_rng(5).standard_normal(6000).cumsum()
+    h[1000:2500] = h[999]
+    before, centre, half = float(h[0]) + offset, 0.7, 12.5
+    n, k = len(taus), shaped
+    expected = np.empty((n + 2 * k, h.size))
+    expected[:n] = lag_bank(h, taus, dt, before).T - h
+    if k:
+        slow = lag_bank(h, taus[:1], dt, before)[:, 0]
+        change = np.diff(slow, prepend=before)
+        rising, falling = np.cumsum(np.maximum(change, 0.0)), np.cumsum(np.minimum(change, 0.0))
+        expected[n:n + k] = lag_bank(rising, taus[:k], dt).T - rising
+        expected[n:n + k] -= lag_bank(falling, taus[:k], dt).T - falling
+        expected[n + k:] = expected[:k] * ((h - centre) / half)
+    got = iir.creep_lag_rows(h, before, lag_poles(taus, dt), shaped, centre, half)
+    assert got.tobytes() == expected.tobytes()
+    with pytest.raises(ValueError, match="shaped must be"):
+        iir.creep_lag_rows(h, before, lag_poles(taus, dt), n + 1, centre, half)
 
 
 def test_the_models_filters_run_on_the_banks():
@@ -253,14 +281,15 @@ for writable in (True, False):
     weights = np.ones(4)   # a GPIM's are read-only, a caller's may not be
     weights.flags.writeable = writable
     hysteresis.contact_sensitivity(side, index, weights, np.ones(v.size), "both", compiled=True)
-kernels = [iir._kernels(), hysteresis._kernels()]
+iir.creep_lag_rows(v, 0.5, np.array([0.9, 0.99]), 1, 0.0, 1.0)
+kernels = [iir._kernels(), hysteresis._kernels(), iir._lag_rows_kernel()]
 print(json.dumps({{name: len(f.signatures) for module in kernels for name, f in vars(module).items()
                   if hasattr(f, "signatures") and f.signatures}}))
 """
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     used = json.loads(done.stdout.strip().splitlines()[-1])
-    assert {"rows_3", "columns_3", "play_rows", "last_contacts", "contact_sums"} <= set(used), used
+    assert {"rows_3", "columns_3", "play_rows", "last_contacts", "contact_sums", "creep_rows"} <= set(used), used
     assert all(count == 1 for count in used.values()), used
 
 

@@ -38,6 +38,7 @@ __all__, __getattr__ = lazy_exports(__name__, {
     "inverse_gpim": "hysteresis",
     "inverse_problems": "hysteresis",
     "lag_bank": "dynamics",
+    "lag_poles": "dynamics",
     "last_contact": "hysteresis",
     "output_play": "hysteresis",
     "play_bounds": "hysteresis",

@@ -14,7 +14,7 @@ import numpy as np
 
 from .iir import first_order_bank, padded
 
-__all__ = ["scipy_signal", "steady_state", "ContinuousTF", "DiscreteFilter", "PAPER_VALVE_MODEL", "PAPER_SECTION", "first_order_lag", "lag_bank", "discretise",
+__all__ = ["scipy_signal", "steady_state", "ContinuousTF", "DiscreteFilter", "PAPER_VALVE_MODEL", "PAPER_SECTION", "first_order_lag", "lag_bank", "lag_poles", "discretise",
            "second_order", "unity_dc_poles", "sections", "describe_dynamics"]
 
 
@@ -160,8 +160,13 @@ def lag_bank(x: np.ndarray, time_constants_s: Sequence[float], dt: float,
     start = float(x[0]) if initial is None else float(initial)
     # first_order_lag's ZOH filter written out (b = [0, 1 - a], a = [1, -a], a = exp(-dt/tau); at rest at
     # ``start`` its one state is ``start``): this runs thousands of times per analysis
-    poles = np.array([math.exp(-dt / float(tau)) for tau in time_constants_s])   # libm's exp, as the ZOH lag's
+    poles = lag_poles(time_constants_s, dt)
     return first_order_bank(x, poles, 1.0 - poles, start)
+
+
+def lag_poles(time_constants_s: Sequence[float], dt: float) -> np.ndarray:
+    """The sampled poles exp(-dt / tau) of first-order lags [1] (libm's exp, as the ZOH lag's)."""
+    return np.array([math.exp(-dt / float(tau)) for tau in time_constants_s])
 
 
 def second_order(omega_rad_s: float, zeta: float) -> ContinuousTF:

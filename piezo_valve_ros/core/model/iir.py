@@ -20,7 +20,7 @@ import numpy as np
 
 from .compiled import load as load_kernels
 
-__all__ = ["filter_rows", "filter_columns", "first_order_bank", "padded", "KERNEL_TAPS"]
+__all__ = ["filter_rows", "filter_columns", "first_order_bank", "creep_lag_rows", "padded", "KERNEL_TAPS"]
 
 KERNEL_TAPS = tuple(range(2, 9))   # filter lengths (taps of the longer of b and a) with a kernel; others: lfilter
 
@@ -117,3 +117,24 @@ def first_order_bank(x: np.ndarray, poles: np.ndarray, gains: np.ndarray, start:
     out = np.empty((poles.size, x.size))
     _kernels().first_order_bank(x, np.zeros(poles.size), gains, -poles, np.full(poles.size, float(start)), out)
     return out.T
+
+
+@functools.cache
+def _lag_rows_kernel():
+    return load_kernels(__package__ + "._lag_rows_kernel")
+
+
+def creep_lag_rows(h: np.ndarray, before: float, poles: np.ndarray, shaped: int, centre: float, half: float
+                   ) -> np.ndarray:
+    """Creep's design rows (n + 2 shaped, N) in one pass: ``lag_j(h) - h`` for the first-order lags of ``poles`` (n,)
+    started at rest at ``before``; then for the first ``shaped`` poles ``(lag(r) - r) - (lag(f) - f)`` with r and f
+    the cumulative rising and falling changes of h through the first lag (each lag started at its input's first
+    value); then the first ``shaped`` rows times ``(h - centre) / half``.  The same bits as those rows built from
+    ``first_order_bank``, ``np.diff``, ``np.cumsum`` and numpy's products (``test_iir``)."""
+    h = np.ascontiguousarray(h, dtype=float)
+    poles = np.asarray(poles, float).reshape(-1)
+    if not 0 <= shaped <= poles.size:
+        raise ValueError(f"shaped must be 0..{poles.size}, got {shaped}")
+    rows = np.empty((poles.size + 2 * shaped, h.size))
+    _lag_rows_kernel().creep_rows(h, float(before), 1.0 - poles, -poles, int(shaped), float(centre), float(half), rows)
+    return rows

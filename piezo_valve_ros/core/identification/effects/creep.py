@@ -16,9 +16,10 @@ from typing import Optional
 import numpy as np
 
 from ...control.terms.creep import CreepModel
-from ...model.dynamics import lag_bank
+from ...model.dynamics import lag_poles
+from ...model.iir import creep_lag_rows
 from ..records import Record
-from .base import Effect, normalised
+from .base import Effect
 
 __all__ = ["Creep", "CREEP_TIME_CONSTANTS_S", "SHAPED_UP_TO_S"]
 
@@ -51,22 +52,11 @@ class Creep(Effect):
         return tuple(t for t in self.time_constants_s if t <= SHAPED_UP_TO_S)
 
     def design_rows(self, ctx) -> np.ndarray:
-        """The terms as rows (k, N): plain, then rising minus falling, then times the level (``columns``)."""
-        H, before = ctx.H, ctx.H_before
-        k, n = len(self.shaped), len(self.time_constants_s)
-        rows = np.empty((n + 2 * k, H.size))
-        np.subtract(lag_bank(H, self.time_constants_s, ctx.dt, before).T, H[None, :], out=rows[:n])
-        if not k:
-            return rows
-        # creep follows the slow motion, not fast cycling
-        slow = lag_bank(H, (self.time_constants_s[0],), ctx.dt, before)[:, 0]
-        dH = np.diff(slow, prepend=before)
-        rising = np.cumsum(np.maximum(dH, 0.0))
-        falling = np.cumsum(np.minimum(dH, 0.0))
-        np.subtract(lag_bank(rising, self.shaped, ctx.dt).T, rising[None, :], out=rows[n:n + k])
-        rows[n:n + k] -= lag_bank(falling, self.shaped, ctx.dt).T - falling[None, :]
-        np.multiply(rows[:k], normalised(H, self.centre_um, self.half_range_um)[None, :], out=rows[n + k:])
-        return rows
+        """The terms as rows (k, N): plain, then rising minus falling, then times the level (``columns``); in one
+        pass over the record (``iir.creep_lag_rows``).  Creep follows the slow motion, not fast cycling: the
+        direction terms take the changes of H through the fastest lag."""
+        return creep_lag_rows(ctx.H, ctx.H_before, lag_poles(self.time_constants_s, ctx.dt), len(self.shaped),
+                              self.centre_um, self.half_range_um)
 
     def columns(self, ctx) -> np.ndarray:
         return self.design_rows(ctx).T
