@@ -320,3 +320,19 @@ def test_a_rate_dependence_with_a_slope_keeps_its_widening_in_the_controller(mon
     whole = compensation(analysis)
     assert "dynamics" not in [e.name for e in whole.model.effects] and not whole.controller_model.rate_widening_v
     assert "does not pass with the model: widening refused here" in whole.refused["dynamics"], whole.refused
+
+
+def test_the_model_holds_every_terms_value_by_name_and_refuses_a_name_no_term_has():
+    """``CompensationModel`` keeps the GPIM, G_v and every other term's value by its field name: a term not given is
+    its default, ``replace`` changes one, a misspelt name is a TypeError naming the terms there are."""
+    from piezo_valve_ros.core.control import BacklashModel
+    from piezo_valve_ros.core.control import terms
+    plain = CompensationModel()
+    assert plain.terms == {t.field: t.default for t in terms.TERMS if t.field != "valve_model"}
+    clearance = replace(plain, backlash=BacklashModel(0.4))
+    assert clearance.backlash == clearance.terms["backlash"] == BacklashModel(0.4) and plain.backlash == BacklashModel()
+    assert clearance.creep == plain.creep and clearance.to_parameters()["backlash.width_um"] == 0.4
+    with pytest.raises(TypeError, match="no term backlsh .*backlash"):
+        CompensationModel(backlsh=BacklashModel(0.4))
+    with pytest.raises(AttributeError, match="no attribute or term 'widening'"):
+        plain.widening
