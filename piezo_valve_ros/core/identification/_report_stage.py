@@ -10,7 +10,7 @@ import numpy as np
 
 from .initial_state import WIPE_STATE_GAIN
 from .report import (Analysed, Baseline, BaselineFits, Capacity, Decision, Final, FiguresFrom, IdentificationReport, NoiseEstimate,
-                     NoiseFloorReport, ResidualStructure, Session, to_json)
+                     NoiseFloorReport, ResidualStructure, Session, ValveDynamics, to_json)
 from .records import HELD_OUT_FRACTION, noise_peak_um
 from .search import GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, support, unsupported_because
 from .split import WIPE_MARGIN
@@ -143,7 +143,7 @@ class ReportStage:
         report = IdentificationReport(
             range_um=round(self.range_um, 4),
             baseline=Baseline(model=baseline.name, fit=capacity.label, **figured[id(baseline)],
-                              G_v=describe_dynamics(baseline.dynamics, baseline.dynamics_note),
+                              G_v=ValveDynamics.of(describe_dynamics(baseline.dynamics, baseline.dynamics_note)),
                               operators=baseline.gpim.n),
             effects_added=tuple(story.added),
             diagnosis=tuple(diagnosis),

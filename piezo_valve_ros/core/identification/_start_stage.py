@@ -14,6 +14,7 @@ from .initial_state import ESTIMATE_ROUNDS, ESTIMATE_STATE_GAIN, WIPE_STATE_GAIN
 from .search import NoiseLevels
 from .split import WIPE_MARGIN
 from .valve_model import REST, InitialState
+from .report import LeftOut
 from .thresholds import (MID_CAPACITY, INITIAL_STATE_TOLERANCE, WIPE_GAIN, HELD_OUT_RANGE_MARGIN, KNOWN_MIN_SHARE,
                          RESOLUTION_SHARE, START_MOTION_MAX_S, START_MOTION_MAX_SHARE, START_MOTION_FIRST_ROWS,
                          START_MOTION_RATIO, MAD_TO_SIGMA)
@@ -191,13 +192,13 @@ class StartStage:
         ratio = split.score.block // max(split.score_full.block, 1)
         rows = -(-rows_full // ratio)   # whole analysis rows, so both rates leave out the same stretch
         rows_full = rows * ratio
-        self.start_left_out = {"rows": rows_full, "seconds": round(rows_full * dt, 6),
-                               "peak_error_um": round(float(np.max(np.abs(e[:rows_full]))), 4),
-                               "spread_um": round(spread, 5)}
+        self.start_left_out = LeftOut(rows=rows_full, seconds=round(rows_full * dt, 6),
+                                      peak_error_um=round(float(np.max(np.abs(e[:rows_full]))), 4),
+                                      spread_um=round(spread, 5))
         self.split = replace(split, start=rows, start_full=rows_full)
         self.warnings.append(f"the validation session starts in motion (still settling from a voltage before it): its "
                              f"first {rows_full} rows ({1e3 * rows_full * dt:.0f} ms, error up to "
-                             f"{self.start_left_out['peak_error_um']:.3g} um against a spread of {spread:.3g} um after "
+                             f"{self.start_left_out.peak_error_um:.3g} um against a spread of {spread:.3g} um after "
                              f"them) are left out of the held-out figures")
         self.log("warning: " + self.warnings[-1])
 

@@ -17,7 +17,7 @@ from ..metrics import ErrorFigures
 
 __all__ = ["IdentificationReport", "Figures", "Baseline", "Final", "Decision", "Indistinguishable",
            "ResidualStructure", "NoiseEstimate", "WholeRecordReport", "Analysed", "AnalysedRecord",
-           "AnalysedWhole", "SchemaBlock", "Source", "TrainWindow", "TrendRMS", "Stretch", "FiguresFrom", "NoiseFloorReport", "Capacity", "SearchRow", "ConfirmRound", "Session", "BaselineFits", "ErrorFigures",
+           "AnalysedWhole", "SchemaBlock", "ValveDynamics", "LeftOut", "Source", "TrainWindow", "TrendRMS", "Stretch", "FiguresFrom", "NoiseFloorReport", "Capacity", "SearchRow", "ConfirmRound", "Session", "BaselineFits", "ErrorFigures",
            "check_report", "schema_tables", "to_json"]
 
 
@@ -65,10 +65,25 @@ class Figures(_Node):
 
 
 @dataclass(frozen=True)
+class ValveDynamics(_Node):
+    """G_v(s) as the report gives it."""
+    num: tuple[float, ...] = _item("numerator of G_v(s), highest power first")
+    den: tuple[float, ...] = _item("denominator of G_v(s), highest power first")
+    poles_rad_s: tuple[tuple[float, float], ...] = _item("its poles as [real, imaginary] [rad/s], the slowest first")
+    source: str = _item("where it comes from, in words (fitted, or the paper's and why)")
+
+    @classmethod
+    def of(cls, described: dict) -> "ValveDynamics":
+        """From ``dynamics.describe_dynamics``'s mapping."""
+        return cls(tuple(described["num"]), tuple(described["den"]),
+                   tuple(tuple(p) for p in described["poles_rad_s"]), described["source"])
+
+
+@dataclass(frozen=True)
 class Baseline(Figures):
     model: str = _item("model name")
     fit: str = _item("the GPIM grid chosen")
-    G_v: dict = _item("num, den, poles_rad_s, source")
+    G_v: ValveDynamics = _item("G_v(s) of the baseline")
     operators: int = _item("number of play operators")
 
 
@@ -169,6 +184,15 @@ class ConfirmRound(_Node):
 
 
 @dataclass(frozen=True)
+class LeftOut(_Node):
+    """The first rows of a session that starts in motion, left out of the held-out figures."""
+    rows: int = _item("rows at the record's rate")
+    seconds: float = _item("their length [s]")
+    peak_error_um: float = _item("the final model's largest error over them [um]")
+    spread_um: float = _item("the session's output spread after them [um]: what that error is set against")
+
+
+@dataclass(frozen=True)
 class Session(_Node):
     record: str = _item("training or validation")
     offset_um: float = _item("the session's sensor offset relative to the training record's [um] (0 for the "
@@ -176,9 +200,9 @@ class Session(_Node):
     start: str = _item("how the session's unknown start was handled, in words")
     start_rows: int = _item("rows (record rate) the start counts on: until the input wiped it out")
     start_rows_rms_um: float = _item("the final model's held-out error RMS over those rows [um]")
-    left_out: Optional[dict] = _item("a session that starts in motion (settling from a voltage before it): its first "
-                                     "rows left out of the held-out figures (rows, seconds, peak_error_um, spread_um); "
-                                     "null where none are", default=None)
+    left_out: Optional["LeftOut"] = _item("a session that starts in motion (settling from a voltage before it): its "
+                                          "first rows left out of the held-out figures; null where none are",
+                                          default=None)
 
 
 @dataclass(frozen=True)

@@ -63,7 +63,7 @@ from .fitting import FitCache, fit_model, uniform_thresholds
 from ..model.hysteresis import GPIM
 from .noise import estimate_noise_floor
 from .initial_state import session_start
-from .report import AnalysedRecord, AnalysedWhole, IdentificationReport
+from .report import AnalysedRecord, AnalysedWhole, IdentificationReport, LeftOut
 from .records import ANALYSIS_RATE_HZ, HELD_OUT_FRACTION, MAX_ANALYSED_S, SUPPORTED_RATE_HZ, Record, analysis_record
 from .search import GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, NoiseLevels, Score  # noqa: F401
 from .split import SessionStart, Split, split_records
@@ -152,7 +152,7 @@ class _Loop(StartStage, CapacityStage, WholeRecordStage, ReportStage):
         self.log, self.pool, self.forms_pool = log, pool, forms_pool
         self.warnings: list[str] = []
         self.known_rows: Optional[int] = None   # held-out rows before the input first leaves the fit part's range
-        self.start_left_out: Optional[dict] = None   # a validation session's first rows left out (in motion)
+        self.start_left_out: Optional[LeftOut] = None   # a validation session's first rows left out (in motion)
         self.analysed: dict[str, AnalysedRecord] = {}   # what of each record the loop analysed (the report's)
         whole_rows = len(train_full) if whole is None else None
         part = self.representative_part(train_full, "train", "training record", whole)
