@@ -10,7 +10,7 @@ import numpy as np
 
 from .initial_state import WIPE_STATE_GAIN
 from .report import (Analysed, Baseline, BaselineFits, Capacity, Decision, Final, FiguresFrom, IdentificationReport, NoiseEstimate,
-                     NoiseFloorReport, ResidualStructure, Session, ValveDynamics, to_json)
+                     LinearFit, NoiseFloorReport, PaperNLS, PaperParams, ResidualStructure, Session, ValveDynamics)
 from .records import HELD_OUT_FRACTION, noise_peak_um
 from .search import GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, support, unsupported_because
 from .split import WIPE_MARGIN
@@ -159,14 +159,14 @@ class ReportStage:
                 chosen_on=capacity.chosen_on,
                 initial_state={"held_out_rms_um": {h: round(r, 6) for h, r in start.held_out_rms_um.items()},
                                "chosen": start.chosen, **start.assumed, **final_start},
-                linear={**to_json(figured[id(baseline)]), "operators": baseline.gpim.n, "invertible": True},
-                paper_nls={**to_json(figured[id(paper.model)]),
-                           "params": {k: getattr(paper.params, k) for k in ("a0", "a1", "alpha", "rho", "tau", "n",
-                                                                            "offset_um")},
-                           "fixed": "a0 = 1, a1 = 0: the 5-parameter form has two exact invariances (a0 with "
-                                    "alpha, rho, tau; a1 with the offset)",
-                           "condition_number": paper.condition_number, "evaluations": paper.evaluations,
-                           "failed": paper.failed},
+                linear=LinearFit(**figured[id(baseline)], operators=baseline.gpim.n, invertible=True),
+                paper_nls=PaperNLS(**figured[id(paper.model)],
+                                   params=PaperParams(**{k: getattr(paper.params, k) for k in (
+                                       "a0", "a1", "alpha", "rho", "tau", "n", "offset_um")}),
+                                   fixed="a0 = 1, a1 = 0: the 5-parameter form has two exact invariances (a0 with "
+                                         "alpha, rho, tau; a1 with the offset)",
+                                   condition_number=paper.condition_number, evaluations=paper.evaluations,
+                                   failed=paper.failed),
             ),
             search=tuple(sorted(choice.table, key=lambda t: t.held_out_rms_um)),
             confirm=tuple(story.confirm_log),

@@ -17,7 +17,7 @@ from ..metrics import ErrorFigures
 
 __all__ = ["IdentificationReport", "Figures", "Baseline", "Final", "Decision", "Indistinguishable",
            "ResidualStructure", "NoiseEstimate", "WholeRecordReport", "Analysed", "AnalysedRecord",
-           "AnalysedWhole", "SchemaBlock", "ValveDynamics", "LeftOut", "Source", "TrainWindow", "TrendRMS", "Stretch", "FiguresFrom", "NoiseFloorReport", "Capacity", "SearchRow", "ConfirmRound", "Session", "BaselineFits", "ErrorFigures",
+           "AnalysedWhole", "SchemaBlock", "ValveDynamics", "LeftOut", "LinearFit", "PaperParams", "PaperNLS", "Source", "TrainWindow", "TrendRMS", "Stretch", "FiguresFrom", "NoiseFloorReport", "Capacity", "SearchRow", "ConfirmRound", "Session", "BaselineFits", "ErrorFigures",
            "check_report", "schema_tables", "to_json"]
 
 
@@ -313,14 +313,43 @@ class Source(_Node):
 
 
 @dataclass(frozen=True)
+class LinearFit(Figures):
+    """The baseline as the bounded linear fit gives it."""
+    operators: int = _item("number of play operators")
+    invertible: bool = _item("whether the controller can invert it (the weights' bounds keep it so)")
+
+
+@dataclass(frozen=True)
+class PaperParams(_Node):
+    """The paper's 5-parameter GPIM (``GPIMParams``) as its NLS fitted it."""
+    a0: float = _item("envelope slope [1]")
+    a1: float = _item("envelope offset [V]")
+    alpha: float = _item("threshold spacing [V]")
+    rho: float = _item("weight scale [um/V]")
+    tau: float = _item("weight decay [1/V]")
+    n: int = _item("number of operators")
+    offset_um: float = _item("output offset [um]")
+
+
+@dataclass(frozen=True)
+class PaperNLS(Figures):
+    """The paper's 5-parameter NLS fit, beside the linear one."""
+    params: PaperParams = _item("its parameters")
+    fixed: str = _item("the parameters held, and why")
+    condition_number: float = _item("of its Jacobian")
+    evaluations: int = _item("model evaluations it took")
+    failed: Optional[str] = _item("why it cannot be used (null: it can)")
+
+
+@dataclass(frozen=True)
 class BaselineFits(_Node):
     capacity: tuple[Capacity, ...] = _item("")
     chosen: str = _item("")
     chosen_on: str = _item("")
     initial_state: dict = _item("held_out_rms_um per start tried, chosen, assumed (in words), fit_starts_at_s, "
                                 "before_the_record / validation_record_start where estimated")
-    linear: dict = _item("")
-    paper_nls: dict = _item("")
+    linear: LinearFit = _item("the bounded linear fit (the baseline)")
+    paper_nls: PaperNLS = _item("the paper's 5-parameter NLS")
 
 
 @dataclass(frozen=True)
