@@ -369,6 +369,18 @@ def check_three_homes() -> None:
     assert stages - {s for e in effects.CATALOGUE for s in e.simulated_by} == {"slew_limit", "noise"}
 
 
+def test_a_term_on_the_spools_path_brings_its_steps_and_every_term_has_a_place():
+    """The controller's reference path and ModelValve fold the ``output`` place's terms by their steps: a term there
+    without them, or at a place that is none of the chain's, is refused where it is declared."""
+    from piezo_valve_ros.core.control import terms
+    assert all(t.place in terms.PLACES for t in terms.TERMS)
+    assert [t.field for t in terms.TERMS if t.place == "output"] == ["backlash"]
+    with pytest.raises(ValueError, match="brings its forward and inverse steps"):
+        terms.Term("clearance", {}, dict, lambda get: None, place="output")
+    with pytest.raises(ValueError, match="place must be one of"):
+        terms.Term("clearance", {}, dict, lambda get: None, place="after G")
+
+
 def test_an_effect_that_fills_a_field_it_does_not_declare_is_refused():
     """The declaration is what ``to_controller`` holds an effect to: a compensation that fills another field of the
     controller's model is a TypeError naming it, not a silent change of the model."""

@@ -7,7 +7,7 @@ below."""
 from __future__ import annotations
 
 from .backlash import TERM as BACKLASH
-from .base import Term
+from .base import PLACES, Term
 from .creep import TERM as CREEP
 from .feedforward import TERM as FEEDFORWARD
 from .fitted_range import TERM as FITTED_RANGE
@@ -15,6 +15,6 @@ from .rate_widening import TERM as RATE_WIDENING
 from .saturation import TERM as SATURATION
 from .valve_model import TERM as VALVE_MODEL
 
-__all__ = ["Term", "TERMS"]
+__all__ = ["Term", "TERMS", "PLACES"]
 
 TERMS: tuple[Term, ...] = (RATE_WIDENING, VALVE_MODEL, CREEP, SATURATION, BACKLASH, FEEDFORWARD, FITTED_RANGE)
