@@ -232,6 +232,7 @@ class ValveController:
         self.compensation = compensation
         self._setup_model()
         self._gv, self._dyn = reference_filters(compensation, self.config.dt)
+        self._inverse_by_term: dict = {}   # the output place's inverses by term (``_fold_output_inverses``)
         self.reset()
 
     @property
@@ -278,7 +279,7 @@ class ValveController:
         """The reference path's inverses of the terms at the ``output`` place (``terms.TERMS``), last term first, at rest
         at the reference ``y0_um`` [um]; with ``old`` (the model before a swap) a term whose value is unchanged keeps
         its inverse and a changed one carries on from it (``Term.inverse``)."""
-        before = dict(getattr(self, "_inverse_by_term", {}))
+        before = self._inverse_by_term
         steps = {}
         for term in _terms.TERMS:
             if term.place != "output":
