@@ -381,6 +381,22 @@ def test_a_term_on_the_spools_path_brings_its_steps_and_every_term_has_a_place()
         terms.Term("clearance", {}, dict, lambda get: None, place="after G")
 
 
+def test_the_sim_backends_parameters_are_its_stages_declarations():
+    """The ``sim`` backend declares its own two parameters, a switch per ``StageSwitch`` and each stage's settings from
+    the stage's module (``StageParameters``, listed in ``STAGE_PARAMETERS``): no name twice, none by hand."""
+    import importlib
+    from piezo_valve_ros.backends import SimBackend
+    from piezo_valve_ros.core.sim import stages
+    declared = [p.name for p in SimBackend.PARAMETERS]
+    from_stages = [spec.name for stage in stages.STAGE_PARAMETERS for spec in stage.specs]
+    assert len(declared) == len(set(declared))
+    assert set(declared) == {"seed", "sample_period_s"} | {s.name for s in stages.STAGE_SWITCHES} | set(from_stages)
+    for path in (ROOT / "core" / "sim" / "stages").glob("*.py"):
+        module = importlib.import_module(f"piezo_valve_ros.core.sim.stages.{path.stem}")
+        if isinstance(getattr(module, "PARAMETERS", None), stages.StageParameters):
+            assert module.PARAMETERS in stages.STAGE_PARAMETERS, path.stem
+
+
 def test_an_effect_that_fills_a_field_it_does_not_declare_is_refused():
     """The declaration is what ``to_controller`` holds an effect to: a compensation that fills another field of the
     controller's model is a TypeError naming it, not a silent change of the model."""

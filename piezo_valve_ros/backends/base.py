@@ -36,15 +36,15 @@ from typing import Any, Callable, Dict, Optional, Type
 
 import numpy as np
 
-from ..core.sim.simulator import STAGE_SWITCHES, BacklashParams, DriftParams, SimulatedValve, ValveSimConfig
-from ..core.validation import ParameterSpec, Settings, from_parameter, whole_periods
+from ..core.sim.simulator import STAGE_SWITCHES, SimulatedValve, ValveSimConfig
+from ..core.sim.stages import STAGE_PARAMETERS
+from ..core.validation import ParameterSpec, Settings
 from ..core.model.drive import CENTRE_VOLTAGE_V
 
 __all__ = ["ValveBackend", "SimBackend", "BackendParameter", "backend_parameters", "register_backend", "backend_class",
            "available_backends", "sim_config_from_parameters", "ENTRY_POINT_GROUP"]
 
 ENTRY_POINT_GROUP = "piezo_valve_ros.backends"
-MAX_SENSOR_DELAY_S = 0.1
 _REGISTERED: Dict[str, Type["ValveBackend"]] = {}
 
 
@@ -136,53 +136,16 @@ class ValveBackend(ABC):
         per-period path would otherwise do inside a tick (imports, first-use allocations).  Optional."""
 
 
-_GPIM_KEYS = ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")
-
-
 @dataclass(frozen=True)
 class SimSettings(Settings):
-    """The ``sim`` backend's settings besides its stages' on/off switches (``STAGE_SWITCHES``), read from its
-    PARAMETERS by ``Settings.from_specs`` (each checked by its spec: type, range; named ``sim.<name>`` in a
-    refusal), the checks that need two of them together in ``problems``."""
+    """The ``sim`` backend's own settings (the valve's sampling and noise seed); each stage's are its own
+    (``stages.STAGE_PARAMETERS``), its switch its ``StageSwitch``."""
 
     seed: int
     sample_period_s: float        # [s]
-    sensor_delay_s: float         # [s], whole sample periods
-    drift_offset_um: float        # [um]
-    drift_gain_change: float      # [-]
-    drift_time_constant_s: float  # [s]
-    backlash_width_um: float      # [um]
-    drift_start_s: float          # [s]
-    gpim_a0: float = from_parameter("gpim.a0")
-    gpim_a1: float = from_parameter("gpim.a1")
-    gpim_alpha: float = from_parameter("gpim.alpha")
-    gpim_rho: float = from_parameter("gpim.rho")
-    gpim_tau: float = from_parameter("gpim.tau")
-    gpim_n: int = from_parameter("gpim.n")
-    gpim_offset_um: float = from_parameter("gpim.offset_um")
-
-    @property
-    def sensor_delay_samples(self) -> int:
-        return int(whole_periods(self.sensor_delay_s, self.sample_period_s) or 0)
-
-    def gpim(self, base):
-        """``base`` (GPIMParams) with this valve's own GPIM parameters."""
-        return replace(base, **{k: getattr(self, "gpim_" + k) for k in _GPIM_KEYS})
 
     def problems(self) -> list[str]:
-        out = []
-        if not self.sample_period_s > 0:
-            return [f"sim.sample_period_s must be > 0, got {self.sample_period_s}"]
-        if whole_periods(self.sensor_delay_s, self.sample_period_s) is None:
-            out.append(f"sim.sensor_delay_s must be a whole number of sample periods ({self.sample_period_s} s), "
-                       f"got {self.sensor_delay_s}")
-        if not self.drift_time_constant_s > 0:
-            out.append(f"sim.drift_time_constant_s must be > 0, got {self.drift_time_constant_s}")
-        try:
-            self.gpim(ValveSimConfig().gpim).model()
-        except ValueError as exc:
-            out.append(f"sim.gpim: {exc}")
-        return out
+        return [] if self.sample_period_s > 0 else [f"sim.sample_period_s must be > 0, got {self.sample_period_s}"]
 
 
 def sim_config_from_parameters(values: dict, initial_voltage_v: float = CENTRE_VOLTAGE_V) -> ValveSimConfig:
@@ -191,42 +154,33 @@ def sim_config_from_parameters(values: dict, initial_voltage_v: float = CENTRE_V
     specs = {prm.name: prm.under("sim.") for prm in SimBackend.PARAMETERS}   # keyed by name, said as sim.<name>
     v = {name: spec.default for name, spec in specs.items()}
     v.update(values)
-    settings = SimSettings.from_specs(specs, v)
-    base = ValveSimConfig()
-    config = replace(
-        base,
-        gpim=settings.gpim(base.gpim),
-        dt=settings.sample_period_s,
-        seed=settings.seed,
-        drift=replace(base.drift, offset_um=settings.drift_offset_um, gain_change=settings.drift_gain_change,
-                      time_constant_s=settings.drift_time_constant_s, start_s=settings.drift_start_s),
-        backlash=replace(base.backlash, width_um=settings.backlash_width_um),
-        sensor=replace(base.sensor, delay_samples=settings.sensor_delay_samples),
-        initial_voltage_v=float(initial_voltage_v),
-    )
-    for switch in STAGE_SWITCHES:   # each stage's switch, from its one declaration
-        config = switch.set(config, specs[switch.name].checked(v[switch.name]))
+    problems = []
+    config = replace(ValveSimConfig(), initial_voltage_v=float(initial_voltage_v))
+    try:
+        own = SimSettings.from_specs(specs, v)
+        config = replace(config, dt=own.sample_period_s, seed=own.seed)
+    except ValueError as exc:   # the stages still checked (against the default period): every reason in one refusal
+        problems.append(str(exc))
+    for stage in STAGE_PARAMETERS:   # each stage's settings, from its one declaration
+        try:
+            config = stage.settings.from_specs(specs, v).apply(config, config.dt)
+        except ValueError as exc:
+            problems.append(str(exc))
+    for switch in STAGE_SWITCHES:    # each stage's switch, from its one declaration
+        try:
+            config = switch.set(config, specs[switch.name].checked(v[switch.name]))
+        except ValueError as exc:
+            problems.append(str(exc))
+    if problems:
+        raise ValueError("; ".join(problems))
     return config
 
 
 def _sim_parameters() -> tuple:
-    from ..core.model.hysteresis import PAPER_GPIM
     return (BackendParameter("seed", 0, "noise seed"),
             BackendParameter("sample_period_s", ValveSimConfig().dt, "sampling period [s]"),
             *(BackendParameter(s.name, s.is_on(ValveSimConfig()), s.description) for s in STAGE_SWITCHES),
-            BackendParameter("sensor_delay_s", 0.0, "LVDT transport delay [s] (whole samples; e.g. a "
-                                                    "conditioning filter)", low=0.0, high=MAX_SENSOR_DELAY_S),
-            BackendParameter("drift_offset_um", DriftParams().offset_um, "thermal drift: offset it approaches [um]"),
-            BackendParameter("drift_gain_change", DriftParams().gain_change, "thermal drift: gain change it "
-                                                                               "approaches [-]"),
-            BackendParameter("drift_time_constant_s", DriftParams().time_constant_s, "thermal drift: time "
-                                                                                     "constant [s]"),
-            BackendParameter("backlash_width_um", BacklashParams().width_um, "backlash: clearance either side of the "
-                             "spool [um] (a play of this half-width)", low=0.0),
-            BackendParameter("drift_start_s", 0.0, "thermal drift: sets in this long after the backend opens [s] "
-                                                   "(a drift that appears during operation)", low=0.0),
-            *(BackendParameter(f"gpim.{k}", getattr(PAPER_GPIM, k), "the valve's own GPIM (paper units)")
-              for k in _GPIM_KEYS))
+            *(spec for stage in STAGE_PARAMETERS for spec in stage.specs))
 
 
 @register_backend("sim")

@@ -7,7 +7,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ...model.hysteresis import PlayOperatorBank
-from .base import Link, StageSwitch
+from ...validation import Settings
+from .base import Link, StageParameters, StageSwitch, spec
 
 
 @dataclass(frozen=True)
@@ -43,3 +44,17 @@ def _build(config, y0: float):
 
 
 LINK = Link("backlash", _build)
+
+
+@dataclass(frozen=True)
+class BacklashSettings(Settings):
+    backlash_width_um: float   # [um]
+
+    def apply(self, config, sample_period_s: float):
+        return replace(config, backlash=replace(config.backlash, width_um=self.backlash_width_um))
+
+
+PARAMETERS = StageParameters(
+    (spec("backlash_width_um", BacklashParams().width_um, "backlash: clearance either side of the spool [um] (a play "
+                                                          "of this half-width)", low=0.0),),
+    BacklashSettings)

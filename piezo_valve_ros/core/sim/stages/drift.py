@@ -6,7 +6,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .base import Link, StageSwitch
+from ...validation import Settings
+from .base import Link, StageParameters, StageSwitch, spec
 
 
 @dataclass(frozen=True)
@@ -50,3 +51,29 @@ def _build(config, y0: float):
 
 
 LINK = Link("drift", _build)
+
+
+@dataclass(frozen=True)
+class DriftSettings(Settings):
+    drift_offset_um: float         # [um]
+    drift_gain_change: float       # [-]
+    drift_time_constant_s: float   # [s]
+    drift_start_s: float           # [s]
+
+    def problems(self) -> list[str]:
+        return [] if self.drift_time_constant_s > 0 else [
+            f"sim.drift_time_constant_s must be > 0, got {self.drift_time_constant_s}"]
+
+    def apply(self, config, sample_period_s: float):
+        return replace(config, drift=replace(config.drift, offset_um=self.drift_offset_um,
+                                             gain_change=self.drift_gain_change,
+                                             time_constant_s=self.drift_time_constant_s, start_s=self.drift_start_s))
+
+
+PARAMETERS = StageParameters(
+    (spec("drift_offset_um", DriftParams().offset_um, "thermal drift: offset it approaches [um]"),
+     spec("drift_gain_change", DriftParams().gain_change, "thermal drift: gain change it approaches [-]"),
+     spec("drift_time_constant_s", DriftParams().time_constant_s, "thermal drift: time constant [s]"),
+     spec("drift_start_s", 0.0, "thermal drift: sets in this long after the backend opens [s] (a drift that appears "
+                                "during operation)", low=0.0)),
+    DriftSettings)

@@ -2,12 +2,13 @@
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ...model.hysteresis import GPIM
-from .base import Link, StageSwitch
+from ...model.hysteresis import GPIM, PAPER_GPIM
+from ...validation import Settings, from_parameter
+from .base import Link, StageParameters, StageSwitch, spec
 
 ASYMMETRIC_ENVELOPE = (0.95, 0.2)   # (b0, b1) of the descending envelope when the asymmetry switch is on
 
@@ -45,3 +46,29 @@ def _build(config, v0: float):
 
 
 LINK = Link("hysteresis", _build)
+
+
+GPIM_KEYS = ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")   # the paper's form, as ``sim.gpim.<key>``
+
+
+@dataclass(frozen=True)
+class HysteresisSettings(Settings):
+    a0: float = from_parameter("gpim.a0")
+    a1: float = from_parameter("gpim.a1")
+    alpha: float = from_parameter("gpim.alpha")
+    rho: float = from_parameter("gpim.rho")
+    tau: float = from_parameter("gpim.tau")
+    n: int = from_parameter("gpim.n")
+    offset_um: float = from_parameter("gpim.offset_um")
+
+    def apply(self, config, sample_period_s: float):
+        gpim = replace(config.gpim, **{k: getattr(self, k) for k in GPIM_KEYS})
+        try:
+            gpim.model()
+        except ValueError as exc:
+            raise ValueError(f"sim.gpim: {exc}") from None
+        return replace(config, gpim=gpim)
+
+
+PARAMETERS = StageParameters(tuple(spec(f"gpim.{k}", getattr(PAPER_GPIM, k), "the valve's own GPIM (paper units)")
+                                   for k in GPIM_KEYS), HysteresisSettings)

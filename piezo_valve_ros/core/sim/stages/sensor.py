@@ -5,7 +5,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .base import Link, StageSwitch
+from ...validation import Settings, whole_periods
+from .base import Link, StageParameters, StageSwitch, spec
 
 
 NOISE_BLOCK = 4096  # noise is drawn in fixed blocks so step() and run() consume the RNG alike
@@ -100,3 +101,24 @@ def _build(config, y0: float):
 
 DELAY_LINK = Link("sensor_delay", _build_delay)
 LINK = Link("sensor", _build)
+
+
+MAX_SENSOR_DELAY_S = 0.1   # [s]
+
+
+@dataclass(frozen=True)
+class SensorSettings(Settings):
+    sensor_delay_s: float   # [s], whole sample periods
+
+    def apply(self, config, sample_period_s: float):
+        delay = whole_periods(self.sensor_delay_s, sample_period_s)
+        if delay is None:
+            raise ValueError(f"sim.sensor_delay_s must be a whole number of sample periods ({sample_period_s} s), "
+                             f"got {self.sensor_delay_s}")
+        return replace(config, sensor=replace(config.sensor, delay_samples=int(delay)))
+
+
+PARAMETERS = StageParameters(
+    (spec("sensor_delay_s", 0.0, "LVDT transport delay [s] (whole samples; e.g. a conditioning filter)", low=0.0,
+          high=MAX_SENSOR_DELAY_S),),
+    SensorSettings)
