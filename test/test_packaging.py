@@ -77,6 +77,23 @@ def test_the_report_page_is_written_from_the_typed_definition_and_a_bad_report_i
     assert "report: baseline missing" in problems
 
 
+def test_the_report_digest_writes_each_records_report_without_its_seconds(tmp_path):
+    """``scripts/report_digest.py`` (the A/B of a change's reports): on one of the records others made it writes that
+    record's report, less its ``seconds``, valid against the schema, and prints its digest and effects."""
+    import json
+    import subprocess
+    import sys
+    from piezo_valve_ros.core.identification import check_report
+    done = subprocess.run([sys.executable, str(ROOT / "scripts" / "report_digest.py"), str(tmp_path),
+                           "external: thermal drift"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    [written] = list(tmp_path.glob("*.json"))
+    report = json.loads(written.read_text())
+    assert "seconds" not in report and report["effects_added"] == ["drift"]
+    assert check_report({**report, "seconds": 0.0}) == []
+    assert done.stdout.startswith("external: thermal drift") and done.stdout.rstrip().endswith("drift")
+
+
 def test_package_xml_declares_what_the_code_imports_through_keys_rosdep_resolves():
     """Every third-party import of the package is declared: by a rosdep key in package.xml, or (rosbags,
     threadpoolctl: no rosdep key; numba: none for Ubuntu after focal) by setup.py's install_requires and named in the
