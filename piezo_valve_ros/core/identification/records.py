@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import PiezoValveError
 from ..model.dynamics import scipy_signal
+from ..model.rate_dependence import rate_terms
 
 __all__ = ["IdentificationError", "Record", "analysis_record", "split_held_out",
            "noise_floor_um", "noise_peak_um", "NOISE_PEAK_WINDOW_S", "FALLING_CORRELATION", "join", "HELD_OUT_FRACTION", "ANALYSIS_RATE_HZ", "SUPPORTED_RATE_HZ",
@@ -68,6 +69,14 @@ class Record:
 
     def __len__(self) -> int:
         return int(self.time_s.size)
+
+    @cached_property
+    def input_rate_terms(self) -> np.ndarray:
+        """(N, k) the functions of the input rate a rate-dependent GPIM's thresholds grow with
+        (``rate_dependence.rate_terms``, the valve at rest before the first sample): functions of the voltage alone,
+        kept with the record (every prediction on it builds a context of its own: a session's start is estimated
+        with a hundred of them)."""
+        return rate_terms(self.voltage_v, self.dt)
 
     @cached_property
     def dt(self) -> float:

@@ -22,7 +22,6 @@ from ..model.dynamics import (PAPER_SECTION, ContinuousTF, describe_dynamics, sc
 from ..model.at_rest import discretised, filter_at_rest, filter_rows_at_rest
 from ..model.iir import filter_columns
 from ..model.hysteresis import GPIM, contact_sensitivity, last_contact, play_batch
-from ..model.rate_dependence import rate_terms
 from .records import Record
 
 __all__ = ["ValveModel", "Context", "ModelTerm", "discretise_for", "INITIAL_STATES",
@@ -272,7 +271,7 @@ class Context:
     def rate_terms(self) -> np.ndarray:
         """(N, k) functions of the input rate the thresholds grow with (``rate_dependence.rate_terms``: causal,
         the valve at rest before the first sample)."""
-        return self._structural("rate_terms", lambda: rate_terms(self.v, self.dt))
+        return self._structural("rate_terms", lambda: self.record.input_rate_terms)
 
     @property
     def drives(self) -> tuple[np.ndarray, np.ndarray]:
