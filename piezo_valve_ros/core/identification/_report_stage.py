@@ -16,6 +16,7 @@ from .search import GAIN_THRESHOLD, MIN_EFFECT_NOISE_RATIO, PEAK_TOLERANCE, supp
 from .split import WIPE_MARGIN
 from ..metrics import ErrorFigures, error_figures
 from ..model.dynamics import describe_dynamics
+from ..model.hysteresis import GPIM_PARAMS_KEYS
 from .valve_model import ValveModel
 from .thresholds import (CAPACITY_TOLERANCE, INITIAL_STATE_TOLERANCE, WIPE_GAIN, UNEXPLAINED_NOISE_RATIO,
                          PEAK_NOISE_RATIO, SPREAD_SHARE, PEAK_BLOCK_S, PEAK_RANK, MIN_STRUCTURE_PCT, SEPARATION_SHARE)
@@ -161,8 +162,7 @@ class ReportStage:
                                "chosen": start.chosen, **start.assumed, **final_start},
                 linear=LinearFit(**figured[id(baseline)], operators=baseline.gpim.n, invertible=True),
                 paper_nls=PaperNLS(**figured[id(paper.model)],
-                                   params=PaperParams(**{k: getattr(paper.params, k) for k in (
-                                       "a0", "a1", "alpha", "rho", "tau", "n", "offset_um")}),
+                                   params=PaperParams(**{k: getattr(paper.params, k) for k in GPIM_PARAMS_KEYS}),
                                    fixed="a0 = 1, a1 = 0: the 5-parameter form has two exact invariances (a0 with "
                                          "alpha, rho, tau; a1 with the offset)",
                                    condition_number=paper.condition_number, evaluations=paper.evaluations,

@@ -7,6 +7,7 @@ from .. import lazy_exports
 __all__, __getattr__ = lazy_exports(__name__, {
     "GPIM": "hysteresis",
     "GPIMParams": "hysteresis",
+    "GPIM_PARAMS_KEYS": "hysteresis",
     "PAPER_GPIM": "hysteresis",
     "PlayOperatorBank": "hysteresis",
     "play_batch": "hysteresis",

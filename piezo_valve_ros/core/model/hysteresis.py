@@ -31,7 +31,7 @@ from ..errors import PiezoValveError
 from .compiled import load as load_kernels
 from .drive import CENTRE_VOLTAGE_V, COMMAND_MAX_V, COMMAND_MIN_V
 
-__all__ = ["play_bounds", "contact_sensitivity", "CONTACT_BOUNDS", 
+__all__ = ["GPIM_PARAMS_KEYS", "play_bounds", "contact_sensitivity", "CONTACT_BOUNDS", 
     "PlayOperatorBank",
     "play_batch",
     "last_contact",
@@ -666,6 +666,10 @@ class GPIMParams:
             raise ValueError(f"alpha must be > 0, got {self.alpha}")
         r = self.alpha * np.arange(self.n)
         return GPIM(r, self.rho * np.exp(-self.tau * r), self.a0, self.a1, self.offset_um, self.b0, self.b1)
+
+
+GPIM_PARAMS_KEYS = ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")
+"""``GPIMParams``' fields of the paper's symmetric form (without the descending envelope's b0, b1)."""
 
 
 PAPER_GPIM = GPIMParams()

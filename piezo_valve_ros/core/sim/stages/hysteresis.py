@@ -6,7 +6,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ...model.hysteresis import GPIM, PAPER_GPIM
+from ...model.hysteresis import GPIM, GPIM_PARAMS_KEYS, PAPER_GPIM
 from ...validation import Settings, from_parameter
 from .base import Link, StageParameters, StageSwitch, spec
 
@@ -48,9 +48,6 @@ def _build(config, v0: float):
 LINK = Link("hysteresis", _build)
 
 
-GPIM_KEYS = ("a0", "a1", "alpha", "rho", "tau", "n", "offset_um")   # the paper's form, as ``sim.gpim.<key>``
-
-
 @dataclass(frozen=True)
 class HysteresisSettings(Settings):
     a0: float = from_parameter("gpim.a0")
@@ -62,7 +59,7 @@ class HysteresisSettings(Settings):
     offset_um: float = from_parameter("gpim.offset_um")
 
     def apply(self, config, sample_period_s: float):
-        gpim = replace(config.gpim, **{k: getattr(self, k) for k in GPIM_KEYS})
+        gpim = replace(config.gpim, **{k: getattr(self, k) for k in GPIM_PARAMS_KEYS})
         try:
             gpim.model()
         except ValueError as exc:
@@ -71,4 +68,4 @@ class HysteresisSettings(Settings):
 
 
 PARAMETERS = StageParameters(tuple(spec(f"gpim.{k}", getattr(PAPER_GPIM, k), "the valve's own GPIM (paper units)")
-                                   for k in GPIM_KEYS), HysteresisSettings)
+                                   for k in GPIM_PARAMS_KEYS), HysteresisSettings)
