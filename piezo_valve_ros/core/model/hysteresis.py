@@ -881,8 +881,8 @@ class MonotoneInverseGPIM:
     to rounding, inputs limited to ``v_min..v_max`` [V] (the demand is clamped to the reachable output).
 
     Same interface as :class:`InverseGPIM`; the state is the forward model's (``forward_state``).  The usual
-    step (on one envelope) is solved in closed form in a few microseconds; the general solve (numpy over 3n
-    breakpoints) costs a few dozen (``bench/core_speed.py``).
+    step (on one envelope, no operator's bounds crossing on the way) is solved in closed form in a few
+    microseconds; the general solve walks the breakpoints in floats, a few times that (``bench/core_speed.py``).
     """
 
     def __init__(self, model: GPIM, forward_state: Optional[np.ndarray] = None, v0: float = CENTRE_VOLTAGE_V,
@@ -892,14 +892,13 @@ class MonotoneInverseGPIM:
             raise NotInvertibleError("; ".join(problems))
         self.model = model
         self.v_min, self.v_max = float(v_min), float(v_max)
-        self._p = model.weights
         symmetric = model.b0 is None
         self._b0 = float(model.a0 if symmetric else model.b0)
         self._b1 = float(model.a1 if symmetric else model.b1)
         self._b2 = float(model.b2)
         self._dead_band = not dead_band_problems(model, v_min, v_max)   # the bounds never cross (r_j >= 0)
         self._one_envelope = model.symmetric
-        self._p_list, self._base_list = self._p.tolist(), model.thresholds.tolist()
+        self._p_list, self._base_list = model.weights.tolist(), model.thresholds.tolist()
         self._shift = 0.0              # every threshold widened by this [V] (rate_dependence sets it)
         self._consistent = False       # the state is what the last step left at _v_last (output _y_now)
         self._y_now = 0.0
@@ -911,11 +910,6 @@ class MonotoneInverseGPIM:
     def _z(self) -> np.ndarray:
         """The operators' states [V] (n,), a new array."""
         return np.array(self._state)
-
-    @property
-    def _r(self) -> np.ndarray:
-        """The thresholds now [V] (n,): the model's, each widened by ``_shift``."""
-        return self.model.thresholds + self._shift
 
     def forward_state(self) -> np.ndarray:
         return self._z
@@ -940,27 +934,8 @@ class MonotoneInverseGPIM:
         return inverse_gpim(model, z, v_now, self.v_min, self.v_max)
 
     # -- the forward model from the present state
-    def _outputs(self, v: np.ndarray) -> np.ndarray:
-        """Model outputs [um] for each candidate input of ``v`` (from the present state)."""
-        m = self.model
-        lo = m.ascending_envelope(v)[:, None] - self._r
-        hi = m.descending_envelope(v)[:, None] + self._r
-        return np.minimum(np.maximum(self._z, lo), hi) @ self._p + m.offset_um
-
     def peek_forward(self, v: float) -> float:
-        return float(self._outputs(np.array([float(v)]))[0])
-
-    def _breakpoints(self) -> np.ndarray:
-        m, z, r = self.model, self._z, self._r
-        points = [(z + r - m.a1) / m.a0, m.descending_inverse(z - r)]   # L(v) = z + r, U(v) = z - r
-        # L(v) - U(v) = 2 r:  -b2 v^2 + (a0 - b0) v + (a1 - b1 - 2 r) = 0
-        q1, q0 = m.a0 - self._b0, m.a1 - self._b1 - 2.0 * r
-        if self._b2:
-            disc = np.sqrt(np.maximum(q1 * q1 + 4.0 * self._b2 * q0, 0.0))
-            points += [(q1 + disc) / (2.0 * self._b2), (q1 - disc) / (2.0 * self._b2)]
-        elif q1:
-            points.append(-q0 / q1)
-        return np.concatenate(points)
+        return self._output_at(float(v))
 
     def _solve_on_one_envelope(self, y: float, rising: bool, z: list, now: float) -> Optional[float]:
         """The usual step, in closed form, from a state within its bounds at the last input with the operators
@@ -975,10 +950,6 @@ class MonotoneInverseGPIM:
         # one envelope (L = U): an operator whose threshold the rate narrowed below 0 has crossed bounds for good
         # and follows U(v) + r_j = L(v) + r_j; with two, any crossing on the way up is the general solve's
         crossed_for_good = rising and self._one_envelope
-        if rising and not crossed_for_good and \
-                self._gap_range(self._v_last, max(self.v_max, self._v_last))[1] > \
-                2.0 * (self._base_list[0] + self._shift):
-            return None   # some operator's bounds may cross on the way up
         p, base, w = self._p_list, self._base_list, self._shift
         off = self.model.offset_um
         sign = 1.0 if rising else -1.0    # the breakpoints are z_j + sign r_j
@@ -1002,11 +973,16 @@ class MonotoneInverseGPIM:
             held -= p_i * z[i]
         if following <= 0.0:
             return None
-        self._moving = (moving, z)
         drive = (y - off - held + sign * before) / following     # L(v) rising, U(v) falling
         if rising:
-            return min((drive - self.model.a1) / self.model.a0, self.v_max)
-        return max(float(self.model.descending_inverse(drive)), self.v_min)
+            v = min((drive - self.model.a1) / self.model.a0, self.v_max)
+            if not crossed_for_good and self._gap_range(self._v_last, max(v, self._v_last))[1] > \
+                    2.0 * (base[0] + w):
+                return None   # some operator's bounds cross on the way up to v: the general solve's
+        else:
+            v = max(float(self.model.descending_inverse(drive)), self.v_min)
+        self._moving = (moving, z)
+        return v
 
     def _gap_range(self, a: float, b: float) -> tuple[float, float]:
         """(min, max) of L(u) - U(u) over u in a..b [V] (linear or quadratic in u: the ends and the vertex)."""
@@ -1063,29 +1039,60 @@ class MonotoneInverseGPIM:
             v = self._solve_on_one_envelope(y, rising, state, f_now)
             if v is not None:
                 return v
-        b = self._breakpoints()
-        b = b[np.isfinite(b)]
-        if rising:
-            cand = np.unique(np.concatenate(([v_last, self.v_max], b[(b > v_last) & (b < self.v_max)])))
+        return self._solve_piecewise(y, rising)
+
+    def _solve_piecewise(self, y: float, rising: bool) -> float:
+        """The general solve, from any state: the inputs where an operator starts to follow an envelope or its
+        bounds cross between the last input and the end of the range in the motion's
+        direction, walked from the last input until the output reaches ``y`` [um]; then solved on that piece,
+        where each operator is held or follows one bound (linear, or quadratic for a curved U).  In floats: a bank
+        is a few dozen operators and the demand is usually a breakpoint or two away."""
+        m, w, v_last = self.model, self._shift, self._v_last
+        a0, a1, b0, b1, b2 = m.a0, m.a1, self._b0, self._b1, self._b2
+        z, base, p = self._state, self._base_list, self._p_list
+        start, end = (v_last, self.v_max) if rising else (v_last, self.v_min)
+        low, high = min(start, end), max(start, end)
+        q1 = a0 - b0
+        points = {start, end}
+        for z_j, base_j in zip(z, base):
+            r = base_j + w
+            q0 = a1 - b1 - 2.0 * r                       # L(v) - U(v) = 2 r: -b2 v^2 + q1 v + q0 = 0
+            if b2:
+                disc = math.sqrt(max(q1 * q1 + 4.0 * b2 * q0, 0.0))
+                crossings = ((q1 + disc) / (2.0 * b2), (q1 - disc) / (2.0 * b2))
+            else:
+                crossings = (-q0 / q1,) if q1 else ()
+            on_upper = float(m.descending_inverse(z_j - r)) if b2 else (z_j - r - b1) / b0
+            for u in ((z_j + r - a1) / a0, on_upper, *crossings):
+                if low < u < high:                       # L(v) = z + r, U(v) = z - r, or the crossing
+                    points.add(u)
+        previous = None
+        for u in sorted(points, reverse=not rising):
+            f = self._output_at(u)
+            if (f >= y) if rising else (f <= y):
+                break
+            previous = u
         else:
-            cand = np.unique(np.concatenate(([self.v_min, v_last], b[(b > self.v_min) & (b < v_last)])))[::-1]
-        f = self._outputs(cand)
-        reached = np.flatnonzero(f >= y) if rising else np.flatnonzero(f <= y)
-        if reached.size == 0:
-            return float(cand[-1])       # beyond the reachable output: the end of the input range
-        i = int(reached[0])
-        if f[i] == y or i == 0:
-            return float(cand[i])
-        a, b_ = float(cand[i - 1]), float(cand[i])
-        m, z, r, p = self.model, self._z, self._r, self._p
+            return u                     # beyond the reachable output: the end of the input range
+        if f == y or previous is None:
+            return u
+        a, b_ = previous, u
         mid = 0.5 * (a + b_)
-        lo, hi = m.ascending_envelope(mid) - r, m.descending_envelope(mid) + r
-        upper = hi <= np.maximum(z, lo)             # follows U + r (the upper bound wins where they cross)
-        lower = ~upper & (lo >= z)                  # follows L - r
-        held = ~upper & ~lower
-        A, B = float(p[lower].sum()), float(p[upper].sum())
-        C = float(p[held] @ z[held] - p[lower] @ r[lower] + p[upper] @ r[upper]) + m.offset_um
-        q2, q1, q0 = B * self._b2, A * m.a0 + B * self._b0, C + A * m.a1 + B * self._b1 - y
+        lower_env, upper_env = a0 * mid + a1, float(m.descending_envelope(mid))
+        A = B = 0.0
+        C = m.offset_um
+        for z_j, base_j, p_j in zip(z, base, p):
+            r = base_j + w
+            lo, hi = lower_env - r, upper_env + r
+            if hi <= (lo if lo > z_j else z_j):          # follows U + r (the upper bound wins where they cross)
+                B += p_j
+                C += p_j * r
+            elif lo >= z_j:                              # follows L - r
+                A += p_j
+                C -= p_j * r
+            else:
+                C += p_j * z_j
+        q2, q1, q0 = B * b2, A * a0 + B * b0, C + A * a1 + B * b1 - y
         if q2:
             disc = math.sqrt(max(q1 * q1 - 4.0 * q2 * q0, 0.0))
             roots = ((-q1 + disc) / (2.0 * q2), (-q1 - disc) / (2.0 * q2))
@@ -1093,6 +1100,18 @@ class MonotoneInverseGPIM:
         else:
             v = -q0 / q1 if q1 else b_
         return min(max(v, min(a, b_)), max(a, b_))
+
+    def _output_at(self, v: float) -> float:
+        """The model's output [um] at input ``v`` [V] from the state at the last input (floats)."""
+        lower_env, upper_env = self.model.a0 * v + self.model.a1, float(self.model.descending_envelope(v))
+        w, f = self._shift, self.model.offset_um
+        for z_j, base_j, p_j in zip(self._state, self._base_list, self._p_list):
+            r = base_j + w
+            s_j = lower_env - r if lower_env - r > z_j else z_j
+            if s_j > upper_env + r:
+                s_j = upper_env + r
+            f += p_j * s_j
+        return f
 
     # -- evaluation
     def step(self, y_um: float) -> float:
