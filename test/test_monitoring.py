@@ -2,6 +2,7 @@
 of closed-loop operation, judged on sliding windows against the sensor noise; seeded simulations."""
 import copy
 from dataclasses import replace
+from typing import Optional
 
 import numpy as np
 import pytest
@@ -285,9 +286,12 @@ def test_valve_identify_monitor_judges_a_recorded_day_offline(tmp_path):
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "broken.yaml" in bad.stderr
 
 
-def _verdict(level: Level, end_s: float, resembles: str = "", mean_um: float = 0.0):
+def _verdict(level: Level, end_s: float, resembles: str = "", mean_um: float = 0.0,
+             previous_rms_um: Optional[float] = None):
+    """A verdict; ``previous_rms_um``: the first window judged on a new model, with the model before it there."""
     from piezo_valve_ros.core.monitoring import Health
-    return Health(level, end_s - 4.0, end_s, abs(mean_um), mean_um, 0.1, 0.05, 2.0, 3.0, 0.0, resembles, 0.3, "")
+    return Health(level, end_s - 4.0, end_s, abs(mean_um), mean_um, 0.1, 0.05, 2.0, 3.0, 0.0, resembles, 0.3, "",
+                  previous_model_rms_um=previous_rms_um)
 
 
 ENABLED = {"enabled": 1.0, "guard_active": 0.0, "strategy_index": float(STRATEGIES.index("pid_hc"))}
@@ -303,13 +307,46 @@ def test_a_push_that_leaves_part_of_a_settling_drift_at_warn_is_followed_up_unti
     offset = f"{OFFSET_PREFIX} of +1.000 um the model lacks"
     assert policy.decide(_verdict(Level.WARN, 28.0, offset, 0.5), ENABLED, MODEL) is None     # below refit_when
     assert policy.decide(_verdict(Level.ERROR, 30.0, offset, 2.0), ENABLED, MODEL).offset_change_um == 2.0
-    assert policy.decide(_verdict(Level.ERROR, 31.0, offset, 0.8), ENABLED, MODEL).not_now == \
+    assert policy.decide(_verdict(Level.ERROR, 31.0, offset, 0.8, 2.1), ENABLED, MODEL).kept   # judged on the new model
+    assert policy.decide(_verdict(Level.ERROR, 32.0, offset, 0.8), ENABLED, MODEL).not_now == \
         "a refit was pushed less than a window ago"
     assert policy.decide(_verdict(Level.WARN, 35.0, offset, 0.16), ENABLED, MODEL).offset_change_um == 0.16  # the rest
-    assert policy.decide(_verdict(Level.WARN, 36.0, "dynamics: a lag", 0.0), ENABLED, MODEL) is None  # no offset: waits
-    assert policy.decide(_verdict(Level.OK, 40.0), ENABLED, MODEL) is None
+    assert policy.decide(_verdict(Level.WARN, 39.5, "dynamics: a lag", 0.0, 0.2), ENABLED, MODEL).kept
+    assert policy.decide(_verdict(Level.WARN, 40.0, "dynamics: a lag", 0.0), ENABLED, MODEL) is None  # no offset: waits
+    assert policy.decide(_verdict(Level.OK, 41.0), ENABLED, MODEL) is None
     assert policy.decide(_verdict(Level.WARN, 50.0, offset, 0.3), ENABLED, MODEL) is None      # not following up now
     assert policy.decide(_verdict(Level.ERROR, 51.0, offset, 1.9), ENABLED, MODEL).offset_change_um == 1.9
+
+
+def test_windows_judged_before_a_push_reached_the_monitor_push_nothing_more():
+    """On a loaded machine the windows queue up: those judged on the model before a push (they show the whole offset
+    again) decide nothing until a window is judged on the model the push made; that one checks the push, and the rest
+    of a settling drift is followed up on it.  (The rig test once pushed the offset three times, undid the last and was
+    left at WARN with 0.15 um that nothing followed up.)  A window judged on a model no longer in force pushes nothing;
+    a push the controller refuses or that changes nothing is not waited for."""
+    from piezo_valve_ros.core.monitoring import OFFSET_PREFIX, RefitPolicy
+    offset = f"{OFFSET_PREFIX} of +3.000 um the model lacks"
+    policy = RefitPolicy(Level.ERROR, window_s=4.0)
+    first = policy.decide(_verdict(Level.ERROR, 30.6, offset, 2.85), ENABLED, MODEL)
+    assert first.offset_change_um == 2.85
+    pushed = first.model
+    for end_s, mean_um in ((34.6, 3.0), (38.6, 3.0)):            # judged on the old model: the whole offset again
+        assert policy.decide(_verdict(Level.ERROR, end_s, offset, mean_um), ENABLED, pushed).not_now == \
+            "a refit was pushed: waiting for a window judged on the model it made"
+    # the first window on the pushed model (the model before it beside it) keeps it; the rest is then followed up
+    assert policy.decide(_verdict(Level.WARN, 42.6, offset, 0.15, 2.9), ENABLED, pushed).kept.startswith(
+        "the offset push kept")
+    rest = policy.decide(_verdict(Level.WARN, 46.6, offset, 0.15), ENABLED, pushed)
+    assert rest.offset_change_um == 0.15
+    assert rest.model.gpim.offset_um == pytest.approx(MODEL.gpim.offset_um + 3.0)
+    # a window judged on a model that is no longer in force (an operator loaded another) pushes nothing
+    other = CompensationModel()
+    judged = RefitPolicy(Level.ERROR, window_s=4.0)
+    assert judged.decide(_verdict(Level.ERROR, 30.0, offset, 2.0), ENABLED, other, judged_on=MODEL).not_now.startswith(
+        "the window was judged on a model no longer in force")
+    assert judged.decide(_verdict(Level.ERROR, 30.0, offset, 2.0), ENABLED, MODEL, judged_on=MODEL).pushes
+    judged.pushed(False)                                          # refused (or nothing to change): not waited for
+    assert judged.decide(_verdict(Level.ERROR, 34.0, offset, 2.0), ENABLED, MODEL, judged_on=MODEL).pushes
 
 
 def test_a_refit_is_pushed_only_to_an_enabled_controller_without_its_guard_and_anything_else_is_advised_once():

@@ -218,7 +218,8 @@ class ValveMonitorNode(Node):
                 health.end_s, float(health.level), health.ratio, health.structured_rms_um, health.residual_mean_um,
                 health.noise_um, health.voltage_span_v]]), ",".join(HEALTH_COLUMNS)))
             self.diagnostics.publish()
-            self._act_on(health, self.refits.decide(health, self.controller_state, self.model), self.model)
+            model = self.model   # the model in force (the executor's thread may replace it meanwhile)
+            self._act_on(health, self.refits.decide(health, self.controller_state, model, self.monitor.model), model)
 
     # ------------------------------------------------------------------ refits
     def _on_state(self, msg: Float64MultiArray) -> None:
@@ -239,8 +240,13 @@ class ValveMonitorNode(Node):
         elif decision.pushes:
             row = push_row(health, decision, model)
             before, after = model.to_parameters(), decision.model.to_parameters()
-            future = self.client.set_parameters_atomically(   # what the push changes, in one atomic change
-                [Parameter(k, value=v) for k, v in after.items() if v != before.get(k)])
+            changed = [Parameter(k, value=v) for k, v in after.items() if v != before.get(k)]
+            if not changed:   # the model in force already: no change will come to judge it on
+                self.refits.pushed(False)
+                self.get_logger().info(f"refit not pushed: the {decision.kind} push changes no parameter of the "
+                                       f"model in force")
+                return
+            future = self.client.set_parameters_atomically(changed)   # what the push changes, in one atomic change
             future.add_done_callback(lambda f: self._pushed(f, decision, row))
 
     def _pushed(self, future, decision: RefitDecision, row: list[float]) -> None:

@@ -76,21 +76,40 @@ class RefitPolicy:
         self.replaced: Optional[CompensationModel] = None   # the model the last push replaced, until it is checked
         self.replaced_kind = ""
         self.gain_undone = False         # a gain push was undone and no verdict has been OK since
+        self.awaiting = False            # a push (or an undo) was sent and no window has been judged on its model yet
         self._advised = False
 
     def pushed(self, ok: bool) -> None:
-        """The node's word on the push just decided: applied (``ok``) or refused by the controller (nothing to
-        check then)."""
+        """The node's word on the push just decided: applied (``ok``) or refused by the controller, or nothing to
+        change (nothing to check or wait for then)."""
         if not ok:
             self.replaced, self.replaced_kind = None, ""
+            self.awaiting = False
 
     def decide(self, health: Health, controller_state: Mapping[str, float],
-               model: Optional[CompensationModel] = None) -> Optional[RefitDecision]:
+               model: Optional[CompensationModel] = None,
+               judged_on: Optional[CompensationModel] = None) -> Optional[RefitDecision]:
         """The decision for ``health`` (None: nothing to do or say); ``controller_state`` the controller's latest
         ``~/controller_state`` row by column name (empty: not known); ``model`` the model in force (a push is
-        built on it)."""
+        built on it); ``judged_on`` the model the verdict was judged on, where known.
+
+        A verdict judged on another model than the one in force decides no push (its residual is not the model's),
+        and after a push or an undo nothing is decided until a window judged on the model it made (the first
+        carries ``previous_model_rms_um``): windows already waiting to be judged on a loaded machine would otherwise
+        push the same offset again, on top of the pushed one."""
         if self.refit_at is None:
             return None
+        decision = self._decide(health, controller_state, model, judged_on)
+        if decision is not None and decision.pushes:
+            self.awaiting = True
+        return decision
+
+    def _decide(self, health: Health, controller_state: Mapping[str, float], model: Optional[CompensationModel],
+                judged_on: Optional[CompensationModel]) -> Optional[RefitDecision]:
+        if self.awaiting:
+            if health.previous_model_rms_um is None:
+                return RefitDecision(not_now="a refit was pushed: waiting for a window judged on the model it made")
+            self.awaiting = False
         checked = self._check_last_push(health)
         if checked is not None:
             return checked
@@ -109,6 +128,9 @@ class RefitPolicy:
         if not (offset or gain):
             advice = self._advice_once(health)
             return RefitDecision(advice=advice) if advice else None
+        if judged_on is not None and model is not None and judged_on is not model:
+            return RefitDecision(not_now="the window was judged on a model no longer in force (the next windows are "
+                                         "judged on the model in force)")
         unsafe = self._unsafe(health, controller_state, model)
         if unsafe:
             return RefitDecision(not_now=unsafe)
