@@ -1062,8 +1062,7 @@ class MonotoneInverseGPIM:
                 crossings = ((q1 + disc) / (2.0 * b2), (q1 - disc) / (2.0 * b2))
             else:
                 crossings = (-q0 / q1,) if q1 else ()
-            on_upper = float(m.descending_inverse(z_j - r)) if b2 else (z_j - r - b1) / b0
-            for u in ((z_j + r - a1) / a0, on_upper, *crossings):
+            for u in ((z_j + r - a1) / a0, float(m.descending_inverse(z_j - r)), *crossings):
                 if low < u < high:                       # L(v) = z + r, U(v) = z - r, or the crossing
                     points.add(u)
         previous = None
