@@ -26,7 +26,7 @@ from piezo_valve_ros.core.identification import CAPACITY_EXTENSION
 
 from harness import Lines, busy_loops
 
-print = Lines()   # noqa: A001  (printed and kept for --markdown)
+print = Lines(timing=True)   # noqa: A001  (printed and kept for --markdown)
 
 
 RATE_WIDENING_V = (-0.006, -0.37, 1.79, -0.028, 0.44, -1.25, 0.0, 0.0, 0.0)   # as identified on the simulated rate

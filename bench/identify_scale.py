@@ -99,7 +99,7 @@ def main() -> None:
     if args.one:
         identify_one(args.one)
         return
-    print = Lines()
+    print = Lines(timing=True)
     print(f"the loop fits the fast parts on the first {MAX_ANALYSED_S:g} s of a record and searches all of it for a slow "
           f"trend; targets for every 30-minute record: "
           f"<= {MEMORY_TARGET_MB:.0f} MB peak, <= {TIME_TARGET_S:.0f} s")

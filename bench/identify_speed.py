@@ -123,7 +123,7 @@ def main():
     ap.add_argument("--load", action="store_true", help="also measure with two busy loops running")
     ap.add_argument("--markdown", metavar="FILE", help="also write what is printed here")
     args = ap.parse_args()
-    print = Lines()   # noqa: A001  (printed and kept for --markdown)
+    print = Lines(timing=True)   # noqa: A001  (printed and kept for --markdown)
 
     with tempfile.TemporaryDirectory() as tmp:
         for rate_hz in (10000, 2000):

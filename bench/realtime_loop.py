@@ -56,7 +56,7 @@ from piezo_valve_ros.runtime import ProcessGroup, node_command
 from harness import Lines
 from loop_trace import LoopTrace, attribute_misses
 
-print = Lines()   # noqa: A001  (printed and kept for --markdown)
+print = Lines(timing=True)   # noqa: A001  (printed and kept for --markdown)
 
 ECHO = """
 import sys, rclpy

@@ -18,6 +18,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from harness import host_yardstick, yardstick_note
+
 ROOT = Path(__file__).resolve().parent.parent
 PLUGIN = "suite_cpu_plugin"
 
@@ -45,7 +47,9 @@ def main(argv=None) -> int:
     ap.add_argument("--top", type=int, default=15, help="the costliest tests listed (default 15)")
     ap.add_argument("pytest_args", nargs="*", help="after --: passed to the suite (e.g. --quick)")
     args = ap.parse_args(argv)
+    started = host_yardstick()
     rows, wall, cpu, code = run_suite(args.pytest_args)
+    ended = host_yardstick()
     if not rows:
         print("suite_cpu: no test reported its time (was the plugin loaded?)", file=sys.stderr)
         return 1
@@ -55,6 +59,8 @@ def main(argv=None) -> int:
     line = page.append
     line(f"`python bench/suite_cpu.py` at {commit}: `scripts/run_tests.sh` as CI runs it (the venv already made), "
          f"on {len(os.sched_getaffinity(0))} CPUs; exit code {code}.")
+    line("")
+    line(yardstick_note(started, ended))
     line("")
     tests_cpu = sum(r["self_s"] + r["children_s"] for r in rows)
     line(f"- wall time {wall:.0f} s; CPU time of the run and every process it started {cpu:.0f} s "

@@ -160,3 +160,21 @@ def test_colcon_builds_the_package_as_a_ros_workspace_does(tmp_path):
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
     assert "usage: valve_rig" in run.stdout
     assert run.stdout.strip().splitlines()[-1].startswith(str(prefix))   # the installed package, not this checkout
+
+
+def test_a_timing_page_gives_the_hosts_yardstick_and_other_pages_do_not(tmp_path):
+    """bench/harness.Lines: a timing bench's page says the host's speed as the bench started and ended (this shared
+    machine's seconds drift by a fifth within a day: two pages compare only as far as their yardsticks agree); a
+    page of other figures does not."""
+    from harness import Lines, host_yardstick
+
+    speed = host_yardstick()
+    assert speed.python_us > 0 and speed.gram_ms > 0
+    timing, plain = Lines(timing=True), Lines()
+    for lines, name in ((timing, "timing.md"), (plain, "plain.md")):
+        lines("a figure 1.00 s")
+        lines.write_markdown(str(tmp_path / name), "bench/x.py")
+    page = (tmp_path / "timing.md").read_text()
+    assert page.count("Host yardstick") == 1 and "at the start sum(range(1000))" in page and "at the end " in page
+    assert "Gram product" in page and "a figure 1.00 s" in page
+    assert "Host yardstick" not in (tmp_path / "plain.md").read_text() and "a figure" in (tmp_path / "plain.md").read_text()
