@@ -18,7 +18,18 @@ COLUMNS_BLOCK = 64     # samples a columns kernel filters before writing them ou
 # decays into the subnormal range and can cycle there for ever (the last bit's rounding sustains it), and every
 # operation on a subnormal costs tens of times a normal one, here and in the BLAS products of the rows filtered
 # (an identification's design rows through G were 30 % subnormal on a record with holds: its solves ran 20x slower)
-FLUSH_LINE = "if -TINY < y < TINY: y = 0.0"
+FLUSH_LINE = "if -TINY < y < TINY: y = 0.0"   # in the recursion itself (the first-order bank, which creep's rows match)
+# the rows and columns kernels flush off the recursion's path: a subnormal output as it is stored, a subnormal state
+# at the end of each block of FLUSH_BLOCK samples (at most that many samples of subnormal arithmetic where a
+# recursion decays into them; a flush on the path of every sample, on each output before the states take it, made
+# the recursion ~1.7x slower on one row and ~1.5x on four)
+FLUSH_BLOCK = 256
+STORE = "0.0 if -TINY < y < TINY else y"
+
+
+def _flush_states(names: list[str]) -> list[str]:
+    """Lines that set each of the states ``names`` that is subnormal to zero."""
+    return [f"if -TINY < {s} < TINY: {s} = 0.0" for s in names]
 
 
 def unroll(taps: int) -> int:
@@ -34,11 +45,11 @@ def _names(prefix: str, count: int) -> str:
 def _step(row: str, taps: int, x: str) -> list[str]:
     """One sample of one row: lfilter's transposed direct form II, its operations in its order."""
     s = [f"s{row}_{j}" for j in range(taps - 1)]
-    lines = [f"u = {x}", f"y = {s[0]} + b0 * u", FLUSH_LINE]
+    lines = [f"u = {x}", f"y = {s[0]} + b0 * u"]
     for j in range(taps - 2):
         lines.append(f"{s[j]} = {s[j + 1]} + u * b{j + 1} - y * a{j + 1}")
     lines.append(f"{s[taps - 2]} = u * b{taps - 1} - y * a{taps - 1}")
-    lines.append(f"o{row}[n] = y")
+    lines.append(f"o{row}[n] = {STORE}")
     return lines
 
 
@@ -64,16 +75,20 @@ def _rows_kernel(taps: int) -> str:
             f"    while g + {width} <= k:"]
     body += [f"        {line}" for line in load(range(width), "g")]
     body += [f"        x{r}, o{r} = x[g + {r}], out[g + {r}]" for r in range(width)]
-    body += ["        for n in range(n_samples):"]
+    body += [f"        for start in range(0, n_samples, {FLUSH_BLOCK}):",
+             f"            for n in range(start, min(start + {FLUSH_BLOCK}, n_samples)):"]
     for r in range(width):
-        body += [f"            {line}" for line in _step(str(r), taps, f"x{r}[n]")]
+        body += [f"                {line}" for line in _step(str(r), taps, f"x{r}[n]")]
+    body += [f"            {line}" for line in _flush_states([f"s{r}_{j}" for r in range(width) for j in range(states)])]
     body += [f"        {line}" for line in store(range(width), "g")]
     body += [f"        g += {width}",
              "    while g < k:"]
     body += [f"        {line}" for line in load(range(1), "g")]
     body += ["        x0, o0 = x[g], out[g]",
-             "        for n in range(n_samples):"]
-    body += [f"            {line}" for line in _step("0", taps, "x0[n]")]
+             f"        for start in range(0, n_samples, {FLUSH_BLOCK}):",
+             f"            for n in range(start, min(start + {FLUSH_BLOCK}, n_samples)):"]
+    body += [f"                {line}" for line in _step("0", taps, "x0[n]")]
+    body += [f"            {line}" for line in _flush_states([f"s0_{j}" for j in range(states)])]
     body += [f"        {line}" for line in store(range(1), "g")]
     body += ["        g += 1"]
     return "\n".join(body) + "\n"
@@ -101,13 +116,14 @@ def _columns_kernel(taps: int) -> str:
              "            xi, yi = x[start + i], block[i]",
              "            for j in range(k):",
              "                u = xi[j] - first[j]",
-             "                y = s0[j] + b0 * u",
-             "                " + FLUSH_LINE]
+             "                y = s0[j] + b0 * u"]
     for j in range(states - 1):
         body.append(f"                s{j}[j] = s{j + 1}[j] + u * b{j + 1} - y * a{j + 1}")
     body += [f"                s{states - 1}[j] = u * b{taps - 1} - y * a{taps - 1}",
-             "                yi[j] = y",
-             "        for j in range(k):",
+             f"                yi[j] = {STORE}",
+             "        for j in range(k):"]
+    body += [f"            {line}" for line in _flush_states([f"s{i}[j]" for i in range(states)])]
+    body += ["        for j in range(k):",
              "            oj = out[j]",
              "            for i in range(m):",
              "                oj[start + i] = block[i, j]"]
@@ -162,7 +178,9 @@ every column of a sample-major array at each sample, in one loop over the column
 and their order are lfilter's, so are the bits, except that a subnormal output (below TINY in magnitude) is
 flushed to zero, as a CPU's flush-to-zero mode does: lfilter's recursion, its input at rest, decays into the
 subnormal range and can cycle there, and arithmetic on subnormals is tens of times slower (here and in every
-product of the rows filtered)."""
+product of the rows filtered).  The rows and columns kernels flush an output as it is stored and a subnormal state
+at the end of each block of samples (off the recursion's path: it runs on the unflushed output until then); the
+first-order bank flushes each output in the recursion."""
 from __future__ import annotations
 
 import numba

@@ -11,7 +11,9 @@ every column of a sample-major array at each sample, in one loop over the column
 and their order are lfilter's, so are the bits, except that a subnormal output (below TINY in magnitude) is
 flushed to zero, as a CPU's flush-to-zero mode does: lfilter's recursion, its input at rest, decays into the
 subnormal range and can cycle there, and arithmetic on subnormals is tens of times slower (here and in every
-product of the rows filtered)."""
+product of the rows filtered).  The rows and columns kernels flush an output as it is stored and a subnormal state
+at the end of each block of samples (off the recursion's path: it runs on the unflushed output until then); the
+first-order bank flushes each output in the recursion."""
 from __future__ import annotations
 
 import numba
@@ -36,27 +38,28 @@ def rows_2(b, a, x, z, out):
         x1, o1 = x[g + 1], out[g + 1]
         x2, o2 = x[g + 2], out[g + 2]
         x3, o3 = x[g + 3], out[g + 3]
-        for n in range(n_samples):
-            u = x0[n]
-            y = s0_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s0_0 = u * b1 - y * a1
-            o0[n] = y
-            u = x1[n]
-            y = s1_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s1_0 = u * b1 - y * a1
-            o1[n] = y
-            u = x2[n]
-            y = s2_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s2_0 = u * b1 - y * a1
-            o2[n] = y
-            u = x3[n]
-            y = s3_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s3_0 = u * b1 - y * a1
-            o3[n] = y
+        for start in range(0, n_samples, 256):
+            for n in range(start, min(start + 256, n_samples)):
+                u = x0[n]
+                y = s0_0 + b0 * u
+                s0_0 = u * b1 - y * a1
+                o0[n] = 0.0 if -TINY < y < TINY else y
+                u = x1[n]
+                y = s1_0 + b0 * u
+                s1_0 = u * b1 - y * a1
+                o1[n] = 0.0 if -TINY < y < TINY else y
+                u = x2[n]
+                y = s2_0 + b0 * u
+                s2_0 = u * b1 - y * a1
+                o2[n] = 0.0 if -TINY < y < TINY else y
+                u = x3[n]
+                y = s3_0 + b0 * u
+                s3_0 = u * b1 - y * a1
+                o3[n] = 0.0 if -TINY < y < TINY else y
+            if -TINY < s0_0 < TINY: s0_0 = 0.0
+            if -TINY < s1_0 < TINY: s1_0 = 0.0
+            if -TINY < s2_0 < TINY: s2_0 = 0.0
+            if -TINY < s3_0 < TINY: s3_0 = 0.0
         z[0, g + 0] = s0_0
         z[0, g + 1] = s1_0
         z[0, g + 2] = s2_0
@@ -65,12 +68,13 @@ def rows_2(b, a, x, z, out):
     while g < k:
         s0_0 = z[0, g + 0]
         x0, o0 = x[g], out[g]
-        for n in range(n_samples):
-            u = x0[n]
-            y = s0_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s0_0 = u * b1 - y * a1
-            o0[n] = y
+        for start in range(0, n_samples, 256):
+            for n in range(start, min(start + 256, n_samples)):
+                u = x0[n]
+                y = s0_0 + b0 * u
+                s0_0 = u * b1 - y * a1
+                o0[n] = 0.0 if -TINY < y < TINY else y
+            if -TINY < s0_0 < TINY: s0_0 = 0.0
         z[0, g + 0] = s0_0
         g += 1
 
@@ -95,31 +99,36 @@ def rows_3(b, a, x, z, out):
         x1, o1 = x[g + 1], out[g + 1]
         x2, o2 = x[g + 2], out[g + 2]
         x3, o3 = x[g + 3], out[g + 3]
-        for n in range(n_samples):
-            u = x0[n]
-            y = s0_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s0_0 = s0_1 + u * b1 - y * a1
-            s0_1 = u * b2 - y * a2
-            o0[n] = y
-            u = x1[n]
-            y = s1_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s1_0 = s1_1 + u * b1 - y * a1
-            s1_1 = u * b2 - y * a2
-            o1[n] = y
-            u = x2[n]
-            y = s2_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s2_0 = s2_1 + u * b1 - y * a1
-            s2_1 = u * b2 - y * a2
-            o2[n] = y
-            u = x3[n]
-            y = s3_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s3_0 = s3_1 + u * b1 - y * a1
-            s3_1 = u * b2 - y * a2
-            o3[n] = y
+        for start in range(0, n_samples, 256):
+            for n in range(start, min(start + 256, n_samples)):
+                u = x0[n]
+                y = s0_0 + b0 * u
+                s0_0 = s0_1 + u * b1 - y * a1
+                s0_1 = u * b2 - y * a2
+                o0[n] = 0.0 if -TINY < y < TINY else y
+                u = x1[n]
+                y = s1_0 + b0 * u
+                s1_0 = s1_1 + u * b1 - y * a1
+                s1_1 = u * b2 - y * a2
+                o1[n] = 0.0 if -TINY < y < TINY else y
+                u = x2[n]
+                y = s2_0 + b0 * u
+                s2_0 = s2_1 + u * b1 - y * a1
+                s2_1 = u * b2 - y * a2
+                o2[n] = 0.0 if -TINY < y < TINY else y
+                u = x3[n]
+                y = s3_0 + b0 * u
+                s3_0 = s3_1 + u * b1 - y * a1
+                s3_1 = u * b2 - y * a2
+                o3[n] = 0.0 if -TINY < y < TINY else y
+            if -TINY < s0_0 < TINY: s0_0 = 0.0
+            if -TINY < s0_1 < TINY: s0_1 = 0.0
+            if -TINY < s1_0 < TINY: s1_0 = 0.0
+            if -TINY < s1_1 < TINY: s1_1 = 0.0
+            if -TINY < s2_0 < TINY: s2_0 = 0.0
+            if -TINY < s2_1 < TINY: s2_1 = 0.0
+            if -TINY < s3_0 < TINY: s3_0 = 0.0
+            if -TINY < s3_1 < TINY: s3_1 = 0.0
         z[0, g + 0] = s0_0
         z[1, g + 0] = s0_1
         z[0, g + 1] = s1_0
@@ -133,13 +142,15 @@ def rows_3(b, a, x, z, out):
         s0_0 = z[0, g + 0]
         s0_1 = z[1, g + 0]
         x0, o0 = x[g], out[g]
-        for n in range(n_samples):
-            u = x0[n]
-            y = s0_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s0_0 = s0_1 + u * b1 - y * a1
-            s0_1 = u * b2 - y * a2
-            o0[n] = y
+        for start in range(0, n_samples, 256):
+            for n in range(start, min(start + 256, n_samples)):
+                u = x0[n]
+                y = s0_0 + b0 * u
+                s0_0 = s0_1 + u * b1 - y * a1
+                s0_1 = u * b2 - y * a2
+                o0[n] = 0.0 if -TINY < y < TINY else y
+            if -TINY < s0_0 < TINY: s0_0 = 0.0
+            if -TINY < s0_1 < TINY: s0_1 = 0.0
         z[0, g + 0] = s0_0
         z[1, g + 0] = s0_1
         g += 1
@@ -169,35 +180,44 @@ def rows_4(b, a, x, z, out):
         x1, o1 = x[g + 1], out[g + 1]
         x2, o2 = x[g + 2], out[g + 2]
         x3, o3 = x[g + 3], out[g + 3]
-        for n in range(n_samples):
-            u = x0[n]
-            y = s0_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s0_0 = s0_1 + u * b1 - y * a1
-            s0_1 = s0_2 + u * b2 - y * a2
-            s0_2 = u * b3 - y * a3
-            o0[n] = y
-            u = x1[n]
-            y = s1_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s1_0 = s1_1 + u * b1 - y * a1
-            s1_1 = s1_2 + u * b2 - y * a2
-            s1_2 = u * b3 - y * a3
-            o1[n] = y
-            u = x2[n]
-            y = s2_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s2_0 = s2_1 + u * b1 - y * a1
-            s2_1 = s2_2 + u * b2 - y * a2
-            s2_2 = u * b3 - y * a3
-            o2[n] = y
-            u = x3[n]
-            y = s3_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s3_0 = s3_1 + u * b1 - y * a1
-            s3_1 = s3_2 + u * b2 - y * a2
-            s3_2 = u * b3 - y * a3
-            o3[n] = y
+        for start in range(0, n_samples, 256):
+            for n in range(start, min(start + 256, n_samples)):
+                u = x0[n]
+                y = s0_0 + b0 * u
+                s0_0 = s0_1 + u * b1 - y * a1
+                s0_1 = s0_2 + u * b2 - y * a2
+                s0_2 = u * b3 - y * a3
+                o0[n] = 0.0 if -TINY < y < TINY else y
+                u = x1[n]
+                y = s1_0 + b0 * u
+                s1_0 = s1_1 + u * b1 - y * a1
+                s1_1 = s1_2 + u * b2 - y * a2
+                s1_2 = u * b3 - y * a3
+                o1[n] = 0.0 if -TINY < y < TINY else y
+                u = x2[n]
+                y = s2_0 + b0 * u
+                s2_0 = s2_1 + u * b1 - y * a1
+                s2_1 = s2_2 + u * b2 - y * a2
+                s2_2 = u * b3 - y * a3
+                o2[n] = 0.0 if -TINY < y < TINY else y
+                u = x3[n]
+                y = s3_0 + b0 * u
+                s3_0 = s3_1 + u * b1 - y * a1
+                s3_1 = s3_2 + u * b2 - y * a2
+                s3_2 = u * b3 - y * a3
+                o3[n] = 0.0 if -TINY < y < TINY else y
+            if -TINY < s0_0 < TINY: s0_0 = 0.0
+            if -TINY < s0_1 < TINY: s0_1 = 0.0
+            if -TINY < s0_2 < TINY: s0_2 = 0.0
+            if -TINY < s1_0 < TINY: s1_0 = 0.0
+            if -TINY < s1_1 < TINY: s1_1 = 0.0
+            if -TINY < s1_2 < TINY: s1_2 = 0.0
+            if -TINY < s2_0 < TINY: s2_0 = 0.0
+            if -TINY < s2_1 < TINY: s2_1 = 0.0
+            if -TINY < s2_2 < TINY: s2_2 = 0.0
+            if -TINY < s3_0 < TINY: s3_0 = 0.0
+            if -TINY < s3_1 < TINY: s3_1 = 0.0
+            if -TINY < s3_2 < TINY: s3_2 = 0.0
         z[0, g + 0] = s0_0
         z[1, g + 0] = s0_1
         z[2, g + 0] = s0_2
@@ -216,14 +236,17 @@ def rows_4(b, a, x, z, out):
         s0_1 = z[1, g + 0]
         s0_2 = z[2, g + 0]
         x0, o0 = x[g], out[g]
-        for n in range(n_samples):
-            u = x0[n]
-            y = s0_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s0_0 = s0_1 + u * b1 - y * a1
-            s0_1 = s0_2 + u * b2 - y * a2
-            s0_2 = u * b3 - y * a3
-            o0[n] = y
+        for start in range(0, n_samples, 256):
+            for n in range(start, min(start + 256, n_samples)):
+                u = x0[n]
+                y = s0_0 + b0 * u
+                s0_0 = s0_1 + u * b1 - y * a1
+                s0_1 = s0_2 + u * b2 - y * a2
+                s0_2 = u * b3 - y * a3
+                o0[n] = 0.0 if -TINY < y < TINY else y
+            if -TINY < s0_0 < TINY: s0_0 = 0.0
+            if -TINY < s0_1 < TINY: s0_1 = 0.0
+            if -TINY < s0_2 < TINY: s0_2 = 0.0
         z[0, g + 0] = s0_0
         z[1, g + 0] = s0_1
         z[2, g + 0] = s0_2
@@ -248,23 +271,30 @@ def rows_5(b, a, x, z, out):
         s1_3 = z[3, g + 1]
         x0, o0 = x[g + 0], out[g + 0]
         x1, o1 = x[g + 1], out[g + 1]
-        for n in range(n_samples):
-            u = x0[n]
-            y = s0_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s0_0 = s0_1 + u * b1 - y * a1
-            s0_1 = s0_2 + u * b2 - y * a2
-            s0_2 = s0_3 + u * b3 - y * a3
-            s0_3 = u * b4 - y * a4
-            o0[n] = y
-            u = x1[n]
-            y = s1_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s1_0 = s1_1 + u * b1 - y * a1
-            s1_1 = s1_2 + u * b2 - y * a2
-            s1_2 = s1_3 + u * b3 - y * a3
-            s1_3 = u * b4 - y * a4
-            o1[n] = y
+        for start in range(0, n_samples, 256):
+            for n in range(start, min(start + 256, n_samples)):
+                u = x0[n]
+                y = s0_0 + b0 * u
+                s0_0 = s0_1 + u * b1 - y * a1
+                s0_1 = s0_2 + u * b2 - y * a2
+                s0_2 = s0_3 + u * b3 - y * a3
+                s0_3 = u * b4 - y * a4
+                o0[n] = 0.0 if -TINY < y < TINY else y
+                u = x1[n]
+                y = s1_0 + b0 * u
+                s1_0 = s1_1 + u * b1 - y * a1
+                s1_1 = s1_2 + u * b2 - y * a2
+                s1_2 = s1_3 + u * b3 - y * a3
+                s1_3 = u * b4 - y * a4
+                o1[n] = 0.0 if -TINY < y < TINY else y
+            if -TINY < s0_0 < TINY: s0_0 = 0.0
+            if -TINY < s0_1 < TINY: s0_1 = 0.0
+            if -TINY < s0_2 < TINY: s0_2 = 0.0
+            if -TINY < s0_3 < TINY: s0_3 = 0.0
+            if -TINY < s1_0 < TINY: s1_0 = 0.0
+            if -TINY < s1_1 < TINY: s1_1 = 0.0
+            if -TINY < s1_2 < TINY: s1_2 = 0.0
+            if -TINY < s1_3 < TINY: s1_3 = 0.0
         z[0, g + 0] = s0_0
         z[1, g + 0] = s0_1
         z[2, g + 0] = s0_2
@@ -280,15 +310,19 @@ def rows_5(b, a, x, z, out):
         s0_2 = z[2, g + 0]
         s0_3 = z[3, g + 0]
         x0, o0 = x[g], out[g]
-        for n in range(n_samples):
-            u = x0[n]
-            y = s0_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s0_0 = s0_1 + u * b1 - y * a1
-            s0_1 = s0_2 + u * b2 - y * a2
-            s0_2 = s0_3 + u * b3 - y * a3
-            s0_3 = u * b4 - y * a4
-            o0[n] = y
+        for start in range(0, n_samples, 256):
+            for n in range(start, min(start + 256, n_samples)):
+                u = x0[n]
+                y = s0_0 + b0 * u
+                s0_0 = s0_1 + u * b1 - y * a1
+                s0_1 = s0_2 + u * b2 - y * a2
+                s0_2 = s0_3 + u * b3 - y * a3
+                s0_3 = u * b4 - y * a4
+                o0[n] = 0.0 if -TINY < y < TINY else y
+            if -TINY < s0_0 < TINY: s0_0 = 0.0
+            if -TINY < s0_1 < TINY: s0_1 = 0.0
+            if -TINY < s0_2 < TINY: s0_2 = 0.0
+            if -TINY < s0_3 < TINY: s0_3 = 0.0
         z[0, g + 0] = s0_0
         z[1, g + 0] = s0_1
         z[2, g + 0] = s0_2
@@ -316,25 +350,34 @@ def rows_6(b, a, x, z, out):
         s1_4 = z[4, g + 1]
         x0, o0 = x[g + 0], out[g + 0]
         x1, o1 = x[g + 1], out[g + 1]
-        for n in range(n_samples):
-            u = x0[n]
-            y = s0_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s0_0 = s0_1 + u * b1 - y * a1
-            s0_1 = s0_2 + u * b2 - y * a2
-            s0_2 = s0_3 + u * b3 - y * a3
-            s0_3 = s0_4 + u * b4 - y * a4
-            s0_4 = u * b5 - y * a5
-            o0[n] = y
-            u = x1[n]
-            y = s1_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s1_0 = s1_1 + u * b1 - y * a1
-            s1_1 = s1_2 + u * b2 - y * a2
-            s1_2 = s1_3 + u * b3 - y * a3
-            s1_3 = s1_4 + u * b4 - y * a4
-            s1_4 = u * b5 - y * a5
-            o1[n] = y
+        for start in range(0, n_samples, 256):
+            for n in range(start, min(start + 256, n_samples)):
+                u = x0[n]
+                y = s0_0 + b0 * u
+                s0_0 = s0_1 + u * b1 - y * a1
+                s0_1 = s0_2 + u * b2 - y * a2
+                s0_2 = s0_3 + u * b3 - y * a3
+                s0_3 = s0_4 + u * b4 - y * a4
+                s0_4 = u * b5 - y * a5
+                o0[n] = 0.0 if -TINY < y < TINY else y
+                u = x1[n]
+                y = s1_0 + b0 * u
+                s1_0 = s1_1 + u * b1 - y * a1
+                s1_1 = s1_2 + u * b2 - y * a2
+                s1_2 = s1_3 + u * b3 - y * a3
+                s1_3 = s1_4 + u * b4 - y * a4
+                s1_4 = u * b5 - y * a5
+                o1[n] = 0.0 if -TINY < y < TINY else y
+            if -TINY < s0_0 < TINY: s0_0 = 0.0
+            if -TINY < s0_1 < TINY: s0_1 = 0.0
+            if -TINY < s0_2 < TINY: s0_2 = 0.0
+            if -TINY < s0_3 < TINY: s0_3 = 0.0
+            if -TINY < s0_4 < TINY: s0_4 = 0.0
+            if -TINY < s1_0 < TINY: s1_0 = 0.0
+            if -TINY < s1_1 < TINY: s1_1 = 0.0
+            if -TINY < s1_2 < TINY: s1_2 = 0.0
+            if -TINY < s1_3 < TINY: s1_3 = 0.0
+            if -TINY < s1_4 < TINY: s1_4 = 0.0
         z[0, g + 0] = s0_0
         z[1, g + 0] = s0_1
         z[2, g + 0] = s0_2
@@ -353,16 +396,21 @@ def rows_6(b, a, x, z, out):
         s0_3 = z[3, g + 0]
         s0_4 = z[4, g + 0]
         x0, o0 = x[g], out[g]
-        for n in range(n_samples):
-            u = x0[n]
-            y = s0_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s0_0 = s0_1 + u * b1 - y * a1
-            s0_1 = s0_2 + u * b2 - y * a2
-            s0_2 = s0_3 + u * b3 - y * a3
-            s0_3 = s0_4 + u * b4 - y * a4
-            s0_4 = u * b5 - y * a5
-            o0[n] = y
+        for start in range(0, n_samples, 256):
+            for n in range(start, min(start + 256, n_samples)):
+                u = x0[n]
+                y = s0_0 + b0 * u
+                s0_0 = s0_1 + u * b1 - y * a1
+                s0_1 = s0_2 + u * b2 - y * a2
+                s0_2 = s0_3 + u * b3 - y * a3
+                s0_3 = s0_4 + u * b4 - y * a4
+                s0_4 = u * b5 - y * a5
+                o0[n] = 0.0 if -TINY < y < TINY else y
+            if -TINY < s0_0 < TINY: s0_0 = 0.0
+            if -TINY < s0_1 < TINY: s0_1 = 0.0
+            if -TINY < s0_2 < TINY: s0_2 = 0.0
+            if -TINY < s0_3 < TINY: s0_3 = 0.0
+            if -TINY < s0_4 < TINY: s0_4 = 0.0
         z[0, g + 0] = s0_0
         z[1, g + 0] = s0_1
         z[2, g + 0] = s0_2
@@ -393,27 +441,38 @@ def rows_7(b, a, x, z, out):
         s1_5 = z[5, g + 1]
         x0, o0 = x[g + 0], out[g + 0]
         x1, o1 = x[g + 1], out[g + 1]
-        for n in range(n_samples):
-            u = x0[n]
-            y = s0_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s0_0 = s0_1 + u * b1 - y * a1
-            s0_1 = s0_2 + u * b2 - y * a2
-            s0_2 = s0_3 + u * b3 - y * a3
-            s0_3 = s0_4 + u * b4 - y * a4
-            s0_4 = s0_5 + u * b5 - y * a5
-            s0_5 = u * b6 - y * a6
-            o0[n] = y
-            u = x1[n]
-            y = s1_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s1_0 = s1_1 + u * b1 - y * a1
-            s1_1 = s1_2 + u * b2 - y * a2
-            s1_2 = s1_3 + u * b3 - y * a3
-            s1_3 = s1_4 + u * b4 - y * a4
-            s1_4 = s1_5 + u * b5 - y * a5
-            s1_5 = u * b6 - y * a6
-            o1[n] = y
+        for start in range(0, n_samples, 256):
+            for n in range(start, min(start + 256, n_samples)):
+                u = x0[n]
+                y = s0_0 + b0 * u
+                s0_0 = s0_1 + u * b1 - y * a1
+                s0_1 = s0_2 + u * b2 - y * a2
+                s0_2 = s0_3 + u * b3 - y * a3
+                s0_3 = s0_4 + u * b4 - y * a4
+                s0_4 = s0_5 + u * b5 - y * a5
+                s0_5 = u * b6 - y * a6
+                o0[n] = 0.0 if -TINY < y < TINY else y
+                u = x1[n]
+                y = s1_0 + b0 * u
+                s1_0 = s1_1 + u * b1 - y * a1
+                s1_1 = s1_2 + u * b2 - y * a2
+                s1_2 = s1_3 + u * b3 - y * a3
+                s1_3 = s1_4 + u * b4 - y * a4
+                s1_4 = s1_5 + u * b5 - y * a5
+                s1_5 = u * b6 - y * a6
+                o1[n] = 0.0 if -TINY < y < TINY else y
+            if -TINY < s0_0 < TINY: s0_0 = 0.0
+            if -TINY < s0_1 < TINY: s0_1 = 0.0
+            if -TINY < s0_2 < TINY: s0_2 = 0.0
+            if -TINY < s0_3 < TINY: s0_3 = 0.0
+            if -TINY < s0_4 < TINY: s0_4 = 0.0
+            if -TINY < s0_5 < TINY: s0_5 = 0.0
+            if -TINY < s1_0 < TINY: s1_0 = 0.0
+            if -TINY < s1_1 < TINY: s1_1 = 0.0
+            if -TINY < s1_2 < TINY: s1_2 = 0.0
+            if -TINY < s1_3 < TINY: s1_3 = 0.0
+            if -TINY < s1_4 < TINY: s1_4 = 0.0
+            if -TINY < s1_5 < TINY: s1_5 = 0.0
         z[0, g + 0] = s0_0
         z[1, g + 0] = s0_1
         z[2, g + 0] = s0_2
@@ -435,17 +494,23 @@ def rows_7(b, a, x, z, out):
         s0_4 = z[4, g + 0]
         s0_5 = z[5, g + 0]
         x0, o0 = x[g], out[g]
-        for n in range(n_samples):
-            u = x0[n]
-            y = s0_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s0_0 = s0_1 + u * b1 - y * a1
-            s0_1 = s0_2 + u * b2 - y * a2
-            s0_2 = s0_3 + u * b3 - y * a3
-            s0_3 = s0_4 + u * b4 - y * a4
-            s0_4 = s0_5 + u * b5 - y * a5
-            s0_5 = u * b6 - y * a6
-            o0[n] = y
+        for start in range(0, n_samples, 256):
+            for n in range(start, min(start + 256, n_samples)):
+                u = x0[n]
+                y = s0_0 + b0 * u
+                s0_0 = s0_1 + u * b1 - y * a1
+                s0_1 = s0_2 + u * b2 - y * a2
+                s0_2 = s0_3 + u * b3 - y * a3
+                s0_3 = s0_4 + u * b4 - y * a4
+                s0_4 = s0_5 + u * b5 - y * a5
+                s0_5 = u * b6 - y * a6
+                o0[n] = 0.0 if -TINY < y < TINY else y
+            if -TINY < s0_0 < TINY: s0_0 = 0.0
+            if -TINY < s0_1 < TINY: s0_1 = 0.0
+            if -TINY < s0_2 < TINY: s0_2 = 0.0
+            if -TINY < s0_3 < TINY: s0_3 = 0.0
+            if -TINY < s0_4 < TINY: s0_4 = 0.0
+            if -TINY < s0_5 < TINY: s0_5 = 0.0
         z[0, g + 0] = s0_0
         z[1, g + 0] = s0_1
         z[2, g + 0] = s0_2
@@ -479,29 +544,42 @@ def rows_8(b, a, x, z, out):
         s1_6 = z[6, g + 1]
         x0, o0 = x[g + 0], out[g + 0]
         x1, o1 = x[g + 1], out[g + 1]
-        for n in range(n_samples):
-            u = x0[n]
-            y = s0_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s0_0 = s0_1 + u * b1 - y * a1
-            s0_1 = s0_2 + u * b2 - y * a2
-            s0_2 = s0_3 + u * b3 - y * a3
-            s0_3 = s0_4 + u * b4 - y * a4
-            s0_4 = s0_5 + u * b5 - y * a5
-            s0_5 = s0_6 + u * b6 - y * a6
-            s0_6 = u * b7 - y * a7
-            o0[n] = y
-            u = x1[n]
-            y = s1_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s1_0 = s1_1 + u * b1 - y * a1
-            s1_1 = s1_2 + u * b2 - y * a2
-            s1_2 = s1_3 + u * b3 - y * a3
-            s1_3 = s1_4 + u * b4 - y * a4
-            s1_4 = s1_5 + u * b5 - y * a5
-            s1_5 = s1_6 + u * b6 - y * a6
-            s1_6 = u * b7 - y * a7
-            o1[n] = y
+        for start in range(0, n_samples, 256):
+            for n in range(start, min(start + 256, n_samples)):
+                u = x0[n]
+                y = s0_0 + b0 * u
+                s0_0 = s0_1 + u * b1 - y * a1
+                s0_1 = s0_2 + u * b2 - y * a2
+                s0_2 = s0_3 + u * b3 - y * a3
+                s0_3 = s0_4 + u * b4 - y * a4
+                s0_4 = s0_5 + u * b5 - y * a5
+                s0_5 = s0_6 + u * b6 - y * a6
+                s0_6 = u * b7 - y * a7
+                o0[n] = 0.0 if -TINY < y < TINY else y
+                u = x1[n]
+                y = s1_0 + b0 * u
+                s1_0 = s1_1 + u * b1 - y * a1
+                s1_1 = s1_2 + u * b2 - y * a2
+                s1_2 = s1_3 + u * b3 - y * a3
+                s1_3 = s1_4 + u * b4 - y * a4
+                s1_4 = s1_5 + u * b5 - y * a5
+                s1_5 = s1_6 + u * b6 - y * a6
+                s1_6 = u * b7 - y * a7
+                o1[n] = 0.0 if -TINY < y < TINY else y
+            if -TINY < s0_0 < TINY: s0_0 = 0.0
+            if -TINY < s0_1 < TINY: s0_1 = 0.0
+            if -TINY < s0_2 < TINY: s0_2 = 0.0
+            if -TINY < s0_3 < TINY: s0_3 = 0.0
+            if -TINY < s0_4 < TINY: s0_4 = 0.0
+            if -TINY < s0_5 < TINY: s0_5 = 0.0
+            if -TINY < s0_6 < TINY: s0_6 = 0.0
+            if -TINY < s1_0 < TINY: s1_0 = 0.0
+            if -TINY < s1_1 < TINY: s1_1 = 0.0
+            if -TINY < s1_2 < TINY: s1_2 = 0.0
+            if -TINY < s1_3 < TINY: s1_3 = 0.0
+            if -TINY < s1_4 < TINY: s1_4 = 0.0
+            if -TINY < s1_5 < TINY: s1_5 = 0.0
+            if -TINY < s1_6 < TINY: s1_6 = 0.0
         z[0, g + 0] = s0_0
         z[1, g + 0] = s0_1
         z[2, g + 0] = s0_2
@@ -526,18 +604,25 @@ def rows_8(b, a, x, z, out):
         s0_5 = z[5, g + 0]
         s0_6 = z[6, g + 0]
         x0, o0 = x[g], out[g]
-        for n in range(n_samples):
-            u = x0[n]
-            y = s0_0 + b0 * u
-            if -TINY < y < TINY: y = 0.0
-            s0_0 = s0_1 + u * b1 - y * a1
-            s0_1 = s0_2 + u * b2 - y * a2
-            s0_2 = s0_3 + u * b3 - y * a3
-            s0_3 = s0_4 + u * b4 - y * a4
-            s0_4 = s0_5 + u * b5 - y * a5
-            s0_5 = s0_6 + u * b6 - y * a6
-            s0_6 = u * b7 - y * a7
-            o0[n] = y
+        for start in range(0, n_samples, 256):
+            for n in range(start, min(start + 256, n_samples)):
+                u = x0[n]
+                y = s0_0 + b0 * u
+                s0_0 = s0_1 + u * b1 - y * a1
+                s0_1 = s0_2 + u * b2 - y * a2
+                s0_2 = s0_3 + u * b3 - y * a3
+                s0_3 = s0_4 + u * b4 - y * a4
+                s0_4 = s0_5 + u * b5 - y * a5
+                s0_5 = s0_6 + u * b6 - y * a6
+                s0_6 = u * b7 - y * a7
+                o0[n] = 0.0 if -TINY < y < TINY else y
+            if -TINY < s0_0 < TINY: s0_0 = 0.0
+            if -TINY < s0_1 < TINY: s0_1 = 0.0
+            if -TINY < s0_2 < TINY: s0_2 = 0.0
+            if -TINY < s0_3 < TINY: s0_3 = 0.0
+            if -TINY < s0_4 < TINY: s0_4 = 0.0
+            if -TINY < s0_5 < TINY: s0_5 = 0.0
+            if -TINY < s0_6 < TINY: s0_6 = 0.0
         z[0, g + 0] = s0_0
         z[1, g + 0] = s0_1
         z[2, g + 0] = s0_2
@@ -567,9 +652,10 @@ def columns_2(b, a, x, first, z, out):
             for j in range(k):
                 u = xi[j] - first[j]
                 y = s0[j] + b0 * u
-                if -TINY < y < TINY: y = 0.0
                 s0[j] = u * b1 - y * a1
-                yi[j] = y
+                yi[j] = 0.0 if -TINY < y < TINY else y
+        for j in range(k):
+            if -TINY < s0[j] < TINY: s0[j] = 0.0
         for j in range(k):
             oj = out[j]
             for i in range(m):
@@ -594,10 +680,12 @@ def columns_3(b, a, x, first, z, out):
             for j in range(k):
                 u = xi[j] - first[j]
                 y = s0[j] + b0 * u
-                if -TINY < y < TINY: y = 0.0
                 s0[j] = s1[j] + u * b1 - y * a1
                 s1[j] = u * b2 - y * a2
-                yi[j] = y
+                yi[j] = 0.0 if -TINY < y < TINY else y
+        for j in range(k):
+            if -TINY < s0[j] < TINY: s0[j] = 0.0
+            if -TINY < s1[j] < TINY: s1[j] = 0.0
         for j in range(k):
             oj = out[j]
             for i in range(m):
@@ -624,11 +712,14 @@ def columns_4(b, a, x, first, z, out):
             for j in range(k):
                 u = xi[j] - first[j]
                 y = s0[j] + b0 * u
-                if -TINY < y < TINY: y = 0.0
                 s0[j] = s1[j] + u * b1 - y * a1
                 s1[j] = s2[j] + u * b2 - y * a2
                 s2[j] = u * b3 - y * a3
-                yi[j] = y
+                yi[j] = 0.0 if -TINY < y < TINY else y
+        for j in range(k):
+            if -TINY < s0[j] < TINY: s0[j] = 0.0
+            if -TINY < s1[j] < TINY: s1[j] = 0.0
+            if -TINY < s2[j] < TINY: s2[j] = 0.0
         for j in range(k):
             oj = out[j]
             for i in range(m):
@@ -657,12 +748,16 @@ def columns_5(b, a, x, first, z, out):
             for j in range(k):
                 u = xi[j] - first[j]
                 y = s0[j] + b0 * u
-                if -TINY < y < TINY: y = 0.0
                 s0[j] = s1[j] + u * b1 - y * a1
                 s1[j] = s2[j] + u * b2 - y * a2
                 s2[j] = s3[j] + u * b3 - y * a3
                 s3[j] = u * b4 - y * a4
-                yi[j] = y
+                yi[j] = 0.0 if -TINY < y < TINY else y
+        for j in range(k):
+            if -TINY < s0[j] < TINY: s0[j] = 0.0
+            if -TINY < s1[j] < TINY: s1[j] = 0.0
+            if -TINY < s2[j] < TINY: s2[j] = 0.0
+            if -TINY < s3[j] < TINY: s3[j] = 0.0
         for j in range(k):
             oj = out[j]
             for i in range(m):
@@ -693,13 +788,18 @@ def columns_6(b, a, x, first, z, out):
             for j in range(k):
                 u = xi[j] - first[j]
                 y = s0[j] + b0 * u
-                if -TINY < y < TINY: y = 0.0
                 s0[j] = s1[j] + u * b1 - y * a1
                 s1[j] = s2[j] + u * b2 - y * a2
                 s2[j] = s3[j] + u * b3 - y * a3
                 s3[j] = s4[j] + u * b4 - y * a4
                 s4[j] = u * b5 - y * a5
-                yi[j] = y
+                yi[j] = 0.0 if -TINY < y < TINY else y
+        for j in range(k):
+            if -TINY < s0[j] < TINY: s0[j] = 0.0
+            if -TINY < s1[j] < TINY: s1[j] = 0.0
+            if -TINY < s2[j] < TINY: s2[j] = 0.0
+            if -TINY < s3[j] < TINY: s3[j] = 0.0
+            if -TINY < s4[j] < TINY: s4[j] = 0.0
         for j in range(k):
             oj = out[j]
             for i in range(m):
@@ -732,14 +832,20 @@ def columns_7(b, a, x, first, z, out):
             for j in range(k):
                 u = xi[j] - first[j]
                 y = s0[j] + b0 * u
-                if -TINY < y < TINY: y = 0.0
                 s0[j] = s1[j] + u * b1 - y * a1
                 s1[j] = s2[j] + u * b2 - y * a2
                 s2[j] = s3[j] + u * b3 - y * a3
                 s3[j] = s4[j] + u * b4 - y * a4
                 s4[j] = s5[j] + u * b5 - y * a5
                 s5[j] = u * b6 - y * a6
-                yi[j] = y
+                yi[j] = 0.0 if -TINY < y < TINY else y
+        for j in range(k):
+            if -TINY < s0[j] < TINY: s0[j] = 0.0
+            if -TINY < s1[j] < TINY: s1[j] = 0.0
+            if -TINY < s2[j] < TINY: s2[j] = 0.0
+            if -TINY < s3[j] < TINY: s3[j] = 0.0
+            if -TINY < s4[j] < TINY: s4[j] = 0.0
+            if -TINY < s5[j] < TINY: s5[j] = 0.0
         for j in range(k):
             oj = out[j]
             for i in range(m):
@@ -774,7 +880,6 @@ def columns_8(b, a, x, first, z, out):
             for j in range(k):
                 u = xi[j] - first[j]
                 y = s0[j] + b0 * u
-                if -TINY < y < TINY: y = 0.0
                 s0[j] = s1[j] + u * b1 - y * a1
                 s1[j] = s2[j] + u * b2 - y * a2
                 s2[j] = s3[j] + u * b3 - y * a3
@@ -782,7 +887,15 @@ def columns_8(b, a, x, first, z, out):
                 s4[j] = s5[j] + u * b5 - y * a5
                 s5[j] = s6[j] + u * b6 - y * a6
                 s6[j] = u * b7 - y * a7
-                yi[j] = y
+                yi[j] = 0.0 if -TINY < y < TINY else y
+        for j in range(k):
+            if -TINY < s0[j] < TINY: s0[j] = 0.0
+            if -TINY < s1[j] < TINY: s1[j] = 0.0
+            if -TINY < s2[j] < TINY: s2[j] = 0.0
+            if -TINY < s3[j] < TINY: s3[j] = 0.0
+            if -TINY < s4[j] < TINY: s4[j] = 0.0
+            if -TINY < s5[j] < TINY: s5[j] = 0.0
+            if -TINY < s6[j] < TINY: s6[j] = 0.0
         for j in range(k):
             oj = out[j]
             for i in range(m):

@@ -7,7 +7,10 @@ kernels here advance several rows of a bank at each sample, so their recursions 
 lfilter's transposed direct form II, operation by operation (the same bits: ``test_iir``), several times faster
 on a bank (bench/core_speed.py measures both), except that a subnormal output is flushed to zero, as a CPU's
 flush-to-zero mode does (lfilter's recursion at rest decays into the subnormal range and can stay there, where
-each operation, and each product of the filtered rows later, costs tens of times a normal one).  They are
+each operation, and each product of the filtered rows later, costs tens of times a normal one).  The rows and
+columns kernels flush off the recursion's path (an output as it is stored, a state at the end of each block of
+samples: a recursion decaying into subnormals runs on them for at most a block), so elsewhere their bits are
+lfilter's and the flush costs nothing on a normal record; the first-order bank flushes in the recursion.  They are
 compiled by numba on first use (cached on disk), so importing this module costs nothing until a bank is filtered.
 Nothing here imports ROS.
 """
