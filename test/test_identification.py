@@ -876,6 +876,36 @@ def test_the_report_does_not_depend_on_the_number_of_threads():
         analyse(train, validate, threads=0)
 
 
+def test_parts_of_a_fit_run_beside_it_where_a_thread_is_free_and_in_turn_where_none_is():
+    """A new pole pair's placements and refinements (``fit_model``'s ``beside``) are handed to the refit pool from
+    whatever thread runs the fit: a free thread takes them, else the fit's own thread runs them in turn.  So a job
+    of a pool whose threads are all busy (its only one: the job itself) finishes; results come in order; an error
+    cancels what was not taken and reaches the caller."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+    from piezo_valve_ros.core.identification._stages import _beside
+
+    with ThreadPoolExecutor(2) as pool:
+        both = threading.Barrier(2, timeout=10)   # the first job waits for the second: they must run side by side
+        assert _beside(pool, [lambda: both.wait() >= 0 and "a", lambda: both.wait() >= 0 and "b", lambda: "c"]) \
+            == ["a", "b", "c"]
+    with ThreadPoolExecutor(1) as pool:   # the pool's one thread runs the job that hands work to it
+        outer = pool.submit(lambda: _beside(pool, [lambda: threading.current_thread().name] * 3))
+        names = outer.result(timeout=10)
+        assert len(set(names)) == 1                     # all in turn, in the job's own thread
+    ran = []
+    with ThreadPoolExecutor(1) as pool:
+        blocker = threading.Event()
+        pool.submit(blocker.wait, 10)                   # the pool busy: what is handed to it is not taken
+
+        def fail():
+            raise RuntimeError("placement failed")
+        with pytest.raises(RuntimeError, match="placement failed"):
+            _beside(pool, [fail, lambda: ran.append("second")])
+        blocker.set()
+    assert ran == []                                    # cancelled, never run
+
+
 def test_the_analysis_threads_come_from_the_environment_or_the_cpus_this_process_may_use(monkeypatch):
     """PIEZO_ANALYSIS_THREADS sets them (the suite's workers, which fill the cores, use one); unset, the CPUs
     of the process' affinity, at most four; anything but a whole number >= 1 is refused with what it was."""

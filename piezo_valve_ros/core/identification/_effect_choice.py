@@ -43,6 +43,7 @@ class _EffectChoice:
         self.fit, self.split, self.noise, self.cache = loop.fit, loop.split, loop.noise, loop.cache
         self.levels = loop.levels
         self.log, self.pool, self.each, self.each_form = loop.log, loop.pool, loop.each, loop.each_form
+        self.each_beside = loop.each_beside
         self.held_out, self.session, self.polishes = loop.held_out, loop.session, loop.polishes
         self.error, self.range_val = loop.error, loop.range_val
         self.confirm_log: list[ConfirmRound] = []
@@ -101,7 +102,7 @@ class _EffectChoice:
         chosen = {e.name: e for e in like.effects} if like is not None else {}
         effects = [chosen.get(n, self.by_name[n]) for n in subset]
         m = fit_model(self.fit, self.baseline, effects, try_forms={n for n in subset if n not in chosen},
-                      cache=self.cache, warm=like, each=self.each_form)
+                      cache=self.cache, warm=like, each=self.each_form, beside=self.each_beside)
         # nested forms are chosen on held-out data for the effects new to the set, and again for all of them where
         # the set is one the model it starts from had less an effect (a drop-one refit: a form chosen beside one
         # effect, a drift's slow form beside creep, need not be the best without it)
@@ -120,7 +121,7 @@ class _EffectChoice:
                 continue
             fits = self.each_form([lambda f=f: fit_model(
                 self.fit, self.baseline, [f if e.name == name else e for e in best[0].effects], try_forms=False,
-                cache=self.cache, warm=best[0]) for f in others])
+                cache=self.cache, warm=best[0], beside=self.each_beside) for f in others])
             for fit in fits:
                 score = self.held_out(fit)
                 if score.rms < best[1].rms:
@@ -200,7 +201,7 @@ class _EffectChoice:
             # Gauss-Newton rounds; a delay in a lag's place: the poles placed afresh (the lag's are a local minimum)
             start = held.carry(model, self.baseline) if dynamics.has("delay") else self.baseline
             start = replace(start, delay_s=delay_s)
-            m = fit_model(self.fit, start, effects, try_forms=False, cache=self.cache)
+            m = fit_model(self.fit, start, effects, try_forms=False, cache=self.cache, beside=self.each_beside)
             return m, self.held_out(m)
 
         tried = self.each([lambda d=d: job(d) for d in delays])

@@ -125,6 +125,7 @@ class LoopState(Protocol):
     def fit(self) -> Record: ...
     def each(self, jobs: list[Callable[[], object]]) -> list: ...
     def each_form(self, jobs: list[Callable[[], object]]) -> list: ...
+    def each_beside(self, jobs: list[Callable[[], object]]) -> list: ...
     def session(self, model: ValveModel, on: Optional[Split] = None) -> Optional[SessionStart]: ...
     def error(self, model: ValveModel, on: Optional[Split] = None, full: bool = False) -> np.ndarray: ...
     def held_out(self, model: ValveModel) -> Score: ...
@@ -141,6 +142,25 @@ class Remains:
 def _on_pool(pool: ThreadPoolExecutor, jobs: list[Callable[[], object]]) -> list:
     """Independent jobs on ``pool``, their results in order."""
     return [f.result() for f in [pool.submit(job) for job in jobs]]
+
+
+def _beside(pool: ThreadPoolExecutor, jobs: list[Callable[[], object]]) -> list:
+    """Independent jobs, their results in order: the first in this thread, the others handed to ``pool`` and each run
+    here instead where no thread of the pool has taken it by the time this thread comes to it.  So a job running on
+    any pool can hand work to any pool without waiting for a thread that waits for it: the work runs beside it
+    where a thread is free, else after it, here (the jobs must not wait for this thread's caller)."""
+    if len(jobs) <= 1:
+        return [job() for job in jobs]
+    futures = [pool.submit(job) for job in jobs[1:]]
+    try:
+        results = [jobs[0]()]
+        for job, future in zip(jobs[1:], futures):
+            results.append(job() if future.cancel() else future.result())
+    except BaseException:
+        for future in futures:
+            future.cancel()
+        raise
+    return results
 
 
 def _summary_line(report: IdentificationReport, floor: NoiseFloor) -> str:

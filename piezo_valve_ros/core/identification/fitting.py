@@ -413,13 +413,16 @@ def _step_nonlinear(model: ValveModel, x: np.ndarray, layout: "_Layout", pole_st
 def fit_model(train: Record, start: ValveModel, effects: Sequence[Effect] = (), *, poles: str = "joint",
               rounds: Optional[int] = None, try_forms: bool | Collection[str] = True,
               cache: Optional[FitCache] = None, warm: Optional[ValveModel] = None,
-              each: Callable[[list[Callable[[], object]]], list] = run_in_order) -> ValveModel:
+              each: Callable[[list[Callable[[], object]]], list] = run_in_order,
+              beside: Callable[[list[Callable[[], object]]], list] = run_in_order) -> ValveModel:
     """The model ``start`` extended by ``effects``, fitted to ``train`` (see ``_fit``); with ``try_forms`` (True,
     or the names of the effects to try) an effect with several forms (``Effect.forms``) is fitted in each and
     the form with the lowest training error kept (otherwise each effect keeps the form it has).  ``warm``: a
     fitted model whose nonlinear structures of these effects the fit starts from (``Effect.carry``).  ``each``
     runs independent fits (the forms) and returns their results in order: on threads, where a pool is free
-    (the result does not depend on it)."""
+    (the result does not depend on it).  ``beside`` does the same for the independent parts of one fit (a new
+    pole pair's placements and their refinements), called from within a job of ``each``: it must not wait for a
+    thread that waits for that job (``residual``'s runs them beside it where a thread is free, else in turn)."""
     cache = FitCache() if cache is None else cache
     if warm is not None:
         for e in effects:
@@ -427,12 +430,12 @@ def fit_model(train: Record, start: ValveModel, effects: Sequence[Effect] = (), 
     tried = (lambda e: bool(try_forms)) if isinstance(try_forms, bool) else (lambda e: e.name in try_forms)
     multi = [i for i, e in enumerate(effects) if tried(e) and len(e.forms()) > 1]
     if not multi:
-        return _fit(train, start, effects, poles=poles, rounds=rounds, cache=cache)[0]
+        return _fit(train, start, effects, poles=poles, rounds=rounds, cache=cache, beside=beside)[0]
     best = None
     for i in multi:  # (one effect with forms in practice: dynamics)
         fits = _fit_forms(effects[i].forms(), lambda f, s: _fit(
-            train, s, [f if j == i else e for j, e in enumerate(effects)], poles=poles, rounds=rounds, cache=cache),
-            start, each)
+            train, s, [f if j == i else e for j, e in enumerate(effects)], poles=poles, rounds=rounds, cache=cache,
+            beside=beside), start, each)
         candidate = min(fits, key=lambda f: f[1])
         best = candidate if best is None or candidate[1] < best[1] else best
     return best[0]
@@ -470,8 +473,10 @@ def _fit_forms(forms: list[Effect], fit: Callable[[Effect, ValveModel], tuple[Va
 
 
 def _fit(train: Record, start: ValveModel, effects: Sequence[Effect], *, poles: str, rounds: Optional[int],
-         cache: FitCache) -> tuple[ValveModel, float]:
-    """The model ``start`` (thresholds, G, t0) extended by ``effects``, fitted to ``train``.
+         cache: FitCache, beside: Callable[[list[Callable[[], object]]], list] = run_in_order
+         ) -> tuple[ValveModel, float]:
+    """The model ``start`` (thresholds, G, t0) extended by ``effects``, fitted to ``train``.  ``beside`` runs the
+    independent parts (a new pole pair's placements, the refinement from each): see ``fit_model``.
 
     ``poles``:
       ``"baseline"``  G_v's poles by nonlinear least squares on first differences (``fit_dynamics``), the
@@ -506,7 +511,7 @@ def _fit(train: Record, start: ValveModel, effects: Sequence[Effect], *, poles: 
     model, sse = _settled(train, model, cache)
     starts = [(model, sse)]
     if len(model.sections) > len(start.sections):  # a new pole pair: place it first (its fit has local minima)
-        starts = _place_extra_poles(train, model, len(start.sections), cache)
+        starts = _place_extra_poles(train, model, len(start.sections), cache, beside)
     # G_v's own poles come from the baseline (fitted on differences, so slow structure cannot bend them);
     # a joint refit moves them only together with an extra pole pair
     # (and with an output map after G whose settled structure says so: a play's holds, taken for G's lag in the baseline)
@@ -515,8 +520,8 @@ def _fit(train: Record, start: ValveModel, effects: Sequence[Effect], *, poles: 
     if not (nonlinear or free.any()):
         return min(starts, key=lambda f: f[1])
     # from each start; the lowest training SSE wins (a placement's own SSE does not rank where it ends)
-    return min((_settled(train, _gauss_newton(train, m, e, free, rounds, cache)[0], cache) for m, e in starts),
-               key=lambda f: f[1])
+    return min(beside([lambda m=m, e=e: _settled(train, _gauss_newton(train, m, e, free, rounds, cache)[0], cache)
+                       for m, e in starts]), key=lambda f: f[1])
 
 
 def _gauss_newton(train: Record, model: ValveModel, sse: float, free: np.ndarray, rounds: int,
@@ -543,27 +548,27 @@ def _gauss_newton(train: Record, model: ValveModel, sse: float, free: np.ndarray
     return model, sse
 
 
-def _place_extra_poles(train: Record, model: ValveModel, own: int,
-                       cache: FitCache) -> list[tuple[ValveModel, float]]:
+def _place_extra_poles(train: Record, model: ValveModel, own: int, cache: FitCache,
+                       beside: Callable[[list[Callable[[], object]]], list] = run_in_order
+                       ) -> list[tuple[ValveModel, float]]:
     """Starting places for the pole pairs ``model`` adds after its first ``own`` sections, by
     ``fit_dynamics`` (multistart) on the static output: with G_v's own poles held, and with them free as
     well when the record determines them.  Held, a baseline G_v that stretched to cover a slower valve
     (one second-order section for two) keeps the extra pair from the valve's poles; free, a noisy
     difference fit can pull a good G_v off, so both are refined and the fit keeps the better end.
-    Returns [(model with its linear parameters solved, training SSE)], one per distinct placement."""
+    Returns [(model with its linear parameters solved, training SSE)], one per distinct placement, in the order of
+    the options.  ``beside`` runs the placements, then their linear solves (see ``fit_model``)."""
     none = np.zeros(2 * len(model.sections), bool)
     held = none.copy()
     held[2 * own:] = True
     every = _free_poles(model)
     options = [held, every] if every[:2 * own].any() else [held]
     static = model.static_output(cache.context(train, model))
-    placed: dict[tuple, tuple[ValveModel, float]] = {}
-    for free in options:
-        fit = fit_dynamics(train, static, train.position_um, model.sections, free=free, multistart=True,
-                           delay_s=model.delay_s)
-        if fit.sections not in placed:
-            placed[fit.sections] = _settled(train, replace(model, sections=fit.sections), cache)
-    return list(placed.values())
+    fits = beside([lambda free=free: fit_dynamics(train, static, train.position_um, model.sections, free=free,
+                                                  multistart=True, delay_s=model.delay_s) for free in options])
+    placed = list(dict.fromkeys(fit.sections for fit in fits))   # distinct, in order
+    return beside([lambda sections=sections: _settled(train, replace(model, sections=sections), cache)
+                   for sections in placed])
 
 
 def refit_poles_with_effects(train: Record, model: ValveModel, cache: Optional[FitCache] = None) -> ValveModel:

@@ -73,7 +73,7 @@ from ..metrics import rms
 from .valve_model import REST, InitialState, ValveModel
 from .thresholds import *  # noqa: F401,F403  (the loop's thresholds, read here by tests and benches)
 from .thresholds import MID_CAPACITY, RESOLUTION_SHARE, UNEXPLAINED_NOISE_RATIO
-from ._stages import _on_pool
+from ._stages import _beside, _on_pool
 from ._capacity_stage import CapacityStage
 from ._effect_choice import _EffectChoice
 from ._report_stage import ReportStage
@@ -245,6 +245,12 @@ class _Loop(StartStage, CapacityStage, WholeRecordStage, ReportStage):
         waits for them, so they cannot queue behind it there.  A combined form waits only for forms handed to
         the pool before it (first come, first served: they run or have run)."""
         return _on_pool(self.forms_pool, jobs)
+
+    def each_beside(self, jobs: list[Callable[[], object]]) -> list:
+        """Independent parts of one fit (a new pole pair's placements and their refinements: ``fit_model``'s
+        ``beside``), from whatever thread runs it: the first in that thread, the others on a refit thread that is
+        free (a refit that waits for its forms leaves its own idle), else after it in that thread (``_beside``)."""
+        return _beside(self.pool, jobs)
 
     def session(self, model: ValveModel, on: Optional[Split] = None) -> Optional[SessionStart]:
         """``model``'s start and offset on a separate validation session (estimated once per model, the same way for
