@@ -23,7 +23,7 @@ sys.path.insert(0, os.path.join(HERE, "..", "test"))
 import valve_zoo as zoo                                        # noqa: E402  (test code, not the package's)
 import valve_battery as battery                                # noqa: E402
 import external_records as external                            # noqa: E402
-from harness import busy_loops                                 # noqa: E402
+from harness import busy_loops, host_yardstick, yardstick_note  # noqa: E402
 from piezo_valve_ros.core.identification import Record  # noqa: E402
 from piezo_valve_ros.runtime import keep_freed_memory  # noqa: E402
 from piezo_valve_ros.core.identification import analyse  # noqa: E402
@@ -105,13 +105,15 @@ def main():
     ap.add_argument("--records", type=int, default=len(RECORDS), help="records per valve (at most 5)")
     ap.add_argument("--external-only", action="store_true", help="only the records others made")
     args = ap.parse_args()
+    started = host_yardstick()   # the page's seconds with the host's speed as the bench started and ended
     ext_lines, ext_right = external_table()
     ext_summary = f"{ext_right} of {len(external.EXTERNAL)} records others made judged right."
     print(ext_summary)
     if args.external_only:
         if args.markdown:
             with open(args.markdown, "w") as fh:
-                fh.write(EXTERNAL_NOTE.format(command=" ".join(sys.argv[1:])) + "\n\n" + "\n".join(ext_lines)
+                fh.write(EXTERNAL_NOTE.format(command=" ".join(sys.argv[1:])) + "\n\n"
+                         + yardstick_note(started, host_yardstick()) + "\n\n" + "\n".join(ext_lines)
                          + "\n\n" + ext_summary + "\n")
         return
     records = RECORDS[:args.records]
@@ -155,7 +157,8 @@ def main():
     print(summary)
     if args.markdown:
         with open(args.markdown, "w") as fh:
-            fh.write(EXTERNAL_NOTE.format(command=" ".join(sys.argv[1:])) + "\n\n" + "\n".join(ext_lines) + "\n\n"
+            fh.write(EXTERNAL_NOTE.format(command=" ".join(sys.argv[1:])) + "\n\n"
+                     + yardstick_note(started, host_yardstick()) + "\n\n" + "\n".join(ext_lines) + "\n\n"
                      + ext_summary + "\n\n## The zoo\n\n")
             fh.write(f"Output of `python bench/zoo.py {' '.join(sys.argv[1:])}`: held-out figures on a separate "
                      "validation session at the record's rate; each zoo valve's sessions start after an excitation "
